@@ -1,0 +1,103 @@
+"""Grid layout shared by server, wire, client mirror, Warp kernels and GLSL (DESIGN.md, "Formats").
+
+Memory (all uint32 unless said otherwise):
+
+    cells    (n_slots, 8)       words 0-6 point words (allocated first), word 7 the cell key
+    buckets  (n_buckets, 8, 2)  entries (key, slot); empty entry = (EMPTY, EMPTY); used entries first
+    instances INSTANCE_DTYPE    one record per mesh instance, 48 bytes, std430-compatible (3 x 16 bytes)
+
+A free cell slot holds FREE_CELL (all points zero, key EMPTY). The key of a cell is its linear index
+`x + Dx * (y + Dy * z)` in the instance's dense virtual grid; the bucket of a cell is
+`hash(x, y, z) & (B - 1)` offset by the instance's first bucket. Points are stored in instance-local space:
+a point word's 5-bit codes q give the local position `origin + (cell + (q + 0.5) / 32) * cell_size`.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+CELL_WORDS = 8
+POINTS_PER_CELL = 7
+KEY_WORD = 7
+BUCKET_ENTRIES = 8
+EMPTY = np.uint32(0xFFFFFFFF)
+MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz < 2^30 keeps keys clear of EMPTY
+
+FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
+EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)
+
+# Instance flags.
+FLAG_DOUBLE_SIDED = 1 << 0
+FLAG_DEFORMING = 1 << 1  # skinned: points move inside the grid every tick
+FLAG_MOVING = 1 << 2  # rigid motion: transform changes, local points do not
+
+INSTANCE_DTYPE = np.dtype(
+    [
+        ("origin", "<f4", (3,)),  # local-space corner of cell (0, 0, 0)
+        ("cell_size", "<f4"),  # local units
+        ("dims", "<u4", (3,)),  # Dx, Dy, Dz
+        ("bucket_offset", "<u4"),  # first bucket of this instance in the global bucket array
+        ("bucket_count", "<u4"),  # B, a power of two
+        ("radius", "<f4"),  # interpolation radius r, local units; cell_size >= 2 r
+        ("flags", "<u4"),
+        ("pad", "<u4"),
+    ]
+)
+assert INSTANCE_DTYPE.itemsize == 48
+
+
+def cell_hash(x: np.ndarray, y: np.ndarray, z: np.ndarray, dims) -> np.ndarray:
+    """Paper eq. 1 in wrapping uint32 arithmetic, as GLSL's uint does: x + y*Dx*17 + z*Dx*Dy*31."""
+    dx = np.uint64(int(dims[0]))
+    dy = np.uint64(int(dims[1]))
+    m = np.uint64(0xFFFFFFFF)
+    x = np.asarray(x, dtype=np.uint64)
+    y = np.asarray(y, dtype=np.uint64)
+    z = np.asarray(z, dtype=np.uint64)
+    h = (x + ((y * ((dx * np.uint64(17)) & m)) & m) + ((z * ((dx * dy * np.uint64(31)) & m)) & m)) & m
+    return h.astype(np.uint32)
+
+
+def bucket_index(x, y, z, dims, bucket_offset: int, bucket_count: int) -> np.ndarray:
+    """Global bucket index of cells (x, y, z) of an instance."""
+    return (cell_hash(x, y, z, dims) & np.uint32(bucket_count - 1)).astype(np.uint32) + np.uint32(bucket_offset)
+
+
+def cell_key(x, y, z, dims) -> np.ndarray:
+    x = np.asarray(x, dtype=np.uint64)
+    y = np.asarray(y, dtype=np.uint64)
+    z = np.asarray(z, dtype=np.uint64)
+    return (x + np.uint64(int(dims[0])) * (y + np.uint64(int(dims[1])) * z)).astype(np.uint32)
+
+
+def key_to_cell(key, dims) -> np.ndarray:
+    key = np.asarray(key, dtype=np.uint64)
+    dx, dy = np.uint64(int(dims[0])), np.uint64(int(dims[1]))
+    return np.stack([key % dx, (key // dx) % dy, key // (dx * dy)], axis=-1).astype(np.int64)
+
+
+def poisson_radius(area: float, n_points: int) -> float:
+    """Poisson disk radius of n points on area A (Yuksel 2015, 2D): sqrt(A / (2 sqrt(3) n))."""
+    return math.sqrt(area / (2.0 * math.sqrt(3.0) * max(int(n_points), 1)))
+
+
+def next_pow2(n: int) -> int:
+    return 1 << max(0, int(math.ceil(math.log2(max(int(n), 1)))))
+
+
+def grid_coords(local_pos: np.ndarray, origin: np.ndarray, cell_size: float) -> np.ndarray:
+    """Local positions -> continuous grid coordinates g, in cells (float64 for exact floor on faces)."""
+    return (np.asarray(local_pos, dtype=np.float64) - np.asarray(origin, dtype=np.float64)) / float(cell_size)
+
+
+def lookup_block_base(g: np.ndarray) -> np.ndarray:
+    """First cell of the 2x2x2 block around grid coordinate g: floor(g - 0.5). Every point within r of the
+    fragment lies in that block because cell_size >= 2 r."""
+    return np.floor(np.asarray(g) - 0.5).astype(np.int64)
+
+
+def decode_point_local(cell_xyz: np.ndarray, qpos: np.ndarray, origin, cell_size) -> np.ndarray:
+    """Cell index (..., 3) and 5-bit codes (..., 3) -> local position (float32, as the shader computes it)."""
+    f = (np.asarray(qpos, dtype=np.float32) + np.float32(0.5)) / np.float32(32.0)
+    return np.asarray(origin, dtype=np.float32) + (np.asarray(cell_xyz, dtype=np.float32) + f) * np.float32(cell_size)

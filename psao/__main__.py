@@ -1,0 +1,5 @@
+import sys
+
+from psao.cli import main
+
+sys.exit(main())

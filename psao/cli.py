@@ -1,0 +1,71 @@
+"""The `psao` command: one entry point, sub-commands owned by the packages that implement them.
+
+Each sub-command module exposes `add_arguments(parser)` and `run(args) -> int`; heavy imports (Embree,
+Warp, moderngl) stay inside `run` so `psao --help` is instant. Known errors become one line on stderr
+and exit status 2; anything else is a bug and keeps its traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+SUBCOMMANDS = {
+    "bake": ("psao_server.bake_cli", "generate points, trace AO and write the grid"),
+    "serve": ("psao_server.serve_cli", "bake a scene and stream its AO to clients over websockets"),
+    "client": ("psao_client.cli", "connect to a server, mirror its grid, optionally render frames"),
+    "render": ("psao_client.render_cli", "render frames offline from a baked grid, no server"),
+    "bench": ("psao_eval.bench_cli", "quality, bandwidth and runtime benchmarks against an RTAO reference"),
+    "demo": ("psao_eval.demo", "serve the animated courtyard, render it headless, report and chart"),
+}
+
+# Base classes of the errors that deserve a one-line message rather than a traceback.
+ERROR_BASES = [
+    ("protocol.errors", "ProtocolError"),
+    ("psao_scene.errors", "SceneError"),
+    ("psao_server.errors", "ServerError"),
+    ("psao_client.errors", "ClientError"),
+    ("psao_eval.errors", "EvalError"),
+]
+
+
+def _known_errors() -> tuple[type[BaseException], ...]:
+    found: list[type[BaseException]] = [FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError]
+    for module, name in ERROR_BASES:
+        try:
+            found.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError):
+            pass
+    return tuple(found)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="psao", description="Point-based split rendering of ray-traced AO.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:  # sub-command not built yet
+                continue
+            raise
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("psao: interrupted", file=sys.stderr)
+        return 130
+    except _known_errors() as exc:
+        print(f"psao {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""Scene data model shared by the server (tracing) and the client (rasterising): both load the same scene.
+
+A Scene is meshes (geometry in mesh-local space) plus instances (a mesh placed with a 4x4 local-to-world
+transform). Geometry of a mesh is float64 vertices (V, 3) and int64 faces (F, 3), already cleaned
+(no NaN, no degenerate triangles). Units are scene units ("metres"); ao_distance is in world units.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Mesh:
+    name: str
+    vertices: np.ndarray  # (V, 3) float64, mesh-local space
+    faces: np.ndarray  # (F, 3) int64
+    double_sided: bool = False
+    color: tuple[float, float, float] = (0.8, 0.8, 0.8)  # linear RGB albedo for the client's color pass
+    skin: object | None = None  # psao_scene.animation.Skin for skinned meshes (Dynamic issue)
+
+    def face_normals(self) -> np.ndarray:
+        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
+        n = np.cross(b - a, c - a)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    def area(self) -> float:
+        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
+        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+@dataclass
+class Instance:
+    name: str
+    mesh: int  # index into Scene.meshes
+    transform: np.ndarray  # (4, 4) float64 local-to-world at time 0
+    animation: object | None = None  # psao_scene.animation.RigidAnimation (Dynamic issue)
+
+
+@dataclass
+class CameraKey:
+    time: float  # seconds
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+
+
+@dataclass
+class CameraPath:
+    name: str
+    keys: list[CameraKey]
+    fov_y: float = 60.0  # degrees
+    loop: bool = True
+
+
+@dataclass
+class Scene:
+    name: str
+    meshes: list[Mesh]
+    instances: list[Instance]
+    ao_distance: float  # world units
+    camera_paths: dict[str, CameraPath] = field(default_factory=dict)
+    source: str = ""  # what it was loaded from, for messages
+
+    def world_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for inst in self.instances:
+            v = self.meshes[inst.mesh].vertices @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+            lo = np.minimum(lo, v.min(axis=0))
+            hi = np.maximum(hi, v.max(axis=0))
+        return lo, hi
+
+    def content_hash(self) -> str:
+        """sha256 over geometry, instances and AO distance: client and server must agree on it."""
+        h = hashlib.sha256()
+        h.update(np.float64(self.ao_distance).tobytes())
+        for m in self.meshes:
+            h.update(m.name.encode())
+            h.update(np.ascontiguousarray(m.vertices, dtype=np.float64).tobytes())
+            h.update(np.ascontiguousarray(m.faces, dtype=np.int64).tobytes())
+            h.update(bytes([int(m.double_sided)]))
+        for i in self.instances:
+            h.update(i.name.encode())
+            h.update(np.int64(i.mesh).tobytes())
+            h.update(np.ascontiguousarray(i.transform, dtype=np.float64).tobytes())
+        return h.hexdigest()
