@@ -1,0 +1,37 @@
+"""Tracer back-ends behind one interface (as trimesh's ray module does): import errors are deferred
+until a back-end is asked for, so a missing optional back-end never breaks the package.
+
+    make_tracer("embree", center)    Embree through embreex, worker processes (default)
+    make_tracer("warp", center)      Warp kernel: CUDA when present, else Warp's CPU device
+"""
+from __future__ import annotations
+
+from psao_server.errors import TracerError
+from psao_server.tracer.base import TraceSettings, Tracer
+
+BACKENDS = ("embree", "warp")
+
+
+def make_tracer(name: str = "embree", center=(0.0, 0.0, 0.0), **kwargs) -> Tracer:
+    if name == "embree":
+        from psao_server.tracer.embree import EmbreeTracer
+        return EmbreeTracer(center, **kwargs)
+    if name == "warp":
+        from psao_server.tracer.warp_backend import WarpTracer
+        return WarpTracer(center, **kwargs)
+    raise TracerError(f"unknown tracer back-end {name!r} (known: {', '.join(BACKENDS)})")
+
+
+def available_backends() -> list[str]:
+    """Back-ends that can be constructed on this machine."""
+    found = []
+    for name in BACKENDS:
+        try:
+            make_tracer(name).close()
+            found.append(name)
+        except TracerError:
+            pass
+    return found
+
+
+__all__ = ["BACKENDS", "TraceSettings", "Tracer", "TracerError", "available_backends", "make_tracer"]

@@ -1,0 +1,79 @@
+"""Python oracle of the client's per-fragment AO lookup (DESIGN.md "AO at a fragment", paper eq. 2-4).
+
+It reads exactly the arrays the client holds (instances, buckets, cells) and does exactly what
+`shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
+hash -> bucket -> linear scan for the key -> the cell's allocated points, weights
+max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,
+or 1 where all weights are 0. Arithmetic is float32 like the shader's so the two agree to rounding.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from protocol import gridformat as gf
+from protocol import pointword as pw
+
+T_N = 0.1
+T_D = 0.7
+_BLOCK = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], dtype=np.int64)
+
+
+def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal, t_n: float = T_N,
+                   t_d: float = T_D, chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """AO (M,) float32 and the weight sum (M,) at fragments given in instance-local space."""
+    inst_ids = np.asarray(inst_ids, np.int64)
+    local_pos = np.asarray(local_pos, np.float32).reshape(-1, 3)
+    local_normal = np.asarray(local_normal, np.float32).reshape(-1, 3)
+    ao = np.ones(len(inst_ids), np.float32)
+    wsum = np.zeros(len(inst_ids), np.float32)
+    for s in range(0, len(inst_ids), chunk):
+        sl = slice(s, s + chunk)
+        ao[sl], wsum[sl] = _reconstruct_chunk(instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d)
+    return ao, wsum
+
+
+def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d):
+    m = len(inst)
+    rec = instances[inst]
+    origin = rec["origin"].astype(np.float32)
+    s = rec["cell_size"].astype(np.float32)
+    r = rec["radius"].astype(np.float32)
+    dims = rec["dims"].astype(np.int64)
+    g = (x - origin) / s[:, None]
+    base = np.floor(g - np.float32(0.5)).astype(np.int64)
+    cell = base[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
+    inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
+    c = np.where(inside[..., None], cell, 0).astype(np.uint64)
+    dx = dims[:, 0:1].astype(np.uint64)
+    dy = dims[:, 1:2].astype(np.uint64)
+    key = ((c[..., 0] + dx * (c[..., 1] + dy * c[..., 2])) & np.uint64(0xFFFFFFFF)).astype(np.uint32)
+    mask32 = np.uint64(0xFFFFFFFF)
+    h = (c[..., 0] + ((c[..., 1] * ((dx * np.uint64(17)) & mask32)) & mask32)
+         + ((c[..., 2] * ((dx * dy * np.uint64(31)) & mask32)) & mask32)) & mask32
+    b = (h.astype(np.uint32) & (rec["bucket_count"][:, None] - np.uint32(1))).astype(np.int64) + rec["bucket_offset"][:, None].astype(np.int64)
+    b = np.where(inside, b, 0)
+    entries = buckets[b]  # (M, 8, 8, 2)
+    # Entries are used-first and keys are unique in a bucket, so "first match before EMPTY" == "any match".
+    match = (entries[..., 0] == key[..., None]) & inside[..., None]
+    found = match.any(axis=2)
+    slot = np.take_along_axis(entries[..., 1], match.argmax(axis=2)[..., None], axis=2)[..., 0].astype(np.int64)
+    slot = np.where(found, slot, 0)
+    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 8, 7)
+    allocated, qpos, ncode, aocode = pw.unpack_point(words)
+    # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
+    valid = allocated & found[..., None]
+    p = origin[:, None, None, :] + (cell[:, :, None, :].astype(np.float32) + (qpos.astype(np.float32) + np.float32(0.5)) / np.float32(32.0)) * s[:, None, None, None]
+    n_p = pw.oct_decode(ncode)
+    d_vec = p - x[:, None, None, :]
+    dist = np.sqrt((d_vec * d_vec).sum(axis=-1))
+    w = np.maximum(np.float32(0.0), (r[:, None, None] - dist) / r[:, None, None])
+    ndot = (n_p * n_x[:, None, None, :]).sum(axis=-1)
+    safe = np.where(dist > 0, dist, np.float32(1.0))
+    ddot = (n_p * d_vec).sum(axis=-1) / safe
+    ddot = np.where(dist > 0, ddot, np.float32(0.0))
+    w = np.where((ndot <= t_n) | (ddot * ddot >= t_d) | ~valid, np.float32(0.0), w).astype(np.float32)
+    wsum = w.sum(axis=(1, 2), dtype=np.float32)
+    ao_vals = pw.dequantise_ao(aocode)
+    num = (w * ao_vals).sum(axis=(1, 2), dtype=np.float32)
+    ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)
+    return ao, wsum

@@ -1,0 +1,183 @@
+"""Embree back-end (embreex): occlusion queries limited to the AO distance, spread over processes.
+
+embreex holds the GIL while it traces, so threads do not scale; each worker process keeps its own
+Embree scenes (the static one built once at start, the dynamic one rebuilt when its version changes)
+and traces whole chunks of points: directions are generated in the worker, only positions, normals and
+ids travel, and only one float per point comes back.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+
+import numpy as np
+
+from psao_server.errors import TracerError
+from psao_server.tracer.base import TraceSettings, Tracer
+from psao_server.tracer.directions import cosine_directions, ray_origins
+
+try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+    _IMPORT_ERROR = None
+except ImportError as exc:  # pragma: no cover - embreex is a hard dependency here
+    _IMPORT_ERROR = exc
+
+
+def _build_scene(vertices: np.ndarray, faces: np.ndarray):
+    if len(faces) == 0:
+        return None
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
+    return scene
+
+
+class _Scenes:
+    """The Embree scenes of one process: static (built once) and dynamic (rebuilt per version)."""
+
+    def __init__(self, static_vertices, static_faces):
+        self.static = _build_scene(static_vertices, static_faces)
+        self.dynamic = None
+        self.dynamic_version = -1
+
+    def update_dynamic(self, version, vertices, faces):
+        if version != self.dynamic_version:
+            self.dynamic = _build_scene(vertices, faces) if vertices is not None else None
+            self.dynamic_version = version
+
+    def occluded(self, origins, dirs, tmax) -> np.ndarray:
+        hit = np.zeros(len(origins), dtype=bool)
+        dists = np.full(len(origins), tmax, np.float32)
+        for scene in (self.static, self.dynamic):
+            if scene is None:
+                continue
+            todo = np.flatnonzero(~hit)
+            if len(todo) == 0:
+                break
+            res = scene.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED")
+            hit[todo] = res != -1
+        return hit
+
+
+def _chunk_rays(pos, nrm, ids, s: TraceSettings):
+    dirs = cosine_directions(ids, nrm, s.rays, s.seed).reshape(-1, 3)
+    org = np.repeat(ray_origins(pos, nrm, s.ao_distance), s.rays, axis=0)
+    return org, dirs
+
+
+def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> np.ndarray:
+    org, dirs = _chunk_rays(pos, nrm, ids, s)
+    hit = scenes.occluded(org, dirs, s.ao_distance)
+    return 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
+
+
+# ---- worker-process side
+_WORKER: _Scenes | None = None
+
+
+def _worker_init(static_vertices, static_faces):
+    global _WORKER
+    _WORKER = _Scenes(static_vertices, static_faces)
+
+
+def _worker_trace(job):
+    version, dyn_v, dyn_f, pos, nrm, ids, s = job
+    _WORKER.update_dynamic(version, dyn_v, dyn_f)
+    return _trace_chunk(_WORKER, pos, nrm, ids, s)
+
+
+def _worker_raw(job):
+    """Bare occlusion throughput: rays are generated first, only `scene.run` is timed."""
+    version, dyn_v, dyn_f, pos, nrm, ids, s = job
+    _WORKER.update_dynamic(version, dyn_v, dyn_f)
+    org, dirs = _chunk_rays(pos, nrm, ids, s)
+    t0 = time.perf_counter()
+    _WORKER.occluded(org, dirs, s.ao_distance)
+    return time.perf_counter() - t0
+
+
+class EmbreeTracer(Tracer):
+    name = "embree"
+
+    def __init__(self, center=(0.0, 0.0, 0.0), workers: int = 0):
+        if _IMPORT_ERROR is not None:
+            raise TracerError(f"the embree back-end needs embreex: {_IMPORT_ERROR}")
+        self.center = np.asarray(center, np.float64)
+        self.workers = workers or os.cpu_count() or 1
+        self._static = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+        self._dynamic = (None, None)
+        self._dynamic_version = 0
+        self._local: _Scenes | None = None
+        self._pool = None
+
+    # geometry -------------------------------------------------------------
+    def _recentre(self, vertices) -> np.ndarray:
+        return (np.asarray(vertices, np.float64) - self.center).astype(np.float32)
+
+    def set_static(self, vertices, faces) -> None:
+        self.close()
+        self._static = (self._recentre(vertices), np.asarray(faces, np.int32))
+        self._local = _Scenes(*self._static)
+
+    def set_dynamic(self, vertices, faces) -> None:
+        self._dynamic_version += 1
+        if vertices is None or len(faces) == 0:
+            self._dynamic = (None, None)
+        else:
+            self._dynamic = (self._recentre(vertices), np.asarray(faces, np.int32))
+        if self._local is not None:
+            self._local.update_dynamic(self._dynamic_version, *self._dynamic)
+
+    # tracing --------------------------------------------------------------
+    def _jobs(self, positions, normals, point_ids, s: TraceSettings):
+        pos = self._recentre(positions)
+        nrm = np.asarray(normals, np.float32)
+        ids = np.asarray(point_ids, np.int64)
+        step = max(1, s.chunk_points)
+        for i in range(0, len(pos), step):
+            yield (self._dynamic_version, *self._dynamic, pos[i:i + step], nrm[i:i + step], ids[i:i + step], s)
+
+    def _ensure_pool(self):
+        if self._pool is None and self.workers > 1:
+            ctx = mp.get_context("spawn")  # no fork: the server may hold threads and GL contexts
+            self._pool = ctx.Pool(self.workers, initializer=_worker_init, initargs=self._static)
+        return self._pool
+
+    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
+        if self._local is None:
+            raise TracerError("set_static() must be called before tracing")
+        out = []
+        if len(positions) == 0:
+            return np.zeros(0, np.float32)
+        pool = self._ensure_pool() if len(positions) > settings.chunk_points else None
+        jobs = self._jobs(positions, normals, point_ids, settings)
+        results = pool.imap(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
+        for vis in results:
+            out.append(vis)
+            if progress is not None:
+                progress(len(vis))
+        return np.concatenate(out).astype(np.float32)
+
+    def raw_occlusion_rate(self, positions, normals, point_ids, settings: TraceSettings) -> float:
+        """Rays per second of bare `scene.run` on the same rays and worker processes."""
+        pool = self._ensure_pool()
+        jobs = list(self._jobs(positions, normals, point_ids, settings))
+        if pool is None:
+            t = 0.0
+            for j in jobs:
+                org, dirs = _chunk_rays(*j[3:])
+                t0 = time.perf_counter()
+                self._local.occluded(org, dirs, settings.ao_distance)
+                t += time.perf_counter() - t0
+            return len(positions) * settings.rays / max(t, 1e-9)
+        # Each worker's busy time is the sum of its chunks' run() times; jobs are spread evenly, so the
+        # wall time of the bare queries is the total busy time divided by the number of workers.
+        busy = sum(pool.map(_worker_raw, jobs, chunksize=1))
+        return len(positions) * settings.rays / max(busy / self.workers, 1e-9)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None

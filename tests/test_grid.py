@@ -1,0 +1,169 @@
+"""Grid memory management: layout invariants after every kind of edit, against brute force."""
+import numpy as np
+import pytest
+
+from protocol import gridformat as gf
+from protocol import pointword as pw
+from protocol.reconstruct import reconstruct_ao
+from psao_server.errors import GridError
+from psao_server.grid import Grid, GridSettings
+
+
+def plane_points(n, rng, size=1.0):
+    p = np.zeros((n, 3))
+    p[:, :2] = rng.random((n, 2)) * size
+    return p, np.tile([0.0, 0.0, 1.0], (n, 1)).astype(np.float32)
+
+
+def check_invariants(grid: Grid):
+    """Every structural rule of DESIGN.md holds for the whole grid."""
+    used = grid.buckets[:, :, 0] != gf.EMPTY
+    # used entries first, empty entries fully EMPTY
+    assert not (np.diff(used.astype(int), axis=1) > 0).any()
+    assert (grid.buckets[~used] == gf.EMPTY).all()
+    live = grid.allocated_cells()
+    referenced = grid.buckets[used][:, 1]
+    assert sorted(referenced.tolist()) == sorted(live.tolist()), "bucket entries and allocated cells disagree"
+    for b, e in zip(*np.nonzero(used)):
+        key, slot = grid.buckets[b, e]
+        assert grid.cells[slot, gf.KEY_WORD] == key
+        inst = grid.cell_instance[slot]
+        rec = grid.instances[inst]
+        c = gf.key_to_cell(key, rec["dims"])
+        assert gf.bucket_index(c[0], c[1], c[2], rec["dims"], rec["bucket_offset"], rec["bucket_count"]) == b
+    alloc = (grid.cells[:, : gf.POINTS_PER_CELL] >> 31) == 1
+    assert not (np.diff(alloc.astype(int), axis=1) > 0).any(), "allocated points must come first"
+    assert (alloc == (grid.point_id != -1)).all()
+    assert alloc[live].any(axis=1).all(), "an allocated cell must not be empty"
+    free = np.setdiff1d(np.arange(grid.capacity), live)
+    assert (grid.cells[free] == gf.FREE_CELL).all()
+    assert sorted(grid.free_slots) == free.tolist()
+    # every point word decodes to within one quantisation step of its exact position, inside its cell
+    slot, idx = np.nonzero(alloc)
+    for inst in np.unique(grid.cell_instance[slot]):
+        sel = grid.cell_instance[slot] == inst
+        rec = grid.instances[inst]
+        cell = gf.key_to_cell(grid.cells[slot[sel], gf.KEY_WORD], rec["dims"])
+        _, q, _, _ = pw.unpack_point(grid.cells[slot[sel], idx[sel]])
+        decoded = gf.decode_point_local(cell, q, rec["origin"], rec["cell_size"])
+        err = np.abs(decoded - grid.point_local[slot[sel], idx[sel]]).max()
+        assert err <= rec["cell_size"] / 64 * 1.001 + 1e-6
+
+
+def test_build_keeps_points_and_invariants():
+    rng = np.random.default_rng(0)
+    p, n = plane_points(5000, rng)
+    grid = Grid.build([(p, n, 0.01, 0)])
+    check_invariants(grid)
+    assert grid.stats.inserted + grid.stats.dropped == 5000
+    assert grid.n_points() == grid.stats.inserted
+    rec = grid.instances[0]
+    assert rec["cell_size"] >= 2 * rec["radius"] - 1e-7
+    assert rec["bucket_count"] & (rec["bucket_count"] - 1) == 0
+
+
+def test_cell_overflow_drops_and_counts():
+    p = np.full((20, 3), 0.5)
+    n = np.tile([0, 0, 1.0], (20, 1))
+    grid = Grid.build([(p, n, 0.1, 0)])
+    assert grid.stats.inserted == gf.POINTS_PER_CELL
+    assert grid.stats.dropped_cell_full == 20 - gf.POINTS_PER_CELL
+    check_invariants(grid)
+
+
+def test_bucket_overflow_drops_and_counts():
+    # One bucket for the instance: the 9th distinct cell cannot be placed.
+    p = np.array([[i * 0.5, 0.0, 0.0] for i in range(12)])
+    n = np.tile([0, 0, 1.0], (12, 1))
+    grid = Grid.build([(p, n, 0.05, 0)], GridSettings(bucket_factor=0.5))
+    assert grid.instances[0]["bucket_count"] == 1
+    assert grid.stats.inserted == 8 and grid.stats.dropped_bucket_full == 4
+    check_invariants(grid)
+
+
+def test_random_edits_keep_invariants_and_dirty_flags():
+    rng = np.random.default_rng(5)
+    p, n = plane_points(3000, rng)
+    p2, n2 = plane_points(2000, rng, 2.0)
+    grid = Grid.build([(p, n, 0.01, 0), (p2, n2, 0.02, gf.FLAG_DOUBLE_SIDED)])
+    grid.take_dirty()
+    for step in range(30):
+        t = grid.point_table()
+        pick = rng.choice(len(t), 40, replace=False)
+        kind = step % 3
+        before = grid.cells.copy(), grid.buckets.copy()
+        if kind == 0:
+            grid.set_ao(t.slot[pick], t.index[pick], rng.integers(0, 256, 40))
+        elif kind == 1:
+            grid.remove_points(t.slot[pick], t.index[pick])
+        else:
+            newpos = t.local_pos[pick] + rng.normal(scale=0.05, size=(40, 3)) * [1, 1, 0]
+            grid.move_points(t.slot[pick], t.index[pick], newpos, t.local_normal[pick])
+        check_invariants(grid)
+        db, dc = grid.take_dirty()
+        # every changed row is flagged (flags may be a superset, never a subset)
+        cap = min(len(before[0]), grid.capacity)
+        changed_c = np.flatnonzero((grid.cells[:cap] != before[0][:cap]).any(axis=1))
+        changed_b = np.flatnonzero((grid.buckets != before[1]).any(axis=(1, 2)))
+        assert set(changed_c) <= set(dc.tolist())
+        assert set(changed_b) <= set(db.tolist())
+
+
+def test_pool_grows_when_full():
+    rng = np.random.default_rng(6)
+    p, n = plane_points(200, rng)
+    grid = Grid.build([(p, n, 0.01, 0)], GridSettings(pool_headroom=0.0, bucket_factor=64))
+    cap = grid.capacity
+    far = np.column_stack([rng.random(3000), rng.random(3000), np.zeros(3000)])
+    grid.insert_points(0, far, np.tile([0, 0, 1.0], (3000, 1)), 255)
+    assert grid.capacity > cap
+    check_invariants(grid)
+
+
+def test_compact_renumbers_densely_and_preserves_lookup():
+    rng = np.random.default_rng(7)
+    p, n = plane_points(4000, rng)
+    grid = Grid.build([(p, n, 0.01, 0)])
+    t = grid.point_table()
+    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
+    grid.remove_points(t.slot[::3], t.index[::3])
+    probe = np.column_stack([rng.random(500), rng.random(500), np.zeros(500)])
+    nrm = np.tile([0, 0, 1.0], (500, 1))
+    before = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(500, int), probe, nrm)
+    grid.compact()
+    check_invariants(grid)
+    assert grid.allocated_cells().tolist() == list(range(len(grid.allocated_cells())))
+    after = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(500, int), probe, nrm)
+    np.testing.assert_array_equal(before[0], after[0])
+
+
+def test_save_load_round_trip(tmp_path):
+    rng = np.random.default_rng(8)
+    p, n = plane_points(1000, rng)
+    grid = Grid.build([(p, n, 0.02, 0)])
+    grid.save(tmp_path / "g.npz", scene_hash="abc", meta={"density": 5})
+    g2, h, meta = Grid.load(tmp_path / "g.npz")
+    assert h == "abc" and meta == {"density": 5}
+    for name in ("instances", "buckets", "cells", "point_local", "point_id"):
+        np.testing.assert_array_equal(getattr(g2, name), getattr(grid, name))
+    check_invariants(g2)
+
+
+def test_load_rejects_garbage(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(GridError, match="not a PSAO grid"):
+        Grid.load(bad)
+
+
+def test_instance_without_points():
+    rng = np.random.default_rng(9)
+    p, n = plane_points(100, rng)
+    grid = Grid.build([(np.zeros((0, 3)), np.zeros((0, 3)), 0.1, 0), (p, n, 0.05, 0)])
+    check_invariants(grid)
+    assert grid.n_points() == 100 - grid.stats.dropped
+
+
+def test_cell_factor_below_two_is_rejected():
+    with pytest.raises(GridError, match="cell_factor"):
+        GridSettings(cell_factor=1.5)
