@@ -1,0 +1,163 @@
+"""Pass 1: rasterise the scene's instances into a G-buffer (shaders/gbuffer.vert, gbuffer.frag).
+
+Attachments (GL's bottom-up rows; `read()` flips them to top-down images):
+    world        RGBA32F  world position, w = 1 where covered (the mask)
+    normal       RGBA32F  world normal, facing the camera on double-sided meshes
+    local        RGBA32F  instance-local position (what the PSAO lookup needs, full float precision)
+    local_normal RGBA32F  instance-local normal
+    color        RGBA16F  lit colour without AO (directional light + ambient), linear
+    instance     R32UI    instance index + 1, 0 = background
+    depth        R32F     view depth (> 0), 0 = background (the SSAO taps read this one channel)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from psao_client.render.shaderlib import compile_program
+
+
+@dataclass
+class LightSettings:
+    direction: tuple[float, float, float] = (0.35, 0.9, 0.25)  # towards the light, world space (y up)
+    ambient: float = 0.35  # fraction of albedo lit by the ambient term
+    diffuse: float = 0.65  # fraction lit by the directional light at normal incidence
+
+
+@dataclass
+class GBufferArrays:
+    """G-buffer read back as top-down (H, W, ...) arrays."""
+
+    world: np.ndarray  # (H, W, 3) float32
+    normal: np.ndarray  # (H, W, 3) float32
+    local: np.ndarray  # (H, W, 3) float32
+    local_normal: np.ndarray  # (H, W, 3) float32
+    color: np.ndarray  # (H, W, 3) float32, linear
+    instance: np.ndarray  # (H, W) int32, -1 = background
+    depth: np.ndarray  # (H, W) float32 view depth, 0 = background
+    mask: np.ndarray  # (H, W) bool, covered pixels
+
+
+_LAYOUT = [  # name, components, dtype
+    ("world", 4, "f4"),
+    ("normal", 4, "f4"),
+    ("local", 4, "f4"),
+    ("local_normal", 4, "f4"),
+    ("color", 4, "f2"),
+    ("instance", 1, "u4"),
+    ("depth", 1, "f4"),
+]
+
+
+class GBuffer:
+    def __init__(self, ctx, size: tuple[int, int]):
+        self.size = (int(size[0]), int(size[1]))
+        self.textures = {}
+        for name, comps, dtype in _LAYOUT:
+            tex = ctx.texture(self.size, comps, dtype=dtype)
+            tex.filter = (ctx.NEAREST, ctx.NEAREST)
+            self.textures[name] = tex
+        self.depth_buffer = ctx.depth_renderbuffer(self.size)
+        self.fbo = ctx.framebuffer([self.textures[n] for n, _, _ in _LAYOUT], self.depth_buffer)
+
+    def __getitem__(self, name: str):
+        return self.textures[name]
+
+    def read(self) -> GBufferArrays:
+        w, h = self.size
+
+        def grab(name, comps, dtype, keep):
+            arr = np.frombuffer(self.textures[name].read(), dtype=dtype).reshape(h, w, comps)[::-1]
+            out = np.uint32 if dtype is np.uint32 else np.float32
+            return np.ascontiguousarray(arr[..., :keep], dtype=out)
+
+        world = grab("world", 4, np.float32, 4)
+        inst = grab("instance", 1, np.uint32, 1)[..., 0].astype(np.int64) - 1
+        return GBufferArrays(
+            world=world[..., :3],
+            normal=grab("normal", 4, np.float32, 3),
+            local=grab("local", 4, np.float32, 3),
+            local_normal=grab("local_normal", 4, np.float32, 3),
+            color=grab("color", 4, np.float16, 3),
+            instance=inst.astype(np.int32),
+            depth=grab("depth", 1, np.float32, 1)[..., 0],
+            mask=world[..., 3] > 0,
+        )
+
+    def release(self) -> None:
+        self.fbo.release()
+        self.depth_buffer.release()
+        for tex in self.textures.values():
+            tex.release()
+        self.textures.clear()
+
+
+def flat_shaded_arrays(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Mesh -> interleaved (3F, 6) float32 position + face normal: one normal per triangle, matching
+    the face normals the server's points carry."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    n = np.cross(b - a, c - a)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    pos = np.stack([a, b, c], axis=1).reshape(-1, 3)
+    nrm = np.repeat(n, 3, axis=0)
+    return np.hstack([pos, nrm]).astype(np.float32)
+
+
+class GeometryPass:
+    """One vertex array per mesh; one draw per instance with its model matrix."""
+
+    def __init__(self, ctx, scene, light: LightSettings | None = None):
+        self._ctx = ctx
+        self.program = compile_program(ctx, vertex_shader="gbuffer.vert", fragment_shader="gbuffer.frag")
+        self._meshes = scene.meshes
+        self._mesh_of_instance = [int(inst.mesh) for inst in scene.instances]
+        self._vbos, self._vaos = [], []
+        for mesh in scene.meshes:
+            data = flat_shaded_arrays(mesh.vertices, mesh.faces)
+            vbo = ctx.buffer(data.tobytes() if data.size else np.zeros(6, np.float32).tobytes())
+            self._vbos.append(vbo)
+            self._vaos.append((ctx.vertex_array(self.program, [(vbo, "3f 3f", "in_position", "in_normal")]), len(data)))
+        light = light or LightSettings()
+        direction = np.asarray(light.direction, dtype=np.float64)
+        self.program["u_light_dir"].value = tuple((direction / np.linalg.norm(direction)).tolist())
+        self.program["u_ambient"].value = float(light.ambient)
+        self.program["u_diffuse"].value = float(light.diffuse)
+
+    def draw(self, gbuffer: GBuffer, view: np.ndarray, proj: np.ndarray, transforms: np.ndarray) -> None:
+        ctx = self._ctx
+        gbuffer.fbo.use()
+        ctx.viewport = (0, 0, *gbuffer.size)
+        gbuffer.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        ctx.enable_only(ctx.DEPTH_TEST)  # no culling: single-sided meshes may be seen from behind
+        self.program["u_view"].write(_gl_mat4(view))
+        self.program["u_proj"].write(_gl_mat4(proj))
+        for i, model in enumerate(transforms):
+            mesh_index = self._mesh_of_instance[i]
+            vao, count = self._vaos[mesh_index]
+            if count == 0:
+                continue
+            mesh = self._meshes[mesh_index]
+            linear = np.asarray(model, dtype=np.float64)[:3, :3]
+            self.program["u_model"].write(_gl_mat4(model))
+            self.program["u_normal_matrix"].write(np.linalg.inv(linear).astype(np.float32).tobytes())
+            self.program["u_albedo"].value = tuple(float(c) for c in mesh.color)
+            self.program["u_instance"].value = i
+            self.program["u_double_sided"].value = bool(mesh.double_sided)
+            self.program["u_mirrored"].value = bool(np.linalg.det(linear) < 0)
+            vao.render(ctx.TRIANGLES, vertices=count)
+
+    def release(self) -> None:
+        for vao, _ in self._vaos:
+            vao.release()
+        for vbo in self._vbos:
+            vbo.release()
+        self.program.release()
+        self._vaos, self._vbos = [], []
+
+
+def _gl_mat4(m: np.ndarray) -> bytes:
+    """Row-major numpy matrix (math convention, M @ v) -> GLSL's column-major bytes."""
+    return np.ascontiguousarray(np.asarray(m, dtype=np.float32).T).tobytes()

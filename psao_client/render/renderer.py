@@ -1,0 +1,162 @@
+"""FrameRenderer: geometry pass, PSAO and/or SSAO, composite; frames back as numpy arrays.
+
+    with FrameRenderer(scene, size=(640, 360), ao_mode="both") as r:
+        r.upload_grid(instances, buckets, cells)          # or update_grid(...) with dirty rows only
+        r.set_transforms(transforms)                      # (n_instances, 4, 4), last received
+        frame = r.render(view, proj)                      # Frame
+
+Matrices are numpy math convention (column vectors, M @ v); proj is an OpenGL clip matrix.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from psao_client.errors import RenderError
+from psao_client.render.composite import CompositePass, read_channel
+from psao_client.render.context import check_frame_size, create_context, release_context
+from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
+from psao_client.render.gpu_grid import GpuGrid
+from psao_client.render.psao_pass import VARIANT, PsaoPass, PsaoSettings
+from psao_client.render.ssao_pass import SsaoPass, SsaoSettings
+from psao_client.render.timing import PassTimer
+
+AO_MODES = {"psao": ("psao",), "ssao": ("ssao",), "both": ("psao", "ssao")}
+
+
+@dataclass
+class Frame:
+    composite: dict[str, np.ndarray]  # mode -> (H, W, 3) uint8 sRGB, lit colour x AO
+    ao: dict[str, np.ndarray]  # mode -> (H, W) float32 AO in [0, 1], 1 on background
+    gbuffer: GBufferArrays | None  # None when render(..., read_gbuffer=False)
+    gpu_ms: dict[str, float] = field(default_factory=dict)  # pass -> GPU milliseconds (timer queries)
+    psao_weight: np.ndarray | None = None  # (H, W) float32 eq. 4 weight sum; 0 on covered pixels = hole
+
+    @property
+    def mask(self) -> np.ndarray | None:
+        return None if self.gbuffer is None else self.gbuffer.mask
+
+
+class FrameRenderer:
+    def __init__(
+        self,
+        scene,
+        size=(640, 360),
+        ao_mode: str = "psao",
+        ssao_samples: int = 16,
+        ctx=None,
+        window: bool = False,
+        light: LightSettings | None = None,
+        psao: PsaoSettings | None = None,
+        psao_variant: str = VARIANT,
+        timing: bool = True,
+    ):
+        if ao_mode not in AO_MODES:
+            raise RenderError(f"AO mode {ao_mode!r}: expected one of {', '.join(AO_MODES)}")
+        self.modes = AO_MODES[ao_mode]
+        self._own_ctx = ctx is None
+        self.ctx = ctx if ctx is not None else create_context(window=window, size=size)
+        self._objects: list = []
+        try:
+            self.size = check_frame_size(self.ctx, size)
+            self.scene = scene
+            self.transforms = np.stack([np.asarray(i.transform, dtype=np.float64) for i in scene.instances]) \
+                if scene.instances else np.zeros((0, 4, 4))
+            self.gbuffer = self._own(GBuffer(self.ctx, self.size))
+            self.geometry = self._own(GeometryPass(self.ctx, scene, light))
+            self.grid = self._own(GpuGrid(self.ctx))
+            self.psao = self.ssao = None
+            if "psao" in self.modes:
+                self.psao = self._own(PsaoPass(self.ctx, self.gbuffer, self.grid, psao, psao_variant))
+            if "ssao" in self.modes:
+                settings = SsaoSettings(samples=int(ssao_samples), radius=float(scene.ao_distance))
+                self.ssao = self._own(SsaoPass(self.ctx, self.gbuffer, settings))
+            self.composites = {m: self._own(CompositePass(self.ctx, self.gbuffer)) for m in self.modes}
+            self.timer = PassTimer(self.ctx, enabled=timing)
+        except BaseException:
+            self.release()
+            raise
+
+    def _own(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    # -- grid ------------------------------------------------------------------------------------------
+    def upload_grid(self, instances: np.ndarray, buckets: np.ndarray, cells: np.ndarray) -> None:
+        """Full upload: INSTANCE_DTYPE records, uint32 buckets (n, 8, 2), uint32 cells (capacity, 8)."""
+        n = len(np.asarray(instances).reshape(-1))
+        if n != len(self.scene.instances):
+            raise RenderError(f"grid has {n} instance records, the scene has {len(self.scene.instances)} instances")
+        self.grid.upload(instances, buckets, cells)
+
+    def update_grid(self, bucket_idx, bucket_rows, cell_slots, cell_rows, cell_capacity: int | None = None) -> None:
+        """Dirty rows only (the mirror's changes since the last call); grows the cell buffer if needed."""
+        self.grid.update(bucket_idx, bucket_rows, cell_slots, cell_rows, cell_capacity)
+
+    def set_transforms(self, transforms) -> None:
+        """Local-to-world matrices per instance (n, 4, 4): the last ones the server sent."""
+        t = np.asarray(transforms, dtype=np.float64)
+        if t.shape != (len(self.scene.instances), 4, 4):
+            raise RenderError(f"transforms have shape {t.shape}, expected ({len(self.scene.instances)}, 4, 4)")
+        if not np.isfinite(t).all():
+            raise RenderError("transforms contain NaN or infinity")
+        self.transforms = t.copy()
+
+    # -- frames ------------------------------------------------------------------------------------------
+    def render(self, view, proj, read_gbuffer: bool = True) -> Frame:
+        view = np.asarray(view, dtype=np.float64)
+        proj = np.asarray(proj, dtype=np.float64)
+        if view.shape != (4, 4) or proj.shape != (4, 4):
+            raise RenderError("view and projection must be 4x4 matrices")
+        self.submit(view, proj)
+        gpu_ms = self.timer.collect()
+        ao = {}
+        weight = None
+        if self.psao is not None:
+            ao["psao"] = read_channel(self.psao.output, self.size, 2, 0)
+            weight = read_channel(self.psao.output, self.size, 2, 1)
+        if self.ssao is not None:
+            ao["ssao"] = read_channel(self.ssao.output, self.size, 1, 0)
+        return Frame(
+            composite={m: c.read() for m, c in self.composites.items()},
+            ao=ao,
+            gbuffer=self.gbuffer.read() if read_gbuffer else None,
+            gpu_ms=gpu_ms,
+            psao_weight=weight,
+        )
+
+    def submit(self, view: np.ndarray, proj: np.ndarray) -> None:
+        """Issue every pass of one frame without reading anything back (benchmarks time this)."""
+        t = self.timer
+        with t.measure("gbuffer"):
+            self.geometry.draw(self.gbuffer, view, proj, self.transforms)
+        if self.psao is not None:
+            with t.measure("psao"):
+                self.psao.run()
+        if self.ssao is not None:
+            with t.measure("ssao"):
+                self.ssao.run_occlusion(view, proj)
+            with t.measure("ssao_blur"):
+                self.ssao.run_blur()
+        with t.measure("composite"):
+            for mode, comp in self.composites.items():
+                comp.run(self.psao.output if mode == "psao" else self.ssao.output)
+
+    # -- lifetime ------------------------------------------------------------------------------------------
+    def release(self) -> None:
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects = []
+        timer = getattr(self, "timer", None)
+        if timer is not None:
+            timer.release()
+        if self._own_ctx and self.ctx is not None:
+            release_context(self.ctx)
+        self.ctx = None
+
+    def __enter__(self) -> "FrameRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()

@@ -1,0 +1,19 @@
+#version 430
+// PSAO pass, full-screen fragment variant: AO per pixel from the streamed grid (paper eq. 2-4).
+#include "psao_common.glsl"
+
+uniform sampler2D u_local;          // G-buffer instance-local position
+uniform sampler2D u_local_normal;   // G-buffer instance-local normal
+uniform usampler2D u_instance;      // instance index + 1, 0 = background
+
+layout(location = 0) out vec2 o_ao; // (AO, weight sum); background (1, 0)
+
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+    uint id = texelFetch(u_instance, p, 0).r;
+    if (id == 0u) {
+        o_ao = vec2(1.0, 0.0);
+        return;
+    }
+    o_ao = psao_reconstruct(id - 1u, texelFetch(u_local, p, 0).xyz, texelFetch(u_local_normal, p, 0).xyz);
+}
