@@ -1,0 +1,175 @@
+"""Payload codecs: none, zstd (one frame per message), lz4 (one frame per message), and a zstd stream.
+
+The codec byte in every message header says how that payload is compressed. ZSTD_STREAM is one zstd
+frame per connection, flushed at a block boundary after every message (the paper compresses each
+message alone; a stream lets a message refer to earlier ones, which is where most of the redundancy
+of an update stream is: the same cells change again and again). Its state lives in a
+`StreamCompressor` / `StreamDecompressor` pair, one per connection and direction.
+
+Decompression never trusts a declared size: a zstd frame whose header declares more than the cap is
+refused before anything is decoded; otherwise the input is fed in small pieces and decoding stops as
+soon as the output passes the cap (a decompression bomb costs at most the cap plus a few MiB). A
+payload with bytes after its frame is refused, too.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import lz4.frame
+import zstandard
+
+from .errors import CodecError, LimitError
+from .limits import DEFAULT_LIMITS, Limits
+
+
+class Codec(IntEnum):
+    NONE = 0
+    ZSTD = 1  # one zstd frame per message, content size in the frame header
+    LZ4 = 2  # one lz4 frame per message, content size in the frame header
+    ZSTD_STREAM = 3  # one zstd frame per connection, a flushed block per message
+
+
+CODEC_NAMES = {"none": Codec.NONE, "zstd": Codec.ZSTD, "lz4": Codec.LZ4, "zstd-stream": Codec.ZSTD_STREAM}
+ALL_CODECS = frozenset(Codec)
+
+
+def codec_mask(codecs) -> int:
+    """Set of codecs -> bit mask (bit c set when codec c is accepted), as carried by Hello."""
+    mask = 0
+    for c in codecs:
+        mask |= 1 << int(c)
+    return mask
+
+
+def codecs_from_mask(mask: int) -> frozenset[Codec]:
+    return frozenset(c for c in Codec if mask & (1 << int(c)))
+
+
+@dataclass(frozen=True)
+class ZstdSettings:
+    level: int = 15  # the paper's level
+    strategy: int = zstandard.STRATEGY_LAZY  # the paper's "strategy 4"
+
+    def parameters(self) -> zstandard.ZstdCompressionParameters:
+        return zstandard.ZstdCompressionParameters.from_level(self.level, strategy=self.strategy)
+
+    def compressor(self) -> zstandard.ZstdCompressor:
+        return zstandard.ZstdCompressor(compression_params=self.parameters())
+
+
+PAPER_ZSTD = ZstdSettings()
+
+
+class FrameCodec:
+    """Stateless per-message compression (NONE, ZSTD, LZ4). Keeps its zstd context for speed."""
+
+    def __init__(self, codec: Codec, zstd_settings: ZstdSettings = PAPER_ZSTD):
+        if codec == Codec.ZSTD_STREAM:
+            raise CodecError("zstd-stream is not a per-message codec")
+        self.codec = Codec(codec)
+        self._zstd = zstd_settings.compressor() if codec == Codec.ZSTD else None
+
+    def compress(self, payload: bytes) -> bytes:
+        if self.codec == Codec.NONE:
+            return bytes(payload)
+        if self.codec == Codec.ZSTD:
+            return self._zstd.compress(payload)
+        return lz4.frame.compress(payload, store_size=True, compression_level=0)
+
+
+class StreamCompressor:
+    """One zstd frame per connection; every message ends at a flushed block so it decodes on arrival."""
+
+    codec = Codec.ZSTD_STREAM
+
+    def __init__(self, zstd_settings: ZstdSettings = PAPER_ZSTD):
+        self._obj = zstd_settings.compressor().compressobj()
+
+    def compress(self, payload: bytes) -> bytes:
+        return self._obj.compress(payload) + self._obj.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK)
+
+
+def _zstd_bounded(dobj, data: bytes, cap: int, limits: Limits, what: str) -> bytes:
+    """Feed `data` to a zstd decompressobj in small pieces; stop as soon as the output passes `cap`."""
+    out: list[bytes] = []
+    total = 0
+    piece = limits.decompress_piece_bytes
+    view = memoryview(data)
+    try:
+        for i in range(0, len(data), piece):
+            chunk = dobj.decompress(view[i : i + piece])
+            if chunk:
+                total += len(chunk)
+                if total > cap:
+                    raise LimitError(f"{what}: decompressed payload exceeds the limit of {cap} bytes")
+                out.append(chunk)
+    except zstandard.ZstdError as exc:
+        raise CodecError(f"{what}: corrupt zstd data ({exc})") from None
+    return b"".join(out)
+
+
+def _decompress_zstd_frame(data: bytes, cap: int, limits: Limits) -> bytes:
+    try:
+        declared = zstandard.frame_content_size(data)
+    except zstandard.ZstdError as exc:
+        raise CodecError(f"zstd payload: not a zstd frame ({exc})") from None
+    if declared > cap:  # -1 means not declared: the bounded feed below still caps it
+        raise LimitError(f"zstd payload declares {declared} bytes, over the limit of {cap}")
+    dctx = zstandard.ZstdDecompressor(max_window_size=limits.zstd_max_window_bytes)
+    dobj = dctx.decompressobj()
+    out = _zstd_bounded(dobj, data, cap, limits, "zstd payload")
+    if not dobj.eof:
+        raise CodecError("zstd payload: truncated frame")
+    if dobj.unused_data:
+        raise CodecError(f"zstd payload: {len(dobj.unused_data)} bytes after the frame")
+    if declared >= 0 and declared != len(out):
+        raise CodecError(f"zstd payload: frame declares {declared} bytes but holds {len(out)}")
+    return out
+
+
+def _decompress_lz4_frame(data: bytes, cap: int) -> bytes:
+    try:
+        info = lz4.frame.get_frame_info(data)
+        declared = int(info.get("content_size") or 0)
+        if declared > cap:
+            raise LimitError(f"lz4 payload declares {declared} bytes, over the limit of {cap}")
+        dobj = lz4.frame.LZ4FrameDecompressor()
+        out = dobj.decompress(data, max_length=cap + 1)
+    except RuntimeError as exc:  # lz4 reports malformed frames as RuntimeError
+        raise CodecError(f"lz4 payload: corrupt frame ({exc})") from None
+    if len(out) > cap:
+        raise LimitError(f"lz4 payload: decompressed payload exceeds the limit of {cap} bytes")
+    if not dobj.eof:
+        raise CodecError("lz4 payload: truncated frame")
+    if dobj.unused_data:
+        raise CodecError(f"lz4 payload: {len(dobj.unused_data)} bytes after the frame")
+    return out
+
+
+def decompress_frame(codec: Codec, data: bytes, cap: int, limits: Limits = DEFAULT_LIMITS) -> bytes:
+    """Decode a per-message payload (NONE, ZSTD, LZ4), refusing more than `cap` bytes of output."""
+    if codec == Codec.NONE:
+        if len(data) > cap:
+            raise LimitError(f"payload of {len(data)} bytes exceeds the limit of {cap}")
+        return bytes(data)
+    if codec == Codec.ZSTD:
+        return _decompress_zstd_frame(data, cap, limits)
+    if codec == Codec.LZ4:
+        return _decompress_lz4_frame(data, cap)
+    raise CodecError(f"codec {codec!r} needs a stream decoder")
+
+
+class StreamDecompressor:
+    """Client end of a ZSTD_STREAM: one decompression context for the whole connection."""
+
+    def __init__(self, limits: Limits = DEFAULT_LIMITS):
+        self.limits = limits
+        dctx = zstandard.ZstdDecompressor(max_window_size=limits.zstd_max_window_bytes)
+        self._obj = dctx.decompressobj()
+
+    def decompress(self, data: bytes, cap: int) -> bytes:
+        out = _zstd_bounded(self._obj, data, cap, self.limits, "zstd stream")
+        if self._obj.eof:  # the server never ends the frame: a finished frame is malformed input
+            raise CodecError("zstd stream: frame ended; the stream must stay open for the connection")
+        return out

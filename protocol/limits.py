@@ -1,0 +1,39 @@
+"""Size limits of the wire protocol, checked before anything is allocated or decompressed.
+
+Both ends use the same numbers: the server bounds what a client may send (tiny: handshake, camera,
+scene edits) and what it puts in one message (it splits big updates and keeps the rest pending); the
+client bounds what it accepts from a server. Every count read from a payload is checked against these
+before an array of that size is created.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+HEADER_SIZE = 12  # bytes, see protocol.messages.HEADER
+
+
+@dataclass(frozen=True)
+class Limits:
+    # Client -> server (Hello, Camera, SceneEdit, Bye): small by nature.
+    client_message_bytes: int = 64 * 1024  # whole websocket message, header included
+    client_payload_bytes: int = 64 * 1024  # payload after decompression
+    token_bytes: int = 256
+    # Server -> client.
+    server_message_bytes: int = 48 * 1024 * 1024  # whole websocket message, compressed
+    server_payload_bytes: int = 64 * 1024 * 1024  # payload after decompression
+    error_text_bytes: int = 1024
+    # Grid sizes a client accepts (memory it will allocate for the mirror).
+    max_instances: int = 1 << 16
+    max_buckets: int = 1 << 24  # 512 MiB of buckets at most
+    max_cell_capacity: int = 1 << 24  # 512 MiB of cells at most
+    # What the server puts into one Update or Snapshot chunk; the rest stays pending for the next one.
+    max_cells_per_message: int = 1 << 16
+    max_buckets_per_message: int = 1 << 16
+    max_snapshot_chunks: int = 1 << 16
+    # Decompression: input is fed in pieces this small, so the output overshoots a cap by at most
+    # piece / 4 * 128 KiB (a zstd RLE block is 4 bytes for 128 KiB) before the cap check stops it.
+    decompress_piece_bytes: int = 128
+    zstd_max_window_bytes: int = 1 << 24
+
+
+DEFAULT_LIMITS = Limits()

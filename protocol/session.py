@@ -1,0 +1,369 @@
+"""Sans-I/O protocol state machines for both ends (in the style of websockets' protocol.py).
+
+A session turns one received websocket message (bytes) into one event, and messages to send into
+bytes; it owns the connection's codec state (the zstd stream) and checks that messages come in an order
+the protocol allows. It does no I/O, so it is tested without sockets; the asyncio server and client
+are thin loops around it.
+
+Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
+Client:  AWAIT_WELCOME --Welcome--> SNAPSHOT --last chunk--> STREAMING --Bye / Error--> CLOSED
+
+Any malformed or unexpected input raises a ProtocolError subclass; `error_reply(exc)` gives the Error
+message and websocket close code to answer it with.
+"""
+from __future__ import annotations
+
+import hmac
+from dataclasses import dataclass, field
+from enum import Enum, auto
+
+import numpy as np
+
+from . import messages as m
+from .codecs import (
+    PAPER_ZSTD,
+    Codec,
+    FrameCodec,
+    StreamCompressor,
+    StreamDecompressor,
+    ZstdSettings,
+    codec_mask,
+    codecs_from_mask,
+    decompress_frame,
+)
+from .errors import CodecError, HeaderError, LimitError, PayloadError, ProtocolError
+from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
+from .updates import GridDelta, Layout
+
+
+class RefusedError(ProtocolError):
+    """A well-formed request the server will not serve: wrong scene, missing or wrong token."""
+
+    close_code = 1008
+
+    def __init__(self, text: str, code: m.ErrorCode):
+        super().__init__(text)
+        self.code = code
+
+
+class UnexpectedMessage(ProtocolError):
+    """A valid message at a point of the conversation where it is not allowed."""
+
+    close_code = 1002
+
+
+class RemoteError(ProtocolError):
+    """The peer sent an Error message."""
+
+    def __init__(self, code: int, text: str):
+        name = m.ErrorCode(code).name if code in m.ErrorCode._value2member_map_ else str(code)
+        super().__init__(f"peer error {name}: {text}")
+        self.code = code
+        self.text = text
+
+
+def error_code_for(exc: ProtocolError) -> m.ErrorCode:
+    if isinstance(exc, RefusedError):
+        return exc.code
+    for cls, code in (
+        (LimitError, m.ErrorCode.TOO_LARGE),
+        (HeaderError, m.ErrorCode.BAD_HEADER),
+        (CodecError, m.ErrorCode.BAD_CODEC),
+        (UnexpectedMessage, m.ErrorCode.UNEXPECTED_MESSAGE),
+        (PayloadError, m.ErrorCode.BAD_PAYLOAD),
+    ):
+        if isinstance(exc, cls):
+            return code
+    return m.ErrorCode.INTERNAL
+
+
+def error_reply(exc: ProtocolError) -> tuple[bytes, int]:
+    """Error message bytes and websocket close code that answer a protocol error."""
+    return m.encode(m.Error(error_code_for(exc), str(exc))), exc.close_code
+
+
+def scene_hash_bytes(content_hash_hex: str) -> bytes:
+    """Scene.content_hash() (sha256 hex) -> the 32 bytes carried by Hello and Welcome."""
+    raw = bytes.fromhex(content_hash_hex)
+    if len(raw) != m.SCENE_HASH_BYTES:
+        raise PayloadError(f"scene hash must be {m.SCENE_HASH_BYTES} bytes, got {len(raw)}")
+    return raw
+
+
+@dataclass
+class Traffic:
+    messages_in: int = 0
+    bytes_in: int = 0
+    messages_out: int = 0
+    bytes_out: int = 0
+
+    def sent(self, data: bytes) -> bytes:
+        self.messages_out += 1
+        self.bytes_out += len(data)
+        return data
+
+
+def _split(data: bytes, max_payload: int) -> tuple[m.Header, memoryview]:
+    header = m.Header.parse(data, max_payload)
+    return header, memoryview(data)[HEADER_SIZE:]
+
+
+# -------------------------------------------------------------------------------------------------- server
+
+
+class ServerState(Enum):
+    AWAIT_HELLO = auto()
+    OPEN = auto()
+    CLOSED = auto()
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    scene_hash: bytes  # 32 bytes
+    token: str = ""  # "" accepts anyone
+    codec: Codec = Codec.ZSTD_STREAM  # preferred payload codec for Snapshot and Update
+    layout: Layout = Layout.PACKED
+    zstd: ZstdSettings = PAPER_ZSTD
+    limits: Limits = DEFAULT_LIMITS
+
+    def codec_preference(self) -> list[Codec]:
+        prefs = [self.codec]
+        if self.codec == Codec.ZSTD_STREAM:
+            prefs.append(Codec.ZSTD)
+        return prefs + [Codec.NONE]
+
+
+@dataclass
+class HelloAccepted:
+    hello: m.Hello
+    codec: Codec
+
+
+@dataclass
+class CameraReceived:
+    camera: m.Camera
+
+
+@dataclass
+class SceneEditReceived:
+    edit: m.SceneEdit
+
+
+@dataclass
+class ByeReceived:
+    pass
+
+
+class ServerSession:
+    """Server end of one connection."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        self.state = ServerState.AWAIT_HELLO
+        self.codec: Codec | None = None
+        self.traffic = Traffic()
+        self._compress = None
+
+    # ------------------------------------------------------------------ inbound
+    def receive(self, data: bytes):
+        """One client message -> HelloAccepted | CameraReceived | SceneEditReceived | ByeReceived."""
+        limits = self.config.limits
+        self.traffic.messages_in += 1
+        self.traffic.bytes_in += len(data)
+        if self.state == ServerState.CLOSED:
+            raise UnexpectedMessage("message after the connection was closed")
+        if len(data) > limits.client_message_bytes:
+            raise LimitError(f"message of {len(data)} bytes over the limit of {limits.client_message_bytes}")
+        header, body = _split(data, limits.client_message_bytes)
+        if header.codec == Codec.ZSTD_STREAM:
+            raise CodecError("clients may not send zstd-stream payloads")
+        payload = decompress_frame(header.codec, body, limits.client_payload_bytes, limits)
+        if self.state == ServerState.AWAIT_HELLO:
+            if header.type != m.MessageType.HELLO:
+                raise UnexpectedMessage(f"expected Hello, got {header.type.name}")
+            return self._accept(m.Hello.parse(payload, limits))
+        if header.type == m.MessageType.CAMERA:
+            return CameraReceived(m.Camera.parse(payload, limits))
+        if header.type == m.MessageType.SCENE_EDIT:
+            return SceneEditReceived(m.SceneEdit.parse(payload, limits))
+        if header.type == m.MessageType.BYE:
+            m.Bye.parse(payload, limits)
+            self.state = ServerState.CLOSED
+            return ByeReceived()
+        raise UnexpectedMessage(f"a client may not send {header.type.name} here")
+
+    def _accept(self, hello: m.Hello) -> HelloAccepted:
+        cfg = self.config
+        if hello.version != m.PROTOCOL_VERSION:
+            raise HeaderError(f"Hello: unsupported protocol version {hello.version}")
+        if cfg.token and not hmac.compare_digest(hello.token.encode(), cfg.token.encode()):
+            reason = "missing token" if not hello.token else "wrong token"
+            raise RefusedError(reason, m.ErrorCode.UNAUTHORIZED)
+        if hello.scene_hash != cfg.scene_hash:
+            raise RefusedError(
+                f"scene hash mismatch: client has {hello.scene_hash.hex()[:12]}, server serves "
+                f"{cfg.scene_hash.hex()[:12]}",
+                m.ErrorCode.SCENE_MISMATCH,
+            )
+        accepted = codecs_from_mask(hello.codec_mask)
+        codec = next((c for c in cfg.codec_preference() if c in accepted), None)
+        if codec is None:
+            raise CodecError(f"no common codec: client accepts {sorted(c.name for c in accepted)}")
+        self.codec = codec
+        self._compress = StreamCompressor(cfg.zstd) if codec == Codec.ZSTD_STREAM else FrameCodec(codec, cfg.zstd)
+        self.state = ServerState.OPEN
+        return HelloAccepted(hello, codec)
+
+    # ----------------------------------------------------------------- outbound
+    def _grid_message(self, msg: m.Snapshot | m.Update) -> bytes:
+        if self.state != ServerState.OPEN:
+            raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the handshake")
+        return self.traffic.sent(m.frame(msg.TYPE, self.codec, self._compress.compress(msg.serialize())))
+
+    def welcome(self, connection_id: int, tick_hz: float, n_buckets: int, cell_capacity: int,
+                instances: np.ndarray) -> bytes:
+        msg = m.Welcome(self.config.scene_hash, connection_id, self.codec, self.config.layout, tick_hz,
+                        n_buckets, cell_capacity, instances)
+        return self.traffic.sent(m.encode(msg))
+
+    def snapshot(self, chunk: int, n_chunks: int, delta: GridDelta) -> bytes:
+        return self._grid_message(m.Snapshot(chunk, n_chunks, delta, self.config.layout))
+
+    def update(self, tick: int, server_time: float, delta: GridDelta) -> bytes:
+        return self._grid_message(m.Update(tick, server_time, delta, self.config.layout))
+
+    def bye(self) -> bytes:
+        self.state = ServerState.CLOSED
+        return self.traffic.sent(m.encode(m.Bye()))
+
+    def fail(self, exc: ProtocolError) -> tuple[bytes, int]:
+        """Error message and close code for `exc`; the session is closed afterwards."""
+        self.state = ServerState.CLOSED
+        data, code = error_reply(exc)
+        return self.traffic.sent(data), code
+
+
+# -------------------------------------------------------------------------------------------------- client
+
+
+class ClientState(Enum):
+    AWAIT_WELCOME = auto()
+    SNAPSHOT = auto()
+    STREAMING = auto()
+    CLOSED = auto()
+
+
+@dataclass(frozen=True)
+class ClientConfig:
+    scene_hash: bytes
+    token: str = ""
+    codecs: frozenset = frozenset(Codec)
+    limits: Limits = DEFAULT_LIMITS
+
+
+@dataclass
+class Welcomed:
+    welcome: m.Welcome
+
+
+@dataclass
+class SnapshotReceived:
+    snapshot: m.Snapshot
+    complete: bool  # the last chunk: the mirror now equals the server
+
+
+@dataclass
+class UpdateReceived:
+    update: m.Update
+
+
+@dataclass
+class ClientSession:
+    """Client end of one connection (a reconnect starts a new session)."""
+
+    config: ClientConfig
+    state: ClientState = ClientState.AWAIT_WELCOME
+    welcome: m.Welcome | None = None
+    traffic: Traffic = field(default_factory=Traffic)
+    payload_bytes: int = 0  # decompressed Snapshot and Update payloads
+    _stream: StreamDecompressor | None = None
+    _next_chunk: int = 0
+    _n_chunks: int = 0
+
+    def hello(self) -> bytes:
+        msg = m.Hello(self.config.scene_hash, codec_mask(self.config.codecs), self.config.token)
+        return self.traffic.sent(m.encode(msg))
+
+    def camera(self, view: np.ndarray, projection: np.ndarray) -> bytes:
+        return self.traffic.sent(m.encode(m.Camera(view, projection)))
+
+    def scene_edit(self, instance: int, transform: np.ndarray) -> bytes:
+        return self.traffic.sent(m.encode(m.SceneEdit(instance, transform)))
+
+    def bye(self) -> bytes:
+        self.state = ClientState.CLOSED
+        return self.traffic.sent(m.encode(m.Bye()))
+
+    def _payload(self, header: m.Header, body: memoryview) -> bytes:
+        limits = self.config.limits
+        if header.codec == Codec.ZSTD_STREAM:
+            if self._stream is None:
+                raise CodecError("zstd-stream payload on a connection that did not negotiate it")
+            return self._stream.decompress(body, limits.server_payload_bytes)
+        return decompress_frame(header.codec, body, limits.server_payload_bytes, limits)
+
+    def receive(self, data: bytes):
+        """One server message -> Welcomed | SnapshotReceived | UpdateReceived | ByeReceived.
+        An Error message raises RemoteError."""
+        limits = self.config.limits
+        self.traffic.messages_in += 1
+        self.traffic.bytes_in += len(data)
+        if len(data) > limits.server_message_bytes:
+            raise LimitError(f"message of {len(data)} bytes over the limit of {limits.server_message_bytes}")
+        header, body = _split(data, limits.server_message_bytes)
+        payload = self._payload(header, body)
+        t = header.type
+        if t == m.MessageType.ERROR:
+            err = m.Error.parse(payload, limits)
+            self.state = ClientState.CLOSED
+            raise RemoteError(err.code, err.text)
+        if t == m.MessageType.BYE:
+            m.Bye.parse(payload, limits)
+            self.state = ClientState.CLOSED
+            return ByeReceived()
+        if self.state == ClientState.AWAIT_WELCOME and t == m.MessageType.WELCOME:
+            return self._welcomed(m.Welcome.parse(payload, limits))
+        if self.state == ClientState.SNAPSHOT and t == m.MessageType.SNAPSHOT:
+            self.payload_bytes += len(payload)
+            return self._chunk(m.Snapshot.parse(payload, limits))
+        if self.state == ClientState.STREAMING and t == m.MessageType.UPDATE:
+            self.payload_bytes += len(payload)
+            return UpdateReceived(m.Update.parse(payload, limits))
+        raise UnexpectedMessage(f"unexpected {t.name} in state {self.state.name}")
+
+    def _welcomed(self, w: m.Welcome) -> Welcomed:
+        if w.scene_hash != self.config.scene_hash:
+            raise RefusedError(
+                f"scene hash mismatch: server serves {w.scene_hash.hex()[:12]}, client has "
+                f"{self.config.scene_hash.hex()[:12]}",
+                m.ErrorCode.SCENE_MISMATCH,
+            )
+        if w.codec not in self.config.codecs:
+            raise CodecError(f"server chose codec {w.codec.name}, which this client did not offer")
+        if w.codec == Codec.ZSTD_STREAM:
+            self._stream = StreamDecompressor(self.config.limits)
+        self.welcome = w
+        self.state = ClientState.SNAPSHOT
+        return Welcomed(w)
+
+    def _chunk(self, s: m.Snapshot) -> SnapshotReceived:
+        if s.chunk != self._next_chunk or (self._n_chunks and s.n_chunks != self._n_chunks):
+            raise UnexpectedMessage(
+                f"snapshot chunk {s.chunk} of {s.n_chunks}, expected {self._next_chunk} of {self._n_chunks or '?'}"
+            )
+        self._n_chunks = s.n_chunks
+        self._next_chunk += 1
+        complete = self._next_chunk == s.n_chunks
+        if complete:
+            self.state = ClientState.STREAMING
+        return SnapshotReceived(s, complete)

@@ -1,0 +1,363 @@
+"""Grid deltas on the wire: the body of Update and Snapshot messages, in two layouts.
+
+A `GridDelta` is what one message changes in the mirror: the cell capacity, some instance transforms,
+whole buckets (global index + 8 (key, slot) entries) and whole cells (slot + 8 words), indices sorted
+and unique. Applying it is a plain assignment, so a mirror that applies every delta in order equals
+the server for everything sent.
+
+PLAIN is the paper's layout: counts, then indices and words as raw little-endian uint32.
+
+PACKED is the default and is lossless for any input, canonical or not:
+- indices sorted, as LEB128 varints of (gap - 1);
+- a bucket is its number of used entries (used entries first, the rest EMPTY) and only those entries;
+  a cell is its number of points (allocated bit set, first) and only those points, rest zero. A bucket
+  or cell that breaks that form is flagged (RAW) and sent whole, so nothing is ever lost;
+- point words are split into fields (position 15 bits, normal, AO) and every multi-byte field into byte
+  planes, so that bytes with the same meaning sit together before compression.
+"""
+from __future__ import annotations
+
+import hashlib
+import struct
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+from .errors import LimitError, PayloadError
+from .gridformat import BUCKET_ENTRIES, CELL_WORDS, EMPTY, KEY_WORD, POINTS_PER_CELL
+from .limits import DEFAULT_LIMITS, Limits
+from .pointword import ALLOCATED_BIT
+
+RAW = 0xFF  # count byte of a bucket or cell sent whole
+
+
+class Layout(IntEnum):
+    PLAIN = 0
+    PACKED = 1
+
+
+LAYOUT_NAMES = {"plain": Layout.PLAIN, "packed": Layout.PACKED}
+
+
+def _empty_u32(*shape) -> np.ndarray:
+    return np.zeros(shape, dtype=np.uint32)
+
+
+@dataclass
+class GridDelta:
+    cell_capacity: int
+    transform_ids: np.ndarray = field(default_factory=lambda: _empty_u32(0))  # (k,) sorted
+    transforms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float32))  # (k, 4, 4)
+    bucket_ids: np.ndarray = field(default_factory=lambda: _empty_u32(0))  # (nb,) sorted, global
+    buckets: np.ndarray = field(default_factory=lambda: _empty_u32(0, BUCKET_ENTRIES, 2))  # (nb, 8, 2)
+    cell_slots: np.ndarray = field(default_factory=lambda: _empty_u32(0))  # (nc,) sorted
+    cells: np.ndarray = field(default_factory=lambda: _empty_u32(0, CELL_WORDS))  # (nc, 8)
+
+    def __post_init__(self):
+        self.transform_ids = np.ascontiguousarray(self.transform_ids, dtype=np.uint32).reshape(-1)
+        self.transforms = np.ascontiguousarray(self.transforms, dtype=np.float32).reshape(-1, 4, 4)
+        self.bucket_ids = np.ascontiguousarray(self.bucket_ids, dtype=np.uint32).reshape(-1)
+        self.buckets = np.ascontiguousarray(self.buckets, dtype=np.uint32).reshape(-1, BUCKET_ENTRIES, 2)
+        self.cell_slots = np.ascontiguousarray(self.cell_slots, dtype=np.uint32).reshape(-1)
+        self.cells = np.ascontiguousarray(self.cells, dtype=np.uint32).reshape(-1, CELL_WORDS)
+
+    def check(self, limits: Limits = DEFAULT_LIMITS) -> None:
+        """Structural validity: matching lengths, sorted unique indices, slots inside the capacity."""
+        if not 0 <= self.cell_capacity <= limits.max_cell_capacity:
+            raise LimitError(f"cell capacity {self.cell_capacity} over the limit of {limits.max_cell_capacity}")
+        pairs = [
+            ("transform", self.transform_ids, self.transforms, limits.max_instances),
+            ("bucket", self.bucket_ids, self.buckets, limits.max_buckets_per_message),
+            ("cell", self.cell_slots, self.cells, limits.max_cells_per_message),
+        ]
+        for what, ids, rows, most in pairs:
+            if len(ids) != len(rows):
+                raise PayloadError(f"{len(ids)} {what} indices for {len(rows)} {what} records")
+            if len(ids) > most:
+                raise LimitError(f"{len(ids)} {what} records in one message, over the limit of {most}")
+            if len(ids) > 1 and not np.all(ids[1:] > ids[:-1]):
+                raise PayloadError(f"{what} indices are not sorted and unique")
+        if len(self.cell_slots) and int(self.cell_slots[-1]) >= self.cell_capacity:
+            raise PayloadError(f"cell slot {int(self.cell_slots[-1])} outside the capacity {self.cell_capacity}")
+        if not np.all(np.isfinite(self.transforms)):
+            raise PayloadError("instance transform with NaN or infinity")
+
+    @property
+    def n_points(self) -> int:
+        """Allocated points carried (for bytes-per-point figures)."""
+        return int(np.count_nonzero(self.cells[:, :POINTS_PER_CELL] & ALLOCATED_BIT))
+
+    def equals(self, other: "GridDelta") -> bool:
+        return self.cell_capacity == other.cell_capacity and all(
+            np.array_equal(getattr(self, f), getattr(other, f))
+            for f in ("transform_ids", "bucket_ids", "buckets", "cell_slots", "cells")
+        ) and self.transforms.tobytes() == other.transforms.tobytes()
+
+
+# ---------------------------------------------------------------------------------------------- reading
+
+
+class Reader:
+    """Bounds-checked cursor over a payload: every take is checked against what is left."""
+
+    def __init__(self, payload: bytes, what: str):
+        self.view = memoryview(payload)
+        self.pos = 0
+        self.what = what
+
+    def take(self, n: int) -> memoryview:
+        if n < 0 or self.pos + n > len(self.view):
+            raise PayloadError(f"{self.what}: truncated (needs {n} bytes at offset {self.pos}, has {len(self.view)})")
+        out = self.view[self.pos : self.pos + n]
+        self.pos += n
+        return out
+
+    def unpack(self, st: struct.Struct) -> tuple:
+        return st.unpack(self.take(st.size))
+
+    def array(self, dtype, count: int) -> np.ndarray:
+        dt = np.dtype(dtype)
+        return np.frombuffer(self.take(dt.itemsize * count), dtype=dt).copy()
+
+    def rest(self) -> memoryview:
+        return self.take(len(self.view) - self.pos)
+
+    def done(self) -> None:
+        if self.pos != len(self.view):
+            raise PayloadError(f"{self.what}: {len(self.view) - self.pos} unexpected bytes after the end")
+
+
+# ------------------------------------------------------------------------------------------------ plain
+
+_COUNTS = struct.Struct("<BIIII")  # layout, cell capacity, transforms, buckets, cells
+
+
+def _check_counts(capacity: int, k: int, nb: int, nc: int, limits: Limits) -> None:
+    for what, n, most in (
+        ("cell capacity", capacity, limits.max_cell_capacity),
+        ("transform count", k, limits.max_instances),
+        ("bucket count", nb, limits.max_buckets_per_message),
+        ("cell count", nc, limits.max_cells_per_message),
+    ):
+        if n > most:
+            raise LimitError(f"grid delta: {what} {n} over the limit of {most}")
+
+
+def _encode_plain(d: GridDelta) -> bytes:
+    head = _COUNTS.pack(Layout.PLAIN, d.cell_capacity, len(d.transform_ids), len(d.bucket_ids), len(d.cell_slots))
+    parts = [d.transform_ids, d.transforms, d.bucket_ids, d.buckets, d.cell_slots, d.cells]
+    return head + b"".join(np.ascontiguousarray(p).astype(p.dtype.newbyteorder("<")).tobytes() for p in parts)
+
+
+def _decode_plain(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDelta:
+    return GridDelta(
+        cell_capacity=capacity,
+        transform_ids=r.array("<u4", k),
+        transforms=r.array("<f4", 16 * k).reshape(k, 4, 4),
+        bucket_ids=r.array("<u4", nb),
+        buckets=r.array("<u4", nb * 2 * BUCKET_ENTRIES).reshape(nb, BUCKET_ENTRIES, 2),
+        cell_slots=r.array("<u4", nc),
+        cells=r.array("<u4", nc * CELL_WORDS).reshape(nc, CELL_WORDS),
+    )
+
+
+# ------------------------------------------------------------------------------------- packed: helpers
+
+
+def varint_encode(values: np.ndarray) -> bytes:
+    """uint32 values -> LEB128 bytes (7 bits per byte, high bit = more follows), vectorised."""
+    v = np.asarray(values, dtype=np.uint64).reshape(-1)
+    if v.size == 0:
+        return b""
+    nbytes = np.ones(v.size, dtype=np.int64)
+    for k in range(1, 5):
+        nbytes += v >= (np.uint64(1) << np.uint64(7 * k))
+    ends = np.cumsum(nbytes)
+    starts = ends - nbytes
+    out = np.zeros(int(ends[-1]), dtype=np.uint8)
+    for k in range(5):
+        has = nbytes > k
+        byte = (v[has] >> np.uint64(7 * k)) & np.uint64(0x7F)
+        more = (nbytes[has] > k + 1).astype(np.uint64) << np.uint64(7)
+        out[starts[has] + k] = (byte | more).astype(np.uint8)
+    return out.tobytes()
+
+
+def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray:
+    """LEB128 bytes -> exactly `count` uint32 values; anything else in `data` is an error."""
+    b = np.frombuffer(data, dtype=np.uint8)
+    if count == 0:
+        if b.size:
+            raise PayloadError(f"{what}: {b.size} bytes for no values")
+        return _empty_u32(0)
+    ends = b < 0x80
+    if int(ends.sum()) != count or not ends[-1]:
+        raise PayloadError(f"{what}: varint section does not hold exactly {count} values")
+    group = np.concatenate([[0], np.cumsum(ends)[:-1]])
+    last = np.flatnonzero(ends)
+    first = np.concatenate([[0], last[:-1] + 1])
+    pos = np.arange(b.size) - first[group]
+    if pos.max() > 4:
+        raise PayloadError(f"{what}: varint longer than 5 bytes")
+    v = np.zeros(count, dtype=np.uint64)
+    np.add.at(v, group, (b & 0x7F).astype(np.uint64) << (7 * pos).astype(np.uint64))
+    if v.max() > 0xFFFFFFFF:
+        raise PayloadError(f"{what}: varint value beyond 32 bits")
+    return v.astype(np.uint32)
+
+
+def gaps_encode(sorted_ids: np.ndarray) -> bytes:
+    """Strictly increasing ids -> varints of the first id and of every gap minus one."""
+    ids = np.asarray(sorted_ids, dtype=np.int64)
+    return varint_encode(np.diff(ids, prepend=-1) - 1)
+
+
+def gaps_decode(data, count: int, what: str) -> np.ndarray:
+    ids = np.cumsum(varint_decode(data, count, what).astype(np.int64) + 1) - 1
+    if count and ids[-1] > 0xFFFFFFFF:
+        raise PayloadError(f"{what}: index beyond 32 bits")
+    return ids.astype(np.uint32)
+
+
+def planes(a: np.ndarray) -> bytes:
+    """Little-endian multi-byte values -> their byte planes, lowest byte plane first."""
+    a = np.ascontiguousarray(a).reshape(-1)
+    le = a.astype(a.dtype.newbyteorder("<"))
+    return le.view(np.uint8).reshape(-1, a.dtype.itemsize).T.tobytes()
+
+
+def unplanes(r: Reader, dtype, count: int) -> np.ndarray:
+    dt = np.dtype(dtype).newbyteorder("<")
+    raw = np.frombuffer(r.take(dt.itemsize * count), dtype=np.uint8).reshape(dt.itemsize, count)
+    return np.ascontiguousarray(raw.T).view(dt).reshape(count).astype(dt.newbyteorder("="))
+
+
+def _leading_counts(used: np.ndarray, filler_ok: np.ndarray) -> np.ndarray:
+    """Per row: number of leading used entries if the row is canonical (used first, the rest exactly
+    the filler), else RAW."""
+    n = used.sum(axis=1)
+    cols = np.arange(used.shape[1])
+    canonical = np.all(np.where(cols < n[:, None], used, filler_ok), axis=1)
+    return np.where(canonical, n, RAW).astype(np.uint8)
+
+
+# ------------------------------------------------------------------------------------ packed: encoding
+
+_PACKED_LENGTHS = struct.Struct("<III")  # bytes of the varint sections: transform ids, bucket ids, cell slots
+
+
+def _encode_packed(d: GridDelta) -> bytes:
+    head = _COUNTS.pack(Layout.PACKED, d.cell_capacity, len(d.transform_ids), len(d.bucket_ids), len(d.cell_slots))
+    t_ids, b_ids, c_ids = gaps_encode(d.transform_ids), gaps_encode(d.bucket_ids), gaps_encode(d.cell_slots)
+
+    keys, slots = d.buckets[:, :, 0], d.buckets[:, :, 1]
+    b_used = keys != EMPTY
+    b_count = _leading_counts(b_used, (keys == EMPTY) & (slots == EMPTY))
+    b_canon = b_count != RAW
+    b_sel = b_used & b_canon[:, None]
+
+    points = d.cells[:, :POINTS_PER_CELL]
+    p_used = (points & ALLOCATED_BIT) != 0
+    c_count = _leading_counts(p_used, points == 0)
+    c_canon = c_count != RAW
+    p = points[p_used & c_canon[:, None]]
+    parts = [
+        head,
+        _PACKED_LENGTHS.pack(len(t_ids), len(b_ids), len(c_ids)),
+        t_ids,
+        planes(d.transforms),
+        b_ids,
+        b_count.tobytes(),
+        planes(keys[b_sel]),
+        planes(slots[b_sel]),
+        planes(d.buckets[~b_canon]),
+        c_ids,
+        c_count.tobytes(),
+        planes(d.cells[:, KEY_WORD]),
+        planes(((p >> 16) & 0x7FFF).astype(np.uint16)),  # 3 x 5-bit position
+        ((p >> 8) & 0xFF).astype(np.uint8).tobytes(),  # octahedral normal
+        (p & 0xFF).astype(np.uint8).tobytes(),  # AO
+        planes(points[~c_canon]),
+    ]
+    return b"".join(parts)
+
+
+def _expand_leading(counts: np.ndarray, width: int) -> np.ndarray:
+    """(n,) leading counts -> (n, width) bool mask of the first counts[i] columns."""
+    return np.arange(width)[None, :] < counts[:, None]
+
+
+def _read_counts(r: Reader, n: int, most: int, what: str) -> np.ndarray:
+    counts = r.array(np.uint8, n)
+    if np.any((counts > most) & (counts != RAW)):
+        raise PayloadError(f"{what}: entry count above {most}")
+    return counts
+
+
+def _decode_packed(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDelta:
+    lt, lb, lc = r.unpack(_PACKED_LENGTHS)
+    transform_ids = gaps_decode(r.take(lt), k, "transform ids")
+    transforms = unplanes(r, "<f4", 16 * k).reshape(k, 4, 4)
+
+    bucket_ids = gaps_decode(r.take(lb), nb, "bucket ids")
+    b_count = _read_counts(r, nb, BUCKET_ENTRIES, "bucket")
+    b_canon = b_count != RAW
+    b_sel = _expand_leading(np.where(b_canon, b_count, 0), BUCKET_ENTRIES)
+    n_entries = int(b_sel.sum())
+    buckets = np.full((nb, BUCKET_ENTRIES, 2), EMPTY, dtype=np.uint32)
+    buckets[:, :, 0][b_sel] = unplanes(r, "<u4", n_entries)
+    buckets[:, :, 1][b_sel] = unplanes(r, "<u4", n_entries)
+    n_raw = int((~b_canon).sum())
+    buckets[~b_canon] = unplanes(r, "<u4", n_raw * 2 * BUCKET_ENTRIES).reshape(n_raw, BUCKET_ENTRIES, 2)
+
+    cell_slots = gaps_decode(r.take(lc), nc, "cell slots")
+    c_count = _read_counts(r, nc, POINTS_PER_CELL, "cell")
+    c_canon = c_count != RAW
+    cells = np.zeros((nc, CELL_WORDS), dtype=np.uint32)
+    cells[:, KEY_WORD] = unplanes(r, "<u4", nc)
+    p_sel = _expand_leading(np.where(c_canon, c_count, 0), POINTS_PER_CELL)
+    n_points = int(p_sel.sum())
+    pos = unplanes(r, "<u2", n_points).astype(np.uint32)
+    normal = r.array(np.uint8, n_points).astype(np.uint32)
+    ao = r.array(np.uint8, n_points).astype(np.uint32)
+    if np.any(pos > 0x7FFF):
+        raise PayloadError("cell: position field above 15 bits")
+    points = cells[:, :POINTS_PER_CELL]
+    points[p_sel] = ALLOCATED_BIT | (pos << 16) | (normal << 8) | ao
+    n_raw = int((~c_canon).sum())
+    points[~c_canon] = unplanes(r, "<u4", n_raw * POINTS_PER_CELL).reshape(n_raw, POINTS_PER_CELL)
+    return GridDelta(capacity, transform_ids, transforms, bucket_ids, buckets, cell_slots, cells)
+
+
+# ------------------------------------------------------------------------------------------- public API
+
+
+def encode_delta(delta: GridDelta, layout: Layout = Layout.PACKED) -> bytes:
+    return _encode_plain(delta) if layout == Layout.PLAIN else _encode_packed(delta)
+
+
+def decode_delta(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta, Layout]:
+    """Read a grid delta from the rest of a payload (both layouts); counts are checked before any array
+    is allocated and the delta is checked structurally."""
+    layout, capacity, k, nb, nc = r.unpack(_COUNTS)
+    _check_counts(capacity, k, nb, nc, limits)
+    if layout == Layout.PLAIN:
+        delta = _decode_plain(r, capacity, k, nb, nc)
+    elif layout == Layout.PACKED:
+        delta = _decode_packed(r, capacity, k, nb, nc)
+    else:
+        raise PayloadError(f"unknown grid delta layout {layout}")
+    r.done()
+    delta.check(limits)
+    return delta, Layout(layout)
+
+
+def state_digest(instances: np.ndarray, buckets: np.ndarray, cells: np.ndarray, transforms: np.ndarray) -> str:
+    """sha256 over the exact bytes of a grid state (server or mirror), for bit-exact comparisons."""
+    h = hashlib.sha256()
+    for a in (instances, buckets, cells, transforms):
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()

@@ -1,0 +1,118 @@
+"""Codecs: exact round trips, and decompression bombs refused before or while decoding."""
+from __future__ import annotations
+
+import lz4.frame
+import numpy as np
+import pytest
+import zstandard
+
+from protocol.codecs import (
+    Codec,
+    FrameCodec,
+    StreamCompressor,
+    StreamDecompressor,
+    codec_mask,
+    codecs_from_mask,
+    decompress_frame,
+)
+from protocol.errors import CodecError, LimitError
+
+CAP = 1 << 20
+
+
+def _payloads():
+    rng = np.random.default_rng(0)
+    yield b""
+    yield b"x"
+    yield rng.integers(0, 4, 200_000, dtype=np.uint8).tobytes()
+    yield rng.integers(0, 256, 5000, dtype=np.uint8).tobytes()
+
+
+@pytest.mark.parametrize("codec", [Codec.NONE, Codec.ZSTD, Codec.LZ4])
+def test_frame_codecs_roundtrip(codec):
+    fc = FrameCodec(codec)
+    for p in _payloads():
+        assert decompress_frame(codec, fc.compress(p), CAP) == p
+
+
+def test_stream_roundtrip_every_message_decodes_on_arrival():
+    comp, dec = StreamCompressor(), StreamDecompressor()
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 256, 20_000, dtype=np.uint8)
+    sizes = []
+    for i in range(30):
+        msg = base.copy()
+        msg[rng.integers(0, len(msg), 50)] = i  # mostly a repeat of earlier messages
+        data = comp.compress(msg.tobytes())
+        sizes.append(len(data))
+        assert dec.decompress(data, CAP) == msg.tobytes()
+    assert max(sizes[5:]) < sizes[0] / 4  # later messages refer back to earlier ones
+
+
+def test_codec_mask():
+    assert codec_mask([Codec.NONE, Codec.ZSTD_STREAM]) == 0b1001
+    assert codecs_from_mask(0b0110) == {Codec.ZSTD, Codec.LZ4}
+
+
+def test_zstd_bomb_with_declared_size_refused_without_decoding():
+    bomb = zstandard.ZstdCompressor(level=1).compress(bytes(64 << 20))
+    assert len(bomb) < 10_000
+    with pytest.raises(LimitError, match="declares 67108864"):
+        decompress_frame(Codec.ZSTD, bomb, CAP)
+
+
+def test_zstd_forged_huge_declared_size_refused():
+    # A frame header claiming 2^60 bytes followed by almost nothing.
+    frame = zstandard.ZstdCompressor(level=1).compress(b"abc")
+    params = zstandard.get_frame_parameters(frame)
+    assert params.content_size == 3
+    forged = bytes.fromhex("28b52ffd") + bytes([0xE0]) + (1 << 60).to_bytes(8, "little") + b"\0" * 8
+    with pytest.raises((LimitError, CodecError)):
+        decompress_frame(Codec.ZSTD, forged, CAP)
+
+
+def test_zstd_bomb_without_size_is_capped_while_decoding():
+    cctx = zstandard.ZstdCompressor(level=1, write_content_size=False)
+    bomb = cctx.compress(bytes(256 << 20))
+    assert zstandard.frame_content_size(bomb) == -1
+    with pytest.raises(LimitError, match="exceeds the limit"):
+        decompress_frame(Codec.ZSTD, bomb, CAP)
+
+
+def test_stream_bomb_is_capped():
+    comp, dec = StreamCompressor(), StreamDecompressor()
+    assert dec.decompress(comp.compress(b"hello"), CAP) == b"hello"
+    with pytest.raises(LimitError):
+        dec.decompress(comp.compress(bytes(64 << 20)), CAP)
+
+
+def test_lz4_bomb_refused():
+    bomb = lz4.frame.compress(bytes(32 << 20), store_size=True)
+    with pytest.raises(LimitError, match="declares"):
+        decompress_frame(Codec.LZ4, bomb, CAP)
+    bomb = lz4.frame.compress(bytes(32 << 20), store_size=False)
+    with pytest.raises(LimitError, match="exceeds"):
+        decompress_frame(Codec.LZ4, bomb, CAP)
+
+
+@pytest.mark.parametrize("codec", [Codec.ZSTD, Codec.LZ4])
+def test_trailing_garbage_truncation_and_junk_refused(codec):
+    data = FrameCodec(codec).compress(b"payload" * 100)
+    with pytest.raises(CodecError, match="after the frame"):
+        decompress_frame(codec, data + b"junk", CAP)
+    with pytest.raises(CodecError):
+        decompress_frame(codec, data[:-3], CAP)
+    with pytest.raises(CodecError):
+        decompress_frame(codec, b"definitely not compressed", CAP)
+
+
+def test_none_codec_limit():
+    with pytest.raises(LimitError):
+        decompress_frame(Codec.NONE, bytes(CAP + 1), CAP)
+
+
+def test_stream_codec_is_not_a_frame_codec():
+    with pytest.raises(CodecError):
+        FrameCodec(Codec.ZSTD_STREAM)
+    with pytest.raises(CodecError):
+        decompress_frame(Codec.ZSTD_STREAM, b"", CAP)

@@ -1,0 +1,233 @@
+"""Wire format of every message, checked against hand-written bytes in both directions."""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.codecs import Codec
+from protocol.errors import HeaderError, LimitError, PayloadError
+from protocol.gridformat import EMPTY, INSTANCE_DTYPE
+from protocol.limits import Limits
+from protocol.updates import GridDelta, Layout, Reader, decode_delta, encode_delta, gaps_decode, gaps_encode
+from protocol.updates import varint_decode, varint_encode
+
+HASH = bytes(range(32))
+H = bytes.fromhex
+ONE = H("0000803f")  # 1.0f little-endian
+ZERO = H("00000000")
+EYE = b"".join(ONE if i == j else ZERO for i in range(4) for j in range(4))
+
+
+def header(mtype: int, length: int, codec: int = 0) -> bytes:
+    return b"PSAO" + H("0100") + bytes([mtype, codec]) + length.to_bytes(4, "little")
+
+
+def roundtrip(msg):
+    data = m.encode(msg)
+    hdr = m.Header.parse(data, 1 << 30)
+    return data, m.parse_payload(hdr.type, data[12:])
+
+
+def test_hello_bytes_both_ways():
+    expected = header(1, 42) + H("0100") + H("0b000000") + HASH + H("0200") + b"tk"
+    msg = m.Hello(HASH, 0b1011, "tk")
+    data, back = roundtrip(msg)
+    assert data == expected
+    assert back == msg
+    hand = m.Hello.parse(H("0100") + H("01000000") + HASH + H("0000"))
+    assert (hand.version, hand.codec_mask, hand.token, hand.scene_hash) == (1, 1, "", HASH)
+
+
+def test_error_bye_scene_edit_bytes():
+    assert m.encode(m.Error(7, "bad")) == header(7, 7) + H("0700") + H("0300") + b"bad"
+    assert m.Error.parse(H("0900") + H("0200") + "é".encode()) == m.Error(9, "é")
+    assert m.encode(m.Bye()) == header(8, 0)
+    edit = m.encode(m.SceneEdit(3, np.eye(4)))
+    assert edit == header(6, 68) + H("03000000") + EYE
+    back = m.SceneEdit.parse(H("05000000") + EYE)
+    assert back.instance == 5 and np.array_equal(back.transform, np.eye(4))
+
+
+def test_camera_bytes_and_nan_rejected():
+    view = np.arange(16, dtype=np.float32).reshape(4, 4)
+    data = m.encode(m.Camera(view, np.eye(4)))
+    assert data == header(5, 128) + view.astype("<f4").tobytes() + EYE
+    cam = m.Camera.parse(data[12:])
+    assert np.array_equal(cam.view, view) and cam.view.dtype == np.float32
+    bad = view.copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(PayloadError, match="NaN"):
+        m.Camera.parse(bad.tobytes() + EYE)
+    with pytest.raises(PayloadError, match="NaN"):
+        m.Camera.parse(EYE + struct.pack("<f", np.inf) + EYE[4:])
+    with pytest.raises(PayloadError, match="truncated"):
+        m.Camera.parse(EYE)
+    with pytest.raises(PayloadError, match="unexpected bytes"):
+        m.Camera.parse(EYE + EYE + b"x")
+
+
+def test_welcome_bytes_both_ways():
+    inst = np.zeros(1, INSTANCE_DTYPE)
+    inst["origin"] = (1.0, 0.0, 0.0)
+    inst["cell_size"] = 0.5
+    inst["dims"] = (2, 3, 4)
+    inst["bucket_count"] = 16
+    msg = m.Welcome(HASH, 9, Codec.ZSTD_STREAM, Layout.PACKED, 60.0, 16, 100, inst)
+    fields = HASH + H("09000000") + H("03") + H("01") + H("0000") + struct.pack("<f", 60.0)
+    fields += H("01000000") + H("10000000") + H("64000000")
+    record = ONE + ZERO + ZERO + H("0000003f") + H("02000000 03000000 04000000") + ZERO + H("10000000")
+    record += ZERO + ZERO + ZERO
+    data, back = roundtrip(msg)
+    assert data == header(2, len(fields) + 48) + fields + record
+    assert back.instances.tobytes() == inst.tobytes()
+    assert (back.connection_id, back.codec, back.layout, back.n_buckets, back.cell_capacity) == (
+        9, Codec.ZSTD_STREAM, Layout.PACKED, 16, 100)
+    with pytest.raises(LimitError, match="buckets"):
+        m.Welcome.parse(fields[:48] + H("ffffffff") + fields[52:] + record)
+
+
+def _small_delta() -> GridDelta:
+    bucket = np.full((1, 8, 2), EMPTY, np.uint32)
+    bucket[0, 0] = (6, 3)
+    cells = np.array([[0x801234FF, 0, 0, 0, 0, 0, 0, 5], [0] * 7 + [0xFFFFFFFF]], np.uint32)
+    return GridDelta(4, [1], np.eye(4)[None], [2], bucket, [0, 3], cells)
+
+
+def test_update_plain_layout_bytes():
+    d = _small_delta()
+    counts = H("00") + H("04000000 01000000 01000000 02000000")
+    body = H("01000000") + EYE + H("02000000") + H("06000000 03000000") + H("ffffffff") * 14
+    body += H("00000000 03000000") + H("ff341280 00000000") + ZERO * 5 + H("05000000") + ZERO * 7 + H("ffffffff")
+    payload = H("0700000000000000") + struct.pack("<d", 0.5) + counts + body
+    assert m.Update(7, 0.5, d, Layout.PLAIN).serialize() == payload
+    back = m.Update.parse(payload)
+    assert back.tick == 7 and back.server_time == 0.5 and back.layout == Layout.PLAIN
+    assert back.delta.equals(d)
+
+
+def test_update_packed_layout_bytes():
+    d = _small_delta()
+    counts = H("01") + H("04000000 01000000 01000000 02000000") + H("01000000 01000000 02000000")
+    plane2 = bytes(0x80 if i in (0, 5, 10, 15) else 0 for i in range(16))
+    plane3 = bytes(0x3F if i in (0, 5, 10, 15) else 0 for i in range(16))
+    transforms = H("01") + bytes(32) + plane2 + plane3  # id 1 as a varint, then 4 byte planes
+    buckets = H("02") + H("01") + H("06 00 00 00") + H("03 00 00 00")  # id, 1 used entry, key and slot planes
+    cells = H("00 02") + H("01 00")  # slots 0 and 3 as gaps, point counts
+    cells += H("05ff 00ff 00ff 00ff")  # key planes of both cells
+    cells += H("12 00") + H("34") + H("ff")  # position planes, normal, AO of the one point
+    payload = H("0700000000000000") + struct.pack("<d", 0.5) + counts + transforms + buckets + cells
+    assert m.Update(7, 0.5, d, Layout.PACKED).serialize() == payload
+    assert m.Update.parse(payload).delta.equals(d)
+
+
+def test_snapshot_chunk_bytes_and_range():
+    d = GridDelta(0)
+    payload = H("02000000 05000000") + H("00") + bytes(16)
+    assert m.Snapshot(2, 5, d, Layout.PLAIN).serialize() == payload
+    s = m.Snapshot.parse(payload)
+    assert (s.chunk, s.n_chunks) == (2, 5)
+    with pytest.raises(PayloadError, match="out of range"):
+        m.Snapshot.parse(H("05000000 05000000") + payload[8:])
+
+
+@pytest.mark.parametrize(
+    "data, exc, text",
+    [
+        (b"PSA", HeaderError, "truncated header"),
+        (b"XXXX" + bytes(8), HeaderError, "bad magic"),
+        (b"PSAO" + H("0200") + H("0100") + bytes(4), HeaderError, "version"),
+        (header(99, 0), HeaderError, "unknown message type"),
+        (header(1, 0, codec=9), HeaderError, "unknown codec"),
+        (header(5, 1 << 30), LimitError, "over the limit"),
+        (header(5, 10) + b"short", HeaderError, "carries 5"),
+    ],
+)
+def test_bad_headers(data, exc, text):
+    with pytest.raises(exc, match=text):
+        m.Header.parse(data, 1 << 20)
+
+
+def test_varints_and_gaps():
+    values = np.array([0, 1, 127, 128, 300, 16383, 16384, 2**21, 2**28, 2**32 - 1], np.uint32)
+    enc = varint_encode(values)
+    assert enc[:7] == H("00 01 7f 8001 ac02")
+    assert np.array_equal(varint_decode(enc, len(values), "v"), values)
+    with pytest.raises(PayloadError):
+        varint_decode(enc, len(values) + 1, "v")
+    with pytest.raises(PayloadError):
+        varint_decode(H("ffffffff7f"), 1, "v")  # 35 bits
+    with pytest.raises(PayloadError):
+        varint_decode(H("808080808001"), 1, "v")  # 6 bytes
+    ids = np.array([0, 1, 5, 1000, 2**32 - 1], np.uint32)
+    assert gaps_encode(ids)[:3] == H("00 00 03")
+    assert np.array_equal(gaps_decode(gaps_encode(ids), len(ids), "g"), ids)
+
+
+def _random_delta(rng, nb=60, nc=90, cap=2000) -> GridDelta:
+    b_ids = np.sort(rng.choice(1 << 14, nb, replace=False))
+    buckets = np.full((nb, 8, 2), EMPTY, np.uint32)
+    used = rng.integers(0, 9, nb)
+    for i, n in enumerate(used):
+        buckets[i, :n, 0] = rng.integers(0, 1 << 30, n)
+        buckets[i, :n, 1] = rng.integers(0, cap, n)
+    slots = np.sort(rng.choice(cap, nc, replace=False))
+    cells = np.zeros((nc, 8), np.uint32)
+    cells[:, 7] = rng.integers(0, 1 << 30, nc)
+    for i, n in enumerate(rng.integers(0, 8, nc)):
+        cells[i, :n] = 0x80000000 | rng.integers(0, 1 << 31, n)
+    cells[rng.random(nc) < 0.1, 7] = EMPTY
+    # Non-canonical records (holes, stray bits) must survive too: PACKED sends them whole.
+    buckets[0, 0] = (EMPTY, 5)
+    buckets[1] = rng.integers(0, 1 << 32, (8, 2), dtype=np.uint64)
+    cells[0, 3] = 7
+    cells[1, :7] = rng.integers(0, 1 << 32, 7, dtype=np.uint64)
+    k = 3
+    return GridDelta(cap, [0, 4, 9], rng.normal(size=(k, 4, 4)), b_ids, buckets, slots, cells)
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_random_deltas_roundtrip_exactly(layout):
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        d = _random_delta(rng)
+        back, got_layout = decode_delta(Reader(encode_delta(d, layout), "t"))
+        assert got_layout == layout and back.equals(d)
+    empty = GridDelta(0)
+    assert decode_delta(Reader(encode_delta(empty, layout), "t"))[0].equals(empty)
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_delta_truncation_and_garbage_rejected(layout):
+    data = encode_delta(_random_delta(np.random.default_rng(2)), layout)
+    for cut in (1, 7, len(data) // 2, len(data) - 1):
+        with pytest.raises(PayloadError):
+            decode_delta(Reader(data[:cut], "t"))
+    with pytest.raises(PayloadError, match="unexpected bytes"):
+        decode_delta(Reader(data + b"\0", "t"))
+
+
+def test_delta_counts_checked_before_allocation():
+    huge = H("00") + H("00000001 00000000 00000000 ffffff7f")  # 2^31 cells claimed in a tiny payload
+    with pytest.raises(LimitError, match="cell count"):
+        decode_delta(Reader(huge, "t"))
+    small = Limits(max_cell_capacity=10)
+    with pytest.raises(LimitError, match="capacity"):
+        decode_delta(Reader(H("00") + H("0b000000") + bytes(12), "t"), small)
+
+
+def test_delta_structure_checked():
+    d = _small_delta()
+    d.cell_slots = np.array([3, 0], np.uint32)
+    with pytest.raises(PayloadError, match="sorted"):
+        decode_delta(Reader(encode_delta(d, Layout.PLAIN), "t"))
+    d = _small_delta()
+    d.cell_capacity = 3  # slot 3 outside
+    with pytest.raises(PayloadError, match="capacity"):
+        decode_delta(Reader(encode_delta(d, Layout.PACKED), "t"))
+    d = _small_delta()
+    d.transforms[0, 1, 1] = np.nan
+    with pytest.raises(PayloadError, match="NaN"):
+        decode_delta(Reader(encode_delta(d, Layout.PLAIN), "t"))
