@@ -1,0 +1,11 @@
+"""Scene loading shared by the server and the client: `load_scene(spec)` returns a psao_scene.model.Scene."""
+from .camera import camera_at, default_orbit, look_at, perspective, scene_camera
+from .errors import GeometryError, SceneError, SceneFormatError, SceneNotFound
+from .loader import load_scene
+from .model import CameraKey, CameraPath, Instance, Mesh, Scene
+
+__all__ = [
+    "load_scene", "Scene", "Mesh", "Instance", "CameraPath", "CameraKey",
+    "camera_at", "look_at", "perspective", "default_orbit", "scene_camera",
+    "SceneError", "SceneNotFound", "SceneFormatError", "GeometryError",
+]

@@ -1,0 +1,205 @@
+"""Built-in scenes generated in code (`builtin:NAME`): no files, no downloads, deterministic.
+
+Conventions: Y up, units are metres, open geometry faces the camera side. BUILTINS maps a name to a
+function returning a Scene; the loader adds source = "builtin:NAME".
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from . import builtin_shapes as shapes
+from .meshfile import clean_geometry
+from .model import CameraKey, CameraPath, Instance, Mesh, Scene
+
+
+def rotation_xyz(degrees) -> np.ndarray:
+    """3x3 rotation from Euler angles in degrees, applied about X, then Y, then Z (fixed axes)."""
+    rx, ry, rz = np.radians(np.asarray(degrees, dtype=np.float64))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    mx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    my = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    mz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return mz @ my @ mx
+
+
+def rotation_axis_angle(axis, degrees: float) -> np.ndarray:
+    """3x3 rotation by `degrees` about `axis` (right-handed, Rodrigues)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
+
+
+def trs(translate=(0.0, 0.0, 0.0), rotate=None, scale=1.0) -> np.ndarray:
+    """4x4 local-to-world = T * R * S. rotate: Euler degrees (x, y, z) or a 3x3 matrix; scale: float or 3."""
+    m = np.eye(4)
+    r = np.eye(3) if rotate is None else np.asarray(rotate, dtype=np.float64)
+    if r.shape == (3,):
+        r = rotation_xyz(r)
+    m[:3, :3] = r * np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))[None, :]
+    m[:3, 3] = translate
+    return m
+
+
+class SceneBuilder:
+    """Collects cleaned meshes and named instances for a generated scene."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.meshes: list[Mesh] = []
+        self.instances: list[Instance] = []
+        self.camera_paths: dict[str, CameraPath] = {}
+
+    def mesh(self, name: str, geom: shapes.Geometry, color=(0.8, 0.8, 0.8), double_sided=False) -> int:
+        r = clean_geometry(geom[0], geom[1], f"builtin:{self.name}: mesh '{name}'")
+        self.meshes.append(Mesh(name=name, vertices=r.vertices, faces=r.faces, double_sided=double_sided,
+                                color=tuple(float(c) for c in color)))
+        return len(self.meshes) - 1
+
+    def instance(self, name: str, mesh: int, transform: np.ndarray | None = None, animation=None) -> int:
+        self.instances.append(Instance(name=name, mesh=mesh,
+                                       transform=np.eye(4) if transform is None else transform,
+                                       animation=animation))
+        return len(self.instances) - 1
+
+    def place(self, name: str, geom: shapes.Geometry, transform=None, **mesh_kw) -> int:
+        """A mesh used by exactly one instance of the same name."""
+        return self.instance(name, self.mesh(name, geom, **mesh_kw), transform)
+
+    def camera(self, name: str, keys: list[tuple[float, tuple, tuple]], fov_y=60.0, loop=True) -> None:
+        self.camera_paths[name] = CameraPath(
+            name=name, keys=[CameraKey(float(t), tuple(map(float, e)), tuple(map(float, g))) for t, e, g in keys],
+            fov_y=fov_y, loop=loop)
+
+    def build(self, ao_distance: float) -> Scene:
+        return Scene(name=self.name, meshes=self.meshes, instances=self.instances, ao_distance=ao_distance,
+                     camera_paths=self.camera_paths, source=f"builtin:{self.name}")
+
+
+def quad(p0, p1, p2, p3) -> shapes.Geometry:
+    """One quad, counter-clockwise seen from the side it faces."""
+    return np.array([p0, p1, p2, p3], dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+
+
+# ------------------------------------------------------------------------------------------- cornell
+
+def cornell() -> Scene:
+    """The Cornell box, 1 unit: floor, ceiling, back, left (red) and right (green) walls as single-sided
+    quads facing inwards; the front (z = +0.5) is open and the camera looks in through it. Two closed
+    blocks stand on the floor. 34 triangles; AO distance 0.5."""
+    b = SceneBuilder("cornell")
+    lo, hi = -0.5, 0.5
+    white, red, green = (0.73, 0.73, 0.73), (0.63, 0.065, 0.05), (0.14, 0.45, 0.09)
+    b.place("floor", quad((lo, 0, lo), (lo, 0, hi), (hi, 0, hi), (hi, 0, lo)), color=white)
+    b.place("ceiling", quad((lo, 1, lo), (hi, 1, lo), (hi, 1, hi), (lo, 1, hi)), color=white)
+    b.place("back_wall", quad((lo, 0, lo), (hi, 0, lo), (hi, 1, lo), (lo, 1, lo)), color=white)
+    b.place("left_wall", quad((lo, 0, lo), (lo, 1, lo), (lo, 1, hi), (lo, 0, hi)), color=red)
+    b.place("right_wall", quad((hi, 0, lo), (hi, 0, hi), (hi, 1, hi), (hi, 1, lo)), color=green)
+    b.place("tall_block", shapes.box((0.3, 0.6, 0.3)), trs((-0.17, 0.3, -0.12), (0, 17, 0)), color=white)
+    b.place("short_block", shapes.box((0.3, 0.3, 0.3)), trs((0.18, 0.15, 0.12), (0, -18, 0)), color=white)
+    b.camera("front", [(0.0, (0.0, 0.5, 1.9), (0.0, 0.45, 0.0)),
+                       (4.0, (0.18, 0.55, 1.7), (0.0, 0.4, 0.0)),
+                       (8.0, (-0.18, 0.45, 1.7), (0.0, 0.45, 0.0)),
+                       (12.0, (0.0, 0.5, 1.9), (0.0, 0.45, 0.0))], fov_y=40.0)
+    return b.build(ao_distance=0.5)
+
+
+# ----------------------------------------------------------------------------------------- courtyard
+
+# Courtyard layout, metres. The open court spans x in [-15, 15], z in [-7.5, 7.5] inside the outer walls;
+# along both long walls runs a two-storey arcade (columns with arches) at |z| = ARCADE_Z, with a gallery
+# behind it; the upper gallery has a railing between its columns. The top is open to the sky.
+COURT_X, COURT_Z, WALL_H, WALL_T = 15.0, 7.5, 12.0, 0.5
+ARCADE_Z = 4.5
+BAY = 3.0  # column spacing
+COLUMN_XS = np.arange(-12.0, 12.0 + 1e-9, BAY)
+STOREYS = (  # (name, floor y, column height, arch height)
+    ("ground", 0.0, 4.5, 1.8),
+    ("upper", 6.3, 3.5, 1.2),
+)
+ARCH_DEPTH = 0.6
+SLAB_T = 0.3
+
+
+def courtyard() -> Scene:
+    """A Sponza-like atrium about 30 x 12 x 15 m: floor, outer walls, two storeys of arcades along the long
+    sides, a railing of thin bars on the upper gallery, banners (double-sided cloth) and boulders on the
+    floor. Columns, arches and railing bays share one mesh per kind, placed by many instances."""
+    b = SceneBuilder("courtyard")
+    stone, wall, floor_c = (0.76, 0.72, 0.64), (0.70, 0.66, 0.58), (0.55, 0.52, 0.48)
+    b.place("floor", shapes.box((2 * COURT_X + 2 * WALL_T, 0.3, 2 * COURT_Z + 2 * WALL_T)),
+            trs((0, -0.15, 0)), color=floor_c)
+    long_wall = b.mesh("long_wall", shapes.box((2 * COURT_X + 2 * WALL_T, WALL_H, WALL_T)), color=wall)
+    short_wall = b.mesh("short_wall", shapes.box((WALL_T, WALL_H, 2 * COURT_Z)), color=wall)
+    for side in (-1, 1):
+        b.instance(f"wall_z{side:+d}", long_wall, trs((0, WALL_H / 2, side * (COURT_Z + WALL_T / 2))))
+        b.instance(f"wall_x{side:+d}", short_wall, trs((side * (COURT_X + WALL_T / 2), WALL_H / 2, 0)))
+    _arcades(b, stone)
+    _boulders(b)
+    cloth = b.mesh("banner", shapes.cloth((1.2, 3.0), subdivisions=8, sag=0.12), color=(0.55, 0.12, 0.1),
+                   double_sided=True)
+    arch_front = ARCADE_Z - ARCH_DEPTH / 2 - 0.02
+    for k, x in enumerate((-7.5, 7.5)):
+        for side in (-1, 1):  # hung from the ground-storey arches, facing the court
+            b.instance(f"banner{k}_z{side:+d}", cloth, trs((x, 6.2, side * arch_front), (0, 90 + side * 90, 0)))
+    keys = []
+    for k, a in enumerate(np.linspace(0, 2 * np.pi, 9)):  # an elliptic walk, looking across the court
+        eye = (9.0 * np.cos(a), 1.7, 3.2 * np.sin(a))
+        ahead = a + 0.9
+        target = (6.0 * np.cos(ahead), 2.6, 2.0 * np.sin(ahead))
+        keys.append((k * 1.25, eye, target))
+    b.camera("walk", keys, fov_y=65.0)
+    return b.build(ao_distance=1.5)
+
+
+def _arcades(b: SceneBuilder, color) -> None:
+    inner_slab_z = ARCADE_Z + ARCH_DEPTH / 2  # galleries: from behind the arches to the wall
+    slab_depth = COURT_Z - inner_slab_z
+    slab = b.mesh("gallery_slab", shapes.box((2 * COURT_X, SLAB_T, slab_depth)), color=color)
+    rail = b.mesh("railing", shapes.railing(BAY - 0.8, 1.0, bar_spacing=0.12, bar_size=0.03), color=color)
+    bay_xs = (COLUMN_XS[:-1] + COLUMN_XS[1:]) / 2
+    for name, y0, col_h, arch_h in STOREYS:
+        col = b.mesh(f"column_{name}", shapes.column(0.3, col_h), color=color)
+        arc = b.mesh(f"arch_{name}", shapes.arch(BAY, arch_h, ARCH_DEPTH, span=BAY - 0.8, segments=16),
+                     color=color)
+        top = y0 + col_h + arch_h
+        for side in (-1, 1):
+            z = side * ARCADE_Z
+            for i, x in enumerate(COLUMN_XS):
+                b.instance(f"column_{name}_z{side:+d}_{i:02d}", col, trs((x, y0, z)))
+            for i, x in enumerate(bay_xs):
+                b.instance(f"arch_{name}_z{side:+d}_{i:02d}", arc, trs((x, y0 + col_h, z)))
+                if name == "upper":
+                    b.instance(f"railing_z{side:+d}_{i:02d}", rail, trs((x, y0, z)))
+            # the gallery above this storey: floor of the next one, or the roof
+            b.instance(f"slab_{name}_z{side:+d}", slab,
+                       trs((0, top - SLAB_T / 2, side * (inner_slab_z + slab_depth / 2))))
+
+
+BOULDERS = (  # (x, z, radius, yaw degrees)
+    (-9.5, -1.5, 1.1, 20), (-4.0, 2.0, 0.6, 75), (-1.0, -2.5, 0.8, 140),
+    (3.5, 1.0, 1.2, 200), (7.0, -2.0, 0.5, 260), (10.5, 2.2, 0.9, 310),
+)
+
+
+def boulder_on_floor(seed: int, radius: float) -> shapes.Geometry:
+    """A boulder mesh shifted so that it rests on y = 0 (sunk 2% of its radius so it touches the floor)."""
+    v, f = shapes.boulder(radius, roughness=0.18, seed=seed, subdivisions=3)
+    v = v.copy()
+    v[:, 1] -= v[:, 1].min() + 0.02 * radius
+    return v, f
+
+
+def _boulders(b: SceneBuilder) -> None:
+    for k, (x, z, radius, yaw) in enumerate(BOULDERS):
+        b.place(f"boulder{k}", boulder_on_floor(100 + k, radius), trs((x, 0, z), (0, yaw, 0)),
+                color=(0.45, 0.42, 0.38))
+
+
+BUILTINS: dict[str, Callable[[], Scene]] = {
+    "cornell": cornell,
+    "courtyard": courtyard,
+}

@@ -1,0 +1,86 @@
+"""load_scene: the one entry point both the server and the client use to get a Scene.
+
+spec is `builtin:NAME`, a `.toml` scene file or a bare mesh file (.gltf .glb .obj .ply .stl .off).
+The result is validated (finite, invertible instance transforms; at least one instance) so that a bad
+scene fails here, at load time, with a one-line SceneError naming the file and the element.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .builtin import BUILTINS
+from .errors import GeometryError, SceneFormatError, SceneNotFound
+from .meshfile import MESH_EXTENSIONS, load_mesh_file
+from .model import Scene
+from .tomlscene import load_toml_scene
+
+BUILTIN_PREFIX = "builtin:"
+# Default AO distance of a scene that does not set one: this fraction of its bounding-box diagonal.
+DEFAULT_AO_FRACTION = 0.1
+# An instance transform whose linear part has |det| below this (relative to its largest column norm
+# cubed) is treated as a zero scale.
+SINGULAR_DET = 1e-12
+
+
+def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
+    if ao_distance is not None and not (np.isfinite(ao_distance) and ao_distance > 0):
+        raise SceneFormatError(f"{spec}: ao_distance must be a finite number > 0, got {ao_distance}")
+    text = str(spec)
+    if text.startswith(BUILTIN_PREFIX):
+        name = text[len(BUILTIN_PREFIX):]
+        if name not in BUILTINS:
+            raise SceneNotFound(f"unknown scene '{text}' (known: {', '.join(BUILTIN_PREFIX + n for n in BUILTINS)})")
+        scene = BUILTINS[name]()
+    else:
+        scene = _load_file(Path(spec))
+    if ao_distance is not None:
+        scene.ao_distance = float(ao_distance)
+    elif not scene.ao_distance > 0:
+        lo, hi = scene.world_bounds()
+        scene.ao_distance = DEFAULT_AO_FRACTION * float(np.linalg.norm(hi - lo))
+    validate_scene(scene)
+    return scene
+
+
+def _load_file(path: Path) -> Scene:
+    ext = path.suffix.lower()
+    if ext == ".toml":
+        return load_toml_scene(path)
+    if ext not in MESH_EXTENSIONS:
+        raise SceneFormatError(
+            f"{path}: unsupported scene format '{ext or '(none)'}' (supported: .toml, {', '.join(MESH_EXTENSIONS)}, "
+            f"or {BUILTIN_PREFIX}NAME)")
+    if not path.is_file():
+        raise SceneNotFound(f"{path}: file not found")
+    meshes, instances = load_mesh_file(path)
+    return Scene(name=path.stem, meshes=meshes, instances=instances, ao_distance=0.0, source=str(path))
+
+
+def validate_scene(scene: Scene) -> None:
+    """Checks every consumer relies on; raises GeometryError naming the scene and the element."""
+    if not scene.instances:
+        raise GeometryError(f"{scene.source}: scene has no instances")
+    for m in scene.meshes:
+        if len(m.faces) == 0 or not np.isfinite(m.vertices).all():
+            raise GeometryError(f"{scene.source}: mesh '{m.name}' has no faces or non-finite vertices")
+    for inst in scene.instances:
+        check_transform(inst.transform, f"{scene.source}: instance '{inst.name}'")
+        if not 0 <= inst.mesh < len(scene.meshes):
+            raise GeometryError(f"{scene.source}: instance '{inst.name}' refers to missing mesh {inst.mesh}")
+    lo, hi = scene.world_bounds()
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise GeometryError(f"{scene.source}: scene bounds are not finite")
+
+
+def check_transform(t: np.ndarray, where: str) -> None:
+    t = np.asarray(t, dtype=np.float64)
+    if t.shape != (4, 4) or not np.isfinite(t).all():
+        raise GeometryError(f"{where}: transform is not a finite 4x4 matrix")
+    if not np.allclose(t[3], [0, 0, 0, 1]):
+        raise GeometryError(f"{where}: transform has a projective last row {t[3].tolist()}")
+    lin = t[:3, :3]
+    scale = float(np.linalg.norm(lin, axis=0).max())
+    if scale == 0 or abs(np.linalg.det(lin)) <= SINGULAR_DET * scale ** 3:
+        raise GeometryError(f"{where}: transform has a zero scale (singular matrix)")

@@ -1,0 +1,245 @@
+"""TOML scene files (`scenes/*.toml`).
+
+Schema (every table is checked: an unknown key, a wrong type or a bad value is a SceneFormatError
+naming the file and the element):
+
+    [scene]
+    name = "pavilion"            # default: the file's stem
+    ao_distance = 1.0            # world units, > 0; default: 0.1 x the scene's bounding-box diagonal
+
+    [[mesh]]                     # one per mesh; names unique
+    name = "floor"
+    generator = "box"            # one of builtin_shapes.GENERATORS: box, plane, sphere, cylinder, cone,
+    size = [10.0, 0.2, 10.0]     #   capsule, torus, boulder, column, arch, railing, cloth; its keyword
+                                 #   parameters are given as keys of this table (e.g. radius, height)
+    # path = "meshes/statue.glb" # instead of generator: a mesh file, relative to this TOML file, inside
+                                 #   its folder tree; all its nodes are baked into this one mesh
+    double_sided = false         # true only for thin open surfaces (cloth, leaves)
+    color = [0.8, 0.8, 0.8]      # linear RGB albedo, each in [0, 1]
+
+    [[instance]]                 # one per placed mesh; names unique
+    name = "floor"
+    mesh = "floor"               # a [[mesh]] name
+    translate = [0.0, -0.1, 0.0]
+    rotate = [0.0, 45.0, 0.0]    # degrees about X, then Y, then Z (fixed axes), or
+                                 #   rotate = { axis = [0, 1, 0], angle = 45.0 } (degrees)
+    scale = 1.0                  # > 0, a number or [sx, sy, sz] (negative mirrors, zero is an error)
+
+    [[camera_path]]
+    name = "walk"
+    fov_y = 60.0                 # degrees, vertical
+    loop = true                  # repeat with period last time - first time (repeat the first key last
+                                 #   to close the loop smoothly)
+    [[camera_path.key]]          # at least one; times strictly increasing
+    time = 0.0                   # seconds
+    eye = [0.0, 1.7, 8.0]
+    target = [0.0, 1.0, 0.0]
+
+The transform of an instance is T * R * S (scale first, then rotate, then translate).
+"""
+from __future__ import annotations
+
+import inspect
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from . import builtin_shapes
+from .builtin import rotation_axis_angle, rotation_xyz, trs
+from .errors import SceneFormatError, SceneNotFound
+from .meshfile import clean_geometry, load_mesh_file, merged_mesh
+from .model import CameraKey, CameraPath, Instance, Mesh, Scene
+
+
+class Table:
+    """One TOML table being read: typed getters that raise SceneFormatError naming `where`."""
+
+    def __init__(self, data, where: str, allowed: set[str]):
+        if not isinstance(data, dict):
+            raise SceneFormatError(f"{where}: expected a table")
+        unknown = sorted(set(data) - allowed)
+        if unknown:
+            raise SceneFormatError(f"{where}: unknown key '{unknown[0]}' (allowed: {', '.join(sorted(allowed))})")
+        self.data, self.where = data, where
+
+    def fail(self, msg: str) -> SceneFormatError:
+        return SceneFormatError(f"{self.where}: {msg}")
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def text(self, key: str, default: str | None = None) -> str:
+        v = self.data.get(key, default)
+        if not isinstance(v, str) or not v:
+            raise self.fail(f"'{key}' must be a non-empty string")
+        return v
+
+    def flag(self, key: str, default: bool) -> bool:
+        v = self.data.get(key, default)
+        if not isinstance(v, bool):
+            raise self.fail(f"'{key}' must be true or false")
+        return v
+
+    def number(self, key: str, default: float | None = None, positive: bool = False) -> float:
+        v = self.data.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.fail(f"'{key}' must be a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise self.fail(f"'{key}' must be > 0, got {v!r}")
+        return float(v)
+
+    def vec(self, key: str, n: int = 3, default=None) -> np.ndarray:
+        v = self.data.get(key, default)
+        if (not isinstance(v, list) or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            raise self.fail(f"'{key}' must be a list of {n} finite numbers, got {v!r}")
+        return np.asarray(v, dtype=np.float64)
+
+    def tables(self, key: str) -> list:
+        v = self.data.get(key, [])
+        if not isinstance(v, list):
+            raise self.fail(f"'{key}' must be an array of tables ([[{key}]])")
+        return v
+
+
+def load_toml_scene(path: Path) -> Scene:
+    path = Path(path)
+    if not path.is_file():
+        raise SceneNotFound(f"{path}: scene file not found")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise SceneFormatError(f"{path}: malformed TOML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise SceneFormatError(f"{path}: not UTF-8 text: {e}") from None
+    root = Table(data, str(path), {"scene", "mesh", "instance", "camera_path"})
+    head = Table(data.get("scene", {}), f"{path}: [scene]", {"name", "ao_distance"})
+    name = head.text("name", path.stem)
+    meshes, mesh_ids = _meshes(path, root.tables("mesh"))
+    instances = _instances(path, root.tables("instance"), mesh_ids)
+    if not instances:
+        raise SceneFormatError(f"{path}: no [[instance]]: the scene is empty")
+    cameras = _camera_paths(path, root.tables("camera_path"))
+    ao = head.number("ao_distance", positive=True) if head.has("ao_distance") else 0.0  # 0: loader picks
+    return Scene(name=name, meshes=meshes, instances=instances, ao_distance=ao, camera_paths=cameras,
+                 source=str(path))
+
+
+def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
+    meshes: list[Mesh] = []
+    ids: dict[str, int] = {}
+    for k, raw in enumerate(tables):
+        label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
+        where = f"{path}: mesh '{label}'"
+        gen_name = raw.get("generator") if isinstance(raw, dict) else None
+        gen = builtin_shapes.GENERATORS.get(gen_name) if isinstance(gen_name, str) else None
+        if gen_name is not None and gen is None:
+            raise SceneFormatError(
+                f"{where}: unknown generator '{gen_name}' (known: {', '.join(builtin_shapes.GENERATORS)})")
+        params = set(inspect.signature(gen).parameters) if gen else set()
+        t = Table(raw, where, {"name", "generator", "path", "double_sided", "color"} | params)
+        name = t.text("name")
+        if name in ids:
+            raise t.fail("duplicate mesh name")
+        fields = dict(double_sided=t.flag("double_sided", False),
+                      color=tuple(t.vec("color", 3, [0.8, 0.8, 0.8]).tolist()))
+        if not all(0 <= c <= 1 for c in fields["color"]):
+            raise t.fail("'color' components must be in [0, 1]")
+        if t.has("generator") == t.has("path"):
+            raise t.fail("give exactly one of 'generator' or 'path'")
+        if t.has("generator"):
+            kwargs = {p: raw[p] for p in params if p in raw}
+            try:
+                v, f = gen(**kwargs)
+            except (TypeError, ValueError) as e:
+                raise t.fail(f"generator '{gen_name}': {e}") from None
+            r = clean_geometry(v, f, where)
+            mesh = Mesh(name=name, vertices=r.vertices, faces=r.faces, **fields)
+        else:
+            mesh = _file_mesh(path, t, name, fields)
+        ids[name] = len(meshes)
+        meshes.append(mesh)
+    return meshes, ids
+
+
+def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
+    rel = t.text("path")
+    base = path.parent.resolve()
+    file = (base / rel).resolve()
+    if Path(rel).is_absolute() or base not in file.parents:
+        raise t.fail(f"path '{rel}' must be relative and inside the scene's folder")
+    if not file.is_file():
+        raise SceneNotFound(f"{t.where}: mesh file '{rel}' not found")
+    ms, ins = load_mesh_file(file)
+    return merged_mesh(name, ms, ins, **fields)
+
+
+def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Instance]:
+    out: list[Instance] = []
+    names: set[str] = set()
+    for k, raw in enumerate(tables):
+        label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
+        t = Table(raw, f"{path}: instance '{label}'",
+                  {"name", "mesh", "translate", "rotate", "scale", "animation"})
+        name = t.text("name")
+        if name in names:
+            raise t.fail("duplicate instance name")
+        names.add(name)
+        mesh = t.text("mesh")
+        if mesh not in mesh_ids:
+            raise t.fail(f"unknown mesh '{mesh}' (known: {', '.join(mesh_ids) or 'none'})")
+        transform = trs(t.vec("translate", 3, [0, 0, 0]), _rotation(t), _scale(t))
+        animation = None
+        if t.has("animation"):
+            from .animation import parse_animation
+            animation = parse_animation(t.data["animation"], f"{t.where}: animation", transform)
+        out.append(Instance(name=name, mesh=mesh_ids[mesh], transform=transform, animation=animation))
+    return out
+
+
+def _rotation(t: Table) -> np.ndarray:
+    r = t.data.get("rotate", [0, 0, 0])
+    if isinstance(r, dict):
+        rt = Table(r, f"{t.where}: rotate", {"axis", "angle"})
+        axis = rt.vec("axis")
+        if np.linalg.norm(axis) == 0:
+            raise rt.fail("'axis' must not be zero")
+        return rotation_axis_angle(axis, rt.number("angle"))
+    return rotation_xyz(t.vec("rotate", 3, [0, 0, 0]))
+
+
+def _scale(t: Table) -> np.ndarray:
+    s = t.data.get("scale", 1.0)
+    v = np.full(3, t.number("scale", 1.0)) if not isinstance(s, list) else t.vec("scale")
+    if np.any(v == 0):
+        raise t.fail(f"'scale' must not be zero, got {s!r}")
+    return v
+
+
+def _camera_paths(path: Path, tables: list) -> dict[str, CameraPath]:
+    out: dict[str, CameraPath] = {}
+    for k, raw in enumerate(tables):
+        label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
+        t = Table(raw, f"{path}: camera_path '{label}'", {"name", "fov_y", "loop", "key"})
+        name = t.text("name")
+        if name in out:
+            raise t.fail("duplicate camera path name")
+        fov = t.number("fov_y", 60.0)
+        if not 0 < fov < 180:
+            raise t.fail(f"'fov_y' must be in (0, 180) degrees, got {fov}")
+        keys = []
+        for j, kraw in enumerate(t.tables("key")):
+            kt = Table(kraw, f"{t.where}: key {j}", {"time", "eye", "target"})
+            key = CameraKey(kt.number("time"), tuple(kt.vec("eye").tolist()), tuple(kt.vec("target").tolist()))
+            if keys and key.time <= keys[-1].time:
+                raise kt.fail(f"time {key.time} is not after the previous key's {keys[-1].time}")
+            if np.allclose(key.eye, key.target):
+                raise kt.fail("eye and target coincide")
+            keys.append(key)
+        if not keys:
+            raise t.fail("needs at least one [[camera_path.key]]")
+        out[name] = CameraPath(name=name, keys=keys, fov_y=fov, loop=t.flag("loop", True))
+    return out
+
