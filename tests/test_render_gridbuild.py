@@ -7,10 +7,25 @@ run before and independently of the lead's bake. Its own tests check it against 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
+from psao_client.errors import RenderError
 from psao_scene.model import Instance, Mesh, Scene
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    """One headless GL context per test module (import this fixture by name); skips without EGL."""
+    from psao_client.render.context import create_context
+
+    try:
+        context = create_context()
+    except RenderError as exc:
+        pytest.skip(str(exc))
+    yield context
+    context.release()
 
 
 def box_mesh(name, lo, hi, color=(0.8, 0.8, 0.8), inward=False):
@@ -141,3 +156,21 @@ def test_builder_cells_are_findable_and_points_decode_near_their_source():
     alloc = (cells[:, :7] & pw.ALLOCATED_BIT) != 0
     assert not np.any(alloc[:, 1:] & ~alloc[:, :-1])  # allocated words first
     assert alloc.sum() > 1000
+
+
+def server_grid(scene, density, seed=0):
+    """Grid of a real scene through the server's own point generation and Grid (tests may import the
+    server). AO comes from the lead's bake when it exists; otherwise a smooth synthetic field over the
+    local positions, enough to test that shader and oracle agree. -> (Grid, ao_is_traced)."""
+    from psao_server.grid import Grid
+    from psao_server.points import PointSettings, generate_points, instance_seed
+
+    settings = PointSettings(density=density, seed=seed)
+    sets = [generate_points(scene.meshes[i.mesh], i.transform, settings, seed=instance_seed(seed, k))
+            for k, i in enumerate(scene.instances)]
+    grid = Grid.build([(p.positions, p.normals, p.poisson_radius, 0) for p in sets])
+    table = grid.point_table()
+    field = 0.5 + 0.5 * np.sin(7.0 * table.local_pos[:, 0] + 3.0 * table.local_pos[:, 1]) * np.cos(5.0 * table.local_pos[:, 2])
+    grid.set_ao(table.slot, table.index, pw.quantise_ao(field))
+    grid.take_dirty()
+    return grid

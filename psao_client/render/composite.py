@@ -1,4 +1,4 @@
-"""Pass 3: lit colour x AO into an sRGB RGBA8 image (shaders/composite.frag)."""
+"""Pass 3: lit colour x AO into an sRGB RGBA8 image (shaders/composite.frag.glsl)."""
 from __future__ import annotations
 
 import numpy as np
@@ -13,7 +13,7 @@ class CompositePass:
     def __init__(self, ctx, gbuffer: GBuffer, background=BACKGROUND):
         self._ctx = ctx
         self._gbuffer = gbuffer
-        self.program = compile_program(ctx, vertex_shader="fullscreen.vert", fragment_shader="composite.frag")
+        self.program = compile_program(ctx, vertex_shader="fullscreen.vert.glsl", fragment_shader="composite.frag.glsl")
         self.program["u_color"].value = 0
         self.program["u_ao"].value = 1
         self.program["u_background"].value = tuple(float(c) for c in background)

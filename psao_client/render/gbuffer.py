@@ -1,4 +1,4 @@
-"""Pass 1: rasterise the scene's instances into a G-buffer (shaders/gbuffer.vert, gbuffer.frag).
+"""Pass 1: rasterise the scene's instances into a G-buffer (shaders/gbuffer.vert.glsl, gbuffer.frag.glsl).
 
 Attachments (GL's bottom-up rows; `read()` flips them to top-down images):
     world        RGBA32F  world position, w = 1 where covered (the mask)
@@ -111,7 +111,7 @@ class GeometryPass:
 
     def __init__(self, ctx, scene, light: LightSettings | None = None):
         self._ctx = ctx
-        self.program = compile_program(ctx, vertex_shader="gbuffer.vert", fragment_shader="gbuffer.frag")
+        self.program = compile_program(ctx, vertex_shader="gbuffer.vert.glsl", fragment_shader="gbuffer.frag.glsl")
         self._meshes = scene.meshes
         self._mesh_of_instance = [int(inst.mesh) for inst in scene.instances]
         self._vbos, self._vaos = [], []

@@ -3,8 +3,8 @@
 Output: an RG32F texture, r = AO in [0, 1] (1 on background and where no point has weight),
 g = the weight sum (0 marks a hole: no point within reach).
 
-Two equivalent shaders exist: a full-screen fragment pass (psao_ao.frag) and a compute pass
-(psao_ao.comp). VARIANT picks the one that measured faster on llvmpipe (benchmarks/bench_render.py
+Two equivalent shaders exist: a full-screen fragment pass (psao_ao.frag.glsl) and a compute pass
+(psao_ao.comp.glsl). VARIANT picks the one that measured faster on llvmpipe (benchmarks/bench_render.py
 --variants compares them); both use the same include, so they agree bit for bit.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from psao_client.render.gpu_grid import GpuGrid
 from psao_client.render.shaderlib import compile_program
 
 VARIANT = "fragment"
-_LOCAL_SIZE = 8  # compute work group is 8 x 8, as in psao_ao.comp
+_LOCAL_SIZE = 8  # compute work group is 8 x 8, as in psao_ao.comp.glsl
 
 
 @dataclass
@@ -38,11 +38,11 @@ class PsaoPass:
         self.output = ctx.texture(gbuffer.size, 2, dtype="f4")
         self.output.filter = (ctx.NEAREST, ctx.NEAREST)
         if variant == "fragment":
-            self.program = compile_program(ctx, defines, vertex_shader="fullscreen.vert", fragment_shader="psao_ao.frag")
+            self.program = compile_program(ctx, defines, vertex_shader="fullscreen.vert.glsl", fragment_shader="psao_ao.frag.glsl")
             self._vao = ctx.vertex_array(self.program, [])
             self._fbo = ctx.framebuffer([self.output])
         else:
-            self.program = compile_program(ctx, defines, compute="psao_ao.comp")
+            self.program = compile_program(ctx, defines, compute="psao_ao.comp.glsl")
             self._vao = self._fbo = None
         self.program["u_local"].value = 0
         self.program["u_local_normal"].value = 1

@@ -2,8 +2,10 @@
 
 Every shader lives in `shaders/*.glsl` at the repository root; Python never holds shader source. The
 loader expands includes recursively (each file at most once per program, so an include needs no guard)
-and emits `#line LINE FILE_INDEX` directives so that the driver's error log names file and line: the
-driver reports `FILE_INDEX:LINE`, which `compile_program` maps back to the file name.
+and keeps, for every line of the expanded text, the file and line it came from. Drivers report errors
+as a line of the text they compiled (Mesa "0:LINE(COL)", NVIDIA "0(LINE)"); `compile_program` maps
+that back to `file:line`. (`#line` directives are not used: Mesa attributes some errors to the wrong
+source-string number, while the physical line is always right.)
 """
 from __future__ import annotations
 
@@ -17,25 +19,26 @@ SHADER_DIR = Path(__file__).resolve().parents[2] / "shaders"
 
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
 _VERSION = re.compile(r"^\s*#\s*version\s+\d+")
-# Mesa: "0:12(5): error: ...", NVIDIA: "0(12) : error C0000: ...".
-_LOG_LOCATION = re.compile(r"(?m)^\s*(?:ERROR:\s*)?(\d+)[:(](\d+)")
+_LOG_LOCATION = re.compile(r"(?m)^\s*(?:ERROR:\s*)?\d+[:(](\d+)")
 
 
 @dataclass
 class ShaderSource:
-    """Expanded source of one stage plus the table that maps `#line` file indices to file names."""
+    """Expanded source of one stage; origins[i] is the (file, line) that line i + 1 of text came from."""
 
     text: str
-    files: list[str] = field(default_factory=list)
+    origins: list[tuple[str, int]] = field(default_factory=list)
 
     def locate(self, log: str) -> str:
         """First `file:line` named by a driver log, or '' when the log names none."""
         m = _LOG_LOCATION.search(log)
         if not m:
             return ""
-        index, line = int(m.group(1)), int(m.group(2))
-        name = self.files[index] if index < len(self.files) else f"<source {index}>"
-        return f"{name}:{line}"
+        line = int(m.group(1))
+        if 1 <= line <= len(self.origins):
+            name, original = self.origins[line - 1]
+            return f"{name}:{original}"
+        return ""
 
 
 def _define_lines(defines: dict[str, object] | None) -> list[str]:
@@ -44,56 +47,49 @@ def _define_lines(defines: dict[str, object] | None) -> list[str]:
         if not re.fullmatch(r"[A-Za-z_]\w*", name):
             raise RenderError(f"bad shader define name {name!r}")
         if isinstance(value, bool):
-            value = int(value)
-        if isinstance(value, float):
-            value = repr(value) if "e" in repr(value) or "." in repr(value) else f"{value}.0"
+            value = "true" if value else "false"  # GLSL bool literals (not usable in #if)
+        elif isinstance(value, float):
+            value = repr(value)
         lines.append(f"#define {name} {value}")
     return lines
 
 
 def load_shader(name: str, defines: dict[str, object] | None = None, shader_dir: Path | None = None) -> ShaderSource:
-    """Read `shaders/NAME`, inject defines after its `#version` line and expand includes."""
+    """Read `shaders/NAME`, inject defines right after its `#version` line and expand includes."""
     root = Path(shader_dir) if shader_dir is not None else SHADER_DIR
-    src = ShaderSource(text="", files=[])
-    lines = _read(root, name, src)
+    lines = _read(root, name)
     if not lines or not _VERSION.match(lines[0]):
         raise RenderError(f"shader {name}: line 1 must be the #version directive")
-    out = [lines[0], *_define_lines(defines), "#line 2 0"]
-    included: set[str] = {name}
-    out.extend(_expand(root, name, lines[1:], 0, 2, src, included))
-    src.text = "\n".join(out) + "\n"
-    return src
+    out = [(lines[0], name, 1)]
+    out += [(d, "<defines>", i + 1) for i, d in enumerate(_define_lines(defines))]
+    out += _expand(root, name, lines[1:], 2, {name})
+    return ShaderSource(text="\n".join(t for t, _, _ in out) + "\n", origins=[(f, ln) for _, f, ln in out])
 
 
-def _read(root: Path, name: str, src: ShaderSource) -> list[str]:
+def _read(root: Path, name: str) -> list[str]:
     path = root / name
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:
         raise RenderError(f"shader file not found: {path}") from None
-    src.files.append(name)
-    return text.splitlines()
 
 
-def _expand(root, name, lines, file_index, first_line, src, included) -> list[str]:
-    out: list[str] = []
+def _expand(root: Path, name: str, lines: list[str], first_line: int, included: set[str]) -> list[tuple[str, str, int]]:
+    out: list[tuple[str, str, int]] = []
     for offset, line in enumerate(lines):
+        number = first_line + offset
         m = _INCLUDE.match(line)
-        if not m:
+        if m is None:
             if _VERSION.match(line):
-                raise RenderError(f"shader {name}:{first_line + offset}: #version is only allowed on line 1")
-            out.append(line)
+                raise RenderError(f"shader {name}:{number}: #version is only allowed on line 1")
+            out.append((line, name, number))
             continue
         child = m.group(1)
         if child in included:
-            out.append(f"// {child} already included")
+            out.append((f"// {child} already included", name, number))
             continue
         included.add(child)
-        child_index = len(src.files)
-        child_lines = _read(root, child, src)
-        out.append(f"#line 1 {child_index}")
-        out.extend(_expand(root, child, child_lines, child_index, 1, src, included))
-        out.append(f"#line {first_line + offset + 1} {file_index}")
+        out.extend(_expand(root, child, _read(root, child), 1, included))
     return out
 
 
@@ -115,13 +111,14 @@ def compile_program(ctx, defines: dict[str, object] | None = None, shader_dir: P
 
 
 def _describe_failure(log: str, stages: dict[str, str], sources: dict[str, ShaderSource]) -> str:
-    # moderngl prefixes the driver log with the stage name ("fragment_shader", "GLSL Compiler failed").
+    # moderngl prefixes the driver log with the stage name ("GLSL Compiler failed / fragment_shader").
     stage = next((s for s in sources if s in log), None)
     candidates = [stage] if stage else list(sources)
     first_error = next((ln.strip() for ln in log.splitlines() if "error" in ln.lower() and ":" in ln), "")
+    message = _LOG_LOCATION.sub("", first_error).lstrip(" :()0123456789") or first_error
     for s in candidates:
-        where = sources[s].locate(first_error or log)
+        where = sources[s].locate(first_error)
         if where:
-            return f"GLSL compile error in {where}: {first_error or log.strip().splitlines()[-1]}"
-    summary = first_error or " ".join(log.split())[:200]
+            return f"GLSL compile error in {where}: {message}"
+    summary = message or " ".join(log.split())[:200]
     return f"GLSL error in {', '.join(stages.values())}: {summary}"

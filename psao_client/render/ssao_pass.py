@@ -1,4 +1,4 @@
-"""SSAO baseline (shaders/ssao.frag + ssao_blur.frag): what a user would pick instead of PSAO.
+"""SSAO baseline (shaders/ssao.frag.glsl + ssao_blur.frag.glsl): what a user would pick instead of PSAO.
 
 Normal-oriented hemisphere SSAO as in Crytek / LearnOpenGL: a fixed kernel of SSAO_SAMPLES points in
 the unit hemisphere, denser near the centre, rotated per pixel by a 4x4 noise tile; the radius is the
@@ -52,9 +52,9 @@ class SsaoPass:
         self._gbuffer = gbuffer
         self.settings = settings
         self.program = compile_program(
-            ctx, {"SSAO_SAMPLES": int(settings.samples)}, vertex_shader="fullscreen.vert", fragment_shader="ssao.frag"
+            ctx, {"SSAO_SAMPLES": int(settings.samples)}, vertex_shader="fullscreen.vert.glsl", fragment_shader="ssao.frag.glsl"
         )
-        self.blur_program = compile_program(ctx, vertex_shader="fullscreen.vert", fragment_shader="ssao_blur.frag")
+        self.blur_program = compile_program(ctx, vertex_shader="fullscreen.vert.glsl", fragment_shader="ssao_blur.frag.glsl")
         self._vao = ctx.vertex_array(self.program, [])
         self._blur_vao = ctx.vertex_array(self.blur_program, [])
         self.raw = ctx.texture(gbuffer.size, 1, dtype="f4")
@@ -81,6 +81,7 @@ class SsaoPass:
         self._noise.use(3)
         self.program["u_view"].write(_gl_mat4(view))
         self.program["u_proj"].write(_gl_mat4(proj))
+        self.program["u_unproject"].value = (1.0 / proj[0, 0], 1.0 / proj[1, 1], proj[0, 2], proj[1, 2])
         self._raw_fbo.use()
         ctx.viewport = (0, 0, *gb.size)
         ctx.disable(ctx.DEPTH_TEST)

@@ -1,5 +1,5 @@
 #version 430
-// PSAO pass, compute variant: the same lookup as psao_ao.frag, one invocation per pixel.
+// PSAO pass, compute variant: the same lookup as psao_ao.frag.glsl, one invocation per pixel.
 #include "psao_common.glsl"
 
 layout(local_size_x = 8, local_size_y = 8) in;

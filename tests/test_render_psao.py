@@ -1,0 +1,141 @@
+"""The PSAO shader against the Python oracle protocol/reconstruct.reconstruct_ao, at the very G-buffer
+positions and normals the shader saw; the two shader variants; incremental upload against full upload."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_render_gridbuild import ctx, floor_and_box_scene, floor_box_grid, server_grid  # noqa: F401 (ctx: fixture)
+
+from protocol.reconstruct import reconstruct_ao
+from psao_client.errors import RenderError
+from psao_client.render.renderer import FrameRenderer
+from psao_client.render.views import path_matrices
+
+TOL = 2.0 / 255.0
+
+
+def oracle(frame, instances, buckets, cells):
+    gb = frame.gbuffer
+    m = gb.mask
+    ao, wsum = reconstruct_ao(instances, buckets, cells, gb.instance[m], gb.local[m], gb.local_normal[m])
+    return m, ao, wsum
+
+
+def assert_matches_oracle(frame, instances, buckets, cells):
+    m, ao, wsum = oracle(frame, instances, buckets, cells)
+    shader = frame.ao["psao"]
+    diff = np.abs(shader[m] - ao)
+    assert np.mean(diff <= TOL) >= 0.999, f"max diff {diff.max():.4f}, {np.mean(diff > TOL):.4%} above 2/255"
+    assert np.all(shader[~m] == 1.0)
+    # The weight sums agree too (relative), and the frame is not trivially all-ones.
+    np.testing.assert_allclose(frame.psao_weight[m], wsum, rtol=1e-3, atol=1e-4)
+    assert np.std(ao) > 0.03 and np.mean(wsum > 0) > 0.9
+    return diff
+
+
+@pytest.mark.parametrize("variant", ["fragment", "compute"])
+def test_shader_equals_oracle_on_floor_and_box(ctx, variant):
+    scene = floor_and_box_scene()
+    grid = floor_box_grid(scene)
+    from psao_client.render.views import look_at, perspective
+
+    view, proj = look_at([1.6, 1.2, 1.9], [0, 0.3, 0]), perspective(60, 320 / 180, 0.05, 20)
+    with FrameRenderer(scene, (320, 180), "psao", ctx=ctx, psao_variant=variant) as r:
+        r.upload_grid(*grid)
+        frame = r.render(view, proj)
+    assert frame.gbuffer.mask.mean() > 0.3
+    assert_matches_oracle(frame, *grid)
+
+
+@pytest.mark.parametrize("spec,density,size", [("builtin:cornell", 1024, (320, 240)), ("builtin:courtyard", 64, (640, 360))])
+def test_shader_equals_oracle_on_builtin_scenes(ctx, spec, density, size):
+    psao_scene = pytest.importorskip("psao_scene")
+    scene = psao_scene.load_scene(spec)
+    grid = server_grid(scene, density)
+    path = psao_scene.scene_camera(scene)
+    view, proj = path_matrices(scene, path, path.keys[0].time, size)
+    with FrameRenderer(scene, size, "psao", ctx=ctx) as r:
+        r.upload_grid(grid.instances, grid.buckets, grid.cells)
+        frame = r.render(view, proj)
+    assert frame.gbuffer.mask.mean() > 0.5
+    assert_matches_oracle(frame, grid.instances, grid.buckets, grid.cells)
+
+
+def test_gbuffer_local_space_is_consistent_with_transforms(ctx):
+    scene = floor_and_box_scene()
+    from psao_client.render.views import look_at, perspective
+
+    view, proj = look_at([1.6, 1.2, 1.9], [0, 0.3, 0]), perspective(60, 320 / 180, 0.05, 20)
+    with FrameRenderer(scene, (320, 180), "psao", ctx=ctx) as r:
+        moved = np.stack([i.transform for i in scene.instances])
+        moved[1, :3, 3] += [-0.4, 0.0, 0.3]
+        r.set_transforms(moved)
+        gb = r.render(view, proj).gbuffer
+    ids = gb.instance[gb.mask]
+    assert set(np.unique(ids)) == {0, 1} and np.all(gb.instance[~gb.mask] == -1)
+    local = gb.local[gb.mask].astype(np.float64)
+    world = np.einsum("nij,nj->ni", moved[ids][:, :3, :3], local) + moved[ids][:, :3, 3]
+    np.testing.assert_allclose(world, gb.world[gb.mask], atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(gb.local_normal[gb.mask], axis=1), 1.0, atol=1e-5)
+    eye_dir = np.linalg.inv(view)[:3, 3] - gb.world[gb.mask]
+    assert np.mean(np.sum(gb.normal[gb.mask] * eye_dir, axis=1) > 0) > 0.99  # visible faces face the camera
+
+
+def test_incremental_update_equals_full_upload(ctx):
+    psao_scene = pytest.importorskip("psao_scene")
+    scene = psao_scene.load_scene("builtin:cornell")
+    grid = server_grid(scene, 1024)
+    path = psao_scene.scene_camera(scene)
+    view, proj = path_matrices(scene, path, path.keys[0].time, (160, 120))
+    rng = np.random.default_rng(3)
+    with FrameRenderer(scene, (160, 120), "psao", ctx=ctx) as inc, FrameRenderer(scene, (160, 120), "psao", ctx=ctx) as full:
+        inc.upload_grid(grid.instances, grid.buckets, grid.cells)
+        for step in range(3):
+            table = grid.point_table()
+            pick = rng.choice(len(table), size=len(table) // 5, replace=False)
+            grid.set_ao(table.slot[pick], table.index[pick], rng.integers(0, 256, len(pick)).astype(np.uint32))
+            gone = rng.choice(len(table), size=len(table) // 10, replace=False)
+            gone = gone[~np.isin(gone, pick)]
+            grid.remove_points(table.slot[gone], table.index[gone])
+            # New points (forces new cells and, on the last step, a capacity growth).
+            inst = int(rng.integers(len(scene.instances)))
+            lo, hi = table.local_pos[table.instance == inst].min(0), table.local_pos[table.instance == inst].max(0)
+            n_new = 4000 if step == 2 else 300
+            pos = lo + rng.random((n_new, 3)) * (hi - lo)
+            nrm = rng.normal(size=(n_new, 3))
+            grid.insert_points(inst, pos, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), rng.integers(0, 256, n_new).astype(np.uint32))
+            b, c = grid.take_dirty()
+            inc.update_grid(b, grid.buckets[b], c, grid.cells[c], len(grid.cells))
+        assert len(inc.grid.cells) == len(grid.cells)
+        got = inc.grid.read_back()
+        np.testing.assert_array_equal(got[1], grid.buckets)
+        np.testing.assert_array_equal(got[2], grid.cells)
+        full.upload_grid(grid.instances, grid.buckets, grid.cells)
+        a, b = inc.render(view, proj), full.render(view, proj)
+    np.testing.assert_array_equal(a.ao["psao"], b.ao["psao"])
+
+
+def test_update_writes_only_the_dirty_rows(ctx):
+    scene = floor_and_box_scene()
+    instances, buckets, cells = floor_box_grid(scene)
+    with FrameRenderer(scene, (64, 36), "psao", ctx=ctx) as r:
+        r.upload_grid(instances, buckets, cells)
+        before = r.grid.bytes_uploaded
+        cells = cells.copy()
+        cells[[3, 200], 0] ^= 0x1  # flip one AO bit in two far-apart cells
+        r.update_grid([5], buckets[[5]], [3, 200], cells[[3, 200]], len(cells))
+        assert r.grid.bytes_uploaded - before == 64 + 2 * 32
+        np.testing.assert_array_equal(r.grid.read_back()[2], cells)
+
+
+def test_bad_grid_input_is_one_line_error(ctx):
+    scene = floor_and_box_scene()
+    instances, buckets, cells = floor_box_grid(scene)
+    with FrameRenderer(scene, (64, 36), "psao", ctx=ctx) as r:
+        with pytest.raises(RenderError, match="instance records"):
+            r.upload_grid(instances[:1], buckets, cells)
+        r.upload_grid(instances, buckets, cells)
+        with pytest.raises(RenderError, match="cell slot index"):
+            r.update_grid([], buckets[:0], [len(cells) + 5], cells[:1], len(cells))
+        with pytest.raises(RenderError, match="transforms have shape"):
+            r.set_transforms(np.eye(4)[None])
