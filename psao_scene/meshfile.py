@@ -353,10 +353,19 @@ def load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
                                merge=data.joints is None)
             mesh = Mesh(name=name, vertices=r.vertices, faces=r.faces, double_sided=data.double_sided,
                         color=data.color)
+            if node.skin is not None and data.joints is not None:
+                if not 0 <= node.skin < len(g.doc.skins or []):
+                    raise SceneFormatError(f"{path}: node '{g.node_name(n)}' refers to a missing skin {node.skin}")
+                from .animation import rebase_to_rest_pose, skin_from_gltf
+                mesh.skin = skin_from_gltf(g, node.skin, data.joints[r.source_vertex],
+                                           data.weights[r.source_vertex])
+                rebase_to_rest_pose(mesh)
             mesh_index[node.mesh] = len(meshes)
             meshes.append(mesh)
+        # A skinned mesh is placed by its joints, not by its node (glTF 2.0, skins): identity transform.
+        skinned = meshes[mesh_index[node.mesh]].skin is not None
         instances.append(Instance(name=_unique(g.node_name(n), inst_names), mesh=mesh_index[node.mesh],
-                                  transform=world[n]))
+                                  transform=np.eye(4) if skinned else world[n]))
     if not instances:
         raise GeometryError(f"{path}: no triangle meshes in the default scene")
     return meshes, instances

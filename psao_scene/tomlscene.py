@@ -190,16 +190,17 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Insta
         mesh = t.text("mesh")
         if mesh not in mesh_ids:
             raise t.fail(f"unknown mesh '{mesh}' (known: {', '.join(mesh_ids) or 'none'})")
-        transform = trs(t.vec("translate", 3, [0, 0, 0]), _rotation(t), _scale(t))
+        transform = trs(t.vec("translate", 3, [0, 0, 0]), rotation_of(t), scale_of(t))
         animation = None
         if t.has("animation"):
             from .animation import parse_animation
             animation = parse_animation(t.data["animation"], f"{t.where}: animation", transform)
+            transform = animation.matrix(0.0)
         out.append(Instance(name=name, mesh=mesh_ids[mesh], transform=transform, animation=animation))
     return out
 
 
-def _rotation(t: Table) -> np.ndarray:
+def rotation_of(t: Table) -> np.ndarray:
     r = t.data.get("rotate", [0, 0, 0])
     if isinstance(r, dict):
         rt = Table(r, f"{t.where}: rotate", {"axis", "angle"})
@@ -210,7 +211,7 @@ def _rotation(t: Table) -> np.ndarray:
     return rotation_xyz(t.vec("rotate", 3, [0, 0, 0]))
 
 
-def _scale(t: Table) -> np.ndarray:
+def scale_of(t: Table) -> np.ndarray:
     s = t.data.get("scale", 1.0)
     v = np.full(3, t.number("scale", 1.0)) if not isinstance(s, list) else t.vec("scale")
     if np.any(v == 0):

@@ -1,0 +1,152 @@
+"""Linear blend skinning of vertices and AO points: Warp kernels, and numpy references for tests.
+
+A skinned position is  p' = (sum_k w_k M_{j_k}) p  with M = skin.skinning_matrices(t) (joint matrix times
+inverse bind), in the mesh's local space; a normal is transformed by the inverse transpose of the same
+blended 3x3 and renormalised. AO points on a skinned mesh carry their own 4 joints and weights,
+blended from their triangle's corners by point_skin_weights().
+
+SkinDeformer uploads the rest data once and keeps its output buffers: per tick only the (J, 4, 4)
+matrices move to the device. float64 throughout, as the Scene's geometry.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .animation import Skin
+
+
+@wp.kernel
+def skin_points_kernel(rest: wp.array(dtype=wp.vec3d), joints: wp.array(dtype=wp.vec4i),
+                       weights: wp.array(dtype=wp.vec4d), mats: wp.array(dtype=wp.mat44d),
+                       out_pos: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    j = joints[i]
+    w = weights[i]
+    m = w[0] * mats[j[0]] + w[1] * mats[j[1]] + w[2] * mats[j[2]] + w[3] * mats[j[3]]
+    p = rest[i]
+    out_pos[i] = wp.vec3d(m[0, 0] * p[0] + m[0, 1] * p[1] + m[0, 2] * p[2] + m[0, 3],
+                          m[1, 0] * p[0] + m[1, 1] * p[1] + m[1, 2] * p[2] + m[1, 3],
+                          m[2, 0] * p[0] + m[2, 1] * p[1] + m[2, 2] * p[2] + m[2, 3])
+
+
+@wp.kernel
+def skin_normals_kernel(rest_nrm: wp.array(dtype=wp.vec3d), joints: wp.array(dtype=wp.vec4i),
+                        weights: wp.array(dtype=wp.vec4d), mats: wp.array(dtype=wp.mat44d),
+                        out_nrm: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    j = joints[i]
+    w = weights[i]
+    m = w[0] * mats[j[0]] + w[1] * mats[j[1]] + w[2] * mats[j[2]] + w[3] * mats[j[3]]
+    a = wp.mat33d(m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2], m[2, 0], m[2, 1], m[2, 2])
+    # cofactor matrix = det * inverse transpose: the normal transform without dividing by det
+    c0 = wp.cross(wp.vec3d(a[1, 0], a[1, 1], a[1, 2]), wp.vec3d(a[2, 0], a[2, 1], a[2, 2]))
+    c1 = wp.cross(wp.vec3d(a[2, 0], a[2, 1], a[2, 2]), wp.vec3d(a[0, 0], a[0, 1], a[0, 2]))
+    c2 = wp.cross(wp.vec3d(a[0, 0], a[0, 1], a[0, 2]), wp.vec3d(a[1, 0], a[1, 1], a[1, 2]))
+    n = rest_nrm[i]
+    r = wp.vec3d(wp.dot(c0, n), wp.dot(c1, n), wp.dot(c2, n))
+    det = wp.dot(wp.vec3d(a[0, 0], a[0, 1], a[0, 2]), c0)
+    if det < wp.float64(0.0):  # a mirroring blend: keep the normal on the same side of the surface
+        r = -r
+    length = wp.length(r)
+    if length > wp.float64(0.0):
+        r = r / length
+    out_nrm[i] = r
+
+
+class SkinDeformer:
+    """Skins a fixed set of points (vertices or AO points) again and again for new joint matrices."""
+
+    def __init__(self, rest_pos: np.ndarray, joints: np.ndarray, weights: np.ndarray,
+                 rest_nrm: np.ndarray | None = None, device: str | None = None):
+        self.device = wp.get_device(device)
+        self.count = len(rest_pos)
+        d = self.device
+        self.joints = wp.array(np.ascontiguousarray(joints, dtype=np.int32), dtype=wp.vec4i, device=d)
+        self.weights = wp.array(np.ascontiguousarray(weights, dtype=np.float64), dtype=wp.vec4d, device=d)
+        self.rest_pos = wp.array(np.ascontiguousarray(rest_pos, dtype=np.float64), dtype=wp.vec3d, device=d)
+        self.out_pos = wp.empty(self.count, dtype=wp.vec3d, device=d)
+        self.rest_nrm = self.out_nrm = None
+        if rest_nrm is not None:
+            self.rest_nrm = wp.array(np.ascontiguousarray(rest_nrm, dtype=np.float64), dtype=wp.vec3d, device=d)
+            self.out_nrm = wp.empty(self.count, dtype=wp.vec3d, device=d)
+        self.mats: wp.array | None = None
+
+    def _upload(self, matrices: np.ndarray) -> None:
+        m = np.ascontiguousarray(matrices, dtype=np.float64)
+        if self.mats is None or self.mats.shape[0] != len(m):
+            self.mats = wp.empty(len(m), dtype=wp.mat44d, device=self.device)
+        self.mats.assign(wp.array(m, dtype=wp.mat44d, device="cpu"))
+
+    def deform(self, matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Skinned positions (P, 3) and, when rest normals were given, unit normals (P, 3)."""
+        self._upload(matrices)
+        inputs = [self.rest_pos, self.joints, self.weights, self.mats]
+        wp.launch(skin_points_kernel, dim=self.count, inputs=inputs, outputs=[self.out_pos], device=self.device)
+        nrm = None
+        if self.rest_nrm is not None:
+            wp.launch(skin_normals_kernel, dim=self.count, inputs=[self.rest_nrm, *inputs[1:]],
+                      outputs=[self.out_nrm], device=self.device)
+            nrm = self.out_nrm.numpy()
+        return self.out_pos.numpy(), nrm
+
+
+def skin_points(skin: Skin, t: float, rest_pos, joints, weights, device: str | None = None) -> np.ndarray:
+    """(P, 3) points skinned at time t (one-off; keep a SkinDeformer to skin the same points every tick)."""
+    return SkinDeformer(rest_pos, joints, weights, device=device).deform(skin.skinning_matrices(t))[0]
+
+
+def skin_normals(skin: Skin, t: float, rest_nrm, joints, weights, device: str | None = None) -> np.ndarray:
+    """(P, 3) unit normals skinned at time t."""
+    d = SkinDeformer(np.zeros((len(rest_nrm), 3)), joints, weights, rest_nrm=rest_nrm, device=device)
+    return d.deform(skin.skinning_matrices(t))[1]
+
+
+def skinned_vertices(mesh, t: float, device: str | None = None) -> np.ndarray:
+    """The mesh's vertices at time t in its local space (the rest vertices when it has no skin)."""
+    if mesh.skin is None:
+        return mesh.vertices
+    return skin_points(mesh.skin, t, mesh.vertices, mesh.skin.joints, mesh.skin.weights, device)
+
+
+# ------------------------------------------------------------------------------------ numpy reference
+
+def blended_matrices(matrices: np.ndarray, joints: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    return np.einsum("pk,pkij->pij", weights, matrices[joints])
+
+
+def skin_points_reference(matrices: np.ndarray, rest_pos, joints, weights) -> np.ndarray:
+    m = blended_matrices(matrices, np.asarray(joints), np.asarray(weights, dtype=np.float64))
+    return np.einsum("pij,pj->pi", m[:, :3, :3], rest_pos) + m[:, :3, 3]
+
+
+def skin_normals_reference(matrices: np.ndarray, rest_nrm, joints, weights) -> np.ndarray:
+    m = blended_matrices(matrices, np.asarray(joints), np.asarray(weights, dtype=np.float64))[:, :3, :3]
+    n = np.einsum("pji,pj->pi", np.linalg.inv(m), rest_nrm)  # inverse transpose
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+# ------------------------------------------------------------------------------- weights of AO points
+
+def point_skin_weights(joints: np.ndarray, weights: np.ndarray, faces: np.ndarray, face_index: np.ndarray,
+                       bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joints (P, 4) int64 and weights (P, 4) of points at barycentrics `bary` (P, 3) of faces
+    `face_index` (P,): the corners' weights blended barycentrically, summed per joint, the 4 largest
+    kept and renormalised (exact when the triangle uses at most 4 joints)."""
+    corners = faces[face_index]  # (P, 3)
+    cj = joints[corners].reshape(len(face_index), 12)
+    cw = (weights[corners] * bary[:, :, None]).reshape(len(face_index), 12)
+    # sum weights of equal joints: sort by joint, then add each run into its first entry
+    order = np.argsort(cj, axis=1, kind="stable")
+    cj = np.take_along_axis(cj, order, axis=1)
+    cw = np.take_along_axis(cw, order, axis=1)
+    for k in range(10, -1, -1):  # backwards so runs longer than 2 accumulate into their first entry
+        same = cj[:, k] == cj[:, k + 1]
+        cw[same, k] += cw[same, k + 1]
+        cw[same, k + 1] = 0.0
+    top = np.argsort(-cw, axis=1, kind="stable")[:, :4]
+    out_j = np.take_along_axis(cj, top, axis=1)
+    out_w = np.take_along_axis(cw, top, axis=1)
+    out_w /= out_w.sum(axis=1, keepdims=True)
+    out_j[out_w == 0] = 0
+    return out_j.astype(np.int64), out_w
