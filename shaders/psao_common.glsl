@@ -1,7 +1,14 @@
 // PSAO grid lookup and point decode, shared by every pass that reads the streamed AO.
 // Mirrors protocol/gridformat.py (layout, hash) and protocol/pointword.py (point word, oct code) bit for
 // bit; protocol/reconstruct.py is the Python oracle of psao_reconstruct() (paper eq. 2-4).
-// Bindings: 0 instances, 1 buckets, 2 cells. Requires GLSL 4.30 (storage buffers).
+//
+// Storage: the three tables are integer textures used as flat arrays (PSAO_TABLE_WIDTH texels per row,
+// RGBA32UI): instances 3 texels per record, buckets 4 texels (2 entries each), cells 2 texels (7 point
+// words + key). Normals come from u_psao_normals, the 256 results of pointword.oct_decode in float32.
+// Why not storage buffers: on Mesa llvmpipe every SSBO load is a per-lane scalar loop, and the pass
+// measured 3.4x the SSAO pass with SSBOs against about 1x with textures (benchmarks/bench_render.py,
+// psao_client/render/gpu_grid.py). The bytes are the same as gridformat's, texel for texel. Cells of
+// the 2x2x2 block farther than r from the fragment are skipped before hashing.
 
 #ifndef PSAO_T_N
 #define PSAO_T_N 0.1   // eq. 3 normal threshold
@@ -12,12 +19,11 @@
 
 #define PSAO_EMPTY 0xFFFFFFFFu
 #define PSAO_ALLOCATED 0x80000000u
-#define PSAO_CELL_WORDS 8u
-#define PSAO_POINTS_PER_CELL 7u
-#define PSAO_KEY_WORD 7u
+#define PSAO_POINTS_PER_CELL 7
 #define PSAO_BUCKET_ENTRIES 8u
+#define PSAO_TABLE_WIDTH 4096u  // texels per texture row: gpu_grid.TABLE_WIDTH
+#define PSAO_TABLE_SHIFT 12u    // log2(PSAO_TABLE_WIDTH)
 
-// INSTANCE_DTYPE, 48 bytes, std430: vec3 + float packs into 16 bytes, uvec3 + uint likewise.
 struct PsaoInstance {
     vec3 origin;        // local-space corner of cell (0, 0, 0)
     float cell_size;    // local units
@@ -26,12 +32,23 @@ struct PsaoInstance {
     uint bucket_count;  // B, a power of two
     float radius;       // interpolation radius r, local units
     uint flags;
-    uint pad;
 };
 
-layout(std430, binding = 0) readonly buffer PsaoInstances { PsaoInstance psao_instances[]; };
-layout(std430, binding = 1) readonly buffer PsaoBuckets { uint psao_buckets[]; };  // (key, slot) x 8 per bucket
-layout(std430, binding = 2) readonly buffer PsaoCells { uint psao_cells[]; };      // 7 points + key per cell
+uniform usampler2D u_psao_instances;  // INSTANCE_DTYPE records, 48 bytes = 3 texels each
+uniform usampler2D u_psao_buckets;    // (key, slot) x 8 per bucket = 4 texels
+uniform usampler2D u_psao_cells;      // 7 point words + key per cell = 2 texels
+uniform vec4 u_psao_normals[256];     // oct code -> unit normal (xyz)
+
+uvec4 psao_fetch(usampler2D table, uint texel) {
+    return texelFetch(table, ivec2(texel & (PSAO_TABLE_WIDTH - 1u), texel >> PSAO_TABLE_SHIFT), 0);
+}
+
+PsaoInstance psao_instance(uint id) {
+    uvec4 a = psao_fetch(u_psao_instances, 3u * id);
+    uvec4 b = psao_fetch(u_psao_instances, 3u * id + 1u);
+    uvec4 c = psao_fetch(u_psao_instances, 3u * id + 2u);
+    return PsaoInstance(uintBitsToFloat(a.xyz), uintBitsToFloat(a.w), b.xyz, b.w, c.x, uintBitsToFloat(c.y), c.z);
+}
 
 // Paper eq. 1 in wrapping uint arithmetic (gridformat.cell_hash).
 uint psao_cell_hash(uvec3 c, uvec3 dims) {
@@ -46,23 +63,21 @@ uint psao_cell_key(uvec3 c, uvec3 dims) {
 uint psao_find_cell(PsaoInstance inst, uvec3 c) {
     uint bucket = inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u));
     uint key = psao_cell_key(c, inst.dims);
-    uint base = bucket * (2u * PSAO_BUCKET_ENTRIES);
-    for (uint e = 0u; e < PSAO_BUCKET_ENTRIES; ++e) {
-        uint k = psao_buckets[base + 2u * e];
-        if (k == PSAO_EMPTY) break;
-        if (k == key) return psao_buckets[base + 2u * e + 1u];
+    uint base = bucket * (PSAO_BUCKET_ENTRIES / 2u);
+    for (uint e = 0u; e < PSAO_BUCKET_ENTRIES / 2u; ++e) {
+        uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
+        if (pair.x == PSAO_EMPTY) break;
+        if (pair.x == key) return pair.y;
+        if (pair.z == PSAO_EMPTY) break;
+        if (pair.z == key) return pair.w;
     }
     return PSAO_EMPTY;
 }
 
-// Octahedral 4+4-bit normal code, levels 0..14 (pointword.oct_decode; level 15 clamps to 14).
-vec3 psao_oct_decode(uint code) {
-    float u = (float(min((code >> 4) & 0xFu, 14u)) - 7.0) / 7.0;
-    float v = (float(min(code & 0xFu, 14u)) - 7.0) / 7.0;
-    float z = 1.0 - abs(u) - abs(v);
-    float t = max(-z, 0.0);
-    vec3 n = vec3(u + (u >= 0.0 ? -t : t), v + (v >= 0.0 ? -t : t), z);
-    return normalize(n);
+// Normals: u_psao_normals[code] is pointword.oct_decode(code) (4+4-bit octahedral, levels 0..14,
+// level 15 clamped to 14), from gpu_grid.normal_table().
+vec3 psao_point_normal(uint word) {
+    return u_psao_normals[(word >> 8) & 0xFFu].xyz;
 }
 
 // Local position of a point word in cell c (gridformat.decode_point_local): centre of its 5-bit step.
@@ -89,26 +104,38 @@ float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
     return w;
 }
 
+// Squared distance, in cells, from grid coordinate g to the unit box of cell c.
+float psao_cell_distance2(vec3 g, vec3 c) {
+    vec3 d = max(max(c - g, g - (c + 1.0)), 0.0);
+    return dot(d, d);
+}
+
 // Paper eq. 4 over the 2x2x2 block floor(g - 0.5) + {0,1}^3 around local position x (normal nx) of
 // instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight.
 vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx) {
-    PsaoInstance inst = psao_instances[inst_id];
+    PsaoInstance inst = psao_instance(inst_id);
     vec3 g = (x - inst.origin) / inst.cell_size;
     ivec3 base = ivec3(floor(g - 0.5));
     ivec3 dims = ivec3(inst.dims);
+    // A cell whose box is farther than r cannot hold a point with weight > 0 (small slack for rounding).
+    float reach = inst.radius / inst.cell_size * 1.001;
+    float reach2 = reach * reach;
     float wsum = 0.0;
     float aosum = 0.0;
     for (int i = 0; i < 8; ++i) {
         ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
         if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
+        if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
         uint slot = psao_find_cell(inst, uvec3(c));
         if (slot == PSAO_EMPTY) continue;
-        uint cell_base = slot * PSAO_CELL_WORDS;
-        for (uint k = 0u; k < PSAO_POINTS_PER_CELL; ++k) {
-            uint word = psao_cells[cell_base + k];
+        uvec4 lo = psao_fetch(u_psao_cells, 2u * slot);
+        uvec4 hi = psao_fetch(u_psao_cells, 2u * slot + 1u);
+        uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
+        for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
+            uint word = words[k];
             if ((word & PSAO_ALLOCATED) == 0u) break;
             float w = psao_weight(psao_point_position(inst, uvec3(c), word),
-                                  psao_oct_decode((word >> 8) & 0xFFu), x, nx, inst.radius);
+                                  psao_point_normal(word), x, nx, inst.radius);
             wsum += w;
             aosum += w * psao_point_ao(word);
         }

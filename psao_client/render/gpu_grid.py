@@ -1,20 +1,32 @@
-"""The streamed grid on the GPU: instance records, buckets and cells in three storage buffers.
+"""The streamed grid on the GPU: instance records, buckets and cells as integer lookup tables.
 
-The layout is exactly protocol/gridformat.py's, so the mirror's arrays go up byte for byte. A CPU
-shadow of buckets and cells lets `update` coalesce scattered dirty rows into a few contiguous writes
-(rows between two dirty runs that are close together are rewritten from the shadow, which is cheaper
-than one GL call per row) and lets the cell buffer grow without reading it back.
+Each table is an RGBA32UI 2D texture read as a flat array of 16-byte texels, TABLE_WIDTH texels per
+row (shaders/psao_common.glsl, psao_fetch): an instance record is 3 texels, a bucket 4, a cell 2. The
+bytes are exactly protocol/gridformat.py's, so the mirror's arrays go up unchanged.
+
+Why textures and not shader storage buffers: the AO pass measured 3.4x the SSAO pass on llvmpipe with
+storage buffers (each SSBO load there is a per-lane scalar loop) and about 1x with texel fetches,
+which llvmpipe gathers with SIMD code (benchmarks/bench_render.py). On a discrete GPU both are fast.
+
+A CPU shadow of buckets and cells lets `update` coalesce scattered dirty rows into a few contiguous
+writes (rows between two nearby dirty runs are rewritten from the shadow: cheaper than one GL call per
+row) and lets the cell table grow or shrink without reading the GPU copy back.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, EMPTY_BUCKET, FREE_CELL, INSTANCE_DTYPE
+from protocol.pointword import oct_decode
 from psao_client.errors import RenderError
 
-INSTANCE_BINDING, BUCKET_BINDING, CELL_BINDING = 0, 1, 2
-BUCKET_WORDS = BUCKET_ENTRIES * 2
+TABLE_WIDTH = 4096  # texels per row; PSAO_TABLE_WIDTH in psao_common.glsl
+TEXEL_WORDS = 4  # RGBA32UI
 MERGE_GAP_ROWS = 32  # dirty runs closer than this many rows are written as one range
+# Texture units the grid occupies (the passes use the low units for G-buffer inputs).
+UNITS = {"instances": 8, "buckets": 9, "cells": 10}
+UNIFORMS = {"instances": "u_psao_instances", "buckets": "u_psao_buckets", "cells": "u_psao_cells"}
+_FREE_ROW = {"instances": np.zeros(12, np.uint32), "buckets": EMPTY_BUCKET.reshape(-1), "cells": FREE_CELL}
 
 
 def dirty_runs(indices: np.ndarray, max_gap: int = MERGE_GAP_ROWS) -> list[tuple[int, int]]:
@@ -28,17 +40,90 @@ def dirty_runs(indices: np.ndarray, max_gap: int = MERGE_GAP_ROWS) -> list[tuple
     return list(zip(starts.tolist(), stops.tolist()))
 
 
+def normal_table() -> np.ndarray:
+    """(256, 4) float32: the unit normal of every 8-bit oct code exactly as pointword.oct_decode gives
+    it; the shader reads these (u_psao_normals) instead of decoding, so shader and oracle agree."""
+    table = np.zeros((256, 4), dtype=np.float32)
+    table[:, :3] = oct_decode(np.arange(256, dtype=np.uint32))
+    return table
+
+
+class LookupTable:
+    """One RGBA32UI texture holding `rows` rows of `row_words` uint32 words each."""
+
+    def __init__(self, ctx, name: str, rows: np.ndarray):
+        self._ctx = ctx
+        self.name = name
+        self.row_words = int(rows.shape[1])
+        self.texels_per_row = self.row_words // TEXEL_WORDS
+        self.texture = None
+        self.bytes_written = 0
+        self.replace(rows)
+
+    def replace(self, rows: np.ndarray) -> None:
+        """New texture sized for `rows`, all of it written (free rows pad the last texture row)."""
+        n_texels = max(len(rows), 1) * self.texels_per_row
+        height = -(-n_texels // TABLE_WIDTH)
+        limit = int(self._ctx.info["GL_MAX_TEXTURE_SIZE"])
+        if height > limit:
+            raise RenderError(f"grid {self.name} table of {len(rows)} rows exceeds this OpenGL's texture limit")
+        total_words = height * TABLE_WIDTH * TEXEL_WORDS
+        padded = np.tile(_FREE_ROW[self.name], -(-total_words // self.row_words))[:total_words]
+        flat = np.ascontiguousarray(rows, dtype=np.uint32).reshape(-1)
+        padded[: flat.size] = flat
+        if self.texture is not None:
+            self.texture.release()
+        self.texture = self._ctx.texture((TABLE_WIDTH, height), 4, padded.tobytes(), dtype="u4")
+        self.texture.filter = (self._ctx.NEAREST, self._ctx.NEAREST)
+        self.bytes_written += flat.nbytes
+
+    def write_rows(self, rows: np.ndarray, start: int, stop: int) -> None:
+        """Write rows[start:stop] (the full shadow array is passed) at their place in the texture."""
+        first, last = start * self.texels_per_row, stop * self.texels_per_row  # texel range [first, last)
+        data = np.ascontiguousarray(rows[start:stop], dtype=np.uint32).reshape(-1, TEXEL_WORDS)
+        pos = first
+        while pos < last:  # at most three writes: partial first row, full middle rows, partial last row
+            x, y = pos % TABLE_WIDTH, pos // TABLE_WIDTH
+            if x == 0 and last - pos >= TABLE_WIDTH:
+                n_rows = (last - pos) // TABLE_WIDTH
+                count, viewport = n_rows * TABLE_WIDTH, (0, y, TABLE_WIDTH, n_rows)
+            else:
+                count = min(TABLE_WIDTH - x, last - pos)
+                viewport = (x, y, count, 1)
+            chunk = data[pos - first: pos - first + count]
+            self.texture.write(chunk.tobytes(), viewport=viewport)
+            self.bytes_written += chunk.nbytes
+            pos += count
+
+    def read(self, n_rows: int) -> np.ndarray:
+        words = np.frombuffer(self.texture.read(), dtype=np.uint32)
+        return words[: n_rows * self.row_words].reshape(n_rows, self.row_words).copy()
+
+    def release(self) -> None:
+        if self.texture is not None:
+            self.texture.release()
+            self.texture = None
+
+
 class GpuGrid:
-    """Storage buffers of one grid. Call `bind()` before a pass that includes psao_common.glsl."""
+    """Grid tables of one renderer. `bind(program)` before a pass that includes psao_common.glsl."""
 
     def __init__(self, ctx):
         self._ctx = ctx
         self.instances = np.zeros(0, dtype=INSTANCE_DTYPE)
         self.buckets = np.zeros((0, BUCKET_ENTRIES, 2), dtype=np.uint32)
         self.cells = np.zeros((0, CELL_WORDS), dtype=np.uint32)
-        self._buffers: dict[str, object] = {}
-        self.bytes_uploaded = 0  # running total, for bandwidth-on-bus checks
-        self.upload(self.instances, self.buckets, self.cells)
+        self._tables = {
+            "instances": LookupTable(ctx, "instances", _instance_words(self.instances)),
+            "buckets": LookupTable(ctx, "buckets", self.buckets.reshape(0, 16)),
+            "cells": LookupTable(ctx, "cells", self.cells),
+        }
+        self._normals = normal_table().tobytes()
+
+    @property
+    def bytes_uploaded(self) -> int:
+        """Bytes sent to the GPU so far (full and partial writes), for bus-traffic checks."""
+        return sum(t.bytes_written for t in self._tables.values())
 
     # -- full upload -------------------------------------------------------------------------------
     def upload(self, instances: np.ndarray, buckets: np.ndarray, cells: np.ndarray) -> None:
@@ -46,89 +131,68 @@ class GpuGrid:
         self.instances = _as_instances(instances)
         self.buckets = _as_rows(buckets, (BUCKET_ENTRIES, 2), "buckets").copy()
         self.cells = _as_rows(cells, (CELL_WORDS,), "cells").copy()
-        self._replace("instances", self.instances.tobytes(), INSTANCE_DTYPE.itemsize)
-        self._replace("buckets", self.buckets.tobytes(), BUCKET_WORDS * 4)
-        self._replace("cells", self.cells.tobytes(), CELL_WORDS * 4)
+        self._tables["instances"].replace(_instance_words(self.instances))
+        self._tables["buckets"].replace(self.buckets.reshape(-1, 2 * BUCKET_ENTRIES))
+        self._tables["cells"].replace(self.cells)
+
+    def set_instances(self, instances: np.ndarray) -> None:
+        """Instance records changed (a re-bake of one instance): rewrite the small table."""
+        self.instances = _as_instances(instances)
+        self._tables["instances"].replace(_instance_words(self.instances))
 
     # -- incremental update --------------------------------------------------------------------------
     def update(self, bucket_idx, bucket_rows, cell_slots, cell_rows, cell_capacity: int | None = None) -> None:
-        """Write only dirty buckets and cells; grow the cell buffer first when the capacity grew."""
+        """Write only dirty buckets and cells. The cell table grows first when the capacity grew, and is
+        cut (rewritten whole) when it shrank, as the mirror does after a server compaction."""
         bucket_idx = np.asarray(bucket_idx, dtype=np.int64).reshape(-1)
         cell_slots = np.asarray(cell_slots, dtype=np.int64).reshape(-1)
         bucket_rows = _as_rows(bucket_rows, (BUCKET_ENTRIES, 2), "bucket rows")
         cell_rows = _as_rows(cell_rows, (CELL_WORDS,), "cell rows")
         if len(bucket_rows) != len(bucket_idx) or len(cell_rows) != len(cell_slots):
             raise RenderError("grid update: row counts do not match index counts")
-        if cell_capacity is not None and int(cell_capacity) > len(self.cells):
-            self._grow_cells(int(cell_capacity))
+        capacity = len(self.cells) if cell_capacity is None else int(cell_capacity)
         _check_range(bucket_idx, len(self.buckets), "bucket")
-        _check_range(cell_slots, len(self.cells), "cell slot")
+        _check_range(cell_slots, capacity, "cell slot")
         self.buckets[bucket_idx] = bucket_rows
+        flat_buckets = self.buckets.reshape(-1, 2 * BUCKET_ENTRIES)
+        for start, stop in dirty_runs(bucket_idx):
+            self._tables["buckets"].write_rows(flat_buckets, start, stop)
+        if capacity != len(self.cells):
+            resized = np.tile(FREE_CELL, (capacity, 1))
+            keep = min(capacity, len(self.cells))
+            resized[:keep] = self.cells[:keep]
+            self.cells = resized
+            self.cells[cell_slots] = cell_rows
+            self._tables["cells"].replace(self.cells)  # growth doubles: rare, and then all goes up once
+            return
         self.cells[cell_slots] = cell_rows
-        self._write_runs("buckets", self.buckets, bucket_idx)
-        self._write_runs("cells", self.cells, cell_slots)
-
-    def set_instances(self, instances: np.ndarray) -> None:
-        """Instance records changed (rare: a re-bake of one instance); rewrite the small table."""
-        self.instances = _as_instances(instances)
-        self._replace("instances", self.instances.tobytes(), INSTANCE_DTYPE.itemsize)
-
-    def _grow_cells(self, capacity: int) -> None:
-        old = len(self.cells)
-        grown = np.empty((capacity, CELL_WORDS), dtype=np.uint32)
-        grown[:old] = self.cells
-        grown[old:] = FREE_CELL
-        self.cells = grown
-        new_buffer = self._ctx.buffer(reserve=max(capacity, 1) * CELL_WORDS * 4)
-        old_buffer = self._buffers["cells"]
-        if old:
-            self._ctx.copy_buffer(new_buffer, old_buffer, size=old * CELL_WORDS * 4)
-        if capacity > old:
-            new_buffer.write(grown[old:].tobytes(), offset=old * CELL_WORDS * 4)
-        old_buffer.release()
-        self._buffers["cells"] = new_buffer
-
-    def _write_runs(self, name: str, rows: np.ndarray, indices: np.ndarray) -> None:
-        row_bytes = rows[0].nbytes if len(rows) else 0
-        buffer = self._buffers[name]
-        for start, stop in dirty_runs(indices):
-            data = rows[start:stop].tobytes()
-            buffer.write(data, offset=start * row_bytes)
-            self.bytes_uploaded += len(data)
-
-    def _replace(self, name: str, data: bytes, row_bytes: int) -> None:
-        old = self._buffers.pop(name, None)
-        if old is not None:
-            old.release()
-        # A zero-sized buffer is not allowed: keep one row of the free pattern so the binding is valid.
-        self._buffers[name] = self._ctx.buffer(data if data else _empty_row(name, row_bytes))
-        self.bytes_uploaded += len(data)
+        for start, stop in dirty_runs(cell_slots):
+            self._tables["cells"].write_rows(self.cells, start, stop)
 
     # -- use -----------------------------------------------------------------------------------------
+    def prepare(self, program) -> None:
+        """Once per program: sampler units and the normal table."""
+        for name, uniform in UNIFORMS.items():
+            program[uniform].value = UNITS[name]
+        program["u_psao_normals"].write(self._normals)
+
     def bind(self) -> None:
-        self._buffers["instances"].bind_to_storage_buffer(INSTANCE_BINDING)
-        self._buffers["buckets"].bind_to_storage_buffer(BUCKET_BINDING)
-        self._buffers["cells"].bind_to_storage_buffer(CELL_BINDING)
+        for name, table in self._tables.items():
+            table.texture.use(UNITS[name])
 
     def read_back(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the GPU holds (tests compare it with the mirror)."""
-        inst = np.frombuffer(self._buffers["instances"].read(), dtype=INSTANCE_DTYPE)[: len(self.instances)]
-        b = np.frombuffer(self._buffers["buckets"].read(), dtype=np.uint32).reshape(-1, BUCKET_ENTRIES, 2)
-        c = np.frombuffer(self._buffers["cells"].read(), dtype=np.uint32).reshape(-1, CELL_WORDS)
-        return inst.copy(), b[: len(self.buckets)].copy(), c[: len(self.cells)].copy()
+        inst = self._tables["instances"].read(len(self.instances)).view(INSTANCE_DTYPE).reshape(-1)
+        buckets = self._tables["buckets"].read(len(self.buckets)).reshape(-1, BUCKET_ENTRIES, 2)
+        return inst, buckets, self._tables["cells"].read(len(self.cells))
 
     def release(self) -> None:
-        for buffer in self._buffers.values():
-            buffer.release()
-        self._buffers.clear()
+        for table in self._tables.values():
+            table.release()
 
 
-def _empty_row(name: str, row_bytes: int) -> bytes:
-    if name == "buckets":
-        return EMPTY_BUCKET.tobytes()
-    if name == "cells":
-        return FREE_CELL.tobytes()
-    return bytes(row_bytes)
+def _instance_words(instances: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(instances).view(np.uint32).reshape(-1, INSTANCE_DTYPE.itemsize // 4)
 
 
 def _as_instances(instances: np.ndarray) -> np.ndarray:

@@ -1,11 +1,12 @@
-"""Pass 2: PSAO reconstruction per pixel from the storage buffers (shaders/psao_common.glsl, eq. 2-4).
+"""Pass 2: PSAO reconstruction per pixel from the grid tables (shaders/psao_common.glsl, eq. 2-4).
 
 Output: an RG32F texture, r = AO in [0, 1] (1 on background and where no point has weight),
 g = the weight sum (0 marks a hole: no point within reach).
 
-Two equivalent shaders exist: a full-screen fragment pass (psao_ao.frag.glsl) and a compute pass
-(psao_ao.comp.glsl). VARIANT picks the one that measured faster on llvmpipe (benchmarks/bench_render.py
---variants compares them); both use the same include, so they agree bit for bit.
+A full-screen fragment pass (psao_ao.frag.glsl). A compute-shader version of the same include was
+measured too and dropped: on llvmpipe it took 166 ms against 142 ms for the fragment pass (courtyard,
+640x360, N=64, wall time with ctx.finish(), storage-buffer tables at the time), and timer queries do
+not see compute dispatches there.
 """
 from __future__ import annotations
 
@@ -15,9 +16,6 @@ from psao_client.render.gbuffer import GBuffer
 from psao_client.render.gpu_grid import GpuGrid
 from psao_client.render.shaderlib import compile_program
 
-VARIANT = "fragment"
-_LOCAL_SIZE = 8  # compute work group is 8 x 8, as in psao_ao.comp.glsl
-
 
 @dataclass
 class PsaoSettings:
@@ -26,27 +24,20 @@ class PsaoSettings:
 
 
 class PsaoPass:
-    def __init__(self, ctx, gbuffer: GBuffer, grid: GpuGrid, settings: PsaoSettings | None = None, variant: str = VARIANT):
-        if variant not in ("fragment", "compute"):
-            raise ValueError(f"unknown PSAO variant {variant!r}")
+    def __init__(self, ctx, gbuffer: GBuffer, grid: GpuGrid, settings: PsaoSettings | None = None):
         self._ctx = ctx
         self._gbuffer = gbuffer
         self._grid = grid
-        self.variant = variant
         s = settings or PsaoSettings()
         defines = {"PSAO_T_N": float(s.t_n), "PSAO_T_D": float(s.t_d)}
         self.output = ctx.texture(gbuffer.size, 2, dtype="f4")
         self.output.filter = (ctx.NEAREST, ctx.NEAREST)
-        if variant == "fragment":
-            self.program = compile_program(ctx, defines, vertex_shader="fullscreen.vert.glsl", fragment_shader="psao_ao.frag.glsl")
-            self._vao = ctx.vertex_array(self.program, [])
-            self._fbo = ctx.framebuffer([self.output])
-        else:
-            self.program = compile_program(ctx, defines, compute="psao_ao.comp.glsl")
-            self._vao = self._fbo = None
-        self.program["u_local"].value = 0
-        self.program["u_local_normal"].value = 1
-        self.program["u_instance"].value = 2
+        self.program = compile_program(ctx, defines, vertex_shader="fullscreen.vert.glsl", fragment_shader="psao_ao.frag.glsl")
+        self._vao = ctx.vertex_array(self.program, [])
+        self._fbo = ctx.framebuffer([self.output])
+        for unit, name in enumerate(("u_local", "u_local_normal", "u_instance")):
+            self.program[name].value = unit
+        grid.prepare(self.program)
 
     def run(self) -> None:
         ctx, gb = self._ctx, self._gbuffer
@@ -54,18 +45,11 @@ class PsaoPass:
         gb["local_normal"].use(1)
         gb["instance"].use(2)
         self._grid.bind()
-        if self.variant == "fragment":
-            self._fbo.use()
-            ctx.viewport = (0, 0, *gb.size)
-            ctx.disable(ctx.DEPTH_TEST)
-            self._vao.render(ctx.TRIANGLES, vertices=3)
-        else:
-            self.output.bind_to_image(0, read=False, write=True)
-            w, h = gb.size
-            self.program.run((w + _LOCAL_SIZE - 1) // _LOCAL_SIZE, (h + _LOCAL_SIZE - 1) // _LOCAL_SIZE, 1)
-            ctx.memory_barrier()
+        self._fbo.use()
+        ctx.viewport = (0, 0, *gb.size)
+        ctx.disable(ctx.DEPTH_TEST)
+        self._vao.render(ctx.TRIANGLES, vertices=3)
 
     def release(self) -> None:
         for obj in (self._vao, self._fbo, self.program, self.output):
-            if obj is not None:
-                obj.release()
+            obj.release()

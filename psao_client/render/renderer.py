@@ -18,7 +18,7 @@ from psao_client.render.composite import CompositePass, read_channel
 from psao_client.render.context import check_frame_size, create_context, release_context
 from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
 from psao_client.render.gpu_grid import GpuGrid
-from psao_client.render.psao_pass import VARIANT, PsaoPass, PsaoSettings
+from psao_client.render.psao_pass import PsaoPass, PsaoSettings
 from psao_client.render.ssao_pass import SsaoPass, SsaoSettings
 from psao_client.render.timing import PassTimer
 
@@ -49,7 +49,6 @@ class FrameRenderer:
         window: bool = False,
         light: LightSettings | None = None,
         psao: PsaoSettings | None = None,
-        psao_variant: str = VARIANT,
         timing: bool = True,
     ):
         if ao_mode not in AO_MODES:
@@ -68,7 +67,7 @@ class FrameRenderer:
             self.grid = self._own(GpuGrid(self.ctx))
             self.psao = self.ssao = None
             if "psao" in self.modes:
-                self.psao = self._own(PsaoPass(self.ctx, self.gbuffer, self.grid, psao, psao_variant))
+                self.psao = self._own(PsaoPass(self.ctx, self.gbuffer, self.grid, psao))
             if "ssao" in self.modes:
                 settings = SsaoSettings(samples=int(ssao_samples), radius=float(scene.ao_distance))
                 self.ssao = self._own(SsaoPass(self.ctx, self.gbuffer, settings))

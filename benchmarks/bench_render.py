@@ -1,0 +1,166 @@
+"""PSAO AO pass against the SSAO baseline, same renderer, same frames, one run (issue 4).
+
+For each point density N the courtyard's grid is built with the server's own point generation and
+Grid; the AO values come from a bake when --bake is given, otherwise a synthetic field (the pass's
+cost depends on how cells are filled, not on the AO values). Every frame of the camera path is
+rendered once as warm-up, then each AO pass is timed on the same G-buffer with GPU timer queries and
+with wall time bracketed by ctx.finish(). Target: PSAO <= 1.5x SSAO (AO + blur), flat in N.
+
+    .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGET_RATIO = 1.5
+
+
+def build_grid(scene, density: float, bake: bool, rays: int):
+    from protocol import pointword as pw
+    from psao_server.grid import Grid
+    from psao_server.points import PointSettings, generate_points, instance_seed
+
+    if bake:
+        from psao_server.bake import BakeSettings, bake_scene
+
+        result = bake_scene(scene, BakeSettings(density=density, rays=rays), show_progress=False)
+        result.tracer.close()
+        return result.grid
+    settings = PointSettings(density=density)
+    sets = [generate_points(scene.meshes[i.mesh], i.transform, settings, seed=instance_seed(0, k))
+            for k, i in enumerate(scene.instances)]
+    grid = Grid.build([(p.positions, p.normals, p.poisson_radius, 0) for p in sets])
+    t = grid.point_table()
+    field = 0.55 + 0.45 * np.sin(1.3 * t.local_pos[:, 0]) * np.cos(0.9 * t.local_pos[:, 2])
+    grid.set_ao(t.slot, t.index, pw.quantise_ao(field))
+    return grid
+
+
+def time_pass(ctx, timer, name, fn, wall: dict):
+    ctx.finish()
+    start = time.perf_counter()
+    with timer.measure(name):
+        fn()
+    ctx.finish()
+    wall.setdefault(name, []).append((time.perf_counter() - start) * 1e3)
+
+
+def measure(renderer, views, repeats: int) -> dict:
+    """Median GPU and wall ms per pass over all frames x repeats; passes alternate order per frame."""
+    ctx, timer = renderer.ctx, renderer.timer
+    gpu: dict[str, list[float]] = {}
+    wall: dict[str, list[float]] = {}
+    for view, proj in views:
+        renderer.submit(view, proj)  # warm-up and G-buffer of this frame
+        timer.collect()
+        for rep in range(repeats):
+            passes = [("psao", renderer.psao.run),
+                      ("ssao", lambda: (renderer.ssao.run_occlusion(view, proj), renderer.ssao.run_blur()))]
+            for name, fn in passes[:: 1 if rep % 2 == 0 else -1]:
+                time_pass(ctx, timer, name, fn, wall)
+            for name, ms in timer.collect().items():
+                gpu.setdefault(name, []).append(ms)
+    return {"gpu_ms": {k: float(np.median(v)) for k, v in gpu.items()},
+            "wall_ms": {k: float(np.median(v)) for k, v in wall.items()}}
+
+
+def run_density(scene, density, args, views, size):
+    from psao_client.render.renderer import FrameRenderer
+
+    t0 = time.perf_counter()
+    grid = build_grid(scene, density, args.bake, args.rays)
+    build_s = time.perf_counter() - t0
+    with FrameRenderer(scene, size, "both", ssao_samples=args.ssao_samples) as r:
+        r.upload_grid(grid.instances, grid.buckets, grid.cells)
+        m = measure(r, views, args.repeats)
+        if args.images:
+            save_images(r, views[0], Path(args.images), int(density))
+    row = {"density": density, "points": int(grid.n_points()), "cells": int(len(grid.allocated_cells())),
+           "build_s": build_s, **m, "ratio_gpu": m["gpu_ms"]["psao"] / m["gpu_ms"]["ssao"],
+           "ratio_wall": m["wall_ms"]["psao"] / m["wall_ms"]["ssao"]}
+    print(format_row(row), flush=True)
+    return row
+
+
+def save_images(renderer, view_proj, out: Path, density: int) -> None:
+    from psao_client.render.output import save_frame
+
+    frame = renderer.render(*view_proj, read_gbuffer=False)
+    for path in save_frame(frame, out / f"N{density}", 0):
+        print(f"  wrote {path}")
+
+
+def format_row(r) -> str:
+    g, w = r["gpu_ms"], r["wall_ms"]
+    return (f"N={r['density']:>6g} points={r['points']:>9,} cells={r['cells']:>8,} | "
+            f"GPU ms: psao {g['psao']:7.2f} ssao {g['ssao']:7.2f} ratio {r['ratio_gpu']:.2f} | "
+            f"wall ms: psao {w['psao']:7.2f} ssao {w['ssao']:7.2f} ratio {r['ratio_wall']:.2f}")
+
+
+def chart(rows, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(rows))
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    ax.bar(x - 0.2, [r["gpu_ms"]["psao"] for r in rows], 0.4, label="PSAO pass")
+    ax.bar(x + 0.2, [r["gpu_ms"]["ssao"] for r in rows], 0.4, label="SSAO (AO + blur)")
+    ax.set_xticks(x, [f"N={r['density']:g}" for r in rows])
+    ax.set_ylabel("GPU ms per frame (timer queries)")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scene", default="builtin:courtyard")
+    p.add_argument("--size", default="640x360")
+    p.add_argument("--densities", default="64,256,1024")
+    p.add_argument("--frames", type=int, default=4, help="frames along the camera path")
+    p.add_argument("--repeats", type=int, default=3, help="timed repetitions of each pass per frame")
+    p.add_argument("--ssao-samples", type=int, default=16)
+    p.add_argument("--bake", action="store_true", help="trace real AO (slow) instead of a synthetic field")
+    p.add_argument("--rays", type=int, default=64)
+    p.add_argument("--images", default=None, metavar="DIR", help="also save the first frame's PNGs per N")
+    p.add_argument("--chart", default="benchmarks/out/bench_render.png")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+
+    from psao_client.render.output import parse_size
+    from psao_client.render.views import path_matrices, path_times
+    from psao_scene import load_scene, scene_camera
+
+    size = parse_size(args.size)
+    scene = load_scene(args.scene)
+    path = scene_camera(scene)
+    views = [path_matrices(scene, path, float(t), size) for t in path_times(path, args.frames)]
+    print(f"{scene.name} at {size[0]}x{size[1]}, {args.frames} frames x {args.repeats} repeats, "
+          f"SSAO {args.ssao_samples} samples, AO {'baked' if args.bake else 'synthetic'}")
+    rows = []
+    for density in [float(d) for d in args.densities.split(",")]:
+        rows.append(run_density(scene, density, args, views, size))
+    worst = max(r["ratio_gpu"] for r in rows)
+    spread = max(r["gpu_ms"]["psao"] for r in rows) / min(r["gpu_ms"]["psao"] for r in rows)
+    verdict = "PASS" if worst <= TARGET_RATIO else "MISS"
+    print(f"worst PSAO/SSAO GPU ratio {worst:.2f} (target <= {TARGET_RATIO}) {verdict}; "
+          f"PSAO max/min over N {spread:.2f}")
+    chart(rows, Path(args.chart), f"{scene.name} {size[0]}x{size[1]}: PSAO vs SSAO-{args.ssao_samples}")
+    print(f"chart: {args.chart}")
+    if args.json:
+        print(json.dumps({"rows": rows, "worst_ratio": worst, "spread": spread}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
