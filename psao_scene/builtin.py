@@ -10,6 +10,7 @@ from typing import Callable
 import numpy as np
 
 from . import builtin_shapes as shapes
+from .animation import Polyline, RollAnimation
 from .meshfile import clean_geometry
 from .model import CameraKey, CameraPath, Instance, Mesh, Scene
 
@@ -139,6 +140,7 @@ def courtyard() -> Scene:
         b.instance(f"wall_x{side:+d}", short_wall, trs((side * (COURT_X + WALL_T / 2), WALL_H / 2, 0)))
     _arcades(b, stone)
     _boulders(b)
+    _rolling_boulders(b)
     cloth = b.mesh("banner", shapes.cloth((1.2, 3.0), subdivisions=8, sag=0.12), color=(0.55, 0.12, 0.1),
                    double_sided=True)
     arch_front = ARCADE_Z - ARCH_DEPTH / 2 - 0.02
@@ -199,7 +201,38 @@ def _boulders(b: SceneBuilder) -> None:
                 color=(0.45, 0.42, 0.38))
 
 
+ROLLING = (  # (radius, seed, centre path on the floor [(x, z), ...], closed loop (else there and back), speed m/s)
+    # lanes kept clear of the static boulders and the columns (|z| + radius < 4.1)
+    (0.55, 200, [(-14.0, -3.0), (-11.8, -3.0), (-11.8, 3.0), (-14.0, 3.0)], True, 0.9),
+    (0.7, 201, [(-8.0, 3.35), (8.0, 3.35)], False, 1.2),
+    (0.5, 202, [(12.0, -3.0), (14.0, -3.0), (14.0, 3.0), (12.0, 3.0)], True, 0.7),
+)
+
+
+def _rolling_boulders(b: SceneBuilder) -> None:
+    """Round boulders rolling without slipping on the floor (RigidAnimation kind "roll")."""
+    for k, (radius, seed, path, closed, speed) in enumerate(ROLLING):
+        mesh = b.mesh(f"rolling_boulder{k}", shapes.boulder(radius, roughness=0.05, seed=seed, subdivisions=3,
+                                                           squash=False), color=(0.5, 0.44, 0.36))
+        centre = np.array([[x, radius, z] for x, z in path])
+        base = trs(centre[0])
+        anim = RollAnimation(base=base, path=Polyline(centre, closed=closed), speed=speed, radius=radius)
+        b.instance(f"rolling_boulder{k}", mesh, anim.matrix(0.0), animation=anim)
+
+
+def space() -> Scene:
+    from .builtin_space import space as build  # its own module; it builds on SceneBuilder above
+    return build()
+
+
+def robots() -> Scene:
+    from .builtin_robots import robots as build
+    return build()
+
+
 BUILTINS: dict[str, Callable[[], Scene]] = {
     "cornell": cornell,
     "courtyard": courtyard,
+    "space": space,
+    "robots": robots,
 }

@@ -84,9 +84,11 @@ def torus(major_radius: float = 1.0, minor_radius: float = 0.25, sections: int =
     return _geom(m, _rot_x(-90))
 
 
-def boulder(radius: float = 1.0, roughness: float = 0.2, seed: int = 0, subdivisions: int = 3) -> Geometry:
+def boulder(radius: float = 1.0, roughness: float = 0.2, seed: int = 0, subdivisions: int = 3,
+            squash: bool = True) -> Geometry:
     """Icosphere with a seeded smooth radial noise: a rock. The noise is a sum of random low-order
-    cosine waves over the sphere, so it is smooth and the same for a given seed on every machine."""
+    cosine waves over the sphere, so it is smooth and the same for a given seed on every machine.
+    squash=False keeps it round (a rock that rolls)."""
     v, f = sphere(1.0, subdivisions)
     rng = np.random.default_rng(int(seed))
     dirs = rng.normal(size=(12, 3))
@@ -96,8 +98,28 @@ def boulder(radius: float = 1.0, roughness: float = 0.2, seed: int = 0, subdivis
     amp = rng.uniform(0.5, 1.0, size=12) / freq
     noise = (amp * np.cos(v @ dirs.T * freq + phase)).sum(axis=1)
     noise /= np.abs(noise).max()
-    squash = np.array([1.0, rng.uniform(0.6, 0.85), rng.uniform(0.8, 1.0)])  # rocks are flatter than balls
-    return v * (radius * (1.0 + roughness * noise))[:, None] * squash, f
+    flat = np.array([1.0, rng.uniform(0.6, 0.85), rng.uniform(0.8, 1.0)])  # rocks are flatter than balls
+    return v * (radius * (1.0 + roughness * noise))[:, None] * (flat if squash else 1.0), f
+
+
+def tube(radius: float = 0.1, length: float = 1.0, rings: int = 8, sections: int = 12) -> Geometry:
+    """Closed cylinder along Y from y = 0 down to y = -length with `rings` intermediate vertex rings
+    (so that it can bend when skinned), flat caps."""
+    n, k = int(sections), int(rings) + 2
+    ang = 2 * np.pi * np.arange(n) / n
+    ys = np.linspace(0.0, -length, k)
+    side = np.stack([np.tile(radius * np.cos(ang), k), np.repeat(ys, n), np.tile(-radius * np.sin(ang), k)], 1)
+    v = np.vstack([side, [[0, 0, 0], [0, -length, 0]]])
+    top, bottom = len(side), len(side) + 1
+    faces = []
+    for r in range(k - 1):
+        a = r * n + np.arange(n)
+        b = r * n + (np.arange(n) + 1) % n
+        faces += [np.stack([a, a + n, b], 1), np.stack([b, a + n, b + n], 1)]
+    ring0, ringk = np.arange(n), (k - 1) * n + np.arange(n)
+    faces.append(np.stack([np.full(n, top), ring0, (ring0 + 1) % n], 1))
+    faces.append(np.stack([np.full(n, bottom), (k - 1) * n + (np.arange(n) + 1) % n, ringk], 1))
+    return v, np.concatenate(faces).astype(np.int64)
 
 
 def column(radius: float = 0.3, height: float = 4.0, sections: int = 16) -> Geometry:
@@ -179,4 +201,5 @@ def cloth(size=(1.0, 2.0), subdivisions: int = 8, sag: float = 0.1) -> Geometry:
 GENERATORS = {
     "box": box, "plane": plane, "sphere": sphere, "cylinder": cylinder, "cone": cone, "capsule": capsule,
     "torus": torus, "boulder": boulder, "column": column, "arch": arch, "railing": railing, "cloth": cloth,
+    "tube": tube,
 }

@@ -1,0 +1,224 @@
+"""Skins from glTF (joints, weights, inverse binds, animation channels), their validation, procedural
+skins, and the Warp skinning kernels against the numpy reference."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+import pytest
+
+from psao_scene import SceneFormatError, load_scene
+from psao_scene.animation import MAX_JOINTS, axis_angle_matrix
+from psao_scene.skinning import (SkinDeformer, point_skin_weights, skin_normals, skin_normals_reference,
+                                 skin_points, skin_points_reference, skinned_vertices)
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+RNG = np.random.default_rng(5)
+
+
+def shared(rel: str) -> Path:
+    p = SHARED / rel
+    if not p.is_file():
+        pytest.skip(f"{p} not present")
+    return p
+
+
+def skinned_gltf(path: Path, joints: int = 2, channel_node: int = 2, times=(0.0, 1.0),
+                 interpolation: str = "LINEAR") -> None:
+    """A vertical strip of 3 vertex rows (y = 0, 1, 2) skinned to a chain of `joints` joints one unit
+    apart (nodes 1..joints); node 0 holds the mesh. One rotation channel turns `channel_node` from 0 to
+    90 degrees about +Z over `times`."""
+    pos = np.array([[-0.1, 0, 0], [0.1, 0, 0], [-0.1, 1, 0], [0.1, 1, 0], [-0.1, 2, 0], [0.1, 2, 0]], np.float32)
+    jnt = np.array([[0, 0, 0, 0]] * 2 + [[0, 1, 0, 0]] * 2 + [[1, 0, 0, 0]] * 2, np.uint16)
+    wgt = np.array([[1, 0, 0, 0]] * 2 + [[0.5, 0.5, 0, 0]] * 2 + [[1, 0, 0, 0]] * 2, np.float32)
+    idx = np.array([0, 1, 3, 0, 3, 2, 2, 3, 5, 2, 5, 4], np.uint16)
+    ibm = np.stack([np.eye(4, dtype=np.float32) for _ in range(joints)])
+    ibm[:, 3, 1] = -np.arange(joints)  # column-major: translation (0, -k, 0) in the last column
+    t = np.asarray(times, np.float32)
+    q = np.array([[0, 0, math.sin(a / 2), math.cos(a / 2)] for a in np.linspace(0, math.pi / 2, len(t))], np.float32)
+    chunks = [pos, jnt, wgt, idx, ibm, t, q]
+    blob, views, off = b"", [], 0
+    for c in chunks:
+        data = c.tobytes()
+        data += b"\0" * (-len(data) % 4)
+        views.append(pygltflib.BufferView(buffer=0, byteOffset=off, byteLength=len(c.tobytes())))
+        blob += data
+        off += len(data)
+    acc = lambda v, ct, n, typ: pygltflib.Accessor(bufferView=v, componentType=ct, count=n, type=typ)  # noqa: E731
+    nodes = [pygltflib.Node(name="strip", mesh=0, skin=0)]
+    for k in range(joints):
+        nodes.append(pygltflib.Node(name=f"j{k}", translation=[0, 1.0 if k else 0.0, 0],
+                                    children=[k + 2] if k + 1 < joints else []))
+    g = pygltflib.GLTF2(
+        scene=0, scenes=[pygltflib.Scene(nodes=[0, 1])], nodes=nodes,
+        meshes=[pygltflib.Mesh(primitives=[pygltflib.Primitive(
+            attributes=pygltflib.Attributes(POSITION=0, JOINTS_0=1, WEIGHTS_0=2), indices=3)])],
+        skins=[pygltflib.Skin(joints=list(range(1, joints + 1)), inverseBindMatrices=4)],
+        animations=[pygltflib.Animation(name="bend", channels=[pygltflib.AnimationChannel(
+            sampler=0, target=pygltflib.AnimationChannelTarget(node=channel_node, path="rotation"))],
+            samplers=[pygltflib.AnimationSampler(input=5, output=6, interpolation=interpolation)])],
+        accessors=[acc(0, 5126, 6, "VEC3"), acc(1, 5123, 6, "VEC4"), acc(2, 5126, 6, "VEC4"), acc(3, 5123, 12, "SCALAR"),
+                   acc(4, 5126, joints, "MAT4"), acc(5, 5126, len(t), "SCALAR"), acc(6, 5126, len(t), "VEC4")],
+        bufferViews=views, buffers=[pygltflib.Buffer(byteLength=len(blob))])
+    g.accessors[3].min = None
+    g.set_binary_blob(blob)
+    g.save_binary(str(path))
+
+
+def posed(scene, t):
+    mesh = scene.meshes[0]
+    return skinned_vertices(mesh, t)
+
+
+def find(v, p):
+    return np.argmin(np.linalg.norm(v - p, axis=1))
+
+
+def test_synthetic_skin_by_hand(tmp_path):
+    skinned_gltf(tmp_path / "s.glb")
+    scene = load_scene(tmp_path / "s.glb")
+    mesh = scene.meshes[0]
+    assert mesh.skin.joint_count == 2 and np.allclose(scene.instances[0].transform, np.eye(4))
+    np.testing.assert_allclose(mesh.skin.weights.sum(1), 1.0)
+    rest = mesh.vertices.copy()
+    np.testing.assert_allclose(posed(scene, 0.0), rest, atol=1e-6)
+    top, mid = find(rest, [0.1, 2, 0]), find(rest, [0.1, 1, 0])
+    for t, deg in ((0.5, 45.0), (0.25, 22.5)):
+        r = axis_angle_matrix([0, 0, 1], math.radians(deg))
+        v = posed(scene, t)
+        # the top row follows joint 1 (at y = 1) fully; the middle row is half joint 0, half joint 1
+        np.testing.assert_allclose(v[top], [0, 1, 0] + r @ [0.1, 1, 0], atol=1e-6)
+        np.testing.assert_allclose(v[mid], 0.5 * np.array([0.1, 1, 0]) + 0.5 * ([0, 1, 0] + r @ [0.1, 0, 0]), atol=1e-6)
+    np.testing.assert_allclose(posed(scene, 0.5), posed(scene, 1.5), atol=1e-9)  # loops with the duration
+
+
+def test_step_interpolation(tmp_path):
+    skinned_gltf(tmp_path / "step.glb", times=(0.0, 1.0, 2.0), interpolation="STEP")
+    scene = load_scene(tmp_path / "step.glb")
+    top = find(scene.meshes[0].vertices, [0.1, 2, 0])
+    np.testing.assert_allclose(posed(scene, 0.9)[top], posed(scene, 0.0)[top], atol=1e-9)
+    r = axis_angle_matrix([0, 0, 1], math.radians(45))
+    np.testing.assert_allclose(posed(scene, 1.5)[top], [0, 1, 0] + r @ [0.1, 1, 0], atol=1e-6)
+
+
+@pytest.mark.parametrize("kwargs,pattern", [
+    (dict(joints=MAX_JOINTS + 1), r"skin.*257 joints.*256"),
+    (dict(channel_node=99), r"animation 'bend' channel 0.*missing node 99"),
+    (dict(times=(0.0, 1.0, 1.0)), r"animation 'bend' channel 0.*not strictly increasing"),
+])
+def test_bad_skins_fail_at_load(tmp_path, kwargs, pattern):
+    skinned_gltf(tmp_path / "bad_skin.glb", **kwargs)
+    with pytest.raises(SceneFormatError, match=pattern) as e:
+        load_scene(tmp_path / "bad_skin.glb")
+    assert "bad_skin.glb" in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("rel,height", [("cesiumman/CesiumMan.glb", 1.5), ("riggedsimple/RiggedSimple.glb", None),
+                                        ("fox/Fox.glb", None)])
+def test_real_skins(rel, height):
+    scene = load_scene(shared(rel))
+    mesh = scene.meshes[0]
+    skin = mesh.skin
+    assert skin is not None and 0 < skin.joint_count <= MAX_JOINTS
+    np.testing.assert_allclose(skin.weights.sum(1), 1.0, atol=1e-9)
+    # the rest pose skins to the stored vertices (rebased from bind space)
+    rest = skin.animator.rest_joint_matrices() @ skin.inverse_bind
+    np.testing.assert_allclose(skin_points_reference(rest, mesh.vertices, skin.joints, skin.weights), mesh.vertices,
+                               atol=1e-4 * np.abs(mesh.vertices).max())
+    duration = skin.animator.duration
+    assert duration > 0
+    size = np.ptp(mesh.vertices, axis=0).max()
+    for t in np.linspace(0, duration, 25, endpoint=False):
+        v = skin_points(skin, t, mesh.vertices, skin.joints, skin.weights)
+        ref = skin_points_reference(skin.skinning_matrices(t), mesh.vertices, skin.joints, skin.weights)
+        np.testing.assert_allclose(v, ref, atol=1e-9 * size)
+        assert np.isfinite(v).all() and np.ptp(v, axis=0).max() < 1.6 * size
+        if height is not None:  # an upright walker: feet on the ground, head at its height
+            assert abs(v[:, 1].min()) < 0.05 * height and abs(v[:, 1].max() - height) < 0.1 * height
+        # continuous in time: a step of duration / 400 moves no vertex by more than a few % of the size
+        nxt = skinned_vertices(mesh, t + duration / 400)
+        assert np.linalg.norm(nxt - v, axis=1).max() < 0.05 * size
+    np.testing.assert_allclose(skinned_vertices(mesh, 0.3), skinned_vertices(mesh, 0.3 + duration),
+                               atol=1e-6 * size)
+
+
+def test_procedural_robot_skins_deform():
+    scene = load_scene("builtin:robots")
+    mesh = next(m for m in scene.meshes if m.skin is not None)
+    skin = mesh.skin
+    blended = ((skin.weights > 0).sum(1) > 1).sum()
+    assert blended > 50  # smooth weights across joints, not rigid parts
+    a, b = skinned_vertices(mesh, 0.0), skinned_vertices(mesh, 0.4)
+    moved = np.linalg.norm(a - b, axis=1)
+    assert moved.max() > 0.1 and np.median(moved) < moved.max()
+
+
+def random_setup(p=500, j=7):
+    mats = np.tile(np.eye(4), (j, 1, 1))
+    mats[:, :3, :3] = RNG.normal(size=(j, 3, 3)) * 0.3 + np.eye(3)  # scale and shear, not only rotation
+    mats[:, :3, 3] = RNG.normal(size=(j, 3))
+    joints = RNG.integers(0, j, size=(p, 4))
+    weights = RNG.uniform(0, 1, size=(p, 4)) * (RNG.uniform(size=(p, 4)) < 0.7)
+    weights[:, 0] += 1e-3
+    weights /= weights.sum(1, keepdims=True)
+    pos = RNG.normal(size=(p, 3)) * 3
+    nrm = RNG.normal(size=(p, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return mats, joints, weights, pos, nrm
+
+
+def test_warp_kernels_match_numpy_reference():
+    mats, joints, weights, pos, nrm = random_setup()
+    d = SkinDeformer(pos, joints, weights, rest_nrm=nrm)
+    for _ in range(3):  # buffers reused across updates
+        mats[:, :3, 3] += 0.1
+        p, n = d.deform(mats)
+        np.testing.assert_allclose(p, skin_points_reference(mats, pos, joints, weights), atol=1e-12)
+        np.testing.assert_allclose(n, skin_normals_reference(mats, nrm, joints, weights), atol=1e-10)
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+
+
+def test_normals_stay_perpendicular_to_skinned_surface():
+    """A normal skinned like its triangle stays perpendicular to the skinned triangle (same blend)."""
+    mats, _, _, _, _ = random_setup(j=3)
+    tri = RNG.normal(size=(3, 3))
+    joints = np.tile([0, 1, 2, 0], (3, 1))
+    weights = np.tile([0.5, 0.3, 0.2, 0.0], (3, 1))  # one blend for the whole triangle: an affine map
+    n0 = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+    n0 /= np.linalg.norm(n0)
+
+    class S:
+        @staticmethod
+        def skinning_matrices(t):
+            return mats
+
+    v = skin_points(S, 0.0, tri, joints, weights)
+    n = skin_normals(S, 0.0, n0[None], joints[:1], weights[:1])[0]
+    e1, e2 = v[1] - v[0], v[2] - v[0]
+    assert abs(n @ e1) < 1e-9 and abs(n @ e2) < 1e-9
+    assert n @ np.cross(e1, e2) > 0  # same side as the skinned triangle's winding
+
+
+def test_point_skin_weights():
+    joints = np.array([[0, 1, 0, 0], [1, 2, 0, 0], [3, 0, 0, 0]])
+    weights = np.array([[0.7, 0.3, 0, 0], [0.6, 0.4, 0, 0], [1.0, 0, 0, 0]])
+    faces = np.array([[0, 1, 2]])
+    for c in range(3):  # at a corner: that vertex's weights
+        bary = np.zeros((1, 3))
+        bary[0, c] = 1
+        j, w = point_skin_weights(joints, weights, faces, np.array([0]), bary)
+        got = {int(a): float(b) for a, b in zip(j[0], w[0]) if b > 0}
+        want = {int(a): float(b) for a, b in zip(joints[c], weights[c]) if b > 0}
+        assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-12 for k in got)
+    bary = RNG.dirichlet(np.ones(3), size=50)
+    j, w = point_skin_weights(joints, weights, faces, np.zeros(50, dtype=int), bary)
+    np.testing.assert_allclose(w.sum(1), 1.0)
+    dense = np.zeros((50, 4))  # the triangle uses 4 joints: the blend is exact
+    np.add.at(dense, (np.arange(50)[:, None], j), w)
+    expect = np.zeros((50, 4))
+    for c in range(3):
+        for k in range(4):
+            expect[np.arange(50), joints[c, k]] += bary[:, c] * weights[c, k]
+    np.testing.assert_allclose(dense, expect, atol=1e-12)
