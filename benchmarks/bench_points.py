@@ -43,7 +43,8 @@ class Spacing:
     min_all: float
     min_same_side: float
     mean: float
-    cv: float
+    cv: float  # of the NN distance, all pairs
+    cv_same_side: float
 
 
 def nn_distances(positions: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,6 +58,7 @@ def nn_distances(positions: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray
 def spacing(positions: np.ndarray, normals: np.ndarray, area: float) -> Spacing:
     """NN statistics of a point set on a surface of world `area`."""
     nn, nn_same = nn_distances(positions, normals)
+    nn_same = nn_same[np.isfinite(nn_same)]
     return Spacing(
         points=len(positions),
         radius=float(np.sqrt(area / (2 * np.sqrt(3) * len(positions)))),
@@ -64,6 +66,7 @@ def spacing(positions: np.ndarray, normals: np.ndarray, area: float) -> Spacing:
         min_same_side=float(nn_same.min()),
         mean=float(nn.mean()),
         cv=float(nn.std() / nn.mean()),
+        cv_same_side=float(nn_same.std() / nn_same.mean()),
     )
 
 
@@ -156,11 +159,11 @@ def run_ours_merged(v: np.ndarray, f: np.ndarray, count: int, settings) -> tuple
 
 def print_table(rows: list[tuple[str, float, Spacing]]) -> None:
     print(f"{'method':34s} {'seconds':>8s} {'points':>9s} {'min NN':>9s} {'min/r':>6s} {'min same':>9s} "
-          f"{'same/r':>6s} {'mean NN':>9s} {'mean/r':>6s} {'CV NN':>6s}")
+          f"{'same/r':>6s} {'mean NN':>9s} {'mean/r':>6s} {'CV NN':>6s} {'CV same':>7s}")
     for name, sec, s in rows:
         print(f"{name:34s} {sec:8.2f} {s.points:9d} {s.min_all:9.5f} {s.min_all / s.radius:6.3f} "
               f"{s.min_same_side:9.5f} {s.min_same_side / s.radius:6.3f} {s.mean:9.5f} {s.mean / s.radius:6.3f} "
-              f"{s.cv:6.3f}")
+              f"{s.cv:6.3f} {s.cv_same_side:7.3f}")
 
 
 def write_charts(out: Path, merged: dict, scene_name: str) -> Path:
