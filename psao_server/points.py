@@ -71,8 +71,7 @@ def instance_seed(seed: int, instance_index: int) -> int:
 
 
 def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    return 0.5 * np.linalg.norm(np.cross(*_edges(vertices, faces)), axis=1)
 
 
 def _check_geometry(mesh: Mesh, transform: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from psao_server.points import (
     PointSettings,
     elimination_radii,
     generate_points,
+    generate_scene_points,
     instance_seed,
     neighbour_graph,
     spawn_uniform,
@@ -282,7 +283,20 @@ def test_degenerate_triangles_are_skipped():
     assert np.isfinite(ps.positions).all() and np.isfinite(ps.normals).all()
 
 
-# ---------------------------------------------------------------- real mesh
+# ---------------------------------------------------------------- scenes and real meshes
+
+
+def test_scene_points_one_set_per_instance_seeded_by_index():
+    from psao_scene import load_scene
+
+    scene = load_scene("builtin:cornell")
+    s = PointSettings(density=2000, seed=5)
+    calls = []
+    sets = generate_scene_points(scene, s, progress=lambda done, total: calls.append((done, total)))
+    assert len(sets) == len(scene.instances) and calls[-1] == (len(sets), len(sets))
+    for k, (inst, ps) in enumerate(zip(scene.instances, sets)):
+        again = generate_points(scene.meshes[inst.mesh], inst.transform, s, seed=instance_seed(5, k))
+        assert np.array_equal(ps.positions, again.positions)
 
 
 def test_bunny_points_when_present():
