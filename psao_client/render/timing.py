@@ -14,6 +14,23 @@ class PassTimer:
         self._queries: dict[str, object] = {}
         self._used: list[str] = []
         self.enabled = enabled
+        if enabled:
+            self._spend_first_query(ctx)
+
+    @staticmethod
+    def _spend_first_query(ctx) -> None:
+        """llvmpipe (Mesa 22.3) answers the first time query that contains GL work with 0xFFFFFFFF ns:
+        spend it on clearing a 1x1 framebuffer."""
+        target = ctx.simple_framebuffer((1, 1))
+        previous = ctx.fbo
+        query = ctx.query(time=True)
+        target.use()
+        with query:
+            target.clear(0.0, 0.0, 0.0, 0.0)
+        _ = query.elapsed
+        if previous is not None:
+            previous.use()
+        target.release()
 
     @contextmanager
     def measure(self, name: str):

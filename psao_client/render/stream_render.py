@@ -1,0 +1,99 @@
+"""Rendering while streaming: `psao client URL --render OUTDIR` hands every applied update to this.
+
+    callback = make_render_callback(scene, args)   # args: render, camera_path, size, ao, ssao_samples
+    callback(mirror, transforms, tick)             # after each applied Update: renders one frame
+    callback.close()                               # releases the GL context
+
+The first call uploads the whole mirror; later calls upload only the buckets and cells the mirror
+marked dirty since (Mirror.take_dirty), growing or cutting the cell table with the mirror's capacity.
+The camera follows the scene's path at the time the client passes (camera_time=...), or at
+tick / tick_rate seconds when it passes none.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from psao_client.errors import RenderError
+
+
+class StreamRenderer:
+    def __init__(self, scene, out_dir, size=(640, 360), ao_mode="psao", camera_path=None, ssao_samples=16,
+                 tick_rate: float = 30.0, ctx=None):
+        from psao_client.render.renderer import FrameRenderer
+        from psao_scene import scene_camera
+
+        try:
+            self.path = scene_camera(scene, camera_path)
+        except KeyError as exc:
+            raise RenderError(str(exc.args[0])) from None
+        if not tick_rate > 0:
+            raise RenderError(f"tick rate must be > 0, got {tick_rate}")
+        self.scene = scene
+        self.out_dir = Path(out_dir)
+        self.size = tuple(size)
+        self.tick_rate = float(tick_rate)
+        self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx)
+        self._uploaded_instances: np.ndarray | None = None
+        self.frames = 0
+        self.records: list[dict] = []  # per frame: tick, camera time, GPU ms per pass
+
+    def __call__(self, mirror, transforms, tick: int, camera_time: float | None = None) -> dict:
+        from psao_client.render.output import save_frame
+        from psao_client.render.views import path_matrices
+
+        self._sync(mirror)
+        self.renderer.set_transforms(transforms)
+        t = float(tick) / self.tick_rate if camera_time is None else float(camera_time)
+        view, proj = path_matrices(self.scene, self.path, t, self.size)
+        frame = self.renderer.render(view, proj, read_gbuffer=False)
+        save_frame(frame, self.out_dir, self.frames)
+        record = {"frame": self.frames, "tick": int(tick), "time": t, "gpu_ms": frame.gpu_ms}
+        self.records.append(record)
+        self.frames += 1
+        return record
+
+    def _sync(self, mirror) -> None:
+        """Full upload the first time (or when the instance table changed), dirty rows after that."""
+        if self._uploaded_instances is None or not np.array_equal(self._uploaded_instances, mirror.instances):
+            mirror.take_dirty()  # everything goes up now
+            self.renderer.upload_grid(mirror.instances, mirror.buckets, mirror.cells)
+            self._uploaded_instances = np.array(mirror.instances, copy=True)
+            return
+        buckets, cells = mirror.take_dirty()
+        self.renderer.update_grid(buckets, mirror.buckets[buckets], cells, mirror.cells[cells], len(mirror.cells))
+
+    def close(self) -> None:
+        self.renderer.release()
+
+    def __enter__(self) -> "StreamRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def make_render_callback(scene, args) -> StreamRenderer:
+    """From the client's parsed arguments: args.render (OUTDIR), args.camera_path, args.size ('WxH'),
+    args.ao ('psao'|'ssao'|'both'); optional args.ssao_samples and args.tick_rate."""
+    from psao_client.render.output import parse_size
+
+    return StreamRenderer(
+        scene,
+        args.render,
+        size=parse_size(getattr(args, "size", "640x360")),
+        ao_mode=getattr(args, "ao", "psao"),
+        camera_path=getattr(args, "camera_path", None),
+        ssao_samples=int(getattr(args, "ssao_samples", 16)),
+        tick_rate=float(getattr(args, "tick_rate", 30.0) or 30.0),
+    )
+
+
+def add_render_arguments(parser) -> None:
+    """The options `psao client` needs for --render (H3 adds them to its parser with this)."""
+    parser.add_argument("--render", metavar="OUTDIR", default=None, help="render frames (PNG) into OUTDIR")
+    parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path for --render")
+    parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
+    parser.add_argument("--ao", choices=("psao", "ssao", "both"), default="psao", help="AO method(s) for --render")
+    parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
