@@ -1,4 +1,5 @@
 """Scene loading shared by the server and the client: `load_scene(spec)` returns a psao_scene.model.Scene."""
+from .animation import RigidAnimation, Skin, animation_hash, instance_transform, is_dynamic
 from .camera import camera_at, default_orbit, look_at, perspective, scene_camera
 from .errors import GeometryError, SceneError, SceneFormatError, SceneNotFound
 from .loader import load_scene
@@ -7,5 +8,6 @@ from .model import CameraKey, CameraPath, Instance, Mesh, Scene
 __all__ = [
     "load_scene", "Scene", "Mesh", "Instance", "CameraPath", "CameraKey",
     "camera_at", "look_at", "perspective", "default_orbit", "scene_camera",
+    "instance_transform", "is_dynamic", "animation_hash", "RigidAnimation", "Skin",
     "SceneError", "SceneNotFound", "SceneFormatError", "GeometryError",
 ]

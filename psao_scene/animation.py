@@ -285,6 +285,26 @@ def instance_transform(scene, i: int, t: float) -> np.ndarray:
     return inst.transform if inst.animation is None else inst.animation.matrix(t)
 
 
+def animation_hash(scene, times=tuple(np.linspace(0.0, 60.0, 17))) -> str:
+    """sha256 of every animated transform and skinning matrix sampled at `times`: equal on two machines
+    iff they animate the scene alike (Scene.content_hash covers only the geometry at rest)."""
+    import hashlib
+    h = hashlib.sha256()
+    for i, inst in enumerate(scene.instances):
+        if inst.animation is not None:
+            h.update(inst.name.encode())
+            for t in times:
+                h.update(np.ascontiguousarray(inst.animation.matrix(t), dtype=np.float64).tobytes())
+    for m in scene.meshes:
+        if m.skin is not None:
+            h.update(m.name.encode())
+            h.update(np.ascontiguousarray(m.skin.joints, dtype=np.int64).tobytes())
+            h.update(np.ascontiguousarray(m.skin.weights, dtype=np.float64).tobytes())
+            for t in times:
+                h.update(np.ascontiguousarray(m.skin.skinning_matrices(t), dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
 def is_dynamic(scene, i: int) -> bool:
     """Whether instance i moves (rigid animation) or deforms (skinned mesh)."""
     inst = scene.instances[i]
@@ -313,6 +333,8 @@ def _parse_keyframes(t, base) -> KeyframeAnimation:
         kt = Table(raw, f"{t.where}: key {j}", {"time", "translate", "rotate", "scale"})
         key = RigidKey(kt.number("time"), kt.vec("translate", 3, [0, 0, 0]), matrix_to_quat(rotation_of(kt)),
                        scale_of(kt))
+        if (key.scale <= 0).any():  # a sign change between keys would pass through a zero scale
+            raise kt.fail(f"'scale' of a keyframe must be > 0 (no zero or mirroring), got {key.scale.tolist()}")
         if keys and key.time <= keys[-1].time:
             raise kt.fail(f"time {key.time} is not after the previous key's {keys[-1].time} (keys out of order)")
         keys.append(key)

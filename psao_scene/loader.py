@@ -22,6 +22,8 @@ DEFAULT_AO_FRACTION = 0.1
 # An instance transform whose linear part has |det| below this (relative to its largest column norm
 # cubed) is treated as a zero scale.
 SINGULAR_DET = 1e-12
+# Times (seconds) at which animated transforms are checked at load time.
+ANIMATION_CHECK_TIMES = tuple(float(t) for t in np.linspace(0.0, 30.0, 13))
 
 
 def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
@@ -67,6 +69,9 @@ def validate_scene(scene: Scene) -> None:
             raise GeometryError(f"{scene.source}: mesh '{m.name}' has no faces or non-finite vertices")
     for inst in scene.instances:
         check_transform(inst.transform, f"{scene.source}: instance '{inst.name}'")
+        if inst.animation is not None:  # a bad motion fails here, not in the middle of serving
+            for t in ANIMATION_CHECK_TIMES:
+                check_transform(inst.animation.matrix(t), f"{scene.source}: instance '{inst.name}' at t={t:g} s")
         if not 0 <= inst.mesh < len(scene.meshes):
             raise GeometryError(f"{scene.source}: instance '{inst.name}' refers to missing mesh {inst.mesh}")
     lo, hi = scene.world_bounds()

@@ -24,6 +24,17 @@ naming the file and the element):
     rotate = [0.0, 45.0, 0.0]    # degrees about X, then Y, then Z (fixed axes), or
                                  #   rotate = { axis = [0, 1, 0], angle = 45.0 } (degrees)
     scale = 1.0                  # > 0, a number or [sx, sy, sz] (negative mirrors, zero is an error)
+    [instance.animation]         # optional: a rigid motion (psao_scene/animation.py); the instance's
+    kind = "roll"                #   translate/rotate/scale above is its rest pose. kind is one of:
+    path = [[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]  # roll/path: centre waypoints (x, z) on the floor
+    radius = 0.5                 # roll: rolling radius (the ball's centre height is `translate` y)
+    speed = 1.0                  # roll/path: m/s; loop = true closes the path, false goes there and back
+    # kind = "path"              #   walk the polyline facing along it (model faces +Z)
+    # kind = "swing"             #   pivot = [x, y, z], axis = [x, y, z], amplitude (deg), period (s), phase (deg)
+    # kind = "platform"          #   offset = [dx, dy, dz], period (s), phase (deg): there and back, eased
+    # kind = "keyframes"         #   loop = true, then [[instance.animation.key]] time, translate (offset),
+                                 #   rotate (as above, about the object's origin), scale (> 0); times
+                                 #   strictly increasing. Out-of-order keys, NaN, zero scale: errors at load.
 
     [[camera_path]]
     name = "walk"

@@ -212,6 +212,7 @@ BAD = [
     ("time = 1.0", "time = 0.0", r"instance 'a': animation: key 1.*out of order"),
     ('translate = [2.0, 0.0, 0.0]', 'translate = [nan, 0.0, 0.0]', r"instance 'a': animation: key 1.*translate"),
     ("scale = 2.0", "scale = 0.0", r"instance 'a': animation: key 1.*zero"),
+    ("scale = 2.0", "scale = [1.0, -1.0, 1.0]", r"instance 'a': animation: key 1.*scale.*> 0"),
     ('kind = "keyframes"', 'kind = "teleport"', r"instance 'a': animation.*kind"),
     ("radius = 0.5\nspeed", "speed", r"instance 'b': animation.*radius"),
     ("path = [[0.0, 3.0], [4.0, 3.0]]", "path = [[0.0, 3.0], [0.0, 3.0]]", r"instance 'b': animation.*equal"),
@@ -302,3 +303,21 @@ def test_robots_walk_in_the_room():
         heads = np.array(heads)
         d = np.linalg.norm(heads[:, None, [0, 2]] - heads[None, :, [0, 2]], axis=2) + np.eye(len(heads)) * 9
         assert d.min() > 0.6, t  # robots do not walk through each other
+
+
+def test_shipped_playground_uses_every_kind():
+    scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "playground.toml")
+    kinds = {i.animation.kind for i in scene.instances if i.animation is not None}
+    assert kinds == {"keyframes", "roll", "path", "swing", "platform"}
+
+
+def test_animation_hash_stable_and_sensitive():
+    from psao_scene.animation import animation_hash
+    a, b = load_scene("builtin:courtyard"), load_scene("builtin:courtyard")
+    assert animation_hash(a) == animation_hash(b)
+    b.instances[[i.animation is not None for i in b.instances].index(True)].animation.speed *= 1.01
+    assert animation_hash(a) != animation_hash(b)
+    r = load_scene("builtin:robots")
+    h = animation_hash(r)
+    next(m for m in r.meshes if m.skin is not None).skin.animator.phase += 0.1
+    assert animation_hash(r) != h
