@@ -260,3 +260,26 @@ def test_corrupt_glb(tmp_path):
 def test_bad_ao_distance(bad):
     with pytest.raises(SceneFormatError):
         load_scene("builtin:cornell", ao_distance=bad)
+
+
+@pytest.mark.parametrize("kind", ["bin_file", "data_uri"])
+def test_gltf_json_with_external_or_embedded_buffer(tmp_path, kind):
+    import base64
+    nodes = [pygltflib.Node(name="a", mesh=0, translation=[0, 0, 1])]
+    pos = _write_gltf(tmp_path / "x.glb", nodes, [0])
+    g = pygltflib.GLTF2().load(str(tmp_path / "x.glb"))
+    blob = g.binary_blob()
+    if kind == "bin_file":
+        (tmp_path / "x.bin").write_bytes(blob)
+        g.buffers[0].uri = "x.bin"
+    else:
+        g.buffers[0].uri = "data:application/octet-stream;base64," + base64.b64encode(blob).decode()
+    g.set_binary_blob(None)
+    g.save_json(str(tmp_path / "x.gltf"))
+    scene = load_scene(tmp_path / "x.gltf")
+    np.testing.assert_allclose(sorted(map(tuple, world_triangles(scene, scene.instances[0])[0])),
+                               sorted(map(tuple, pos + [0, 0, 1])), atol=1e-12)
+    if kind == "bin_file":
+        (tmp_path / "x.bin").unlink()
+        with pytest.raises(SceneNotFound, match=r"x\.gltf.*x\.bin"):
+            load_scene(tmp_path / "x.gltf")
