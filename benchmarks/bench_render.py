@@ -112,7 +112,7 @@ def chart(rows, path: Path, title: str) -> None:
     fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
     ax.bar(x - 0.2, [r["gpu_ms"]["psao"] for r in rows], 0.4, label="PSAO pass")
     ax.bar(x + 0.2, [r["gpu_ms"]["ssao"] for r in rows], 0.4, label="SSAO (AO + blur)")
-    ax.set_xticks(x, [f"N={r['density']:g}" for r in rows])
+    ax.set_xticks(x, [f"N={r['density']:g}\nratio {r['ratio_gpu']:.2f}" for r in rows])
     ax.set_ylabel("GPU ms per frame (timer queries)")
     ax.set_title(title)
     ax.legend()
@@ -151,10 +151,12 @@ def main(argv=None) -> int:
     for density in [float(d) for d in args.densities.split(",")]:
         rows.append(run_density(scene, density, args, views, size))
     worst = max(r["ratio_gpu"] for r in rows)
-    spread = max(r["gpu_ms"]["psao"] for r in rows) / min(r["gpu_ms"]["psao"] for r in rows)
+    # Growth with N, normalised by SSAO (whose cost does not depend on N): the machine's load changes
+    # between densities, the ratio measured on the same frames at the same time does not.
+    spread = max(r["ratio_gpu"] for r in rows) / min(r["ratio_gpu"] for r in rows)
     verdict = "PASS" if worst <= TARGET_RATIO else "MISS"
     print(f"worst PSAO/SSAO GPU ratio {worst:.2f} (target <= {TARGET_RATIO}) {verdict}; "
-          f"PSAO max/min over N {spread:.2f}")
+          f"ratio max/min over N {spread:.2f}")
     chart(rows, Path(args.chart), f"{scene.name} {size[0]}x{size[1]}: PSAO vs SSAO-{args.ssao_samples}")
     print(f"chart: {args.chart}")
     if args.json:

@@ -72,9 +72,9 @@ def _window_context(size: tuple[int, int]):
     return ctx
 
 
-def present(ctx, fbo, size: tuple[int, int]) -> bool:
+def present(ctx, fbo) -> bool:
     """Blit an offscreen framebuffer to the window and swap; False once the user closed the window."""
-    handle = (ctx.extra or {}).get("glfw_window") if hasattr(ctx, "extra") else None
+    handle = (getattr(ctx, "extra", None) or {}).get("glfw_window")
     if handle is None:
         return True
     import glfw

@@ -15,7 +15,7 @@ import numpy as np
 
 from psao_client.errors import RenderError
 from psao_client.render.composite import CompositePass, read_channel
-from psao_client.render.context import check_frame_size, create_context, release_context
+from psao_client.render.context import check_frame_size, create_context, present, release_context
 from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
 from psao_client.render.gpu_grid import GpuGrid
 from psao_client.render.psao_pass import PsaoPass, PsaoSettings
@@ -55,6 +55,7 @@ class FrameRenderer:
             raise RenderError(f"AO mode {ao_mode!r}: expected one of {', '.join(AO_MODES)}")
         self.modes = AO_MODES[ao_mode]
         self._own_ctx = ctx is None
+        self.window = bool(window) and ctx is None
         self.ctx = ctx if ctx is not None else create_context(window=window, size=size)
         self._objects: list = []
         try:
@@ -141,6 +142,8 @@ class FrameRenderer:
         with t.measure("composite"):
             for mode, comp in self.composites.items():
                 comp.run(self.psao.output if mode == "psao" else self.ssao.output)
+        if self.window:  # show the first mode's composite; the window is a view, frames still come back
+            present(self.ctx, next(iter(self.composites.values())).fbo)
 
     # -- lifetime ------------------------------------------------------------------------------------------
     def release(self) -> None:
