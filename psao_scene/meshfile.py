@@ -193,12 +193,17 @@ class GltfFile:
             raise SceneFormatError(f"{self.path}: {what}: accessor {i} does not exist") from None
         if acc.sparse is not None:
             raise SceneFormatError(f"{self.path}: {what}: sparse accessors are not supported")
+        if acc.componentType not in _COMPONENT_DTYPES or acc.type not in _TYPE_WIDTHS or (acc.count or 0) < 0:
+            raise SceneFormatError(f"{self.path}: {what}: accessor {i} has an unknown component type or type")
         dtype = np.dtype(_COMPONENT_DTYPES[acc.componentType]).newbyteorder("<")
         width = _TYPE_WIDTHS[acc.type]
         if acc.bufferView is None:
             return np.zeros((acc.count, width), dtype=dtype)
-        view = self.doc.bufferViews[acc.bufferView]
-        data = self.buffer(view.buffer)
+        try:
+            view = self.doc.bufferViews[acc.bufferView]
+            data = self.buffer(view.buffer)
+        except (IndexError, TypeError):
+            raise SceneFormatError(f"{self.path}: {what}: accessor {i} refers to a missing buffer view or buffer") from None
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
         item = dtype.itemsize * width
         stride = view.byteStride or item
@@ -327,7 +332,19 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
                         np.concatenate(weights) if skinned else None, color, double_sided)
 
 
+# What malformed glTF fields raise deep inside the reader (wrong types, indices out of range, bad
+# sizes); the file is untrusted input, so these become one SceneFormatError at this boundary.
+MALFORMED_ERRORS = (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, MemoryError)
+
+
 def load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
+    try:
+        return _load_gltf(path)
+    except MALFORMED_ERRORS as e:
+        raise SceneFormatError(f"{path}: malformed glTF ({type(e).__name__}: {e})".splitlines()[0][:300]) from None
+
+
+def _load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
     g = GltfFile(path)
     world = g.world_matrices()
     meshes: list[Mesh] = []
@@ -345,7 +362,7 @@ def load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
             except GeometryError as e:
                 log.warning("%s", e)
                 continue
-            except (KeyError, IndexError, TypeError, ValueError, AttributeError) as e:  # malformed fields
+            except MALFORMED_ERRORS as e:  # name the node and mesh when the fault is in the mesh
                 raise SceneFormatError(f"{path}: node '{g.node_name(n)}' mesh {node.mesh}: malformed glTF "
                                        f"({type(e).__name__}: {e})".splitlines()[0]) from None
             name = _unique(data.name, mesh_names)

@@ -222,3 +222,30 @@ def test_point_skin_weights():
         for k in range(4):
             expect[np.arange(50), joints[c, k]] += bary[:, c] * weights[c, k]
     np.testing.assert_allclose(dense, expect, atol=1e-12)
+
+
+def test_corrupted_skinned_gltf_never_crashes(tmp_path):
+    """Mutate one field of a valid skinned glTF at a time: loading either works or raises a SceneError,
+    never another exception (no traceback reaches the user)."""
+    from psao_scene import SceneError
+    skinned_gltf(tmp_path / "ok.glb")
+    rng = np.random.default_rng(0)
+    bad_values = [None, -1, 0, 1, 7, 99, 5124, 1e9, "VEC2", "MAT4", [], [1, 2]]
+    fields = [("accessors", ["bufferView", "componentType", "count", "type", "byteOffset"]),
+              ("bufferViews", ["buffer", "byteOffset", "byteLength", "byteStride"]),
+              ("skins", ["inverseBindMatrices", "joints"]), ("nodes", ["mesh", "skin", "children"]),
+              ("animations", ["channels", "samplers"])]
+    for trial in range(150):
+        g = pygltflib.GLTF2().load(str(tmp_path / "ok.glb"))
+        table, names = fields[trial % len(fields)]
+        items = getattr(g, table)
+        obj = items[rng.integers(len(items))]
+        setattr(obj, names[rng.integers(len(names))], bad_values[rng.integers(len(bad_values))])
+        try:
+            g.save_binary(str(tmp_path / "mutant.glb"))
+        except Exception:  # pygltflib itself cannot write this mutation: nothing to load
+            continue
+        try:
+            load_scene(tmp_path / "mutant.glb")
+        except SceneError as e:
+            assert "mutant.glb" in str(e) and "\n" not in str(e)
