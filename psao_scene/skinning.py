@@ -150,3 +150,39 @@ def point_skin_weights(joints: np.ndarray, weights: np.ndarray, faces: np.ndarra
     out_w /= out_w.sum(axis=1, keepdims=True)
     out_j[out_w == 0] = 0
     return out_j.astype(np.int64), out_w
+
+
+# ----------------------------------------------------------------------------- per-scene convenience
+
+class SceneSkinner:
+    """One SkinDeformer per skinned mesh of a scene, built on first use and reused every tick; world
+    bounds of instances at time t (rigid ones from their local box, skinned ones from their vertices)."""
+
+    def __init__(self, scene, device: str | None = None):
+        self.scene = scene
+        self.device = device
+        self._deformers: dict[int, SkinDeformer] = {}
+
+    def vertices(self, mesh_index: int, t: float) -> np.ndarray:
+        """Mesh-local vertices of mesh `mesh_index` at time t (its rest vertices when not skinned)."""
+        mesh = self.scene.meshes[mesh_index]
+        if mesh.skin is None:
+            return mesh.vertices
+        if mesh_index not in self._deformers:
+            self._deformers[mesh_index] = SkinDeformer(mesh.vertices, mesh.skin.joints, mesh.skin.weights,
+                                                       device=self.device)
+        return self._deformers[mesh_index].deform(mesh.skin.skinning_matrices(t))[0]
+
+    def instance_bounds(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """World-space (lo, hi) of instance i at time t; conservative (a transformed box) when rigid."""
+        from .animation import instance_transform
+        inst = self.scene.instances[i]
+        m = instance_transform(self.scene, i, t)
+        mesh = self.scene.meshes[inst.mesh]
+        if mesh.skin is None:
+            lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+            pts = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        else:
+            pts = self.vertices(inst.mesh, t)
+        w = pts @ m[:3, :3].T + m[:3, 3]
+        return w.min(axis=0), w.max(axis=0)

@@ -249,3 +249,18 @@ def test_corrupted_skinned_gltf_never_crashes(tmp_path):
             load_scene(tmp_path / "mutant.glb")
         except SceneError as e:
             assert "mutant.glb" in str(e) and "\n" not in str(e)
+
+
+def test_scene_skinner_bounds_contain_the_moving_geometry():
+    from psao_scene.animation import instance_transform
+    from psao_scene.skinning import SceneSkinner
+    scene = load_scene("builtin:robots")
+    sk = SceneSkinner(scene)
+    for t in (0.0, 1.7, 5.2):
+        for i, inst in enumerate(scene.instances):
+            lo, hi = sk.instance_bounds(i, t)
+            m = instance_transform(scene, i, t)
+            v = skinned_vertices(scene.meshes[inst.mesh], t) @ m[:3, :3].T + m[:3, 3]
+            assert (v >= lo - 1e-9).all() and (v <= hi + 1e-9).all()
+            if scene.meshes[inst.mesh].skin is not None:  # tight for skinned meshes
+                np.testing.assert_allclose([lo, hi], [v.min(0), v.max(0)], atol=1e-12)
