@@ -34,6 +34,10 @@ CODEC_NAMES = {"none": Codec.NONE, "zstd": Codec.ZSTD, "lz4": Codec.LZ4, "zstd-s
 ALL_CODECS = frozenset(Codec)
 
 
+def codec_name(codec: Codec) -> str:
+    return next(name for name, c in CODEC_NAMES.items() if c == codec)
+
+
 def codec_mask(codecs) -> int:
     """Set of codecs -> bit mask (bit c set when codec c is accepted), as carried by Hello."""
     mask = 0

@@ -1,0 +1,98 @@
+"""`psao client URL`: connect to a PSAO server, keep an exact mirror of its grid, report.
+
+Headless for now. The receive loop is `psao_client.connection.MirrorClient`; `build_client(args, scene,
+on_update=...)` lets another sub-command (a renderer) reuse the same options and plug in a per-update
+callback `on_update(mirror, transforms, tick)`.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import time
+from pathlib import Path
+
+from psao_client.errors import ConnectError
+
+CODEC_CHOICES = ("zstd-stream", "zstd", "lz4", "none")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("url", help="server URL, e.g. ws://127.0.0.1:8765")
+    p.add_argument("--scene", default="builtin:courtyard",
+                   help="the client's own copy of the scene, checked against the server's (default builtin:courtyard)")
+    p.add_argument("--frames", type=int, default=None, help="stop after N updates (default: run until Ctrl-C)")
+    p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
+    p.add_argument("--token", default="", help="token the server requires")
+    p.add_argument("--codecs", default=",".join(CODEC_CHOICES),
+                   help=f"codecs to accept, comma-separated (default {','.join(CODEC_CHOICES)})")
+    p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
+                   help="pause S seconds after every message (simulates a slow client)")
+    p.add_argument("--no-reconnect", action="store_true", help="exit when the connection drops")
+    p.add_argument("--reconnect-timeout", type=float, default=10.0, help="give up after S seconds without a message")
+    p.add_argument("--digest-log", type=Path, default=None,
+                   help="append the mirror's state digest (jsonl) after every Snapshot and Update (tests)")
+
+
+def _codecs(text: str):
+    from protocol.codecs import CODEC_NAMES
+
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    bad = [n for n in names if n not in CODEC_NAMES]
+    if bad or not names:
+        raise ConnectError(f"--codecs: unknown codec(s) {', '.join(bad) or '(none)'} (known: {', '.join(CODEC_NAMES)})")
+    return frozenset(CODEC_NAMES[n] for n in names)
+
+
+def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None):
+    from protocol.session import scene_hash_bytes
+    from psao_client.connection import MirrorClient, scene_camera_feed
+
+    if args.frames is not None and args.frames < 0:
+        raise ConnectError(f"--frames must be >= 0, got {args.frames}")
+    if args.read_delay < 0:
+        raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
+    return MirrorClient(
+        args.url, scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
+        camera=scene_camera_feed(scene), on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
+        read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
+        reconnect_timeout=args.reconnect_timeout,
+    )
+
+
+def report(client, seconds: float) -> dict:
+    s, mirror = client.stats, client.mirror
+    return {
+        "bytes_received": s.bytes_received,
+        "messages": s.messages,
+        "snapshot_bytes": s.snapshot_bytes,
+        "mirror_cells": mirror.allocated_cells() if mirror else 0,
+        "mirror_buckets": mirror.allocated_buckets() if mirror else 0,
+        "seconds": seconds,
+        "updates": s.updates,
+        "reconnects": s.reconnects,
+        "snapshot_seconds": s.snapshot_seconds,
+        "connection_id": s.connection_id,
+        "codec": s.codec,
+        "mirror_digest": mirror.digest() if mirror else None,
+    }
+
+
+def run(args: argparse.Namespace, on_update=None) -> int:
+    from psao_scene import load_scene
+
+    scene = load_scene(args.scene)
+    client = build_client(args, scene, on_update=on_update)
+    t0 = time.perf_counter()
+    try:
+        asyncio.run(client.run(frames=args.frames))
+    except KeyboardInterrupt:
+        pass
+    out = report(client, time.perf_counter() - t0)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"{out['updates']} updates, {out['messages']} messages, {out['bytes_received'] / 1e6:.2f} MB "
+              f"(snapshot {out['snapshot_bytes'] / 1e6:.2f} MB in {out['snapshot_seconds'] or 0:.2f} s), "
+              f"mirror {out['mirror_cells']} cells, {out['reconnects']} reconnects, {out['seconds']:.1f} s")
+    return 0

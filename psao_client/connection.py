@@ -1,0 +1,191 @@
+"""`MirrorClient`: connect, handshake, receive the snapshot and updates into a Mirror, reconnect.
+
+Thin around protocol.session.ClientSession (which decides what bytes mean). Another module drives it by
+`await MirrorClient(...).run(frames=...)` and plugs in callbacks:
+
+    on_connect(mirror)                      a new connection's fresh mirror (after Welcome)
+    on_snapshot(mirror)                     the snapshot is complete: the mirror equals the server
+    on_update(mirror, transforms, tick)     after every Update is applied
+
+After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
+fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+
+from protocol.codecs import Codec, codec_name
+from protocol.errors import ProtocolError
+from protocol.limits import DEFAULT_LIMITS, Limits
+from protocol.session import (
+    ByeReceived,
+    ClientConfig,
+    ClientSession,
+    RemoteError,
+    SnapshotReceived,
+    UpdateReceived,
+    Welcomed,
+)
+
+from .errors import ConnectError
+from .mirror import Mirror
+
+OnMirror = Callable[[Mirror], None]
+OnUpdate = Callable[[Mirror, np.ndarray, int], None]
+CameraFeed = Callable[[float], tuple[np.ndarray, np.ndarray]]  # seconds -> (view, projection)
+
+
+@dataclass
+class ClientStats:
+    bytes_received: int = 0  # websocket message bytes, all connections
+    messages: int = 0
+    snapshot_bytes: int = 0
+    updates: int = 0
+    reconnects: int = 0
+    snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
+    connection_id: int = 0
+    codec: str = ""
+
+
+class _Lost(Exception):
+    """The connection ended without an Error message: worth reconnecting."""
+
+
+class MirrorClient:
+    def __init__(self, url: str, scene_hash: bytes, *, token: str = "", codecs=frozenset(Codec),
+                 camera: CameraFeed | None = None, on_connect: OnMirror | None = None,
+                 on_snapshot: OnMirror | None = None, on_update: OnUpdate | None = None,
+                 read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
+                 reconnect_timeout: float = 10.0, camera_hz: float = 30.0, limits: Limits = DEFAULT_LIMITS):
+        self.url = url
+        self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
+        self.camera = camera
+        self.on_connect, self.on_snapshot, self.on_update = on_connect, on_snapshot, on_update
+        self.read_delay = read_delay
+        self.digest_log = digest_log
+        self.reconnect = reconnect
+        self.reconnect_timeout = reconnect_timeout
+        self.camera_period = 1.0 / camera_hz
+        self.mirror: Mirror | None = None
+        self.stats = ClientStats()
+        self._stop = asyncio.Event()
+        self._start = 0.0
+
+    def stop(self) -> None:
+        """Ask run() to say Bye and return after the message being handled."""
+        self._stop.set()
+
+    async def run(self, frames: int | None = None) -> ClientStats:
+        """Receive until `frames` Updates have been applied (None: until stop())."""
+        self._start = self._last_ok = time.perf_counter()
+        pause = 0.1
+        digests = open(self.digest_log, "a", buffering=1) if self.digest_log else None
+        try:
+            while True:
+                try:
+                    await self._connection(frames, digests)
+                    return self.stats
+                except RemoteError as exc:
+                    raise ConnectError(f"{self.url}: server refused: {exc.text}") from None
+                except ProtocolError as exc:
+                    raise ConnectError(f"{self.url}: bad data from the server: {exc}") from None
+                except (_Lost, ConnectionClosed, OSError, asyncio.TimeoutError, InvalidHandshake) as exc:
+                    if not self.reconnect or time.perf_counter() - self._last_ok > self.reconnect_timeout:
+                        raise ConnectError(f"{self.url}: connection lost ({_why(exc)}), not reconnecting") from None
+                    pause = 0.1 if time.perf_counter() - self._last_ok < 1.0 else min(2 * pause, 2.0)
+                    await asyncio.sleep(pause)
+                    self.stats.reconnects += 1
+        except InvalidURI as exc:
+            raise ConnectError(f"bad server URL: {exc}") from None
+        finally:
+            if digests:
+                digests.close()
+
+    async def _connection(self, frames: int | None, digests) -> None:
+        limits = self.config.limits
+        session = ClientSession(self.config)
+        t0 = time.perf_counter()
+        last_camera = -1e9
+        async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
+                           max_queue=16, open_timeout=5.0) as ws:
+            await ws.send(session.hello())
+            seq = 0
+            async for data in ws:
+                if isinstance(data, str):
+                    raise ProtocolError("text message from the server")
+                event = session.receive(data)
+                self._last_ok = time.perf_counter()
+                self.stats.messages += 1
+                self.stats.bytes_received += len(data)
+                if isinstance(event, Welcomed):
+                    self._welcomed(event)
+                elif isinstance(event, SnapshotReceived):
+                    self.mirror.apply(event.snapshot.delta)
+                    self.stats.snapshot_bytes += len(data)
+                    if event.complete:
+                        self.stats.snapshot_seconds = time.perf_counter() - t0
+                        if self.on_snapshot:
+                            self.on_snapshot(self.mirror)
+                elif isinstance(event, UpdateReceived):
+                    self.mirror.apply(event.update.delta)
+                    self.mirror.tick = event.update.tick
+                    self.stats.updates += 1
+                    if self.on_update:
+                        self.on_update(self.mirror, self.mirror.transforms, event.update.tick)
+                elif isinstance(event, ByeReceived):
+                    raise _Lost("server said Bye")
+                if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
+                    digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq,
+                                              "digest": self.mirror.digest()}) + "\n")
+                seq += 1
+                if self._stop.is_set() or (frames is not None and self.stats.updates >= frames):
+                    await ws.send(session.bye())
+                    return
+                now = time.perf_counter()
+                if self.camera and self.mirror is not None and now - last_camera >= self.camera_period:
+                    view, proj = self.camera(now - self._start)
+                    await ws.send(session.camera(view, proj))
+                    last_camera = now
+                if self.read_delay:
+                    await asyncio.sleep(self.read_delay)
+        raise _Lost("server closed the connection")
+
+    def _welcomed(self, event: Welcomed) -> None:
+        w = event.welcome
+        self.mirror = Mirror.from_welcome(w)
+        self.stats.connection_id = w.connection_id
+        self.stats.codec = codec_name(w.codec)
+        if self.on_connect:
+            self.on_connect(self.mirror)
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, ConnectionClosed):
+        rcvd = exc.rcvd
+        return f"close code {rcvd.code}" if rcvd else "no close frame"
+    return str(exc) or type(exc).__name__
+
+
+def scene_camera_feed(scene, aspect: float = 16 / 9) -> CameraFeed:
+    """Camera poses along the scene's camera path (or the default orbit), as float32 matrices."""
+    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+
+    path = scene_camera(scene)
+    lo, hi = scene.world_bounds()
+    far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
+    proj = perspective(path.fov_y, aspect, far * 1e-4, far).astype(np.float32)
+
+    def feed(t: float) -> tuple[np.ndarray, np.ndarray]:
+        eye, target = camera_at(path, t)
+        return look_at(eye, target).astype(np.float32), proj
+
+    return feed

@@ -1,0 +1,169 @@
+"""Per-connection streaming state: pending dirty sets, the snapshot plan, what each client was sent.
+
+DESIGN.md, server tick step 6: every tick ORs the grid's dirty buckets and cells into every client's
+pending sets; a send drains a client's pending sets (all of them, until view culling exists, and at most
+one message's worth) and reads the grid's content at that moment. Nothing is dropped and nothing is
+queued twice: a client that is slow to read simply has more pending the next time, and receives the
+latest content of everything it missed.
+"""
+from __future__ import annotations
+
+import asyncio
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.gridformat import EMPTY, FREE_CELL
+from protocol.limits import Limits
+from protocol.updates import GridDelta
+
+
+def changed_buckets(buckets: np.ndarray) -> np.ndarray:
+    """Buckets that differ from an empty one (a fresh mirror starts with all buckets empty)."""
+    return np.flatnonzero(np.any(buckets != EMPTY, axis=(1, 2))).astype(np.uint32)
+
+
+def changed_cells(cells: np.ndarray) -> np.ndarray:
+    """Cells that differ from FREE_CELL (a fresh mirror starts with every slot free)."""
+    return np.flatnonzero(np.any(cells != FREE_CELL, axis=1)).astype(np.uint32)
+
+
+def read_delta(grid, transforms: np.ndarray, transform_ids, bucket_ids, cell_slots) -> GridDelta:
+    """The grid's current content at these indices (copies)."""
+    bucket_ids = np.asarray(bucket_ids, np.uint32)
+    cell_slots = np.asarray(cell_slots, np.uint32)
+    transform_ids = np.asarray(transform_ids, np.uint32)
+    return GridDelta(
+        cell_capacity=len(grid.cells),
+        transform_ids=transform_ids,
+        transforms=transforms[transform_ids],
+        bucket_ids=bucket_ids,
+        buckets=grid.buckets[bucket_ids],
+        cell_slots=cell_slots,
+        cells=grid.cells[cell_slots],
+    )
+
+
+@dataclass
+class SnapshotPlan:
+    """The full-state chunks for a new client: what was allocated when it joined, in sorted chunks.
+    Each chunk reads the latest content when it is sent; changes made meanwhile are also pending."""
+
+    bucket_chunks: list[np.ndarray]
+    cell_chunks: list[np.ndarray]
+
+    @classmethod
+    def of(cls, grid, limits: Limits, cells_per_chunk: int) -> "SnapshotPlan":
+        b, c = changed_buckets(grid.buckets), changed_cells(grid.cells)
+        per_cells = max(1, min(cells_per_chunk, limits.max_cells_per_message))
+        per_buckets = max(1, min(cells_per_chunk, limits.max_buckets_per_message))
+        n = max(1, -(-len(c) // per_cells), -(-len(b) // per_buckets))
+        return cls(np.array_split(b, n), np.array_split(c, n))
+
+    def __len__(self) -> int:
+        return len(self.cell_chunks)
+
+
+_ids = itertools.count(1)
+
+
+@dataclass
+class Client:
+    """One connection's streaming state (the session object holds its protocol state)."""
+
+    peer: str
+    n_buckets: int
+    capacity: int
+    id: int = field(default_factory=lambda: next(_ids))
+    pending_buckets: np.ndarray = None
+    pending_cells: np.ndarray = None
+    sent_transforms: np.ndarray | None = None  # last transforms sent; None before the first message
+    camera: tuple[np.ndarray, np.ndarray] | None = None  # (view, projection) last received
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    messages_sent: int = 0
+    updates_sent: int = 0
+    bytes_sent: int = 0
+
+    def __post_init__(self):
+        self.pending_buckets = np.zeros(self.n_buckets, dtype=bool)
+        self.pending_cells = np.zeros(self.capacity, dtype=bool)
+
+    def _fit(self, capacity: int) -> None:
+        """Follow the grid's capacity: grow with nothing pending, or cut (after a compaction)."""
+        n = len(self.pending_cells)
+        if capacity > n:
+            self.pending_cells = np.concatenate([self.pending_cells, np.zeros(capacity - n, dtype=bool)])
+        elif capacity < n:
+            self.pending_cells = self.pending_cells[:capacity].copy()
+
+    def mark(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
+        self._fit(capacity)
+        self.pending_buckets[bucket_ids] = True
+        self.pending_cells[cell_slots] = True
+        self.wake.set()
+
+    def clear(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
+        """What is about to be sent (read now, so the latest content) is no longer pending."""
+        self._fit(capacity)
+        self.pending_buckets[bucket_ids] = False
+        self.pending_cells[cell_slots] = False
+
+    def take_pending(self, limits: Limits, capacity: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Drain at most one message's worth: (bucket ids, cell slots, everything drained)."""
+        self._fit(capacity)
+        b = np.flatnonzero(self.pending_buckets)
+        c = np.flatnonzero(self.pending_cells)
+        b, c = b[: limits.max_buckets_per_message], c[: limits.max_cells_per_message]
+        self.pending_buckets[b] = False
+        self.pending_cells[c] = False
+        return b.astype(np.uint32), c.astype(np.uint32), not self.pending_anything()
+
+    def changed_transforms(self, transforms: np.ndarray) -> np.ndarray:
+        """Instances whose transform differs (bitwise) from what this client was last sent."""
+        if self.sent_transforms is None or self.sent_transforms.shape != transforms.shape:
+            return np.arange(len(transforms), dtype=np.uint32)
+        a = self.sent_transforms.reshape(len(transforms), -1).view(np.uint32)
+        b = np.ascontiguousarray(transforms, np.float32).reshape(len(transforms), -1).view(np.uint32)
+        return np.flatnonzero(np.any(a != b, axis=1)).astype(np.uint32)
+
+    def read_transforms(self, transforms: np.ndarray) -> np.ndarray:
+        """Ids of the transforms to put in the message being built; from now on they count as sent."""
+        ids = self.changed_transforms(transforms)
+        self.sent_transforms = np.array(transforms, dtype=np.float32, copy=True)
+        return ids
+
+    def pending_anything(self) -> bool:
+        return bool(self.pending_buckets.any() or self.pending_cells.any())
+
+    def sent(self, data: bytes) -> None:
+        self.messages_sent += 1
+        self.bytes_sent += len(data)
+
+
+class Registry:
+    """All connected clients that have passed the handshake."""
+
+    def __init__(self):
+        self.clients: dict[int, Client] = {}
+
+    def add(self, client: Client) -> None:
+        self.clients[client.id] = client
+
+    def remove(self, client: Client) -> None:
+        self.clients.pop(client.id, None)
+
+    def broadcast(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
+        """A tick's dirty sets go to every client; every client's sender wakes up (transforms may move)."""
+        for c in self.clients.values():
+            c.mark(bucket_ids, cell_slots, capacity)
+
+    def wake_all(self) -> None:
+        for c in self.clients.values():
+            c.wake.set()
+
+    def __len__(self) -> int:
+        return len(self.clients)
+
+    def __iter__(self):
+        return iter(list(self.clients.values()))

@@ -1,0 +1,117 @@
+"""`psao serve SCENE`: bake a scene (or load a baked grid) and stream its AO grid to clients."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from psao_server.errors import ConfigError
+
+CODEC_CHOICES = ("zstd", "lz4", "none")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="builtin:NAME, a scene .toml, or a mesh file")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default loopback only)")
+    p.add_argument("--port", type=int, default=8765, help="TCP port (0 picks a free one; default 8765)")
+    p.add_argument("--density", type=float, default=256.0, help="points per world unit^2 (default 256)")
+    p.add_argument("--rays", type=int, default=128, help="AO rays per point for the bake (default 128)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--grid", type=Path, default=None, help="serve this baked grid (.npz from psao bake) instead of baking")
+    p.add_argument("--codec", choices=CODEC_CHOICES, default="zstd",
+                   help="payload compression (default zstd: one stream per connection, level 15, lazy)")
+    p.add_argument("--zstd-frames", action="store_true",
+                   help="with zstd, compress every message on its own as the paper does (no stream)")
+    p.add_argument("--layout", choices=("packed", "plain"), default="packed",
+                   help="update layout: packed (default) or the paper's plain uint32 layout")
+    p.add_argument("--tick-hz", type=float, default=60.0, help="server ticks per second, 5..60 (default 60)")
+    p.add_argument("--token", default="", help="clients must present this token")
+    p.add_argument("--test-edits", type=int, default=0, metavar="K",
+                   help="test hook: edit about K points per tick (AO, moves, frees and allocations)")
+    p.add_argument("--digest-log", type=Path, default=None,
+                   help="append a state digest (jsonl) after every message that left nothing pending (tests)")
+
+
+def _load(args):
+    """(scene, grid) from a bake or a grid file."""
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.grid import Grid
+
+    scene = load_scene(args.scene)
+    if args.grid is not None:
+        grid, scene_hash, _meta = Grid.load(args.grid)
+        if scene_hash and scene_hash != scene.content_hash():
+            raise ConfigError(f"{args.grid} was baked from another scene than {args.scene}")
+        if len(grid.instances) != len(scene.instances):
+            raise ConfigError(f"{args.grid} has {len(grid.instances)} instances, {args.scene} has {len(scene.instances)}")
+        return scene, grid
+    result = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, seed=args.seed))
+    result.tracer.close()
+    logging.getLogger("psao.serve").info(
+        "baked %s at N=%g: %d points in %d cells", scene.name, args.density, result.stats["points_kept"],
+        result.stats["cells"])
+    return scene, result.grid
+
+
+def _settings(args):
+    from protocol.codecs import Codec
+    from protocol.updates import LAYOUT_NAMES
+    from psao_server.service import ServeSettings
+
+    codec = {"zstd": Codec.ZSTD if args.zstd_frames else Codec.ZSTD_STREAM, "lz4": Codec.LZ4,
+             "none": Codec.NONE}[args.codec]
+    if args.test_edits < 0:
+        raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
+    s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
+                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log)
+    s.check()
+    return s
+
+
+def setup_logging() -> None:
+    if sys.stderr.isatty():
+        from rich.logging import RichHandler
+        handler: logging.Handler = RichHandler(show_path=False, log_time_format="%H:%M:%S")
+        fmt = "%(message)s"
+    else:
+        handler = logging.StreamHandler(sys.stderr)
+        fmt = "%(asctime)s psao serve: %(message)s"
+    handler.setFormatter(logging.Formatter(fmt, datefmt="%H:%M:%S"))
+    log = logging.getLogger("psao")
+    log.handlers[:] = [handler]
+    log.setLevel(logging.INFO)
+    log.propagate = False
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from protocol.session import scene_hash_bytes
+    from psao_server.service import Service, StaticTransforms
+    from psao_server.testhook import RandomEdits
+
+    setup_logging()
+    settings = _settings(args)
+    scene, grid = _load(args)
+    transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
+    tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
+    service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms)
+    return asyncio.run(_serve(service))
+
+
+async def _serve(service) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    got: list[str] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, lambda s=sig: (got.append(s.name), stop.set()))
+    await service.run(stop)
+    c = service.counters
+    logging.getLogger("psao.serve").info(
+        "stopped on %s after %d ticks: %d connections, %d rejected, %.1f MB sent",
+        got[0] if got else "request", c.ticks, c.connections, c.rejected, c.bytes_out / 1e6)
+    return 0

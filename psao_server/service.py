@@ -1,0 +1,310 @@
+"""The websocket service: a tick loop that edits the grid, and one sender and one reader per client.
+
+Thin by design: protocol decisions live in protocol.session (sans-I/O), streaming state in
+psao_server.clients. The service knows nothing about what a tick does: it calls `tick(grid, t)` at the
+tick rate (the test hook today, the real server tick of the Dynamic issue later), takes the grid's
+dirty sets and hands them to every client. Each client's sender sends the snapshot, then waits for work
+and sends one Update at a time: while a message is being written (a slow reader), ticks only accumulate
+in that client's pending sets, so its queue never holds more than one message.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from protocol import messages as m
+from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings, codec_name
+from protocol.errors import HeaderError, ProtocolError
+from protocol.limits import DEFAULT_LIMITS, Limits
+from protocol.session import (
+    ByeReceived,
+    CameraReceived,
+    HelloAccepted,
+    RefusedError,
+    SceneEditReceived,
+    ServerConfig,
+    ServerSession,
+    error_reply,
+)
+from protocol.updates import Layout, state_digest
+
+from .clients import Client, Registry, SnapshotPlan, read_delta
+from .errors import ConfigError
+
+log = logging.getLogger("psao.serve")
+
+TickFn = Callable[[object, float], None]
+
+
+@dataclass
+class ServeSettings:
+    host: str = "127.0.0.1"
+    port: int = 8765  # 0 picks a free port
+    tick_hz: float = 60.0  # ticks per second
+    codec: Codec = Codec.ZSTD_STREAM
+    layout: Layout = Layout.PACKED
+    zstd: ZstdSettings = PAPER_ZSTD
+    token: str = ""
+    limits: Limits = DEFAULT_LIMITS
+    snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
+    hello_timeout: float = 10.0  # seconds a new connection has to send Hello
+    stats_interval: float = 1.0  # seconds between live statistics lines
+    digest_log: Path | None = None  # jsonl of state digests after every message that drained everything
+
+    def check(self) -> None:
+        if not 5.0 <= self.tick_hz <= 60.0:
+            raise ConfigError(f"tick rate must be within 5..60 Hz, got {self.tick_hz}")
+        if not 0 <= self.port <= 65535:
+            raise ConfigError(f"port must be within 0..65535, got {self.port}")
+
+
+class StaticTransforms:
+    """Instance transforms that change only by SceneEdit (until the Dynamic issue animates them)."""
+
+    def __init__(self, transforms: np.ndarray):
+        self.array = np.ascontiguousarray(transforms, dtype=np.float32).reshape(-1, 4, 4)
+
+    def __call__(self) -> np.ndarray:
+        return self.array
+
+    def edit(self, instance: int, transform: np.ndarray) -> None:
+        if not 0 <= instance < len(self.array):
+            raise ProtocolError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
+        self.array = self.array.copy()
+        self.array[instance] = transform
+
+
+@dataclass
+class Counters:
+    ticks: int = 0
+    bytes_out: int = 0
+    messages_out: int = 0
+    connections: int = 0
+    rejected: int = 0
+    tick_seconds: float = 0.0
+    last: dict = field(default_factory=dict)
+
+
+class Service:
+    def __init__(self, grid, scene_hash: bytes, settings: ServeSettings, tick: TickFn | None = None,
+                 transforms: Callable[[], np.ndarray] | None = None,
+                 on_scene_edit: Callable[[int, np.ndarray], None] | None = None):
+        settings.check()
+        self.grid = grid
+        self.settings = settings
+        self.tick_fn = tick
+        if transforms is None:
+            transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
+        self.transforms = transforms
+        self.on_scene_edit = on_scene_edit or getattr(transforms, "edit", None)
+        self.config = ServerConfig(scene_hash, settings.token, settings.codec, settings.layout, settings.zstd,
+                                   settings.limits)
+        self.registry = Registry()
+        self.counters = Counters()
+        self.tick = 0
+        self.time = 0.0
+        self.port: int | None = None
+        self._connections: set[ServerConnection] = set()
+        self._digests = open(settings.digest_log, "a", buffering=1) if settings.digest_log else None
+
+    # ---------------------------------------------------------------- lifecycle
+    async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None) -> None:
+        s = self.settings
+        async with serve(self._handler, s.host, s.port, compression=None,
+                         max_size=4 * s.limits.client_message_bytes, max_queue=16) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            log.info("listening on ws://%s:%d (codec %s, layout %s, %g Hz%s)", s.host, self.port,
+                     codec_name(s.codec), s.layout.name.lower(), s.tick_hz, ", token required" if s.token else "")
+            if ready:
+                ready(self.port)
+            ticker = asyncio.create_task(self._tick_loop(stop))
+            stopper = asyncio.create_task(stop.wait())
+            await asyncio.wait({ticker, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            stopper.cancel()
+            if ticker.done():
+                ticker.result()  # a tick that raised is a bug: let it out
+            ticker.cancel()
+            await self._say_goodbye()
+        if self._digests:
+            self._digests.close()
+
+    async def _say_goodbye(self) -> None:
+        for ws in list(self._connections):
+            try:
+                await asyncio.wait_for(ws.send(m.encode(m.Bye())), 1.0)
+                await asyncio.wait_for(ws.close(1001, "server shutting down"), 2.0)
+            except (ConnectionClosed, asyncio.TimeoutError, OSError):
+                pass
+
+    # ---------------------------------------------------------------- ticking
+    async def _tick_loop(self, stop: asyncio.Event) -> None:
+        period = 1.0 / self.settings.tick_hz
+        start = time.perf_counter()
+        next_at = start
+        last_stats = start
+        while not stop.is_set():
+            self.time = time.perf_counter() - start
+            t0 = time.perf_counter()
+            if self.tick_fn is not None:
+                self.tick_fn(self.grid, self.time)
+            self.tick += 1
+            self.counters.ticks += 1
+            b, c = self.grid.take_dirty()
+            self.registry.broadcast(b, c, len(self.grid.cells))
+            self.counters.tick_seconds += time.perf_counter() - t0
+            now = time.perf_counter()
+            if now - last_stats >= self.settings.stats_interval:
+                self._log_stats(now - last_stats)
+                last_stats = now
+            next_at = max(next_at + period, now)  # a late tick is not made up for
+            await asyncio.sleep(next_at - now)
+
+    def _log_stats(self, dt: float) -> None:
+        c, last = self.counters, self.counters.last
+        rate = (c.bytes_out - last.get("bytes", 0)) / dt
+        ticks = (c.ticks - last.get("ticks", 0)) / dt
+        busy = (c.tick_seconds - last.get("tick_s", 0.0)) / dt
+        pending = max((int(cl.pending_cells.sum()) for cl in self.registry), default=0)
+        log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients | out %.1f kB/s | most pending cells %d",
+                 self.tick, ticks, 100 * busy, len(self.registry), rate / 1e3, pending)
+        c.last = {"bytes": c.bytes_out, "ticks": c.ticks, "tick_s": c.tick_seconds}
+
+    # ---------------------------------------------------------------- connections
+    async def _handler(self, ws: ServerConnection) -> None:
+        peer = "%s:%s" % tuple(ws.remote_address[:2]) if ws.remote_address else "?"
+        session = ServerSession(self.config)
+        self.counters.connections += 1
+        try:
+            hello = await asyncio.wait_for(ws.recv(), self.settings.hello_timeout)
+            event = session.receive(_binary(hello))
+            assert isinstance(event, HelloAccepted)
+        except ProtocolError as exc:
+            await self._reject(ws, session, exc, peer, None)
+            return
+        except asyncio.TimeoutError:
+            err = ProtocolError(f"no Hello within {self.settings.hello_timeout:g} s")
+            await self._reject(ws, session, err, peer, None, code=m.ErrorCode.TIMEOUT)
+            return
+        except ConnectionClosed:
+            log.info("connection from %s closed before Hello", peer)
+            return
+        client = Client(peer, len(self.grid.buckets), len(self.grid.cells))
+        self._connections.add(ws)
+        try:
+            await self._serve_client(ws, session, client, event.codec)
+        finally:
+            self._connections.discard(ws)
+            self.registry.remove(client)
+
+    async def _serve_client(self, ws, session: ServerSession, client: Client, codec: Codec) -> None:
+        grid = self.grid
+        await ws.send(session.welcome(client.id, self.settings.tick_hz, len(grid.buckets), len(grid.cells),
+                                      grid.instances))
+        client.sent(b"")
+        self.registry.add(client)
+        log.info("client %d from %s connected (codec %s)", client.id, client.peer, codec_name(codec))
+        reader = asyncio.create_task(self._read(ws, session, client))
+        writer = asyncio.create_task(self._write(ws, session, client))
+        done, _ = await asyncio.wait({reader, writer}, return_when=asyncio.FIRST_COMPLETED)
+        for task in (reader, writer):
+            task.cancel()
+        await asyncio.gather(reader, writer, return_exceptions=True)
+        exc = next((t.exception() for t in done if not t.cancelled() and t.exception()), None)
+        if isinstance(exc, ProtocolError):
+            await self._reject(ws, session, exc, client.peer, client.id)
+        elif isinstance(exc, ConnectionClosed) or exc is None:
+            rcvd = exc.rcvd if isinstance(exc, ConnectionClosed) else None
+            why = f"close {rcvd.code}" if rcvd else "connection lost" if exc else "said Bye"
+            log.info("client %d from %s left (%s) after %d messages, %.1f kB", client.id, client.peer, why,
+                     client.messages_sent, client.bytes_sent / 1e3)
+        else:
+            raise exc
+
+    async def _reject(self, ws, session: ServerSession, exc: ProtocolError, peer: str, client_id,
+                      code: m.ErrorCode | None = None) -> None:
+        if code is None:
+            data, close_code = session.fail(exc)
+        else:
+            data, close_code = m.encode(m.Error(code, str(exc))), 1008
+        self.counters.rejected += 1
+        who = f"client {client_id} from {peer}" if client_id else f"connection from {peer}"
+        kind = "refused" if isinstance(exc, RefusedError) else "closed on protocol error"
+        log.warning("%s %s: %s (close code %d)", who, kind, exc, close_code)
+        try:
+            await ws.send(data)
+            await ws.close(close_code, str(exc)[:120])
+        except ConnectionClosed:
+            pass
+
+    async def _read(self, ws, session: ServerSession, client: Client) -> None:
+        async for data in ws:
+            event = session.receive(_binary(data))
+            if isinstance(event, CameraReceived):
+                client.camera = (event.camera.view, event.camera.projection)
+            elif isinstance(event, SceneEditReceived):
+                if self.on_scene_edit is None:
+                    raise ProtocolError("this server does not accept scene edits")
+                self.on_scene_edit(event.edit.instance, event.edit.transform)
+                self.registry.wake_all()
+            elif isinstance(event, ByeReceived):
+                return
+
+    async def _send(self, ws, client: Client, data: bytes) -> None:
+        await ws.send(data)
+        client.sent(data)
+        self.counters.bytes_out += len(data)
+        self.counters.messages_out += 1
+
+    def _log_digest(self, client: Client) -> None:
+        """After a message that left nothing pending, the client's mirror must equal this state."""
+        if self._digests:
+            g = self.grid
+            digest = state_digest(g.instances, g.buckets, g.cells, self.transforms())
+            self._digests.write(json.dumps({"conn": client.id, "seq": client.messages_sent, "tick": self.tick,
+                                            "digest": digest}) + "\n")
+
+    async def _write(self, ws, session: ServerSession, client: Client) -> None:
+        grid, limits = self.grid, self.settings.limits
+        plan = SnapshotPlan.of(grid, limits, self.settings.snapshot_cells_per_chunk)
+        for i in range(len(plan)):
+            cap = len(grid.cells)
+            b, c = plan.bucket_chunks[i], plan.cell_chunks[i]
+            c = c[c < cap]  # a compaction may have shrunk the pool since the plan
+            client.clear(b, c, cap)
+            tids = client.read_transforms(self.transforms())
+            delta = read_delta(grid, self.transforms(), tids, b, c)
+            if i == len(plan) - 1 and not client.pending_anything():
+                self._log_digest(client)
+            data = await asyncio.to_thread(session.snapshot, i, len(plan), delta)
+            await self._send(ws, client, data)
+        while True:
+            await client.wake.wait()
+            client.wake.clear()
+            tids = client.changed_transforms(self.transforms())
+            b, c, drained = client.take_pending(limits, len(grid.cells))
+            if not (len(b) or len(c) or len(tids)):
+                continue
+            tids = client.read_transforms(self.transforms())
+            delta = read_delta(grid, self.transforms(), tids, b, c)
+            if drained:
+                self._log_digest(client)
+            else:
+                client.wake.set()  # more than one message's worth: go again right away
+            data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
+            await self._send(ws, client, data)
+            client.updates_sent += 1
+
+
+def _binary(data) -> bytes:
+    if isinstance(data, str):
+        raise HeaderError("text message: PSAO messages are binary")
+    return data

@@ -1,0 +1,121 @@
+"""Edits that drive the grid until the real server tick (Dynamic issue) exists.
+
+Both are per-tick hooks with the service's tick signature `tick(grid, t) -> None` and edit the grid only
+through its public edit API, so everything the streaming layer sees (dirty cells and buckets, cells
+allocated and freed, capacity growth) is what real ticks produce.
+
+- `RandomEdits`: each tick, k points around a random point of a random instance: most get a new AO
+  value, some move (many leave their cell: cells are freed and allocated), some are removed and new
+  points inserted nearby. For the streaming tests (`psao serve --test-edits K`).
+- `MovingOccluder`: a sphere travels through the scene on a closed loop and darkens the AO of the points
+  within its reach, smoothly with distance; points it has left return to their baked AO. Spatially and
+  temporally coherent like a real moving occluder, so it stands in for the animated courtyard in the
+  bandwidth benchmark.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from psao_scene.model import Scene
+from psao_server.grid import NO_POINT, Grid
+
+
+@dataclass
+class EditMix:
+    ao: float = 0.7  # fraction of the k points whose AO changes
+    move: float = 0.2  # fraction moved by about a cell (most leave their cell)
+    replace: float = 0.1  # fraction removed, with as many new points inserted nearby
+
+
+def _cluster(grid: Grid, rng: np.random.Generator, k: int):
+    """Point table and the indices of the k points of one instance nearest to a random point."""
+    table = grid.point_table()
+    if len(table) == 0:
+        return table, np.zeros(0, np.int64)
+    seed = int(rng.integers(len(table)))
+    same = np.flatnonzero(table.instance == table.instance[seed])
+    d = np.linalg.norm(table.local_pos[same] - table.local_pos[seed], axis=1)
+    return table, same[np.argsort(d, kind="stable")[:k]]
+
+
+def _inside(grid: Grid, inst: int, pos: np.ndarray) -> np.ndarray:
+    """Clamp local positions into the instance's grid box (a cell-size hundredth inside its faces)."""
+    rec = grid.instances[inst]
+    s = float(rec["cell_size"])
+    lo = rec["origin"].astype(np.float64) + 0.01 * s
+    hi = rec["origin"].astype(np.float64) + rec["dims"].astype(np.float64) * s - 0.01 * s
+    return np.clip(pos, lo, hi)
+
+
+class RandomEdits:
+    def __init__(self, k: int, seed: int = 0, mix: EditMix | None = None):
+        self.k = int(k)
+        self.rng = np.random.default_rng(seed)
+        self.mix = mix or EditMix()
+
+    def __call__(self, grid: Grid, t: float) -> None:
+        random_edits(grid, self.rng, self.k, self.mix)
+
+
+def random_edits(grid: Grid, rng: np.random.Generator, k: int, mix: EditMix | None = None) -> None:
+    mix = mix or EditMix()
+    if k <= 0:
+        return
+    # AO changes: a smooth bump around the cluster centre, plus noise.
+    table, near = _cluster(grid, rng, max(1, int(round(k * mix.ao))))
+    if len(near):
+        ao = table.ao_code[near].astype(np.int64) + rng.integers(-40, 41, len(near))
+        grid.set_ao(table.slot[near], table.index[near], np.clip(ao, 0, 255).astype(np.uint32))
+    # Moves: about one cell in a random direction; the point keeps its AO and id.
+    table, near = _cluster(grid, rng, int(round(k * mix.move)))
+    if len(near):
+        inst = int(table.instance[near[0]])
+        s = float(grid.instances[inst]["cell_size"])
+        new_pos = _inside(grid, inst, table.local_pos[near] + rng.normal(scale=0.8 * s, size=(len(near), 3)))
+        grid.move_points(table.slot[near], table.index[near], new_pos, table.local_normal[near])
+    # Replacements: remove points, insert as many new ones scattered around where they were.
+    table, near = _cluster(grid, rng, int(round(k * mix.replace)))
+    if len(near):
+        inst = int(table.instance[near[0]])
+        s = float(grid.instances[inst]["cell_size"])
+        pos = _inside(grid, inst, table.local_pos[near] + rng.normal(scale=2.0 * s, size=(len(near), 3)))
+        normals = table.local_normal[near].copy()
+        grid.remove_points(table.slot[near], table.index[near])
+        first_id = int(grid.point_id.max()) + 1
+        ids = np.arange(first_id, first_id + len(near))
+        grid.insert_points(inst, pos, normals, rng.integers(0, 256, len(near)).astype(np.uint32), ids)
+
+
+class MovingOccluder:
+    """A sphere of radius `radius` (world units) on a closed loop through the scene. It only changes AO,
+    so the points' slots never change and their world positions are computed once."""
+
+    def __init__(self, scene: Scene, grid: Grid, radius: float | None = None, period: float = 8.0):
+        lo, hi = scene.world_bounds()
+        self.center = 0.5 * (lo + hi)
+        self.extent = 0.35 * (hi - lo)
+        self.floor = lo[1]
+        self.radius = float(radius if radius is not None else 2.0 * scene.ao_distance)
+        self.period = float(period)
+        self.slot, self.index = np.nonzero(grid.point_id != NO_POINT)
+        self.baked = (grid.cells[self.slot, self.index] & 0xFF).astype(np.float64)  # AO before the sphere
+        inst = grid.cell_instance[self.slot]
+        local = grid.point_local[self.slot, self.index]
+        self.world = np.empty_like(local)
+        for i, sc_inst in enumerate(scene.instances):
+            sel = inst == i
+            m = np.asarray(sc_inst.transform, np.float64)
+            self.world[sel] = local[sel] @ m[:3, :3].T + m[:3, 3]
+
+    def position(self, t: float) -> np.ndarray:
+        a = 2 * np.pi * t / self.period
+        return np.array([self.center[0] + self.extent[0] * np.cos(a), self.floor + self.radius,
+                         self.center[2] + self.extent[2] * np.sin(2 * a)])
+
+    def __call__(self, grid: Grid, t: float) -> None:
+        d = np.linalg.norm(self.world - self.position(t), axis=1)
+        # Baked AO, darkened near the sphere: most at its surface, none beyond 2 radii.
+        shade = np.clip(1.0 - (d - self.radius) / self.radius, 0.0, 1.0) ** 2
+        grid.set_ao(self.slot, self.index, np.rint(self.baked * (1.0 - 0.8 * shade)).astype(np.uint32))
