@@ -158,10 +158,21 @@ def test_builder_cells_are_findable_and_points_decode_near_their_source():
     assert alloc.sum() > 1000
 
 
-def server_grid(scene, density, seed=0):
-    """Grid of a real scene through the server's own point generation and Grid (tests may import the
-    server). AO comes from the lead's bake when it exists; otherwise a smooth synthetic field over the
-    local positions, enough to test that shader and oracle agree. -> (Grid, ao_is_traced)."""
+def server_grid(scene, density, seed=0, rays=16):
+    """Grid of a real scene through the server's own pipeline (tests may import the server): the lead's
+    bake (points, grid, traced AO) when it is there, else the server's point generation and Grid with a
+    smooth synthetic AO field, enough to test that shader and oracle agree."""
+    try:
+        from psao_server.bake import BakeSettings, bake_scene
+    except ImportError:
+        return _synthetic_server_grid(scene, density, seed)
+    result = bake_scene(scene, BakeSettings(density=density, rays=rays, seed=seed), show_progress=False)
+    result.tracer.close()
+    result.grid.take_dirty()
+    return result.grid
+
+
+def _synthetic_server_grid(scene, density, seed):
     from psao_server.grid import Grid
     from psao_server.points import PointSettings, generate_points, instance_seed
 
