@@ -23,7 +23,7 @@ from websockets.exceptions import ConnectionClosed
 
 from protocol import messages as m
 from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings, codec_name
-from protocol.errors import HeaderError, ProtocolError
+from protocol.errors import HeaderError, PayloadError, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.session import (
     ByeReceived,
@@ -78,7 +78,7 @@ class StaticTransforms:
 
     def edit(self, instance: int, transform: np.ndarray) -> None:
         if not 0 <= instance < len(self.array):
-            raise ProtocolError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
+            raise PayloadError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
         self.array = self.array.copy()
         self.array[instance] = transform
 

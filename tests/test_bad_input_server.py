@@ -1,0 +1,175 @@
+"""Malformed and unwelcome input to a live server over real loopback sockets, from a raw websocket client.
+
+Each bad connection must get an Error message and a close code, alone; a well-behaved client connected
+all along keeps receiving updates, and the server logs one line naming the reason.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+
+import numpy as np
+import pytest
+import zstandard
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from protocol import messages as m
+from protocol.codecs import Codec, codec_mask
+from protocol.gridformat import poisson_radius
+from psao_client.connection import MirrorClient
+from psao_server.grid import Grid
+from psao_server.service import ServeSettings, Service
+from psao_server.testhook import RandomEdits
+
+HASH = bytes(range(32))
+ALL = codec_mask(Codec)
+EYE = np.eye(4, dtype=np.float32)
+
+
+def make_grid(n=3000, seed=0) -> Grid:
+    """A real grid: points on two faces of a unit box."""
+    rng = np.random.default_rng(seed)
+    pos = rng.random((n, 3))
+    pos[: n // 2, 2] = 0.0
+    pos[n // 2 :, 1] = 0.0
+    nrm = np.zeros((n, 3), np.float32)
+    nrm[: n // 2, 2] = 1.0
+    nrm[n // 2 :, 1] = 1.0
+    return Grid.build([(pos, nrm, poisson_radius(2.0, n), 0)])
+
+
+def hello(token="", scene_hash=HASH) -> bytes:
+    return m.encode(m.Hello(scene_hash, ALL, token))
+
+
+def with_header(mtype: int, payload: bytes, codec: int = 0, version: int = 1, length: int | None = None) -> bytes:
+    n = len(payload) if length is None else length
+    return b"PSAO" + struct.pack("<HBBI", version, mtype, codec, n) + payload
+
+
+async def raw_exchange(url: str, messages: list, read_all=True) -> tuple[m.Error | None, int | None]:
+    """Send messages; read until the server closes. Returns (Error message received, close code)."""
+    error = None
+    async with connect(url, compression=None, max_size=None) as ws:
+        for msg in messages:
+            await ws.send(msg)
+        try:
+            while True:
+                data = await asyncio.wait_for(ws.recv(), 10)
+                hdr = m.Header.parse(data, 1 << 30)
+                if hdr.type == m.MessageType.ERROR:
+                    error = m.Error.parse(data[12:])
+        except ConnectionClosed:
+            pass
+        await ws.wait_closed()
+        return error, ws.close_code
+
+
+async def with_server(body, token=""):
+    """Run a server with random edits and one good client; `body(url)` runs meanwhile."""
+    grid = make_grid()
+    settings = ServeSettings(port=0, tick_hz=30, token=token, stats_interval=1e9, hello_timeout=2.0)
+    service = Service(grid, HASH, settings, tick=RandomEdits(20, seed=1))
+    stop, ready = asyncio.Event(), asyncio.Event()
+    server = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
+    await asyncio.wait_for(ready.wait(), 10)
+    url = f"ws://127.0.0.1:{service.port}"
+    good = MirrorClient(url, HASH, token=token, reconnect=False)
+    good_task = asyncio.create_task(good.run())
+    while good.stats.updates < 5:
+        await asyncio.sleep(0.05)
+    try:
+        before = good.stats.updates
+        result = await body(url)
+        await asyncio.sleep(0.3)
+        assert good.stats.updates > before + 3, "the good client stopped being served"
+        assert not good_task.done() and good.stats.reconnects == 0
+    finally:
+        good.stop()
+        await asyncio.wait_for(good_task, 10)
+        stop.set()
+        await asyncio.wait_for(server, 10)
+    return result
+
+
+def run_case(caplog, messages, token="", after_welcome=False):
+    caplog.set_level(logging.INFO, logger="psao.serve")
+
+    async def body(url):
+        msgs = ([hello(token)] if after_welcome else []) + messages
+        return await raw_exchange(url, msgs)
+
+    error, code = asyncio.run(with_server(body, token=token))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    return error, code, warnings[0]
+
+
+VALID_HELLO = hello()
+
+
+@pytest.mark.parametrize(
+    "name, messages, err_code, close_code, reason",
+    [
+        ("wrong magic", [b"XXXX" + VALID_HELLO[4:]], m.ErrorCode.BAD_HEADER, 1002, "bad magic"),
+        ("wrong version", [with_header(1, VALID_HELLO[12:], version=7)], m.ErrorCode.BAD_HEADER, 1002,
+         "unsupported protocol version 7"),
+        ("truncated header", [VALID_HELLO[:7]], m.ErrorCode.BAD_HEADER, 1002, "truncated header"),
+        ("length over the limit", [with_header(1, VALID_HELLO[12:], length=1 << 30)], m.ErrorCode.TOO_LARGE, 1009,
+         "over the limit"),
+        ("garbage after a valid header", [VALID_HELLO + b"garbage"], m.ErrorCode.BAD_HEADER, 1002, "carries"),
+        ("garbage payload", [with_header(1, b"\x01\x00garbage")], m.ErrorCode.BAD_PAYLOAD, 1002, "truncated"),
+        ("unknown type", [with_header(77, b"")], m.ErrorCode.BAD_HEADER, 1002, "unknown message type 77"),
+        ("text message", ["hello"], m.ErrorCode.BAD_HEADER, 1002, "text message"),
+        ("scene mismatch", [hello(scene_hash=bytes(32))], m.ErrorCode.SCENE_MISMATCH, 1008, "scene hash mismatch"),
+        ("camera first", [m.encode(m.Camera(EYE, EYE))], m.ErrorCode.UNEXPECTED_MESSAGE, 1002, "expected Hello"),
+    ],
+)
+def test_bad_first_message(caplog, name, messages, err_code, close_code, reason):
+    error, code, line = run_case(caplog, messages)
+    assert error is not None and error.code == err_code and reason in error.text
+    assert code == close_code
+    assert reason in line and "127.0.0.1" in line
+
+
+def test_zstd_bomb_declaring_huge_size(caplog):
+    bomb = zstandard.ZstdCompressor(level=3).compress(bytes(512 << 20))
+    assert len(bomb) < 64 << 10  # small on the wire, 512 MiB declared
+    error, code, line = run_case(caplog, [with_header(1, bomb, codec=Codec.ZSTD)])
+    assert error.code == m.ErrorCode.TOO_LARGE and code == 1009
+    assert "declares 536870912 bytes" in line
+
+
+def test_zstd_bomb_without_declared_size(caplog):
+    bomb = zstandard.ZstdCompressor(level=3, write_content_size=False).compress(bytes(64 << 20))
+    error, code, line = run_case(caplog, [with_header(1, bomb, codec=Codec.ZSTD)])
+    assert error.code == m.ErrorCode.TOO_LARGE and code == 1009
+    assert "exceeds the limit" in line
+
+
+def test_camera_with_nan_after_handshake(caplog):
+    bad = EYE.copy()
+    bad[1, 2] = np.nan
+    camera = with_header(m.MessageType.CAMERA, bad.tobytes() + EYE.tobytes())
+    error, code, line = run_case(caplog, [camera], after_welcome=True)
+    assert error.code == m.ErrorCode.BAD_PAYLOAD and code == 1002
+    assert "NaN" in line and "client" in line
+
+
+def test_scene_edit_of_unknown_instance(caplog):
+    error, code, line = run_case(caplog, [m.encode(m.SceneEdit(5, EYE))], after_welcome=True)
+    assert error.code == m.ErrorCode.BAD_PAYLOAD and code == 1002 and "no instance 5" in line
+
+
+@pytest.mark.parametrize("token, reason", [("", "missing token"), ("guess", "wrong token")])
+def test_token_refused(caplog, token, reason):
+    error, code, line = run_case(caplog, [hello(token)], token="secret")
+    assert error.code == m.ErrorCode.UNAUTHORIZED and code == 1008
+    assert reason in line
+
+
+def test_silent_connection_times_out(caplog):
+    error, code, line = run_case(caplog, [])
+    assert error.code == m.ErrorCode.TIMEOUT and code == 1008 and "no Hello" in line

@@ -1,0 +1,228 @@
+"""Sans-I/O sessions of both ends talking to each other in memory, and the mirror they feed."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.codecs import Codec, codec_mask
+from protocol.errors import CodecError, HeaderError, PayloadError
+from protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
+from protocol.session import (
+    ByeReceived,
+    CameraReceived,
+    ClientConfig,
+    ClientSession,
+    HelloAccepted,
+    RefusedError,
+    RemoteError,
+    SceneEditReceived,
+    ServerConfig,
+    ServerSession,
+    SnapshotReceived,
+    UnexpectedMessage,
+    UpdateReceived,
+    Welcomed,
+    error_reply,
+)
+from protocol.updates import GridDelta, Layout
+from psao_client.errors import MirrorError
+from psao_client.mirror import Mirror
+
+HASH = bytes(range(32))
+OTHER = bytes(32)
+
+
+class SyntheticGrid:
+    """Arrays in the Grid's layout, edited at random: stands in for the server state in pure tests."""
+
+    def __init__(self, rng, n_buckets=256, capacity=300, n_inst=3):
+        self.rng = rng
+        self.instances = np.zeros(n_inst, INSTANCE_DTYPE)
+        self.instances["bucket_count"] = n_buckets // n_inst
+        self.instances["bucket_offset"] = np.arange(n_inst) * (n_buckets // n_inst)
+        self.buckets = np.full((n_buckets, 8, 2), EMPTY, np.uint32)
+        self.cells = np.tile(FREE_CELL, (capacity, 1))
+        self.transforms = rng.normal(size=(n_inst, 4, 4)).astype(np.float32)
+        self.edit(200)
+
+    def edit(self, n):
+        """Rewrite n random buckets and cells (canonical and not), sometimes grow the pool."""
+        rng = self.rng
+        if rng.random() < 0.2:
+            self.cells = np.concatenate([self.cells, np.tile(FREE_CELL, (len(self.cells), 1))])
+        b = rng.integers(0, len(self.buckets), n)
+        c = rng.integers(0, len(self.cells), n)
+        used = rng.integers(0, 9, n)
+        self.buckets[b] = EMPTY
+        for i, k in zip(b, used):
+            self.buckets[i, :k, 0] = rng.integers(0, 1 << 20, k)
+            self.buckets[i, :k, 1] = rng.integers(0, len(self.cells), k)
+        pts = rng.integers(0, 8, n)
+        self.cells[c] = FREE_CELL
+        for i, k in zip(c, pts):
+            self.cells[i, :k] = 0x80000000 | rng.integers(0, 1 << 31, k)
+            self.cells[i, 7] = rng.integers(0, 1 << 20) if k else EMPTY
+        self.cells[c[0], 2] ^= 0x10  # a stray bit: non-canonical cells must still arrive exactly
+        self.transforms[rng.integers(0, len(self.transforms))] += 1.0
+        return np.unique(b).astype(np.uint32), np.unique(c).astype(np.uint32)
+
+    def delta(self, b, c, tids):
+        tids = np.asarray(tids, np.uint32)
+        return GridDelta(len(self.cells), tids, self.transforms[tids], b, self.buckets[b], c, self.cells[c])
+
+
+def handshake(codecs=frozenset(Codec), server_codec=Codec.ZSTD_STREAM, layout=Layout.PACKED, token="", client_token=""):
+    server = ServerSession(ServerConfig(HASH, token=token, codec=server_codec, layout=layout))
+    client = ClientSession(ClientConfig(HASH, token=client_token, codecs=frozenset(codecs)))
+    event = server.receive(client.hello())
+    assert isinstance(event, HelloAccepted)
+    return server, client, event
+
+
+def assert_mirror_equals(mirror: Mirror, g: SyntheticGrid):
+    assert mirror.buckets.tobytes() == g.buckets.tobytes()
+    assert mirror.cells.tobytes() == g.cells.tobytes()
+    assert mirror.transforms.tobytes() == g.transforms.tobytes()
+    assert mirror.instances.tobytes() == g.instances.tobytes()
+
+
+@pytest.mark.parametrize("codec", list(Codec))
+@pytest.mark.parametrize("layout", list(Layout))
+def test_stream_keeps_mirror_exact(codec, layout):
+    rng = np.random.default_rng(int(codec) * 10 + int(layout))
+    g = SyntheticGrid(rng)
+    server, client, event = handshake(codecs={codec}, server_codec=codec, layout=layout)
+    assert event.codec == codec
+    welcomed = client.receive(server.welcome(7, 60.0, len(g.buckets), len(g.cells), g.instances))
+    assert isinstance(welcomed, Welcomed) and welcomed.welcome.connection_id == 7
+    mirror = Mirror.from_welcome(welcomed.welcome)
+    # Snapshot in 3 chunks, the first with every transform.
+    b_all = np.flatnonzero(np.any(g.buckets != EMPTY, axis=(1, 2))).astype(np.uint32)
+    c_all = np.flatnonzero(np.any(g.cells != FREE_CELL, axis=1)).astype(np.uint32)
+    for i, (b, c) in enumerate(zip(np.array_split(b_all, 3), np.array_split(c_all, 3))):
+        ev = client.receive(server.snapshot(i, 3, g.delta(b, c, np.arange(3) if i == 0 else [])))
+        assert isinstance(ev, SnapshotReceived) and ev.complete == (i == 2)
+        mirror.apply(ev.snapshot.delta)
+    assert_mirror_equals(mirror, g)
+    for tick in range(40):
+        b, c = g.edit(int(rng.integers(1, 40)))
+        changed = np.flatnonzero(np.any(mirror.transforms != g.transforms, axis=(1, 2)))
+        ev = client.receive(server.update(tick, tick / 60, g.delta(b, c, changed)))
+        assert isinstance(ev, UpdateReceived) and ev.update.tick == tick
+        mirror.apply(ev.update.delta)
+        assert_mirror_equals(mirror, g)
+    assert isinstance(server.receive(client.bye()), ByeReceived)
+
+
+def test_camera_and_scene_edit_reach_the_server():
+    server, client, _ = handshake()
+    view = np.arange(16, dtype=np.float32).reshape(4, 4)
+    ev = server.receive(client.camera(view, np.eye(4)))
+    assert isinstance(ev, CameraReceived) and np.array_equal(ev.camera.view, view)
+    ev = server.receive(client.scene_edit(2, np.eye(4) * 2))
+    assert isinstance(ev, SceneEditReceived) and ev.edit.instance == 2
+
+
+def test_token_checked():
+    with pytest.raises(RefusedError, match="missing token") as exc:
+        handshake(token="secret")
+    assert exc.value.code == m.ErrorCode.UNAUTHORIZED and exc.value.close_code == 1008
+    with pytest.raises(RefusedError, match="wrong token"):
+        handshake(token="secret", client_token="guess")
+    handshake(token="secret", client_token="secret")
+
+
+def test_scene_hash_checked_by_both_ends():
+    server = ServerSession(ServerConfig(HASH))
+    client = ClientSession(ClientConfig(OTHER))
+    with pytest.raises(RefusedError, match="scene hash mismatch") as exc:
+        server.receive(client.hello())
+    assert exc.value.code == m.ErrorCode.SCENE_MISMATCH
+    # A server that answers with another scene's Welcome is refused by the client too.
+    client = ClientSession(ClientConfig(OTHER))
+    welcome = m.encode(m.Welcome(HASH, 1, Codec.NONE, Layout.PACKED, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE)))
+    with pytest.raises(RefusedError, match="scene hash mismatch"):
+        client.receive(welcome)
+
+
+def test_codec_negotiation():
+    assert handshake(codecs={Codec.ZSTD, Codec.NONE})[2].codec == Codec.ZSTD  # stream preferred, frames next
+    assert handshake(codecs={Codec.NONE}, server_codec=Codec.LZ4)[2].codec == Codec.NONE
+    with pytest.raises(CodecError, match="no common codec"):
+        handshake(codecs={Codec.LZ4})
+
+
+def test_messages_out_of_order_are_refused():
+    server = ServerSession(ServerConfig(HASH))
+    client = ClientSession(ClientConfig(HASH))
+    with pytest.raises(UnexpectedMessage, match="expected Hello"):
+        server.receive(client.camera(np.eye(4), np.eye(4)))
+    server, client, _ = handshake()
+    with pytest.raises(UnexpectedMessage):
+        server.receive(client.hello())
+    with pytest.raises(UnexpectedMessage):
+        server.receive(m.encode(m.Update(1, 0.0, GridDelta(0))))
+    client.receive(server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE)))
+    with pytest.raises(UnexpectedMessage, match="UPDATE"):
+        client.receive(server.update(1, 0.0, GridDelta(0)))
+
+
+def test_snapshot_chunks_must_come_in_order():
+    server, client, _ = handshake(codecs={Codec.NONE})
+    client.receive(server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE)))
+    client.receive(server.snapshot(0, 3, GridDelta(0)))
+    with pytest.raises(UnexpectedMessage, match="chunk 2 of 3, expected 1"):
+        client.receive(server.snapshot(2, 3, GridDelta(0)))
+
+
+def test_stream_payload_without_negotiation_refused():
+    server, client, _ = handshake(codecs={Codec.ZSTD_STREAM})
+    welcome = server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE))
+    with pytest.raises(CodecError, match="did not offer"):
+        ClientSession(ClientConfig(HASH, codecs=frozenset({Codec.NONE}))).receive(welcome)
+    plain_server, plain_client, _ = handshake(codecs={Codec.NONE})
+    plain_client.receive(plain_server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE)))
+    with pytest.raises(CodecError, match="did not negotiate"):
+        plain_client.receive(server.snapshot(0, 1, GridDelta(0)))
+    hello = m.frame(m.MessageType.HELLO, Codec.ZSTD_STREAM, b"")
+    with pytest.raises(CodecError, match="clients may not send"):
+        ServerSession(ServerConfig(HASH)).receive(hello)
+
+
+def test_error_reply_and_remote_error():
+    data, code = error_reply(HeaderError("bad magic"))
+    assert code == 1002
+    client = ClientSession(ClientConfig(HASH))
+    with pytest.raises(RemoteError, match="BAD_HEADER: bad magic") as exc:
+        client.receive(data)
+    assert exc.value.code == m.ErrorCode.BAD_HEADER
+    data, code = error_reply(PayloadError("Camera view has NaN"))
+    assert m.Error.parse(data[12:]).code == m.ErrorCode.BAD_PAYLOAD and code == 1002
+
+
+def test_hello_mask_and_unknown_version():
+    hello = m.Hello(HASH, codec_mask([Codec.NONE]), version=2)
+    with pytest.raises(HeaderError, match="version 2"):
+        ServerSession(ServerConfig(HASH)).receive(m.encode(hello))
+
+
+def test_mirror_grows_shrinks_and_checks_indices():
+    inst = np.zeros(2, INSTANCE_DTYPE)
+    inst["bucket_count"] = 4
+    inst["bucket_offset"] = (0, 4)
+    mirror = Mirror(inst, 8, 4)
+    cells = np.tile(FREE_CELL, (1, 1))
+    cells[0, :2] = (0x80000001, 0x80000002)
+    cells[0, 7] = 9
+    mirror.apply(GridDelta(16, cell_slots=[12], cells=cells))
+    assert mirror.cells.shape == (16, 8) and mirror.cells[12].tolist() == cells[0].tolist()
+    assert (mirror.cells[4:12] == FREE_CELL).all()
+    mirror.apply(GridDelta(13))
+    assert mirror.cells.shape == (13, 8) and mirror.allocated_cells() == 1
+    with pytest.raises(MirrorError, match="bucket 8"):
+        mirror.apply(GridDelta(13, bucket_ids=[8], buckets=np.full((1, 8, 2), EMPTY)))
+    with pytest.raises(MirrorError, match="instance 2"):
+        mirror.apply(GridDelta(13, transform_ids=[2], transforms=np.eye(4)[None]))
+    with pytest.raises(MirrorError, match="refers to bucket"):
+        Mirror(inst, 7, 4)
