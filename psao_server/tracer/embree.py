@@ -8,6 +8,8 @@ ids travel, and only one float per point comes back.
 from __future__ import annotations
 
 import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import os
 import time
 
@@ -87,6 +89,10 @@ def _worker_trace(job):
     return _trace_chunk(_WORKER, pos, nrm, ids, s)
 
 
+def _worker_ping(_):
+    return _WORKER is not None
+
+
 def _worker_raw(job):
     """Bare occlusion throughput: rays are generated first, only `scene.run` is timed."""
     version, dyn_v, dyn_f, pos, nrm, ids, s = job
@@ -140,9 +146,19 @@ class EmbreeTracer(Tracer):
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
-            ctx = mp.get_context("spawn")  # no fork: the server may hold threads and GL contexts
-            self._pool = ctx.Pool(self.workers, initializer=_worker_init, initargs=self._static)
+            # fork: workers need nothing but numpy and embreex, and unlike spawn it does not re-run the
+            # caller's __main__ (scripts without a main guard would recurse). Callers create the pool
+            # (warm_up) before starting threads or event loops.
+            # ProcessPoolExecutor rather than Pool: a dead worker raises BrokenProcessPool instead of hanging.
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
+                                             initializer=_worker_init, initargs=self._static)
         return self._pool
+
+    def warm_up(self) -> None:
+        """Start the worker processes and build their scenes now, so start-up is not counted as tracing."""
+        pool = self._ensure_pool()
+        if pool is not None:
+            list(pool.map(_worker_ping, range(self.workers)))
 
     def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
         if self._local is None:
@@ -152,11 +168,15 @@ class EmbreeTracer(Tracer):
             return np.zeros(0, np.float32)
         pool = self._ensure_pool() if len(positions) > settings.chunk_points else None
         jobs = self._jobs(positions, normals, point_ids, settings)
-        results = pool.imap(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
-        for vis in results:
-            out.append(vis)
-            if progress is not None:
-                progress(len(vis))
+        results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
+        try:
+            for vis in results:
+                out.append(vis)
+                if progress is not None:
+                    progress(len(vis))
+        except BrokenProcessPool as exc:
+            self._pool = None
+            raise TracerError(f"an Embree worker process died: {exc}") from None
         return np.concatenate(out).astype(np.float32)
 
     def raw_occlusion_rate(self, positions, normals, point_ids, settings: TraceSettings) -> float:
@@ -173,11 +193,10 @@ class EmbreeTracer(Tracer):
             return len(positions) * settings.rays / max(t, 1e-9)
         # Each worker's busy time is the sum of its chunks' run() times; jobs are spread evenly, so the
         # wall time of the bare queries is the total busy time divided by the number of workers.
-        busy = sum(pool.map(_worker_raw, jobs, chunksize=1))
+        busy = sum(pool.map(_worker_raw, jobs))
         return len(positions) * settings.rays / max(busy / self.workers, 1e-9)
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
+            self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None

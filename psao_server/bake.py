@@ -1,0 +1,217 @@
+"""Bake: points -> grid -> traced AO, and the accuracy of what the client will reconstruct from it.
+
+This is everything the server does before it streams anything; `psao bake` exposes it as an AO baker.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol import gridformat as gf
+from protocol import pointword as pw
+from protocol.reconstruct import reconstruct_ao
+from psao_scene.model import Scene
+from psao_server.errors import ConfigError
+from psao_server.grid import Grid, GridSettings
+from psao_server.points import PointSet, PointSettings, generate_scene_points, instance_seed, spawn_uniform, triangle_areas
+from psao_server.tracer import TraceSettings, Tracer, make_tracer
+
+
+@dataclass
+class BakeSettings:
+    density: float = 256.0  # N, final points per world unit^2
+    rays: int = 128  # rays per point
+    seed: int = 0
+    tracer: str = "embree"  # back-end name, see psao_server.tracer
+    workers: int = 0  # tracer processes; 0 = all cores
+    min_points: int = 64  # per instance
+    grid: GridSettings = field(default_factory=GridSettings)
+
+    def check(self) -> None:
+        if not np.isfinite(self.density) or self.density <= 0:
+            raise ConfigError(f"density must be > 0, got {self.density}")
+        if self.rays < 1:
+            raise ConfigError(f"rays must be >= 1, got {self.rays}")
+
+
+@dataclass
+class BakeResult:
+    scene: Scene
+    grid: Grid
+    pointsets: list[PointSet]
+    stats: dict
+    tracer: Tracer  # still open: the server keeps tracing with it; close() when done
+
+
+# ---------------------------------------------------------------- transforms
+def to_world(transform: np.ndarray, local_pos: np.ndarray, local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local points and normals of an instance -> world (normals by the inverse transpose, renormalised)."""
+    m = np.asarray(transform, np.float64)
+    pos = np.asarray(local_pos, np.float64) @ m[:3, :3].T + m[:3, 3]
+    nrm = np.asarray(local_normal, np.float64) @ np.linalg.inv(m[:3, :3])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return pos, nrm.astype(np.float32)
+
+
+def to_local(transform: np.ndarray, world_pos: np.ndarray, world_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World -> instance-local, as the client does with the last received transform."""
+    m = np.asarray(transform, np.float64)
+    inv = np.linalg.inv(m)
+    pos = np.asarray(world_pos, np.float64) @ inv[:3, :3].T + inv[:3, 3]
+    nrm = np.asarray(world_normal, np.float64) @ m[:3, :3]
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return pos, nrm.astype(np.float32)
+
+
+def grid_poisson_radius(ps: PointSet, double_sided: bool) -> float:
+    """The radius the grid is sized by. Both sides of a double-sided surface share cells, so their
+    combined density decides how many points a cell must hold."""
+    return ps.poisson_radius / np.sqrt(2.0) if double_sided else ps.poisson_radius
+
+
+def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space triangles of (some) instances merged into one vertex/face array."""
+    verts, faces, base = [], [], 0
+    for i in (range(len(scene.instances)) if instances is None else instances):
+        inst = scene.instances[i]
+        mesh = scene.meshes[inst.mesh]
+        v = mesh.vertices @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+        verts.append(v)
+        faces.append(mesh.faces + base)
+        base += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def scene_center(scene: Scene) -> np.ndarray:
+    lo, hi = scene.world_bounds()
+    return 0.5 * (lo + hi)
+
+
+# ---------------------------------------------------------------- bake
+def _progress(enabled: bool):
+    if not enabled:
+        return nullcontext(None)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    transient=True, console=None)
+
+
+def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None) -> np.ndarray:
+    """Trace every allocated point at its exact position and store the quantised AO. Returns visibility."""
+    t = grid.point_table()
+    pos = np.empty((len(t), 3))
+    nrm = np.empty((len(t), 3), np.float32)
+    for i, inst in enumerate(scene.instances):
+        sel = t.instance == i
+        pos[sel], nrm[sel] = to_world(inst.transform, t.local_pos[sel], t.local_normal[sel])
+    vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
+    grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
+    return vis
+
+
+def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress: bool | None = None) -> BakeResult:
+    settings = settings or BakeSettings()
+    settings.check()
+    if show_progress is None:
+        show_progress = sys.stderr.isatty()
+    stats: dict = {"scene": scene.name, "density": settings.density, "rays": settings.rays}
+    tracer = make_tracer(settings.tracer, scene_center(scene), **({"workers": settings.workers} if settings.tracer == "embree" else {}))
+    tracer.set_static(*scene_world_geometry(scene))
+    trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
+    with _progress(show_progress) as bar:
+        t0 = time.perf_counter()
+        task = bar.add_task("points", total=len(scene.instances)) if bar else None
+        pointsets = generate_scene_points(
+            scene, PointSettings(density=settings.density, min_points=settings.min_points, seed=settings.seed),
+            progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+        stats["seconds_points"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
+        grid = Grid.build([(ps.positions, ps.normals, grid_poisson_radius(ps, bool(f & gf.FLAG_DOUBLE_SIDED)), f)
+                           for ps, f in zip(pointsets, flags)], settings.grid)
+        stats["seconds_grid"] = time.perf_counter() - t0
+
+        if hasattr(tracer, "warm_up"):
+            tracer.warm_up()  # worker start-up is not tracing time
+        n = grid.n_points()
+        task = bar.add_task("trace", total=n) if bar else None
+        t0 = time.perf_counter()
+        trace_grid_points(grid, scene, tracer, trace_settings, progress=(lambda k: bar.advance(task, k)) if bar else None)
+        stats["seconds_trace"] = time.perf_counter() - t0
+    grid.take_dirty()
+    stats.update(
+        points_spawned=int(sum(ps.spawned for ps in pointsets)),
+        points_generated=int(sum(len(ps) for ps in pointsets)),
+        points_kept=n,
+        points_dropped_overflow=int(grid.stats.dropped),
+        cells=int(len(grid.allocated_cells())),
+        buckets=int(len(grid.buckets)),
+        buckets_used=int(len(grid.allocated_buckets())),
+        rays_per_second=n * settings.rays / max(stats["seconds_trace"], 1e-9),
+        tracer=tracer.name,
+    )
+    return BakeResult(scene=scene, grid=grid, pointsets=pointsets, stats=stats, tracer=tracer)
+
+
+# ---------------------------------------------------------------- accuracy
+@dataclass
+class Probes:
+    instance: np.ndarray  # (M,)
+    world_pos: np.ndarray  # (M, 3)
+    world_normal: np.ndarray  # (M, 3)
+    local_pos: np.ndarray
+    local_normal: np.ndarray
+
+
+def sample_probes(scene: Scene, count: int, seed: int = 12345) -> Probes:
+    """Random surface points, area-weighted over all instances (world area), independent of the
+    generation points; a random side for double-sided surfaces."""
+    rng = np.random.default_rng(seed)
+    per_inst = []
+    for inst in scene.instances:
+        mesh = scene.meshes[inst.mesh]
+        per_inst.append(triangle_areas(mesh.vertices @ inst.transform[:3, :3].T, mesh.faces))
+    totals = np.array([a.sum() for a in per_inst])
+    counts = rng.multinomial(count, totals / totals.sum())
+    out = {k: [] for k in ("instance", "world_pos", "world_normal", "local_pos", "local_normal")}
+    for i, (inst, areas, k) in enumerate(zip(scene.instances, per_inst, counts)):
+        if k == 0:
+            continue
+        mesh = scene.meshes[inst.mesh]
+        faces, bary = spawn_uniform(rng, areas, int(k))
+        tri = mesh.vertices[mesh.faces[faces]]
+        local = np.einsum("pk,pkj->pj", bary, tri)
+        normal = mesh.face_normals()[faces].astype(np.float32)
+        if mesh.double_sided:
+            flip = rng.random(len(normal)) < 0.5
+            normal[flip] *= -1
+        wp_, wn = to_world(inst.transform, local, normal)
+        out["instance"].append(np.full(int(k), i))
+        out["world_pos"].append(wp_)
+        out["world_normal"].append(wn)
+        out["local_pos"].append(local)
+        out["local_normal"].append(normal)
+    return Probes(**{k: np.concatenate(v) for k, v in out.items()})
+
+
+def reconstruction_error(grid: Grid, scene: Scene, tracer: Tracer, probes: Probes, rays: int = 1024,
+                         seed: int = 777) -> dict:
+    """MAE between the reconstructed AO and AO traced directly at the probes (many rays), hole fraction."""
+    truth = tracer.visibility(probes.world_pos, probes.world_normal, np.arange(len(probes.instance)) + (1 << 30),
+                              TraceSettings(rays=rays, ao_distance=scene.ao_distance, seed=seed))
+    ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos, probes.local_normal)
+    err = np.abs(ao - truth)
+    return {
+        "recon_mae": float(err.mean()),
+        "recon_p99": float(np.quantile(err, 0.99)),
+        "hole_fraction": float((wsum == 0).mean()),
+        "probes": int(len(err)),
+        "probe_rays": rays,
+    }

@@ -1,0 +1,113 @@
+"""Bake end to end on the tiny builtin scene: accuracy properties and numerical stability."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from protocol import pointword as pw
+from psao_scene import load_scene
+from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes, to_local, to_world
+from psao_server.errors import ConfigError
+
+
+def bake_codes(scene, density, rays=64):
+    res = bake_scene(scene, BakeSettings(density=density, rays=rays, workers=1), show_progress=False)
+    res.tracer.close()
+    t = res.grid.point_table()
+    order = np.argsort(t.point_id)
+    return t.point_id[order], t.ao_code[order].astype(int), res
+
+
+def similarity(scene, scale, offset):
+    s = np.eye(4)
+    s[:3, :3] *= scale
+    s[:3, 3] = offset
+    for inst in scene.instances:
+        inst.transform = s @ inst.transform
+    scene.ao_distance *= scale
+    return scene
+
+
+@pytest.mark.parametrize("scale,offset", [(1.0, 1e5), (1e-3, 0.0), (1e3, 0.0), (1e-3, 1e2)])
+def test_ao_invariant_under_translation_and_scale(scale, offset):
+    ids0, ao0, _ = bake_codes(load_scene("builtin:cornell"), 64)
+    ids1, ao1, _ = bake_codes(similarity(load_scene("builtin:cornell"), scale, offset), 64 / scale**2)
+    np.testing.assert_array_equal(ids0, ids1)
+    diff = np.abs(ao0 - ao1)
+    assert diff.max() <= 1, f"max AO difference {diff.max()}/255"
+    assert (diff == 0).mean() > 0.98
+
+
+def test_world_local_round_trip():
+    rng = np.random.default_rng(0)
+    m = np.eye(4)
+    m[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * np.array([2.0, 0.5, 1.5])
+    m[:3, 3] = [1e4, -3, 7]
+    p = rng.normal(size=(100, 3))
+    n = rng.normal(size=(100, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    wp_, wn = to_world(m, p, n)
+    p2, n2 = to_local(m, wp_, wn)
+    np.testing.assert_allclose(p2, p, atol=1e-9)
+    np.testing.assert_allclose(n2, n, atol=1e-6)
+
+
+def test_cornell_accuracy_targets():
+    scene = load_scene("builtin:cornell")
+    res = bake_scene(scene, BakeSettings(density=256, rays=128), show_progress=False)
+    try:
+        err = reconstruction_error(res.grid, scene, res.tracer, sample_probes(scene, 5000), rays=512)
+    finally:
+        res.tracer.close()
+    assert err["recon_mae"] < 0.02
+    assert err["hole_fraction"] < 0.01
+    assert res.stats["points_dropped_overflow"] < 0.01 * res.stats["points_generated"]
+    t = res.grid.point_table()
+    assert 0 < pw.dequantise_ao(t.ao_code).mean() < 1  # the box really occludes, and not everywhere
+
+
+def test_bad_settings_are_rejected():
+    with pytest.raises(ConfigError, match="density must be > 0"):
+        BakeSettings(density=0).check()
+    with pytest.raises(ConfigError, match="rays"):
+        BakeSettings(rays=0).check()
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "psao", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_json_has_every_field(tmp_path):
+    r = run_cli("bake", "builtin:cornell", "--density", "64", "--rays", "32", "--probes", "2000",
+                "--probe-rays", "128", "--out", str(tmp_path / "g.npz"), "--json")
+    assert r.returncode == 0, r.stderr
+    stats = json.loads(r.stdout.strip().splitlines()[-1])
+    for key in ("points_spawned", "points_kept", "points_dropped_overflow", "cells", "buckets", "seconds_points",
+                "seconds_trace", "rays_per_second", "embree_rays_per_second", "recon_mae", "hole_fraction"):
+        assert key in stats and np.isfinite(stats[key]), key
+    assert stats["points_kept"] <= stats["points_spawned"]
+    assert (tmp_path / "g.npz").exists()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (("bake", "missing_file.glb"), "not found"),
+    (("bake", "builtin:nope"), "unknown scene"),
+    (("bake", "builtin:cornell", "--density", "0"), "density must be > 0"),
+    (("bake", "builtin:cornell", "--density", "-5"), "density must be > 0"),
+    (("bake", "scene.xyz"), "unsupported"),
+])
+def test_cli_bad_input_is_one_line(args, needle):
+    r = run_cli(*args)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], r.stderr
+
+
+def test_cli_malformed_toml(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scene\nname = 'x'\n")
+    r = run_cli("bake", str(bad))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "bad.toml" in r.stderr
