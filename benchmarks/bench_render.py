@@ -78,13 +78,24 @@ def run_density(scene, density, args, views, size):
     with FrameRenderer(scene, size, "both", ssao_samples=args.ssao_samples) as r:
         r.upload_grid(grid.instances, grid.buckets, grid.cells)
         m = measure(r, views, args.repeats)
+        holes = hole_fraction(r, views)
         if args.images:
             save_images(r, views[0], Path(args.images), int(density))
     row = {"density": density, "points": int(grid.n_points()), "cells": int(len(grid.allocated_cells())),
-           "build_s": build_s, **m, "ratio_gpu": m["gpu_ms"]["psao"] / m["gpu_ms"]["ssao"],
+           "build_s": build_s, "holes": holes, **m, "ratio_gpu": m["gpu_ms"]["psao"] / m["gpu_ms"]["ssao"],
            "ratio_wall": m["wall_ms"]["psao"] / m["wall_ms"]["ssao"]}
     print(format_row(row), flush=True)
     return row
+
+
+def hole_fraction(renderer, views) -> float:
+    """Covered pixels where no point has weight (eq. 4 falls back to AO = 1), over all frames."""
+    covered = holes = 0
+    for view, proj in views:
+        frame = renderer.render(view, proj)
+        covered += int(frame.mask.sum())
+        holes += int((frame.mask & (frame.psao_weight == 0)).sum())
+    return holes / max(covered, 1)
 
 
 def save_images(renderer, view_proj, out: Path, density: int) -> None:
@@ -97,7 +108,7 @@ def save_images(renderer, view_proj, out: Path, density: int) -> None:
 
 def format_row(r) -> str:
     g, w = r["gpu_ms"], r["wall_ms"]
-    return (f"N={r['density']:>6g} points={r['points']:>9,} cells={r['cells']:>8,} | "
+    return (f"N={r['density']:>6g} points={r['points']:>9,} cells={r['cells']:>8,} holes={r['holes']:.2%} | "
             f"GPU ms: psao {g['psao']:7.2f} ssao {g['ssao']:7.2f} ratio {r['ratio_gpu']:.2f} | "
             f"wall ms: psao {w['psao']:7.2f} ssao {w['ssao']:7.2f} ratio {r['ratio_wall']:.2f}")
 
