@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // Composite: lit colour x AO, sRGB-encoded for PNG; background keeps the sky colour.
 uniform sampler2D u_color;      // linear lit colour, alpha = 1 where covered
 uniform sampler2D u_ao;         // AO in the red channel

@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // One triangle that covers the viewport; passes read the G-buffer with texelFetch(gl_FragCoord).
 void main() {
     vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));

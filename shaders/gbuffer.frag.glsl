@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // G-buffer: everything later passes need, at full float precision (PSAO reads the local position and
 // normal exactly as protocol/reconstruct.py receives them in the tests).
 in vec3 v_world;

@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // Geometry pass: mesh-local vertices with flat (face) normals, one draw per instance.
 layout(location = 0) in vec3 in_position;  // mesh-local
 layout(location = 1) in vec3 in_normal;    // mesh-local face normal (unit)

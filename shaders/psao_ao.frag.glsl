@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // PSAO pass, full-screen fragment variant: AO per pixel from the streamed grid (paper eq. 2-4).
 #include "psao_common.glsl"
 

@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // SSAO baseline: normal-oriented hemisphere SSAO (Crytek / LearnOpenGL style). View-space position
 // and normal from the G-buffer, a 4x4 rotation-noise tile, SSAO_SAMPLES kernel samples scaled towards
 // the centre, and a range check so that geometry far behind a depth edge does not occlude.

@@ -1,4 +1,4 @@
-#version 430
+#version 410
 // Depth- and normal-aware 4x4 blur of the raw SSAO: removes the 4x4 noise-tile pattern without
 // bleeding AO across depth edges (bilateral weights: depth difference relative to the AO radius,
 // normal agreement).

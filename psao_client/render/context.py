@@ -1,24 +1,25 @@
 """OpenGL context for the renderer: a headless EGL context by default, a window when asked.
 
-Storage buffers need OpenGL 4.3; Mesa's llvmpipe offers 4.5 through EGL, so the renderer runs on a
-machine without a GPU. Failures become RenderError with one line naming the cause.
+The shaders are `#version 410` (integer textures, explicit locations; no storage buffers, see
+gpu_grid.py), so any OpenGL 4.1 driver will do, macOS's included; Mesa's llvmpipe offers 4.5 through
+EGL, so the renderer runs on a machine without a GPU. Failures become RenderError with one line naming the cause.
 """
 from __future__ import annotations
 
 from psao_client.errors import RenderError
 
-REQUIRED_GL = 430  # shader storage buffers
+REQUIRED_GL = 410  # the shaders' #version
 
 
 def create_context(window: bool = False, size: tuple[int, int] = (640, 360)):
-    """A moderngl context with GL >= 4.3: standalone EGL (headless), or an on-screen window (glfw)."""
+    """A moderngl context with GL >= 4.1: standalone EGL (headless), or an on-screen window (glfw)."""
     import moderngl
 
     if window:
         ctx = _window_context(size)
     else:
         try:
-            ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
+            ctx = moderngl.create_standalone_context(backend="egl")
         except Exception as exc:  # glcontext raises plain Exception/ValueError types for EGL failures
             raise RenderError(f"no EGL display available: {_one_line(exc)}") from None
     check_version(ctx)
@@ -29,7 +30,7 @@ def check_version(ctx) -> None:
     if ctx.version_code < REQUIRED_GL:
         renderer = ctx.info.get("GL_RENDERER", "?")
         ctx.release()
-        raise RenderError(f"OpenGL 4.3 or newer is needed for storage buffers; {renderer} offers {ctx.version_code}")
+        raise RenderError(f"OpenGL 4.1 or newer is needed; {renderer} offers {ctx.version_code}")
 
 
 def max_frame_size(ctx) -> tuple[int, int]:
@@ -60,12 +61,13 @@ def _window_context(size: tuple[int, int]):
     if not glfw.init():
         raise RenderError("glfw could not initialise (no display?)")
     glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 4)
-    glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
+    glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 1)
     glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+    glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
     handle = glfw.create_window(int(size[0]), int(size[1]), "psao", None, None)
     if not handle:
         glfw.terminate()
-        raise RenderError("glfw could not open an OpenGL 4.3 window")
+        raise RenderError("glfw could not open an OpenGL 4.1 window")
     glfw.make_context_current(handle)
     ctx = moderngl.create_context(require=REQUIRED_GL)
     ctx.extra = {"glfw_window": handle}
