@@ -113,3 +113,18 @@ def test_dynamic_scene_occludes_and_can_be_replaced(backend):
     tracer.set_dynamic(None, np.zeros((0, 3), int))
     assert tracer.visibility(pos, nrm, [0], s)[0] == 1.0
     tracer.close()
+
+
+def test_warp_ray_kernel_matches_numpy_reference():
+    pytest.importorskip("warp")
+    from psao_server.tracer.directions import rotation_of
+    from psao_server.tracer.kernels import RayBuffers
+
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(300, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = rng.normal(scale=100, size=(300, 3)).astype(np.float32)
+    ids = rng.integers(0, 2**40, 300)
+    o, d = RayBuffers().rays(p, n, *rotation_of(ids, 5), 64, 2.0)
+    np.testing.assert_allclose(d, cosine_directions(ids, n, 64, 5).reshape(-1, 3), atol=2e-6)
+    np.testing.assert_array_equal(o, np.repeat(ray_origins(p, n, 2.0), 64, axis=0))

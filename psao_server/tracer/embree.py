@@ -17,7 +17,7 @@ import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.tracer.base import TraceSettings, Tracer
-from psao_server.tracer.directions import cosine_directions, ray_origins
+from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
     from embreex import rtcore_scene
@@ -49,23 +49,37 @@ class _Scenes:
             self.dynamic_version = version
 
     def occluded(self, origins, dirs, tmax) -> np.ndarray:
-        hit = np.zeros(len(origins), dtype=bool)
+        """A ray is occluded if either scene hits within tmax; the dynamic scene only sees the rays the
+        static one let through."""
         dists = np.full(len(origins), tmax, np.float32)
-        for scene in (self.static, self.dynamic):
-            if scene is None:
-                continue
+        if self.static is not None:
+            hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
+        else:
+            hit = np.zeros(len(origins), dtype=bool)
+        if self.dynamic is not None:
             todo = np.flatnonzero(~hit)
-            if len(todo) == 0:
-                break
-            res = scene.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED")
-            hit[todo] = res != -1
+            if len(todo):
+                hit[todo] = self.dynamic.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
         return hit
 
 
+_RAYS = None  # per process: Warp ray buffers, or False when Warp is unavailable
+
+
 def _chunk_rays(pos, nrm, ids, s: TraceSettings):
-    dirs = cosine_directions(ids, nrm, s.rays, s.seed).reshape(-1, 3)
-    org = np.repeat(ray_origins(pos, nrm, s.ao_distance), s.rays, axis=0)
-    return org, dirs
+    """Origins and directions of directions.py, (P * K, 3) each; through the compiled Warp kernel when
+    Warp is present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
+    global _RAYS
+    if _RAYS is None:
+        try:
+            from psao_server.tracer.kernels import RayBuffers
+            _RAYS = RayBuffers()
+        except ImportError:
+            _RAYS = False
+    if _RAYS is False:
+        dirs = cosine_directions(ids, nrm, s.rays, s.seed).reshape(-1, 3)
+        return np.repeat(ray_origins(pos, nrm, s.ao_distance), s.rays, axis=0), dirs
+    return _RAYS.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance)
 
 
 def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> np.ndarray:
@@ -146,6 +160,8 @@ class EmbreeTracer(Tracer):
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
+            # Load (and on first use compile) the Warp kernels once here, so forked workers inherit them.
+            _chunk_rays(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), np.zeros(1, np.int64), TraceSettings(rays=1))
             # fork: workers need nothing but numpy and embreex, and unlike spawn it does not re-run the
             # caller's __main__ (scripts without a main guard would recurse). Callers create the pool
             # (warm_up) before starting threads or event loops.

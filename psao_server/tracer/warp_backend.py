@@ -20,57 +20,7 @@ except ImportError as exc:  # pragma: no cover
     _IMPORT_ERROR = exc
 
 if wp is not None:
-    wp.config.quiet = True
-
-    @wp.func
-    def _occluded(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, tmax: float) -> int:
-        if mesh == wp.uint64(0):
-            return 0
-        q = wp.mesh_query_ray(mesh, o, d, tmax)
-        if q.result:
-            return 1
-        return 0
-
-    @wp.kernel
-    def visibility_kernel(
-        static_mesh: wp.uint64,
-        dynamic_mesh: wp.uint64,
-        positions: wp.array(dtype=wp.vec3),
-        normals: wp.array(dtype=wp.vec3),
-        rot_a: wp.array(dtype=float),
-        rot_b: wp.array(dtype=float),
-        rays: int,
-        ao_distance: float,
-        offset_rel: float,
-        offset_ao: float,
-        out_visibility: wp.array(dtype=float),
-    ):
-        i = wp.tid()
-        p = positions[i]
-        n = normals[i]
-        mag = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2]))
-        o = p + n * (offset_rel * mag + offset_ao * ao_distance)
-        sign = 1.0
-        if n[2] < 0.0:
-            sign = -1.0
-        a = -1.0 / (sign + n[2])
-        b = n[0] * n[1] * a
-        t = wp.vec3(1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0])
-        bt = wp.vec3(b, sign + n[1] * n[1] * a, -n[1])
-        free = int(0)
-        for j in range(rays):
-            u1 = (float(j) + 0.5) / float(rays) + rot_a[i]
-            u1 = u1 - wp.floor(u1)
-            u2 = float(j) * 0.6180339887498949
-            u2 = u2 - wp.floor(u2) + rot_b[i]
-            u2 = u2 - wp.floor(u2)
-            r = wp.sqrt(u1)
-            phi = 6.283185307179586 * u2
-            d = t * (r * wp.cos(phi)) + bt * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(0.0, 1.0 - u1))
-            if _occluded(static_mesh, o, d, ao_distance) == 0:
-                if _occluded(dynamic_mesh, o, d, ao_distance) == 0:
-                    free += 1
-        out_visibility[i] = float(free) / float(rays)
+    from psao_server.tracer.kernels import visibility_kernel
 
 
 class WarpTracer(Tracer):
