@@ -28,6 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"codecs to accept, comma-separated (default {','.join(CODEC_CHOICES)})")
     p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
                    help="pause S seconds after every message (simulates a slow client)")
+    p.add_argument("--recv-buffer", type=int, default=None, metavar="BYTES",
+                   help="socket receive buffer size (small values make a slow reader felt by the server at once)")
     p.add_argument("--no-reconnect", action="store_true", help="exit when the connection drops")
     p.add_argument("--reconnect-timeout", type=float, default=10.0, help="give up after S seconds without a message")
     p.add_argument("--digest-log", type=Path, default=None,
@@ -56,7 +58,7 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         args.url, scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
         camera=scene_camera_feed(scene), on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
-        reconnect_timeout=args.reconnect_timeout,
+        reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
     )
 
 

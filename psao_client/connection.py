@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.uri import parse_uri
 
 from protocol.codecs import Codec, codec_name
 from protocol.errors import ProtocolError
@@ -65,7 +67,8 @@ class MirrorClient:
                  camera: CameraFeed | None = None, on_connect: OnMirror | None = None,
                  on_snapshot: OnMirror | None = None, on_update: OnUpdate | None = None,
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
-                 reconnect_timeout: float = 10.0, camera_hz: float = 30.0, limits: Limits = DEFAULT_LIMITS):
+                 reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
+                 limits: Limits = DEFAULT_LIMITS):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -75,6 +78,7 @@ class MirrorClient:
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
         self.camera_period = 1.0 / camera_hz
+        self.recv_buffer = recv_buffer  # small: the server feels a slow reader at once (tests, slow links)
         self.mirror: Mirror | None = None
         self.stats = ClientStats()
         self._stop = asyncio.Event()
@@ -115,8 +119,9 @@ class MirrorClient:
         session = ClientSession(self.config)
         t0 = time.perf_counter()
         last_camera = -1e9
-        async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
-                           max_queue=16, open_timeout=5.0) as ws:
+        extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
+        async with connect(self.url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0,
+                           **extra) as ws:
             await ws.send(session.hello())
             seq = 0
             async for data in ws:
@@ -144,11 +149,12 @@ class MirrorClient:
                 elif isinstance(event, ByeReceived):
                     raise _Lost("server said Bye")
                 if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
-                    digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq,
+                    digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                               "digest": self.mirror.digest()}) + "\n")
                 seq += 1
                 if self._stop.is_set() or (frames is not None and self.stats.updates >= frames):
                     await ws.send(session.bye())
+                    await _discard_until_closed(ws, timeout=2.0)
                     return
                 now = time.perf_counter()
                 if self.camera and self.mirror is not None and now - last_camera >= self.camera_period:
@@ -159,6 +165,18 @@ class MirrorClient:
                     await asyncio.sleep(self.read_delay)
         raise _Lost("server closed the connection")
 
+    async def _small_buffer_socket(self) -> socket.socket:
+        uri = parse_uri(self.url)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.recv_buffer)
+        sock.setblocking(False)
+        try:
+            await asyncio.wait_for(asyncio.get_running_loop().sock_connect(sock, (uri.host, uri.port)), 5.0)
+        except BaseException:
+            sock.close()
+            raise
+        return sock
+
     def _welcomed(self, event: Welcomed) -> None:
         w = event.welcome
         self.mirror = Mirror.from_welcome(w)
@@ -166,6 +184,17 @@ class MirrorClient:
         self.stats.codec = codec_name(w.codec)
         if self.on_connect:
             self.on_connect(self.mirror)
+
+
+async def _discard_until_closed(ws, timeout: float) -> None:
+    """After Bye, read (and drop) what the server still had in flight, so its close frame gets through
+    even when reading was paused by flow control."""
+    try:
+        async with asyncio.timeout(timeout):
+            async for _ in ws:
+                pass
+    except (TimeoutError, ConnectionClosed):
+        pass
 
 
 def _why(exc: BaseException) -> str:

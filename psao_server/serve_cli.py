@@ -29,6 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="update layout: packed (default) or the paper's plain uint32 layout")
     p.add_argument("--tick-hz", type=float, default=60.0, help="server ticks per second, 5..60 (default 60)")
     p.add_argument("--token", default="", help="clients must present this token")
+    p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
+                   help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
     p.add_argument("--test-edits", type=int, default=0, metavar="K",
                    help="test hook: edit about K points per tick (AO, moves, frees and allocations)")
     p.add_argument("--digest-log", type=Path, default=None,
@@ -67,7 +69,8 @@ def _settings(args):
     if args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
-                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log)
+                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log,
+                      send_buffer=args.send_buffer)
     s.check()
     return s
 
