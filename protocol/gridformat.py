@@ -8,7 +8,10 @@ Memory (all uint32 unless said otherwise):
 
 A free cell slot holds FREE_CELL (all points zero, key EMPTY). The key of a cell is its linear index
 `x + Dx * (y + Dy * z)` in the instance's dense virtual grid; the bucket of a cell is
-`hash(x, y, z) & (B - 1)` offset by the instance's first bucket. Points are stored in instance-local space:
+`hash(x, y, z) & (B - 1)` offset by the instance's first bucket. Double-sided instances keep the points of
+the back side in cells of their own, whose key has BACK_BIT set (same bucket as the front cell): both
+sides of a thin surface share space, and sharing cells would halve what a cell holds per side. The
+lookup of a double-sided instance scans both keys; the eq. 3 normal test rejects the wrong side. Points are stored in instance-local space:
 a point word's 5-bit codes q give the local position `origin + (cell + (q + 0.5) / 32) * cell_size`.
 """
 from __future__ import annotations
@@ -22,7 +25,9 @@ POINTS_PER_CELL = 7
 KEY_WORD = 7
 BUCKET_ENTRIES = 8
 EMPTY = np.uint32(0xFFFFFFFF)
-MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz < 2^30 keeps keys clear of EMPTY
+MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz <= 2^30 keeps keys below BACK_BIT
+BACK_BIT = np.uint32(1 << 30)  # key flag: the cell holds back-side points of a double-sided instance
+KEY_MASK = np.uint32((1 << 30) - 1)
 
 FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
 EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)
@@ -72,7 +77,7 @@ def cell_key(x, y, z, dims) -> np.ndarray:
 
 
 def key_to_cell(key, dims) -> np.ndarray:
-    key = np.asarray(key, dtype=np.uint64)
+    key = np.asarray(key, dtype=np.uint64) & np.uint64(int(KEY_MASK))
     dx, dy = np.uint64(int(dims[0])), np.uint64(int(dims[1]))
     return np.stack([key % dx, (key // dx) % dy, key // (dx * dy)], axis=-1).astype(np.int64)
 

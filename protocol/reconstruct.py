@@ -4,7 +4,8 @@ It reads exactly the arrays the client holds (instances, buckets, cells) and doe
 `shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
 hash -> bucket -> linear scan for the key -> the cell's allocated points, weights
 max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,
-or 1 where all weights are 0. Arithmetic is float32 like the shader's so the two agree to rounding.
+or 1 where all weights are 0. Double-sided instances (FLAG_DOUBLE_SIDED) also scan the back-side cells
+(key | BACK_BIT) of the block. Arithmetic is float32 like the shader's so the two agree to rounding.
 """
 from __future__ import annotations
 
@@ -47,18 +48,26 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d):
     dx = dims[:, 0:1].astype(np.uint64)
     dy = dims[:, 1:2].astype(np.uint64)
     key = ((c[..., 0] + dx * (c[..., 1] + dy * c[..., 2])) & np.uint64(0xFFFFFFFF)).astype(np.uint32)
+    # Back-side cells of double-sided instances: same block, same buckets, key with BACK_BIT.
+    two_sided = (rec["flags"] & gf.FLAG_DOUBLE_SIDED) != 0
+    back_key = np.where(two_sided[:, None], key | gf.BACK_BIT, gf.EMPTY).astype(np.uint32)
     mask32 = np.uint64(0xFFFFFFFF)
     h = (c[..., 0] + ((c[..., 1] * ((dx * np.uint64(17)) & mask32)) & mask32)
          + ((c[..., 2] * ((dx * dy * np.uint64(31)) & mask32)) & mask32)) & mask32
     b = (h.astype(np.uint32) & (rec["bucket_count"][:, None] - np.uint32(1))).astype(np.int64) + rec["bucket_offset"][:, None].astype(np.int64)
     b = np.where(inside, b, 0)
     entries = buckets[b]  # (M, 8, 8, 2)
+    # 16 candidate cells: the block's front keys, then its back keys (EMPTY, never matched, if one-sided).
+    cell = np.concatenate([cell, cell], axis=1)
+    inside = np.concatenate([inside, inside & two_sided[:, None]], axis=1)
+    keys = np.concatenate([key, back_key], axis=1)
+    entries = np.concatenate([entries, entries], axis=1)
     # Entries are used-first and keys are unique in a bucket, so "first match before EMPTY" == "any match".
-    match = (entries[..., 0] == key[..., None]) & inside[..., None]
+    match = (entries[..., 0] == keys[..., None]) & inside[..., None]
     found = match.any(axis=2)
     slot = np.take_along_axis(entries[..., 1], match.argmax(axis=2)[..., None], axis=2)[..., 0].astype(np.int64)
     slot = np.where(found, slot, 0)
-    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 8, 7)
+    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 16, 7)
     allocated, qpos, ncode, aocode = pw.unpack_point(words)
     # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
     valid = allocated & found[..., None]

@@ -67,10 +67,11 @@ def to_local(transform: np.ndarray, world_pos: np.ndarray, world_normal: np.ndar
     return pos, nrm.astype(np.float32)
 
 
-def grid_poisson_radius(ps: PointSet, double_sided: bool) -> float:
-    """The radius the grid is sized by. Both sides of a double-sided surface share cells, so their
-    combined density decides how many points a cell must hold."""
-    return ps.poisson_radius / np.sqrt(2.0) if double_sided else ps.poisson_radius
+def back_side_mask(ps: PointSet, double_sided: bool) -> np.ndarray | None:
+    """Back-side points of a double-sided instance: generate_points appends them as the second half."""
+    if not double_sided:
+        return None
+    return np.arange(len(ps)) >= len(ps) // 2
 
 
 def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +135,7 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
 
         t0 = time.perf_counter()
         flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-        grid = Grid.build([(ps.positions, ps.normals, grid_poisson_radius(ps, bool(f & gf.FLAG_DOUBLE_SIDED)), f)
+        grid = Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
                            for ps, f in zip(pointsets, flags)], settings.grid)
         stats["seconds_grid"] = time.perf_counter() - t0
 

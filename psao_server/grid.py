@@ -112,21 +112,22 @@ class Grid:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def build(cls, instance_points: list[tuple[np.ndarray, np.ndarray, float, int]], settings: GridSettings | None = None,
+    def build(cls, instance_points: list[tuple], settings: GridSettings | None = None,
               point_ids: list[np.ndarray] | None = None) -> "Grid":
-        """instance_points: per instance (local_pos (P,3), local_normal (P,3), poisson_radius, flags)."""
+        """instance_points: per instance (local_pos (P,3), local_normal (P,3), poisson_radius, flags[, back (P,)
+        bool: back-side points of a double-sided instance])."""
         settings = settings or GridSettings()
         records = []
         offset = 0
         total_cells = 0
-        for pos, _nrm, rp, flags in instance_points:
+        for pos, _nrm, rp, flags, *rest in instance_points:
             pos = np.asarray(pos, np.float64)
             if len(pos) == 0:
                 lo = hi = np.zeros(3)
             else:
                 lo, hi = pos.min(axis=0), pos.max(axis=0)
             rec = instance_record(lo, hi, rp, 1, flags, settings)
-            cells_hint = _count_cells(pos, rec)
+            cells_hint = _count_cells(pos, rec, rest[0] if rest else None)
             rec = instance_record(lo, hi, rp, cells_hint, flags, settings)
             rec["bucket_offset"] = offset
             offset += int(rec["bucket_count"])
@@ -136,10 +137,10 @@ class Grid:
         capacity = max(64, int(total_cells * (1.0 + settings.pool_headroom)))
         grid = cls(instances, capacity)
         next_id = 0
-        for i, (pos, nrm, _rp, _flags) in enumerate(instance_points):
+        for i, (pos, nrm, _rp, _flags, *rest) in enumerate(instance_points):
             ids = point_ids[i] if point_ids is not None else np.arange(next_id, next_id + len(pos))
             next_id += len(pos)
-            grid.insert_points(i, pos, nrm, np.full(len(pos), 255, np.uint32), ids)
+            grid.insert_points(i, pos, nrm, np.full(len(pos), 255, np.uint32), ids, back=rest[0] if rest else None)
         return grid
 
     @property
@@ -188,9 +189,10 @@ class Grid:
         inside = np.all((c >= 0) & (c < rec["dims"].astype(np.int64)), axis=1) & np.all(np.isfinite(g), axis=1)
         return np.where(inside[:, None], c, 0), inside
 
-    def insert_points(self, inst: int, local_pos, normals, ao_code, point_ids=None) -> np.ndarray:
-        """Insert points into instance `inst`. Returns a bool mask of the points kept; overflowing
-        points (cell full, bucket full, outside the grid) are dropped and counted in `stats`."""
+    def insert_points(self, inst: int, local_pos, normals, ao_code, point_ids=None, back=None) -> np.ndarray:
+        """Insert points into instance `inst` (`back`: bool mask of back-side points, which go to the
+        BACK_BIT cells). Returns a bool mask of the points kept; overflowing points (cell full, bucket
+        full, outside the grid) are dropped and counted in `stats`."""
         local_pos = np.asarray(local_pos, np.float64).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         ao_code = np.broadcast_to(np.asarray(ao_code, np.uint32), (len(local_pos),))
@@ -202,6 +204,8 @@ class Grid:
         cell, inside = self.cell_of(inst, local_pos)
         self.stats.dropped_outside += int((~inside).sum())
         keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"])
+        if back is not None:
+            keys = np.where(np.asarray(back, bool), keys | gf.BACK_BIT, keys).astype(np.uint32)
         order = np.flatnonzero(inside)
         order = order[np.argsort(keys[order], kind="stable")]
         if len(order) == 0:
@@ -264,12 +268,13 @@ class Grid:
         ao = self.cells[slots, idx] & np.uint32(0xFF)
         ids = self.point_id[slots, idx].copy()
         insts = self.cell_instance[slots]
+        side = self.cells[slots, gf.KEY_WORD] & gf.BACK_BIT
         stay = np.zeros(len(slots), dtype=bool)
         for inst in np.unique(insts).tolist():
             sel = np.flatnonzero(insts == inst)
             rec = self.instances[inst]
             cell, inside = self.cell_of(inst, new_local_pos[sel])
-            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"])
+            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
             same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
             s_sel = sel[same]
             frac = gf.grid_coords(new_local_pos[s_sel], rec["origin"], rec["cell_size"]) - cell[same]
@@ -285,7 +290,8 @@ class Grid:
             self.remove_points(slots[leave], idx[leave])
             for inst in np.unique(insts[leave]).tolist():
                 sel = leave[insts[leave] == inst]
-                kept[sel] = self.insert_points(inst, new_local_pos[sel], new_normals[sel], ao[sel], ids[sel])
+                kept[sel] = self.insert_points(inst, new_local_pos[sel], new_normals[sel], ao[sel], ids[sel],
+                                               back=side[sel] != 0)
         return kept
 
     def compact(self) -> None:
@@ -434,11 +440,14 @@ class Grid:
         return grid, scene_hash, meta
 
 
-def _count_cells(pos: np.ndarray, rec: np.ndarray) -> int:
+def _count_cells(pos: np.ndarray, rec: np.ndarray, back=None) -> int:
     if len(pos) == 0:
         return 0
     c = np.floor(gf.grid_coords(pos, rec["origin"], rec["cell_size"])).astype(np.int64)
-    return len(np.unique(gf.cell_key(c[:, 0], c[:, 1], c[:, 2], rec["dims"])))
+    keys = gf.cell_key(c[:, 0], c[:, 1], c[:, 2], rec["dims"]).astype(np.int64)
+    if back is not None:
+        keys = keys + np.asarray(back, bool) * (1 << 30)
+    return len(np.unique(keys))
 
 
 def settings_dict(settings: GridSettings) -> dict:

@@ -18,6 +18,8 @@
 #endif
 
 #define PSAO_EMPTY 0xFFFFFFFFu
+#define PSAO_BACK_BIT 0x40000000u   // key flag of back-side cells (gridformat.BACK_BIT)
+#define PSAO_FLAG_DOUBLE_SIDED 1u
 #define PSAO_ALLOCATED 0x80000000u
 #define PSAO_POINTS_PER_CELL 7
 #define PSAO_BUCKET_ENTRIES 8u
@@ -59,19 +61,25 @@ uint psao_cell_key(uvec3 c, uvec3 dims) {
     return c.x + dims.x * (c.y + dims.y * c.z);
 }
 
-// Slot of cell c of an instance, or PSAO_EMPTY. Used entries come first, so the scan stops at EMPTY.
-uint psao_find_cell(PsaoInstance inst, uvec3 c) {
+// Slots of cell c of an instance: x the front (or only) cell, y the back-side cell of a double-sided
+// instance (key | BACK_BIT, same bucket); PSAO_EMPTY where absent. Used entries come first, so one scan
+// of the bucket stops at EMPTY.
+uvec2 psao_find_cells(PsaoInstance inst, uvec3 c) {
     uint bucket = inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u));
     uint key = psao_cell_key(c, inst.dims);
+    uint back_key = (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u ? (key | PSAO_BACK_BIT) : PSAO_EMPTY;
     uint base = bucket * (PSAO_BUCKET_ENTRIES / 2u);
+    uvec2 slots = uvec2(PSAO_EMPTY);
     for (uint e = 0u; e < PSAO_BUCKET_ENTRIES / 2u; ++e) {
         uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
         if (pair.x == PSAO_EMPTY) break;
-        if (pair.x == key) return pair.y;
+        if (pair.x == key) slots.x = pair.y;
+        if (pair.x == back_key) slots.y = pair.y;
         if (pair.z == PSAO_EMPTY) break;
-        if (pair.z == key) return pair.w;
+        if (pair.z == key) slots.x = pair.w;
+        if (pair.z == back_key) slots.y = pair.w;
     }
-    return PSAO_EMPTY;
+    return slots;
 }
 
 // Normals: u_psao_normals[code] is pointword.oct_decode(code) (4+4-bit octahedral, levels 0..14,
@@ -104,6 +112,20 @@ float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
     return w;
 }
 
+// Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c).
+void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+    uvec4 lo = psao_fetch(u_psao_cells, 2u * slot);
+    uvec4 hi = psao_fetch(u_psao_cells, 2u * slot + 1u);
+    uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
+    for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
+        uint word = words[k];
+        if ((word & PSAO_ALLOCATED) == 0u) break;
+        float w = psao_weight(psao_point_position(inst, c, word), psao_point_normal(word), x, nx, inst.radius);
+        wsum += w;
+        aosum += w * psao_point_ao(word);
+    }
+}
+
 // Squared distance, in cells, from grid coordinate g to the unit box of cell c.
 float psao_cell_distance2(vec3 g, vec3 c) {
     vec3 d = max(max(c - g, g - (c + 1.0)), 0.0);
@@ -126,19 +148,9 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx) {
         ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
         if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
         if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
-        uint slot = psao_find_cell(inst, uvec3(c));
-        if (slot == PSAO_EMPTY) continue;
-        uvec4 lo = psao_fetch(u_psao_cells, 2u * slot);
-        uvec4 hi = psao_fetch(u_psao_cells, 2u * slot + 1u);
-        uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
-        for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
-            uint word = words[k];
-            if ((word & PSAO_ALLOCATED) == 0u) break;
-            float w = psao_weight(psao_point_position(inst, uvec3(c), word),
-                                  psao_point_normal(word), x, nx, inst.radius);
-            wsum += w;
-            aosum += w * psao_point_ao(word);
-        }
+        uvec2 slots = psao_find_cells(inst, uvec3(c));
+        if (slots.x != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slots.x, x, nx, wsum, aosum);
+        if (slots.y != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slots.y, x, nx, wsum, aosum);
     }
     return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
 }

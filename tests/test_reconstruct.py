@@ -65,7 +65,10 @@ def test_back_side_points_are_ignored():
     rng = np.random.default_rng(2)
     p = np.column_stack([rng.random(2000), rng.random(2000), np.zeros(2000)])
     up = np.tile([0, 0, 1.0], (1000, 1))
-    grid = Grid.build([(p, np.vstack([up, -up]), 0.012, gf.FLAG_DOUBLE_SIDED)])
+    back = np.arange(2000) >= 1000
+    grid = Grid.build([(p, np.vstack([up, -up]), 0.017, gf.FLAG_DOUBLE_SIDED, back)])
+    keys = grid.cells[grid.allocated_cells(), gf.KEY_WORD]
+    assert ((keys & gf.BACK_BIT) != 0).any() and ((keys & gf.BACK_BIT) == 0).any()
     t = grid.point_table()
     ao_code = np.where(t.local_normal[:, 2] > 0, 255, 0)
     grid.set_ao(t.slot, t.index, ao_code)
