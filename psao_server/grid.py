@@ -218,7 +218,9 @@ class Grid:
         ok_cell = slots[cell_of_point] >= 0
         self.stats.dropped_bucket_full += int((~ok_cell).sum())
         pts, pslot, rank = order[ok_cell], slots[cell_of_point[ok_cell]], rank[ok_cell]
-        idx = (self.point_id[pslot] != NO_POINT).sum(axis=1) + rank
+        used = (self.point_id[pslot] != NO_POINT).sum(axis=1)
+        rank = self._spread_overflow(pts, pslot, rank, used, local_pos, normals, float(rec["radius"]))
+        idx = used + rank
         fits = idx < gf.POINTS_PER_CELL
         self.stats.dropped_cell_full += int((~fits).sum())
         pts, pslot, idx = pts[fits], pslot[fits], idx[fits]
@@ -231,6 +233,30 @@ class Grid:
         kept[pts] = True
         self.stats.inserted += len(pts)
         return kept
+
+    @staticmethod
+    def _spread_overflow(pts, pslot, rank, used, local_pos, normals, radius) -> np.ndarray:
+        """Re-rank the points of overflowing cells so the ones kept are spread out (farthest-point order in
+        position and normal): a cell where several surfaces meet (a corner, a thin bar) keeps points on
+        each of them instead of whichever came first, which would leave holes on the others."""
+        over = np.flatnonzero((rank + used >= gf.POINTS_PER_CELL) & (rank == gf.POINTS_PER_CELL - used))
+        if len(over) == 0:
+            return rank
+        rank = rank.copy()
+        for j in over.tolist():  # one overflowing cell each; few, and each only a handful of points
+            members = np.flatnonzero(pslot == pslot[j])
+            feats = np.hstack([local_pos[pts[members]] / radius, normals[pts[members]].astype(np.float64) * 2.0])
+            chosen = [0]
+            dist = np.linalg.norm(feats - feats[0], axis=1)
+            dist[0] = -1.0
+            for _ in range(min(len(members), gf.POINTS_PER_CELL - int(used[j])) - 1):
+                nxt = int(np.argmax(dist))
+                chosen.append(nxt)
+                dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
+                dist[chosen] = -1.0
+            rest = np.setdiff1d(np.arange(len(members)), chosen)
+            rank[members[chosen + rest.tolist()]] = np.arange(len(members))
+        return rank
 
     def set_ao(self, slots, idx, ao_code) -> np.ndarray:
         """Set the AO byte of points; marks only cells whose words really change. Returns the changed mask."""

@@ -167,3 +167,19 @@ def test_instance_without_points():
 def test_cell_factor_below_two_is_rejected():
     with pytest.raises(GridError, match="cell_factor"):
         GridSettings(cell_factor=1.5)
+
+
+def test_overflowing_cell_keeps_points_on_every_surface():
+    # A corner: 12 points on the floor, 3 on a wall, all in one cell. First-come order would keep only
+    # floor points; the spread keeps the wall represented.
+    rng = np.random.default_rng(10)
+    floor = np.column_stack([rng.random(12) * 0.06 + 0.03, rng.random(12) * 0.06 + 0.03, np.full(12, 0.03)])
+    wall = np.column_stack([np.full(3, 0.03), rng.random(3) * 0.06 + 0.03, rng.random(3) * 0.06 + 0.03])
+    p = np.vstack([floor, wall, [[0.0, 0.0, 0.0], [0.12, 0.12, 0.12]]])  # two far points pin the grid origin
+    n = np.vstack([np.tile([0, 0, 1.0], (12, 1)), np.tile([1.0, 0, 0], (3, 1)), [[0, 0, 1.0], [0, 0, 1.0]]])
+    grid = Grid.build([(p, n, 0.025, 0)])
+    t = grid.point_table()
+    corner = t.slot[np.argmin(np.abs(t.local_pos - 0.06).sum(axis=1))]
+    assert (t.slot == corner).sum() == gf.POINTS_PER_CELL and grid.stats.dropped_cell_full > 0
+    assert (t.local_normal[t.slot == corner, 0] > 0.5).sum() >= 1
+    check_invariants(grid)
