@@ -1,0 +1,157 @@
+"""Which points the server tick re-traces (DESIGN.md, server tick step 3).
+
+A point's AO can only change when geometry within the AO distance of it changes. So a tick re-traces
+  - points on deforming (skinned) geometry,
+  - points within the AO distance of a moving instance, at its bounds now or at the previous tick
+    (the box expanded by the AO distance; the previous box catches the points it has just left),
+  - all points of a rigidly moving instance whose expanded box (now or before) touches any other
+    instance's box: its points see changed surroundings; alone in space its AO cannot change,
+and of those only the points inside some client's extended view (fov widened by a margin in degrees,
+planes pushed out by a distance). A point that should have been re-traced but was outside every view is
+remembered as stale (by the tick) and re-traced when it comes into view. With no camera known every
+point counts as visible.
+
+Static points are found through a block index (points sorted by a coarse world block), so a tick costs
+in proportion to the points near moving things, not to the scene.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ViewSettings:
+    fov_margin: float = 20.0  # degrees added to the horizontal and vertical field of view
+    distance_margin: float = 1.0  # world units the frustum's planes are pushed outwards
+
+
+# ---------------------------------------------------------------------------------------- views
+
+def frustum_planes(view: np.ndarray, proj: np.ndarray, fov_margin: float = 0.0) -> np.ndarray:
+    """(5, 4) world-space planes (a, b, c, d) with unit normals pointing inwards: left, right, bottom,
+    top, far (the near plane is left out: points just in front of the eye matter). For a perspective
+    projection the field of view is widened by `fov_margin` degrees first (half on each side)."""
+    p = np.asarray(proj, np.float64).copy()
+    if fov_margin and p[3, 2] != 0 and p[3, 3] == 0:  # perspective
+        for k in (0, 1):
+            half = np.arctan(1.0 / p[k, k]) + np.radians(fov_margin) / 2
+            p[k, k] = 1.0 / np.tan(min(half, np.radians(89.0)))
+    m = p @ np.asarray(view, np.float64)
+    planes = np.array([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] - m[2]])
+    norms = np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    return planes / np.maximum(norms, 1e-300)
+
+
+def in_frustum(points: np.ndarray, planes: np.ndarray, distance_margin: float = 0.0) -> np.ndarray:
+    """Bool (P,): points whose signed distance to every plane is >= -distance_margin."""
+    d = np.asarray(points, np.float64) @ planes[:, :3].T + planes[:, 3]
+    return (d >= -distance_margin).all(axis=1)
+
+
+def in_any_view(points: np.ndarray, planes_list: list[np.ndarray] | None, distance_margin: float) -> np.ndarray:
+    """Bool (P,): inside at least one extended frustum; all True when no view is known (None or [])."""
+    if not planes_list:
+        return np.ones(len(points), dtype=bool)
+    out = np.zeros(len(points), dtype=bool)
+    for planes in planes_list:
+        todo = np.flatnonzero(~out)
+        if len(todo) == 0:
+            break
+        out[todo] = in_frustum(points[todo], planes, distance_margin)
+    return out
+
+
+# ---------------------------------------------------------------------------------------- boxes
+
+def expand(box: tuple[np.ndarray, np.ndarray], d: float) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(box[0], np.float64) - d, np.asarray(box[1], np.float64) + d
+
+
+def boxes_overlap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    return bool(np.all(a[0] <= b[1]) and np.all(b[0] <= a[1]))
+
+
+def in_box(points: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    return np.all((points >= box[0]) & (points <= box[1]), axis=1)
+
+
+class BlockIndex:
+    """Points (fixed world positions) sorted by a coarse world block, for box queries."""
+
+    def __init__(self, positions: np.ndarray, block: float):
+        self.positions = np.asarray(positions, np.float64)
+        self.block = float(block)
+        if len(self.positions) == 0:
+            self.lo = np.zeros(3)
+            self.dims = np.ones(3, np.int64)
+        else:
+            self.lo = self.positions.min(axis=0)
+            self.dims = np.floor((self.positions.max(axis=0) - self.lo) / self.block).astype(np.int64) + 1
+        keys = self._keys(self._coords(self.positions))
+        self.order = np.argsort(keys, kind="stable")
+        self.sorted_keys = keys[self.order]
+
+    def _coords(self, p: np.ndarray) -> np.ndarray:
+        return np.floor((np.asarray(p, np.float64).reshape(-1, 3) - self.lo) / self.block).astype(np.int64)
+
+    def _keys(self, c: np.ndarray) -> np.ndarray:
+        return c[:, 0] + self.dims[0] * (c[:, 1] + self.dims[1] * c[:, 2])
+
+    def query_box(self, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Indices (into the positions given at construction) of the points inside the box, sorted."""
+        if len(self.positions) == 0:
+            return np.zeros(0, np.int64)
+        c0 = np.maximum(self._coords(box[0])[0], 0)
+        c1 = np.minimum(self._coords(box[1])[0], self.dims - 1)
+        if np.any(c1 < c0):
+            return np.zeros(0, np.int64)
+        xs = np.arange(c0[0], c1[0] + 1)
+        rows = [(y, z) for z in range(c0[2], c1[2] + 1) for y in range(c0[1], c1[1] + 1)]
+        # a row of blocks along x is one contiguous key range
+        starts = np.array([self._keys(np.array([[xs[0], y, z]]))[0] for y, z in rows])
+        lo = np.searchsorted(self.sorted_keys, starts, side="left")
+        hi = np.searchsorted(self.sorted_keys, starts + len(xs), side="left")
+        idx = np.concatenate([self.order[a:b] for a, b in zip(lo, hi)]) if len(rows) else np.zeros(0, np.int64)
+        idx = idx[in_box(self.positions[idx], box)]
+        return np.sort(idx)
+
+
+# ---------------------------------------------------------------------------------------- policy
+
+@dataclass
+class MotionInput:
+    """What moved this tick, in world space."""
+    boxes_now: dict[int, tuple[np.ndarray, np.ndarray]]  # moving instance -> AABB at this tick
+    boxes_before: dict[int, tuple[np.ndarray, np.ndarray]]  # moving instance -> AABB at the previous tick
+    rigid: list[int]
+    skinned: list[int]
+
+
+def reach_boxes(motion: MotionInput, ao_distance: float) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per moving instance, its boxes now and before expanded by the AO distance."""
+    out = {}
+    for i, box in motion.boxes_now.items():
+        boxes = [expand(box, ao_distance)]
+        before = motion.boxes_before.get(i)
+        if before is not None and not (np.array_equal(before[0], box[0]) and np.array_equal(before[1], box[1])):
+            boxes.append(expand(before, ao_distance))
+        out[i] = boxes
+    return out
+
+
+def rigid_in_company(motion: MotionInput, reach: dict, static_boxes: dict[int, tuple]) -> list[int]:
+    """Rigid moving instances whose reach touches another instance's box (static, or moving now)."""
+    others = list(static_boxes.items()) + list(motion.boxes_now.items())
+    out = []
+    for i in motion.rigid:
+        if any(j != i and boxes_overlap(r, b) for r in reach[i] for j, b in others):
+            out.append(i)
+    return out
+
+
+def static_points_near(index: BlockIndex, reach: dict) -> np.ndarray:
+    """Indices into the block index of static points within reach of any moving instance."""
+    hits = [index.query_box(b) for boxes in reach.values() for b in boxes]
+    return np.unique(np.concatenate(hits)) if hits else np.zeros(0, np.int64)

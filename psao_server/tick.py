@@ -1,0 +1,297 @@
+"""The server tick (DESIGN.md, server tick steps 1-5): animate, select, trace, quantise, threshold.
+
+    tick = ServerTick(bake_result, TickSettings())   # builds the static Embree scene once, starts workers
+    tick.set_cameras([(view, proj), ...])              # from the clients' Camera messages
+    tick(grid, t)                                      # one tick at scene time t (the service's TickFn)
+    tick.transforms()                                  # (n, 4, 4) float32, for every Update
+
+Points are identified by their stable point id (Grid.build numbers them instance by instance in
+PointSet order, so id - first id of the instance is the point's index in its PointSet: that is how a
+skinned point finds its triangle). The tick keeps per id: instance, current grid location (slot, index),
+local position and normal, world position (static points: computed once), and a stale flag (a point the
+selection wanted but no client could see).
+
+Rigid instances never touch their points: the client moves them with the transform. Skinned instances
+re-place every point on the deformed mesh; points that leave their cell are moved by the grid, and
+points the grid could not keep (outside its padded box, full cell or bucket) are kept aside and
+re-inserted, with freshly traced AO, as soon as they fit again.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from protocol import pointword as pw
+from psao_server.animate import Frame, SceneAnimator, SkinnedPoints
+from psao_server.bake import BakeResult, scene_center, to_world
+from psao_server.errors import ConfigError
+from psao_server.grid import NO_POINT, Grid
+from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, frustum_planes, in_any_view, reach_boxes,
+                                   rigid_in_company, static_points_near)
+from psao_server.tracer import TraceSettings, make_tracer
+
+log = logging.getLogger("psao.tick")
+
+
+@dataclass
+class TickSettings:
+    threshold: int = 2  # AO codes (of 255): a traced point is written only when |new - stored| > threshold
+    rays: int = 32  # rays per traced point
+    seed: int = 0  # ray seed; equal to the bake's so a synced bake needs no re-trace
+    selection: bool = True  # False: re-trace every visible point every tick (the baseline)
+    view: ViewSettings = field(default_factory=ViewSettings)
+    tracer: str = "embree"
+    workers: int = 0  # tracer processes, 0 = all cores
+    block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
+
+    def check(self) -> None:
+        if not 0 <= self.threshold <= 255:
+            raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")
+        if self.rays < 1:
+            raise ConfigError(f"tick rays must be >= 1, got {self.rays}")
+        if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
+            raise ConfigError(f"view margins out of range: {self.view}")
+
+
+@dataclass
+class TickStats:
+    tick: int
+    t: float  # scene time, seconds
+    considered: int  # points the tick owns
+    skipped: int  # considered - traced
+    traced: int
+    changed: int  # AO written (|new - old| > threshold) or re-inserted
+    moved: int  # skinned points given new local positions
+    parked: int  # skinned points the grid cannot hold at the moment
+    cells_dirty: int  # cells marked dirty after the tick (= cells this tick dirtied when the service drains every tick)
+    seconds_animate: float
+    seconds_select: float
+    seconds_trace: float
+    seconds_grid: float
+    seconds_total: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class ServerTick:
+    def __init__(self, bake: BakeResult, settings: TickSettings | None = None, baked_time: float | None = 0.0,
+                 close_bake_tracer: bool = True):
+        """`baked_time`: the scene time at which the bake traced the grid (its AO then counts as the first
+        sync when the bake used the same rays and seed), or None to re-trace everything visible on the
+        first tick. The bake's tracer saw the moving instances as static: it is closed unless told not to."""
+        self.settings = settings or TickSettings()
+        self.settings.check()
+        self.scene = bake.scene
+        self.grid = bake.grid
+        self.animator = SceneAnimator(self.scene)
+        self.kinds = self.animator.kinds
+        self.trace_settings = TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance,
+                                            seed=self.settings.seed)
+        if close_bake_tracer and bake.tracer is not None:
+            bake.tracer.close()
+        self._init_points(bake)
+        self._init_tracer()
+        self.static_boxes = self.animator.static_bounds()
+        self.cameras: list[np.ndarray] = []
+        self.stats_history: list[TickStats] = []
+        self.tick_count = 0
+        same_rays = bake.stats.get("rays") == self.settings.rays
+        if baked_time is not None and same_rays:
+            self.last_frame: Frame | None = self.animator.frame(baked_time)
+        else:
+            if baked_time is not None:
+                log.info("bake traced %s rays, the tick %d: the first tick re-traces every visible point",
+                         bake.stats.get("rays"), self.settings.rays)
+            self.last_frame = None
+            self.stale[self.present()] = True
+        self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
+
+    # ------------------------------------------------------------------ set-up
+    def _init_points(self, bake: BakeResult) -> None:
+        sizes = [len(ps) for ps in bake.pointsets]
+        self.first_id = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        n = int(self.first_id[-1])
+        self.inst_of = np.repeat(np.arange(len(sizes)), sizes)
+        self.local_pos = np.concatenate([ps.positions for ps in bake.pointsets]).astype(np.float64) if n else np.zeros((0, 3))
+        self.local_nrm = np.concatenate([ps.normals for ps in bake.pointsets]).astype(np.float32) if n else np.zeros((0, 3), np.float32)
+        self.slot = np.full(n, -1, np.int64)
+        self.index = np.full(n, -1, np.int64)
+        self._relocate_all()
+        if self.grid.n_points() != int((self.slot >= 0).sum()):
+            raise ConfigError("the grid's point ids do not match the bake's point sets (not built by Grid.build?)")
+        self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
+        self.stale = np.zeros(n, dtype=bool)
+        self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
+                        for i in self.kinds.skinned}
+        # static points: world positions and normals once, and a block index for box queries
+        static = np.isin(self.inst_of, self.kinds.static) & self.tracked
+        self.static_ids = np.flatnonzero(static)
+        self.world_pos = np.zeros((n, 3))
+        self.world_nrm = np.zeros((n, 3), np.float32)
+        for i in self.kinds.static:
+            ids = self.static_ids[self.inst_of[self.static_ids] == i]
+            self.world_pos[ids], self.world_nrm[ids] = to_world(self.scene.instances[i].transform, self.local_pos[ids],
+                                                                self.local_nrm[ids])
+        block = self.settings.block or self.scene.ao_distance
+        self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
+
+    def _init_tracer(self) -> None:
+        s = self.settings
+        kwargs = {"workers": s.workers} if s.tracer == "embree" else {}
+        self.tracer = make_tracer(s.tracer, scene_center(self.scene), **kwargs)
+        self.tracer.set_static(*self.animator.static_geometry())
+        if hasattr(self.tracer, "warm_up"):
+            self.tracer.warm_up()  # forks the workers: before any thread or event loop starts
+
+    def close(self) -> None:
+        self.tracer.close()
+
+    # ------------------------------------------------------------------ point locations
+    def present(self) -> np.ndarray:
+        return self.slot >= 0
+
+    def _relocate_cells(self, cells: np.ndarray) -> None:
+        ids = self.grid.point_id[cells]
+        s, k = np.nonzero(ids != NO_POINT)
+        pid = ids[s, k]
+        inside = pid < len(self.slot)
+        self.slot[pid[inside]] = cells[s[inside]]
+        self.index[pid[inside]] = k[inside]
+
+    def _relocate_all(self) -> None:
+        self.slot[:] = -1
+        self.index[:] = -1
+        self._relocate_cells(np.flatnonzero(self.grid.cell_instance >= 0))
+
+    def _relocate_instances(self, instances: list[int]) -> None:
+        if not instances:
+            return
+        mine = np.isin(self.inst_of, instances)
+        self.slot[mine] = -1
+        self.index[mine] = -1
+        self._relocate_cells(np.flatnonzero(np.isin(self.grid.cell_instance, instances)))
+
+    def _check_locations(self, ids: np.ndarray) -> None:
+        """Someone else (a compaction, a scene edit) may have moved points: find them again."""
+        ok = self.grid.point_id[self.slot[ids], self.index[ids]] == ids
+        if not ok.all():
+            log.info("grid edited outside the tick: re-locating every point")
+            self._relocate_all()
+
+    # ------------------------------------------------------------------ public API
+    def set_cameras(self, cameras) -> None:
+        """Cameras as (view 4x4, projection 4x4) pairs (OpenGL conventions); [] means: every point visible."""
+        self.cameras = [frustum_planes(v, p, self.settings.view.fov_margin) for v, p in cameras]
+
+    def transforms(self) -> np.ndarray:
+        """(n_instances, 4, 4) float32 transforms of the last tick."""
+        return self._transforms
+
+    def stats_json(self) -> list[dict]:
+        return [s.to_dict() for s in self.stats_history]
+
+    def __call__(self, grid: Grid, t: float) -> TickStats:
+        if grid is not self.grid:
+            raise ConfigError("ServerTick was built for another grid")
+        t_start = time.perf_counter()
+        frame = self.animator.frame(t)
+        moved, parked = self._deform(frame)
+        t_anim = time.perf_counter()
+        ids = self._select(frame)
+        t_sel = time.perf_counter()
+        pos, nrm = self._world(frame, ids)
+        self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
+        vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings) if len(ids) else np.zeros(0, np.float32)
+        t_trace = time.perf_counter()
+        changed = self._store(ids, pw.quantise_ao(vis), frame)
+        t_grid = time.perf_counter()
+        self.last_frame = frame
+        self._transforms = frame.transforms.astype(np.float32)
+        n = int(self.tracked.sum())
+        stats = TickStats(
+            tick=self.tick_count, t=float(t), considered=n, skipped=n - len(ids), traced=int(len(ids)),
+            changed=changed, moved=moved, parked=parked,
+            cells_dirty=int(np.count_nonzero(grid.dirty_cells)),
+            seconds_animate=t_anim - t_start, seconds_select=t_sel - t_anim, seconds_trace=t_trace - t_sel,
+            seconds_grid=(t_grid - t_trace) + self._grid_seconds, seconds_total=t_grid - t_start)
+        stats.seconds_animate -= self._grid_seconds  # move_points time is grid work, not animation
+        self.tick_count += 1
+        self.stats_history.append(stats)
+        return stats
+
+    # ------------------------------------------------------------------ steps
+    def _deform(self, frame: Frame) -> tuple[int, int]:
+        """Skinned points to their new local positions (grid.move_points); returns (moved, parked)."""
+        self._grid_seconds = 0.0
+        moved = 0
+        for i, sp in self.skinned.items():
+            mesh = self.scene.meshes[self.scene.instances[i].mesh]
+            pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
+            ids = np.arange(self.first_id[i], self.first_id[i + 1])
+            change = np.any(pos != self.local_pos[ids], axis=1) | np.any(nrm != self.local_nrm[ids], axis=1)
+            self.local_pos[ids], self.local_nrm[ids] = pos, nrm
+            go = ids[change & self.present()[ids]]
+            moved += int(change.sum())
+            if len(go):
+                g0 = time.perf_counter()
+                self._check_locations(go)
+                self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
+                self._grid_seconds += time.perf_counter() - g0
+        g0 = time.perf_counter()
+        self._relocate_instances(self.kinds.skinned)
+        self._grid_seconds += time.perf_counter() - g0
+        return moved, int((self.tracked & ~self.present()).sum())
+
+    def _select(self, frame: Frame) -> np.ndarray:
+        """Point ids to trace this tick (sorted); updates the stale flags."""
+        candidates = self.tracked.copy() if not self.settings.selection or self.last_frame is None else self._motion_candidates(frame)
+        candidates |= self.stale
+        ids = np.flatnonzero(candidates & self.tracked)
+        visible = in_any_view(self._world(frame, ids)[0], self.cameras, self.settings.view.distance_margin)
+        if self.settings.selection:
+            self.stale[ids] = ~visible
+        return ids[visible]
+
+    def _motion_candidates(self, frame: Frame) -> np.ndarray:
+        motion = MotionInput(frame.bounds, self.last_frame.bounds, self.kinds.rigid, self.kinds.skinned)
+        reach = reach_boxes(motion, self.scene.ao_distance)
+        out = np.zeros(len(self.tracked), dtype=bool)
+        out[self.static_ids[static_points_near(self.block_index, reach)]] = True
+        for i in self.kinds.skinned + rigid_in_company(motion, reach, self.static_boxes):
+            out[self.first_id[i]:self.first_id[i + 1]] = True
+        return out
+
+    def _world(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pos = self.world_pos[ids].copy()
+        nrm = self.world_nrm[ids].copy()
+        inst = self.inst_of[ids]
+        for i in self.kinds.moving:
+            sel = np.flatnonzero(inst == i)
+            if len(sel):
+                pos[sel], nrm[sel] = to_world(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
+        return pos, nrm
+
+    def _store(self, ids: np.ndarray, codes: np.ndarray, frame: Frame) -> int:
+        """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
+        here = self.present()[ids]
+        have, new = ids[here], codes[here]
+        changed = 0
+        if len(have):
+            self._check_locations(have)
+            old = (self.grid.cells[self.slot[have], self.index[have]] & np.uint32(0xFF)).astype(np.int64)
+            write = np.abs(new.astype(np.int64) - old) > self.settings.threshold
+            self.grid.set_ao(self.slot[have][write], self.index[have][write], new[write])
+            changed += int(write.sum())
+        parked = ids[~here]
+        if len(parked):
+            insts = self.inst_of[parked]
+            for i in np.unique(insts).tolist():
+                sel = parked[insts == i]
+                kept = self.grid.insert_points(i, self.local_pos[sel], self.local_nrm[sel], codes[~here][insts == i], sel)
+                changed += int(kept.sum())
+            self._relocate_instances(np.unique(insts).tolist())
+        return changed
