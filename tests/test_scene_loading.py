@@ -284,3 +284,18 @@ def test_gltf_json_with_external_or_embedded_buffer(tmp_path, kind):
         (tmp_path / "x.bin").unlink()
         with pytest.raises(SceneNotFound, match=r"x\.gltf.*x\.bin"):
             load_scene(tmp_path / "x.gltf")
+
+
+@pytest.mark.parametrize("ext", ["stl", "ply", "off", "obj"])
+def test_trimesh_formats_round_trip(tmp_path, ext):
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    box.apply_translation((5.0, 0.0, -1.0))
+    f = tmp_path / f"box.{ext}"
+    box.export(str(f))
+    scene = load_scene(f)
+    tri = np.concatenate([world_triangles(scene, i) for i in scene.instances])
+    assert len(tri) == 12
+    assert triangle_areas(tri).sum() == pytest.approx(box.area)
+    lo, hi = scene.world_bounds()
+    np.testing.assert_allclose([lo, hi], box.bounds, atol=1e-6)
+    assert scene.ao_distance == pytest.approx(0.1 * np.linalg.norm(hi - lo))
