@@ -1,0 +1,102 @@
+"""Selection geometry: extended frusta against a brute-force clip-space test, block index box queries
+against a brute-force scan, and the reach rules for moving instances."""
+import numpy as np
+import pytest
+
+from psao_scene.camera import look_at, perspective
+from psao_server.selection import (BlockIndex, MotionInput, frustum_planes, in_any_view, in_box, in_frustum,
+                                   reach_boxes, rigid_in_company, static_points_near)
+
+
+def random_points(n, seed=0, scale=20.0):
+    return np.random.default_rng(seed).uniform(-scale, scale, size=(n, 3))
+
+
+def clip_inside(points, view, proj):
+    """Brute force: inside the frustum without its near plane, in clip space."""
+    h = np.c_[points, np.ones(len(points))] @ (proj @ view).T
+    x, y, z, w = h.T
+    return (np.abs(x) <= w) & (np.abs(y) <= w) & (z <= w)
+
+
+@pytest.mark.parametrize("fov,aspect", [(60.0, 16 / 9), (35.0, 1.0), (90.0, 0.5)])
+def test_frustum_matches_clip_space(fov, aspect):
+    view = look_at((3.0, 2.0, 5.0), (0.0, 0.5, -1.0))
+    proj = perspective(fov, aspect, 0.1, 30.0)
+    pts = random_points(20000)
+    got = in_frustum(pts, frustum_planes(view, proj), 0.0)
+    want = clip_inside(pts, view, proj)
+    assert got.sum() > 100 and (~got).sum() > 100
+    np.testing.assert_array_equal(got, want)
+
+
+def test_fov_margin_widens_by_degrees():
+    view = look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    proj = perspective(60.0, 1.0, 0.1, 100.0)
+    # points at 10 m in front, at horizontal angles from the axis: the half fov is 30 degrees
+    angles = np.radians([25.0, 29.0, 31.0, 34.0, 36.0, 45.0])
+    pts = np.c_[10 * np.sin(angles), np.zeros(len(angles)), -10 * np.cos(angles)]
+    np.testing.assert_array_equal(in_frustum(pts, frustum_planes(view, proj, 0.0)), [1, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(in_frustum(pts, frustum_planes(view, proj, 10.0)), [1, 1, 1, 1, 0, 0])
+
+
+def test_distance_margin_takes_points_just_outside():
+    view = look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    proj = perspective(60.0, 1.0, 0.1, 100.0)
+    planes = frustum_planes(view, proj)
+    behind = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 3.0]])  # behind the eye, 0.5 m and 3 m
+    # distance from the right plane through the eye: z * sin(30 deg)
+    assert not in_frustum(behind, planes, 0.0).any()
+    np.testing.assert_array_equal(in_frustum(behind, planes, 1.0), [True, False])
+    far = np.array([[0.0, 0.0, -100.5], [0.0, 0.0, -102.0]])
+    np.testing.assert_array_equal(in_frustum(far, planes, 1.0), [True, False])
+
+
+def test_any_view_is_the_union_and_no_view_is_everything():
+    pts = random_points(5000, seed=1)
+    proj = perspective(50.0, 1.5, 0.1, 40.0)
+    a = frustum_planes(look_at((0, 0, 10), (0, 0, 0)), proj)
+    b = frustum_planes(look_at((10, 0, 0), (0, 0, 0)), proj)
+    np.testing.assert_array_equal(in_any_view(pts, [a, b], 0.5), in_frustum(pts, a, 0.5) | in_frustum(pts, b, 0.5))
+    assert in_any_view(pts, [], 0.5).all() and in_any_view(pts, None, 0.5).all()
+
+
+@pytest.mark.parametrize("block", [0.3, 1.5, 7.0])
+def test_block_index_box_query_matches_scan(block):
+    pts = random_points(30000, seed=2, scale=10.0)
+    index = BlockIndex(pts, block)
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        c = rng.uniform(-12, 12, 3)
+        h = rng.uniform(0.01, 5.0, 3)
+        box = (c - h, c + h)
+        np.testing.assert_array_equal(index.query_box(box), np.flatnonzero(in_box(pts, box)))
+    assert len(BlockIndex(np.zeros((0, 3)), 1.0).query_box((np.zeros(3), np.ones(3)))) == 0
+
+
+def box(lo, hi):
+    return np.array(lo, float), np.array(hi, float)
+
+
+def test_reach_uses_current_and_previous_boxes():
+    motion = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([5, 0, 0], [6, 1, 1])}, rigid=[0], skinned=[])
+    reach = reach_boxes(motion, 0.5)[0]
+    assert len(reach) == 2
+    np.testing.assert_allclose(reach[0][0], [-0.5, -0.5, -0.5])
+    np.testing.assert_allclose(reach[1][1], [6.5, 1.5, 1.5])
+    pts = np.array([[1.4, 0.5, 0.5], [3.0, 0.5, 0.5], [4.6, 0.5, 0.5], [6.6, 0.5, 0.5]])
+    near = static_points_near(BlockIndex(pts, 1.0), reach_boxes(motion, 0.5))
+    np.testing.assert_array_equal(near, [0, 2])
+    # unmoved: one box only
+    still = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([0, 0, 0], [1, 1, 1])}, rigid=[0], skinned=[])
+    assert len(reach_boxes(still, 0.5)[0]) == 1
+
+
+def test_rigid_instance_in_company_only_when_near_another_box():
+    static = {1: box([10, 0, 0], [11, 1, 1])}
+    lonely = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {}, rigid=[0], skinned=[])
+    assert rigid_in_company(lonely, reach_boxes(lonely, 1.0), static) == []
+    near = MotionInput({0: box([8.5, 0, 0], [9.5, 1, 1])}, {}, rigid=[0], skinned=[])
+    assert rigid_in_company(near, reach_boxes(near, 1.0), static) == [0]
+    left = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([8.5, 0, 0], [9.5, 1, 1])}, rigid=[0], skinned=[])
+    assert rigid_in_company(left, reach_boxes(left, 1.0), static) == [0]  # it just left: AO changes
