@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import base64
 import logging
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -161,7 +162,9 @@ class GltfFile:
         import pygltflib
         self.path = Path(path)
         try:
-            self.doc = pygltflib.GLTF2().load(str(path))
+            with warnings.catch_warnings():  # pygltflib warns (two lines) about chunks it skips
+                warnings.simplefilter("ignore")
+                self.doc = pygltflib.GLTF2().load(str(path))
         except Exception as e:
             raise SceneFormatError(f"{path}: cannot parse glTF: {type(e).__name__}: {e}".splitlines()[0]) from None
         if self.doc is None:

@@ -248,7 +248,7 @@ def test_malformed_toml_names_line(tmp_path):
     assert "bad.toml" in one_line(e) and "line 3" in one_line(e)
 
 
-@pytest.mark.filterwarnings("ignore::UserWarning")  # pygltflib warns about the unknown chunk first
+@pytest.mark.filterwarnings("error")  # nothing but the error: no library warning reaches the user
 def test_corrupt_glb(tmp_path):
     f = tmp_path / "broken.glb"
     f.write_bytes(b"glTF" + struct.pack("<II", 2, 40) + b"\0" * 8)
