@@ -3,7 +3,8 @@
 A skinned position is  p' = (sum_k w_k M_{j_k}) p  with M = skin.skinning_matrices(t) (joint matrix times
 inverse bind), in the mesh's local space; a normal is transformed by the inverse transpose of the same
 blended 3x3 and renormalised. AO points on a skinned mesh carry their own 4 joints and weights,
-blended from their triangle's corners by point_skin_weights().
+blended from their triangle's corners by point_skin_weights() (or are placed on the skinned triangles
+directly with surface_points(), which matches the client's rasteriser exactly).
 
 SkinDeformer uploads the rest data once and keeps its output buffers: per tick only the (J, 4, 4)
 matrices move to the device. float64 throughout, as the Scene's geometry.
@@ -186,3 +187,16 @@ class SceneSkinner:
             pts = self.vertices(inst.mesh, t)
         w = pts @ m[:3, :3].T + m[:3, 3]
         return w.min(axis=0), w.max(axis=0)
+
+
+def surface_points(vertices: np.ndarray, faces: np.ndarray, face_index: np.ndarray,
+                   bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points at barycentrics `bary` of triangles `face_index` of a (skinned) vertex array, and the unit
+    normals of those triangles. Unlike skinning a point with its own blended weights (skin_points with
+    point_skin_weights), this keeps points exactly on the triangles the client rasterises from the
+    same skinned vertices; the two differ by the bilinear term of linear blend skinning (small for
+    smooth weights, zero when a triangle follows one joint)."""
+    tri = vertices[faces[face_index]]  # (P, 3, 3)
+    pos = np.einsum("pk,pkj->pj", bary, tri)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return pos, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

@@ -264,3 +264,25 @@ def test_scene_skinner_bounds_contain_the_moving_geometry():
             assert (v >= lo - 1e-9).all() and (v <= hi + 1e-9).all()
             if scene.meshes[inst.mesh].skin is not None:  # tight for skinned meshes
                 np.testing.assert_allclose([lo, hi], [v.min(0), v.max(0)], atol=1e-12)
+
+
+def test_point_skinning_stays_near_the_skinned_surface():
+    """AO points skinned with their own blended weights stay within a small distance of the skinned
+    triangles they came from, and exactly on them where the triangle follows one joint."""
+    from psao_scene.skinning import surface_points
+    scene = load_scene("builtin:robots")
+    mesh = next(m for m in scene.meshes if m.skin is not None)
+    skin = mesh.skin
+    faces = RNG.integers(0, len(mesh.faces), 3000)
+    bary = RNG.dirichlet(np.ones(3), size=3000)
+    rest, _ = surface_points(mesh.vertices, mesh.faces, faces, bary)
+    pj, pw = point_skin_weights(skin.joints, skin.weights, mesh.faces, faces, bary)
+    single = np.array([len({int(j) for c in mesh.faces[f] for j, w in zip(skin.joints[c], skin.weights[c]) if w > 0}) == 1
+                       for f in faces])
+    assert single.any() and (~single).any()
+    for t in (0.3, 1.1):
+        lbs = skin_points(skin, t, rest, pj, pw)
+        exact, _ = surface_points(skinned_vertices(mesh, t), mesh.faces, faces, bary)
+        gap = np.linalg.norm(lbs - exact, axis=1)
+        assert gap[single].max() < 1e-9
+        assert gap.max() < 0.01  # metres, on a 1.75 m robot
