@@ -1,0 +1,275 @@
+"""`psao bench SCENE...`: PSAO and SSAO against an RTAO reference, and PSAO's stream, on real processes.
+
+For every scene:
+  1. `psao bake` per density (a real process; grids cached under CACHE/grids by scene hash, N and rays);
+  2. quality: PSAO from each grid and SSAO, in one headless renderer along the camera path, against RTAO
+     traced from the same G-buffer (cached under CACHE/rtao), scored with PSNR, SSIM and FLIP;
+  3. stream: per density and tick rate a real `psao serve --grid FILE --density N --tick-hz H` process on a
+     free 127.0.0.1 port and a real headless `psao client` for --stream-seconds after its snapshot:
+     snapshot size, Mbit/s after it, and the server's milliseconds per tick from its statistics.
+Writes table.md, table.csv, results.json, runtime_error.png, bandwidth_quality.png and one side-by-side
+image per scene (frame_SCENE.png) to --out. Server processes are killed (their whole process group) on
+every exit path.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from psao_eval.errors import EvalError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenes", nargs="+", metavar="SCENE", help="builtin:NAME, a scene .toml, or a glTF/OBJ/... file")
+    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated")
+    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated")
+    p.add_argument("--frames", type=int, default=4, help="frames along the camera path scored per scene (default 4)")
+    p.add_argument("--spp", type=int, default=512, help="RTAO reference rays per pixel (default 512)")
+    p.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
+    p.add_argument("--rays", type=int, default=128, help="AO rays per point in the bake (default 128)")
+    p.add_argument("--ssao-samples", type=int, default=16, help="SSAO kernel size (default 16)")
+    p.add_argument("--stream-seconds", type=float, default=3.0, help="client run after its snapshot, per config (default 3)")
+    p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (default: the scene's first)")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder (default out/bench)")
+    p.add_argument("--cache", type=Path, default=Path("out") / ".cache", metavar="DIR",
+                   help="cache of grids and RTAO references (default out/.cache)")
+    p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
+
+
+@dataclass
+class BenchConfig:
+    scenes: list[str]
+    densities: list[float]
+    tick_hz: list[float]
+    frames: int
+    spp: int
+    size: tuple[int, int]
+    rays: int
+    ssao_samples: int
+    stream_seconds: float
+    camera_path: str | None
+    out: Path
+    cache: Path
+    stream: bool = True
+
+
+def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
+    try:
+        values = [float(t) for t in str(text).split(",") if t.strip()]
+    except ValueError:
+        raise EvalError(f"--{what}: expected comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise EvalError(f"--{what}: no values given")
+    bad = [v for v in values if not (math.isfinite(v) and low <= v <= high)]
+    if bad:
+        raise EvalError(f"--{what}: {bad[0]:g} is outside {low:g}..{high:g}")
+    return sorted(set(values))
+
+
+def config_from_args(args) -> BenchConfig:
+    from psao_client.errors import RenderError
+    from psao_client.render.output import parse_size
+
+    try:
+        size = parse_size(args.size)
+    except RenderError as exc:
+        raise EvalError(str(exc)) from None
+    if min(size) < 8:
+        raise EvalError(f"--size {args.size}: frames must be at least 8x8 pixels")
+    for name, v in (("frames", args.frames), ("spp", args.spp), ("rays", args.rays), ("ssao-samples", args.ssao_samples)):
+        if v < 1:
+            raise EvalError(f"--{name} must be >= 1, got {v}")
+    if not (args.stream_seconds > 0 and math.isfinite(args.stream_seconds)):
+        raise EvalError(f"--stream-seconds must be > 0, got {args.stream_seconds}")
+    return BenchConfig(scenes=list(args.scenes), densities=parse_list(args.densities, "densities", 1e-3, 1e7),
+                       tick_hz=parse_list(args.tick_hz, "tick-hz", 5, 60), frames=args.frames, spp=args.spp,
+                       size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
+                       camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream)
+
+
+def ensure_writable(folder: Path, what: str) -> Path:
+    """Create the folder and prove a file can be written there, or fail with one line."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / ".psao-write-test"
+        probe.write_text("ok")
+        probe.unlink()
+    except OSError as exc:
+        raise EvalError(f"{what} {folder} cannot be written: {exc.strerror or exc}") from None
+    return folder
+
+
+class Log:
+    """Step lines on stderr with the elapsed time (rich when stderr is a terminal)."""
+
+    def __init__(self):
+        from rich.console import Console
+
+        self.console = Console(stderr=True, highlight=False)
+        self.t0 = time.perf_counter()
+
+    def __call__(self, text: str) -> None:
+        self.console.print(f"[{time.perf_counter() - self.t0:6.1f} s] {text}", markup=False, soft_wrap=True)
+
+
+def grid_path(cache: Path, scene, density: float, rays: int) -> Path:
+    return cache / "grids" / f"{scene.name}-{scene.content_hash()[:12]}-N{density:g}-R{rays}.npz"
+
+
+def bake_cached(spec: str, scene, density: float, rays: int, cache: Path, log: Log) -> tuple[Path, dict]:
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.processes import bake_grid
+
+    path = grid_path(cache, scene, density, rays)
+    if path.is_file():
+        try:
+            return path, dict(load_grid_file(path).meta)
+        except Exception:  # noqa: BLE001 - a damaged cache entry is simply baked again
+            pass
+    log(f"{scene.name}: psao bake N={density:g}, {rays} rays")
+    tmp = path.with_name(path.stem + ".partial.npz")
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    stats = bake_grid(spec, density, rays, tmp)
+    tmp.replace(path)
+    log(f"{scene.name}: baked {stats.get('points_kept', 0):,} points in {stats.get('seconds_trace', 0):.1f} s of tracing")
+    return path, stats
+
+
+def method_name(density: float) -> str:
+    return f"PSAO-{density:g}"
+
+
+def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict]:
+    """All rows of one scene and the data of its side-by-side image."""
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
+    from psao_eval.reference import ReferenceSettings
+    from psao_scene import load_scene
+
+    scene = load_scene(spec)
+    if not scene.camera_paths and cfg.camera_path is None:
+        log(f"warning: scene '{scene.name}' has no camera path: using an orbit around its bounds")
+    poses = frame_poses(scene, cfg.frames, cfg.size, cfg.camera_path)
+    grids = {d: bake_cached(spec, scene, d, cfg.rays, cfg.cache, log) for d in cfg.densities}
+
+    log(f"{scene.name}: rendering {len(poses)} frame(s) at {cfg.size[0]}x{cfg.size[1]}, PSAO at "
+        f"{len(grids)} densities and SSAO")
+    frames = {}
+    with QualityRenderer(scene, cfg.size, cfg.ssao_samples) as qr:
+        for d, (path, _) in grids.items():
+            frames[d] = qr.render(load_grid_file(path), poses)
+        gl_renderer = qr.gl_renderer
+    first = frames[cfg.densities[0]]
+    log(f"{scene.name}: RTAO reference, {cfg.spp} spp, {len(first)} frame(s) (cached in {cfg.cache / 'rtao'})")
+    refs = reference_images(scene, first, ReferenceSettings(spp=cfg.spp, cache_dir=cfg.cache / "rtao"))
+
+    rows = []
+    ssao_scores = score_frames(first, refs, methods=("ssao",))
+    s = mean_scores(ssao_scores, "ssao")
+    rows.append({"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(),
+                 "client_ms_frame": _median([f.gpu_ms["ssao"] for f in first]), "frames": len(first), "spp": cfg.spp,
+                 "gl_renderer": gl_renderer})
+    pick = len(first) // 2  # the side-by-side frame
+    panels = []
+    quality = {}
+    for d in cfg.densities:
+        sc = score_frames(frames[d], refs, methods=("psao",))
+        quality[d] = mean_scores(sc, "psao")
+        meta = grids[d][1]
+        quality[d] = {**quality[d].as_dict(), "client_ms_frame": _median([f.gpu_ms["psao"] for f in frames[d]]),
+                      "points": meta.get("points_kept"), "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])),
+                      "frames": len(frames[d]), "spp": cfg.spp}
+        panels.append((method_name(d), frames[d][pick].ao["psao"], sc[pick].flip_map, sc[pick].scores.as_dict()))
+        log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f} "
+            f"(SSAO {s.psnr:.2f} dB, {s.flip:.3f})")
+    panels.append(("SSAO", first[pick].ao["ssao"], ssao_scores[pick].flip_map, ssao_scores[pick].scores.as_dict()))
+
+    for d in cfg.densities:
+        base = {"scene": scene.name, "method": method_name(d), "density": d, "gl_renderer": gl_renderer, **quality[d]}
+        if not cfg.stream:
+            rows.append({**base, "tick_hz": None})
+            continue
+        for hz in cfg.tick_hz:
+            rows.append({**base, "tick_hz": hz, **stream_run(spec, scene.name, grids[d][0], d, hz, cfg, log)})
+    return rows, {"scene": scene.name, "reference": refs[pick], "panels": panels}
+
+
+def stream_run(spec: str, name: str, grid: Path, density: float, hz: float, cfg: BenchConfig, log: Log) -> dict:
+    from psao_eval.processes import ServerProcess, run_client, stream_rates
+
+    with ServerProcess(spec, ["--grid", str(grid), "--density", f"{density:g}", "--rays", str(cfg.rays),
+                              "--tick-hz", f"{hz:g}"]) as server:
+        stats = run_client(server.url, spec, cfg.stream_seconds)
+        rates = stream_rates(stats)
+        rates["server_ms_tick"] = server.tick_ms()
+        if not server.alive():
+            raise EvalError(f"psao serve {spec} died during the run")
+    log(f"{name}: N={density:g} @{hz:g} Hz: snapshot {rates['snapshot_mb']:.2f} MB in {rates['snapshot_s']:.1f} s, "
+        f"then {rates['stream_mbit_s']:.3f} Mbit/s, server {rates['server_ms_tick']:.2f} ms/tick")
+    return rates
+
+
+def _median(values) -> float:
+    import numpy as np
+
+    return float(np.median(values)) if len(values) else float("nan")
+
+
+def write_outputs(rows: list[dict], images: list[dict], out: Path, image_scale: float = 1.0) -> list[Path]:
+    from psao_eval import report
+
+    written = [out / "table.md", out / "table.csv", out / "results.json", out / "runtime_error.png",
+               out / "bandwidth_quality.png"]
+    (out / "table.md").write_text(report.markdown_table(rows))
+    report.write_csv(rows, out / "table.csv")
+    (out / "results.json").write_text(json.dumps(rows, indent=1, default=_json_default))
+    report.runtime_chart(rows, out / "runtime_error.png")
+    report.bandwidth_chart(rows, out / "bandwidth_quality.png")
+    for im in images:
+        path = out / f"frame_{im['scene']}.png"
+        report.side_by_side(im["reference"], im["panels"], path, scale=image_scale)
+        written.append(path)
+    return written
+
+
+def _json_default(v):
+    if hasattr(v, "item"):
+        return v.item()
+    raise TypeError(f"not JSON serialisable: {type(v)}")
+
+
+def run(args) -> int:
+    from psao_eval.metrics import LPIPS_NOTE
+
+    cfg = config_from_args(args)
+    ensure_writable(cfg.out, "output folder")
+    ensure_writable(cfg.cache, "cache folder")
+    log = Log()
+    rows, images = [], []
+    for spec in cfg.scenes:
+        scene_rows, image = bench_scene(spec, cfg, log)
+        rows += scene_rows
+        images.append(image)
+    written = write_outputs(rows, images, cfg.out)
+    print(report_text(rows))
+    print(LPIPS_NOTE)
+    for p in written:
+        print(p)
+    log("done")
+    return 0
+
+
+def report_text(rows: list[dict]) -> str:
+    from psao_eval.report import markdown_table
+
+    return markdown_table(rows)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(run(argparse.Namespace()))

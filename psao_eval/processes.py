@@ -1,0 +1,220 @@
+"""Real `psao` processes for benchmarks: bake, serve, client.
+
+Every child runs in its own session (process group), so its Embree worker processes go with it: the
+`ServerProcess` context manager kills the whole group on exit, on errors and on Ctrl-C alike, and a
+benchmark never leaves a server behind.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from psao_eval.errors import EvalError
+
+LISTEN_RE = re.compile(r"listening on (ws://[\w.\-]+:\d+)")
+STATS_RE = re.compile(r"tick (\d+) \| ([\d.]+) ticks/s \| tick load (\d+)%")
+
+
+def psao_command(*args: str) -> list[str]:
+    """The `psao` CLI of this interpreter (works without the console script on PATH)."""
+    return [sys.executable, "-m", "psao.cli", *map(str, args)]
+
+
+def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
+    """SIGTERM the child's process group, wait up to `grace` s, then SIGKILL whatever is left."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            pass
+    try:  # workers may outlive their parent: the group goes in any case
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    if proc.poll() is None:
+        proc.wait(5.0)
+
+
+def last_json_line(text: str, what: str) -> dict:
+    for line in reversed(text.strip().splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                return json.loads(line)
+            except json.JSONDecodeError:
+                break
+    raise EvalError(f"{what} printed no JSON result")
+
+
+def _tail(text: str, lines: int = 3) -> str:
+    got = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    return " | ".join(got[-lines:]) or "(no output)"
+
+
+def run_cli(args: list[str], what: str, timeout: float) -> dict:
+    """Run a `psao ...` command in its own process group to completion; its --json result."""
+    proc = subprocess.Popen(psao_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise EvalError(f"{what} did not finish within {timeout:.0f} s") from None
+    finally:
+        kill_group(proc)
+    if proc.returncode != 0:
+        raise EvalError(f"{what} failed (exit {proc.returncode}): {_tail(err)}")
+    return last_json_line(out, what)
+
+
+def bake_grid(scene_spec: str, density: float, rays: int, out: Path, timeout: float = 1800.0) -> dict:
+    """`psao bake SCENE --density N --rays R --out FILE --json` (no accuracy probes); its statistics."""
+    return run_cli(["bake", scene_spec, "--density", f"{density:g}", "--rays", str(rays), "--probes", "0",
+                    "--out", str(out), "--json"], f"psao bake {scene_spec} at N={density:g}", timeout)
+
+
+@dataclass
+class ServerProcess:
+    """`psao serve` on 127.0.0.1 with a free port (--port 0; the URL is read from its log)."""
+
+    scene_spec: str
+    extra: list[str] = field(default_factory=list)
+    start_timeout: float = 600.0  # seconds to bake/load and listen
+    proc: subprocess.Popen | None = None
+    url: str = ""
+    log_path: Path | None = None
+
+    def __enter__(self) -> "ServerProcess":
+        fd, name = tempfile.mkstemp(prefix="psao-serve-", suffix=".log")
+        self.log_path = Path(name)
+        with os.fdopen(fd, "w") as log:
+            self.proc = subprocess.Popen(
+                psao_command("serve", self.scene_spec, "--host", "127.0.0.1", "--port", "0", *self.extra),
+                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+        try:
+            self.url = self._wait_listening()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _wait_listening(self) -> str:
+        deadline = time.monotonic() + self.start_timeout
+        while time.monotonic() < deadline:
+            m = LISTEN_RE.search(self.log())
+            if m:
+                return m.group(1)
+            if self.proc.poll() is not None:
+                raise EvalError(f"psao serve {self.scene_spec} exited ({self.proc.returncode}) before listening: "
+                                f"{_tail(self.log())}")
+            time.sleep(0.1)
+        raise EvalError(f"psao serve {self.scene_spec} did not listen within {self.start_timeout:.0f} s")
+
+    def log(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace") if self.log_path else ""
+        except OSError:
+            return ""
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def tick_ms(self) -> float:
+        """Mean server milliseconds per tick from its live statistics lines (busy fraction / tick rate);
+        NaN when it logged none."""
+        loads = [(float(rate), float(load) / 100.0) for _, rate, load in STATS_RE.findall(self.log())]
+        loads = [(r, b) for r, b in loads if r > 0]
+        if not loads:
+            return float("nan")
+        return 1e3 * sum(b for _, b in loads) / sum(r for r, _ in loads)
+
+    def close(self) -> None:
+        if self.proc is not None:
+            kill_group(self.proc)
+        if self.log_path is not None:
+            try:
+                self.log_path.unlink()
+            except OSError:
+                pass
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (), connect_timeout: float = 300.0) -> dict:
+    """A headless `psao client URL --json --no-reconnect`, stopped by SIGINT `seconds` after its snapshot
+    arrived (seen in its --digest-log; a static scene sends no update at all, so an update count would
+    never be reached). The client then prints its statistics and exits."""
+    what = f"psao client {url}"
+    fd, name = tempfile.mkstemp(prefix="psao-client-", suffix=".jsonl")
+    os.close(fd)
+    digests = Path(name)
+    proc = subprocess.Popen(psao_command("client", url, "--scene", scene_spec, "--json", "--no-reconnect",
+                                         "--reconnect-timeout", "20", "--digest-log", str(digests), *extra),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        _wait_for_snapshot(proc, digests, connect_timeout, what)
+        if proc.poll() is None:
+            time.sleep(seconds)
+            proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=60.0)
+        except subprocess.TimeoutExpired:
+            raise EvalError(f"{what} did not stop on SIGINT") from None
+    finally:
+        kill_group(proc)
+        digests.unlink(missing_ok=True)
+    if proc.returncode not in (0, 130, -signal.SIGINT):
+        raise EvalError(f"{what} failed (exit {proc.returncode}): {_tail(err)}")
+    stats = last_json_line(out, what)
+    if not stats.get("snapshot_bytes"):
+        raise EvalError(f"{what} received no snapshot: {_tail(err)}")
+    return stats
+
+
+def _wait_for_snapshot(proc: subprocess.Popen, digests: Path, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if digests.stat().st_size > 0:
+            return
+        if proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr else ""
+            raise EvalError(f"{what} exited ({proc.returncode}) before its snapshot: {_tail(err)}")
+        time.sleep(0.05)
+    raise EvalError(f"{what}: no snapshot within {timeout:.0f} s")
+
+
+def client_has_render() -> bool:
+    """Whether this `psao client` can render frames (--render), i.e. the streaming renderer is wired in."""
+    try:
+        out = subprocess.run(psao_command("client", "--help"), capture_output=True, text=True, timeout=60).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return "--render" in out
+
+
+def stream_rates(stats: dict) -> dict:
+    """Bandwidth figures from the client's statistics: the snapshot and the steady stream after it."""
+    total = float(stats.get("bytes_received", 0))
+    snap = float(stats.get("snapshot_bytes", 0))
+    seconds = float(stats.get("seconds", 0.0))
+    snap_s = float(stats.get("snapshot_seconds") or 0.0)
+    steady_s = max(seconds - snap_s, 1e-9)
+    return {
+        "snapshot_mb": snap / 1e6,
+        "snapshot_s": snap_s,
+        "stream_mbit_s": (total - snap) * 8.0 / 1e6 / steady_s,
+        "updates": int(stats.get("updates", 0)),
+        "updates_per_s": float(stats.get("updates", 0)) / steady_s,
+    }

@@ -1,0 +1,139 @@
+"""AO quality of PSAO and SSAO against the RTAO reference, frame by frame along a camera path.
+
+    poses = frame_poses(scene, frames=4, size=(640, 360))
+    with QualityRenderer(scene, size) as qr:
+        frames = qr.render(grid, poses)              # PSAO and SSAO from one renderer, one G-buffer
+    refs = reference_images(scene, frames, ReferenceSettings(spp=512))
+    rows = score_frames(frames, refs)                # per frame and method: Scores
+
+PSAO and SSAO run in the same FrameRenderer ("both"), so they shade the same G-buffer the reference
+traces from. The geometry is the scene at its rest transforms (a baked grid is the server's state at
+t = 0; the camera moves along its path).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from psao_eval.errors import EvalError
+from psao_eval.metrics import Scores, composite_ao, score
+from psao_eval.reference import FrameKey, ReferenceSettings, reference_ao
+
+
+@dataclass
+class FramePose:
+    index: int
+    time: float  # seconds on the camera path
+    view: np.ndarray
+    proj: np.ndarray
+
+
+@dataclass
+class RenderedFrame:
+    pose: FramePose
+    ao: dict[str, np.ndarray]  # method -> (H, W) AO composited (1 on background)
+    mask: np.ndarray  # covered pixels
+    gbuffer: object  # GBufferArrays
+    gpu_ms: dict[str, float]  # method -> client GPU ms for the frame (G-buffer pass + the AO pass(es))
+    holes: float = 0.0  # fraction of covered pixels where PSAO found no point (weight 0)
+
+
+@dataclass
+class FrameScores:
+    frame: int
+    method: str
+    scores: Scores
+    flip_map: np.ndarray = field(repr=False)
+
+
+def frame_poses(scene, frames: int, size: tuple[int, int], camera_path: str | None = None) -> list[FramePose]:
+    """Frames spread over one period of the scene's camera path (an orbit around its bounds, with a
+    warning, when it has none)."""
+    from psao_client.render.views import path_matrices, path_times
+    from psao_scene import scene_camera
+
+    if frames < 1:
+        raise EvalError(f"frames must be >= 1, got {frames}")
+    try:
+        path = scene_camera(scene, camera_path)
+    except KeyError as exc:
+        raise EvalError(str(exc.args[0])) from None
+    poses = []
+    for i, t in enumerate(path_times(path, frames)):
+        view, proj = path_matrices(scene, path, float(t), size)
+        poses.append(FramePose(i, float(t), view, proj))
+    return poses
+
+
+def rest_transforms(scene) -> np.ndarray:
+    return np.stack([np.asarray(i.transform, np.float64) for i in scene.instances]) if scene.instances \
+        else np.zeros((0, 4, 4))
+
+
+class QualityRenderer:
+    """One headless FrameRenderer rendering PSAO and SSAO together, reused for every grid and frame."""
+
+    def __init__(self, scene, size: tuple[int, int], ssao_samples: int = 16):
+        from psao_client.render.renderer import FrameRenderer
+
+        self.scene = scene
+        self.size = tuple(size)
+        self.renderer = FrameRenderer(scene, self.size, "both", ssao_samples=ssao_samples)
+        self.gl_renderer = self.renderer.ctx.info.get("GL_RENDERER", "")
+
+    def render(self, grid, poses: list[FramePose]) -> list[RenderedFrame]:
+        """`grid` has instances, buckets and cells (a GridFile or a Grid)."""
+        r = self.renderer
+        r.upload_grid(grid.instances, grid.buckets, grid.cells)
+        r.set_transforms(rest_transforms(self.scene))
+        r.render(poses[0].view, poses[0].proj, read_gbuffer=False)  # warm-up: first-frame timings are bogus
+        out = []
+        for pose in poses:
+            frame = r.render(pose.view, pose.proj)
+            mask = frame.gbuffer.mask
+            ms = frame.gpu_ms
+            gpu = {"psao": ms.get("gbuffer", 0.0) + ms.get("psao", 0.0),
+                   "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
+            holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
+            out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
+                                     frame.gbuffer, gpu, holes))
+        return out
+
+    def close(self) -> None:
+        self.renderer.release()
+
+    def __enter__(self) -> "QualityRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def reference_images(scene, frames: list[RenderedFrame], settings: ReferenceSettings,
+                     show_progress: bool | None = None) -> list[np.ndarray]:
+    """Composited RTAO per frame (cached on disk by scene, camera, time, spp and size)."""
+    transforms = rest_transforms(scene)
+    refs = []
+    for f in frames:
+        ao = reference_ao(scene, f.gbuffer, transforms, settings, FrameKey(f.pose.view, f.pose.proj, f.pose.time),
+                          show_progress=show_progress)
+        refs.append(composite_ao(ao, f.mask))
+    return refs
+
+
+def score_frames(frames: list[RenderedFrame], refs: list[np.ndarray], methods=("psao", "ssao")) -> list[FrameScores]:
+    rows = []
+    for f, ref in zip(frames, refs):
+        for m in methods:
+            s, fmap = score(ref, f.ao[m])
+            rows.append(FrameScores(f.pose.index, m, s, fmap))
+    return rows
+
+
+def mean_scores(rows: list[FrameScores], method: str) -> Scores:
+    sel = [r.scores for r in rows if r.method == method]
+    if not sel:
+        raise EvalError(f"no scores for method {method!r}")
+    return Scores(psnr=float(np.mean([s.psnr for s in sel])), ssim=float(np.mean([s.ssim for s in sel])),
+                  flip=float(np.mean([s.flip for s in sel])))
