@@ -523,9 +523,9 @@ def topological_order(parents: np.ndarray) -> list[int]:
     return order
 
 
-def skin_from_gltf(g, skin_index: int, joints: np.ndarray, weights: np.ndarray, animation: int = 0) -> Skin:
+def skin_from_gltf(g, skin_index: int, joints: np.ndarray, weights: np.ndarray, animation: int | str = 0) -> Skin:
     """The Skin of glTF skin `skin_index` for a mesh's (V, 4) joints/weights (already in Mesh.vertices
-    order), animated by glTF animation `animation` (the first; static when the file has none)."""
+    order), animated by glTF animation `animation`, an index or a name (static when the file has none)."""
     doc = g.doc
     skin = doc.skins[skin_index]
     name = skin.name or f"skin{skin_index}"
@@ -543,9 +543,24 @@ def skin_from_gltf(g, skin_index: int, joints: np.ndarray, weights: np.ndarray, 
         ibm = ibm.reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major in the file
     else:
         ibm = np.tile(np.eye(4), (len(joint_nodes), 1, 1))
-    animator = gltf_node_animator(g, joint_nodes, animation)
+    animator = gltf_node_animator(g, joint_nodes, gltf_animation_index(g, animation))
     names = [doc.nodes[j].name or f"node{j}" for j in joint_nodes]
     return Skin(inverse_bind=ibm, joints=joints, weights=weights, animator=animator, joint_names=names)
+
+
+def gltf_animation_index(g, animation: int | str) -> int:
+    """Index of a glTF animation given by index or name; -1 (static) when the file has none."""
+    anims = g.doc.animations or []
+    names = [a.name or f"animation{k}" for k, a in enumerate(anims)]
+    if isinstance(animation, str):
+        if animation not in names:
+            raise SceneFormatError(f"{g.path}: no animation '{animation}' (has: {', '.join(names) or 'none'})")
+        return names.index(animation)
+    if not anims and animation == 0:
+        return -1
+    if not 0 <= animation < len(anims):
+        raise SceneFormatError(f"{g.path}: no animation {animation} (has {len(anims)})")
+    return int(animation)
 
 
 def gltf_node_animator(g, joint_nodes: np.ndarray, animation: int) -> NodeAnimator:
@@ -608,6 +623,23 @@ def gltf_channels(g, animation: int) -> tuple[list[Channel], float]:
         out.append(Channel(target.node, target.path, times, values, interp))
         duration = max(duration, float(times[-1]))
     return out, duration
+
+
+@dataclass
+class TimeShift:
+    """Another animator, `offset` seconds ahead: several characters from one file out of step."""
+    inner: JointAnimator
+    offset: float  # seconds
+
+    @property
+    def duration(self) -> float:
+        return getattr(self.inner, "duration", 0.0)
+
+    def joint_matrices(self, t: float) -> np.ndarray:
+        return self.inner.joint_matrices(t + self.offset)
+
+    def rest_joint_matrices(self) -> np.ndarray:
+        return self.inner.rest_joint_matrices()
 
 
 # A glTF mesh's vertices are in bind space; when every joint's rest-pose matrix times its inverse bind

@@ -95,8 +95,9 @@ def clean_mesh(name: str, vertices, faces, where: str, **mesh_fields) -> Mesh:
     return Mesh(name=name, vertices=r.vertices, faces=r.faces, **mesh_fields)
 
 
-def load_mesh_file(path: Path) -> tuple[list[Mesh], list[Instance]]:
-    """Meshes and instances (world transforms) of one mesh file."""
+def load_mesh_file(path: Path, animation: int | str = 0) -> tuple[list[Mesh], list[Instance]]:
+    """Meshes and instances (world transforms) of one mesh file; `animation` (index or name) picks the
+    glTF animation that drives skins."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in MESH_EXTENSIONS:
@@ -105,7 +106,7 @@ def load_mesh_file(path: Path) -> tuple[list[Mesh], list[Instance]]:
     if not path.is_file():
         raise SceneNotFound(f"{path}: mesh file not found")
     if ext in GLTF_EXTENSIONS:
-        return load_gltf(path)
+        return load_gltf(path, animation)
     return _load_with_trimesh(path)
 
 
@@ -340,14 +341,14 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
 MALFORMED_ERRORS = (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, MemoryError)
 
 
-def load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
+def load_gltf(path: Path, animation: int | str = 0) -> tuple[list[Mesh], list[Instance]]:
     try:
-        return _load_gltf(path)
+        return _load_gltf(path, animation)
     except MALFORMED_ERRORS as e:
         raise SceneFormatError(f"{path}: malformed glTF ({type(e).__name__}: {e})".splitlines()[0][:300]) from None
 
 
-def _load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
+def _load_gltf(path: Path, animation: int | str) -> tuple[list[Mesh], list[Instance]]:
     g = GltfFile(path)
     world = g.world_matrices()
     meshes: list[Mesh] = []
@@ -378,7 +379,7 @@ def _load_gltf(path: Path) -> tuple[list[Mesh], list[Instance]]:
                     raise SceneFormatError(f"{path}: node '{g.node_name(n)}' refers to a missing skin {node.skin}")
                 from .animation import rebase_to_rest_pose, skin_from_gltf
                 mesh.skin = skin_from_gltf(g, node.skin, data.joints[r.source_vertex],
-                                           data.weights[r.source_vertex])
+                                           data.weights[r.source_vertex], animation)
                 rebase_to_rest_pose(mesh)
             mesh_index[node.mesh] = len(meshes)
             meshes.append(mesh)

@@ -13,7 +13,10 @@ naming the file and the element):
     size = [10.0, 0.2, 10.0]     #   capsule, torus, boulder, column, arch, railing, cloth; its keyword
                                  #   parameters are given as keys of this table (e.g. radius, height)
     # path = "meshes/statue.glb" # instead of generator: a mesh file, relative to this TOML file, inside
-                                 #   its folder tree; all its nodes are baked into this one mesh
+                                 #   its folder tree; all its nodes are baked into this one mesh, except
+                                 #   for a skinned glTF (one mesh), which keeps its skin and takes
+    # animation = "Walk"         #   the glTF animation to play (name or index, default 0) and
+    # animation_offset = 0.5     #   a time offset in seconds (characters out of step)
     double_sided = false         # true only for thin open surfaces (cloth, leaves)
     color = [0.8, 0.8, 0.8]      # linear RGB albedo, each in [0, 1]
 
@@ -59,7 +62,7 @@ import numpy as np
 
 from . import builtin_shapes
 from .builtin import rotation_axis_angle, rotation_xyz, trs
-from .errors import SceneFormatError, SceneNotFound
+from .errors import SceneError, SceneFormatError, SceneNotFound
 from .meshfile import clean_geometry, load_mesh_file, merged_mesh
 from .model import CameraKey, CameraPath, Instance, Mesh, Scene
 
@@ -150,7 +153,8 @@ def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
             raise SceneFormatError(
                 f"{where}: unknown generator '{gen_name}' (known: {', '.join(builtin_shapes.GENERATORS)})")
         params = set(inspect.signature(gen).parameters) if gen else set()
-        t = Table(raw, where, {"name", "generator", "path", "double_sided", "color"} | params)
+        file_keys = {"animation", "animation_offset"} if gen_name is None else set()
+        t = Table(raw, where, {"name", "generator", "path", "double_sided", "color"} | params | file_keys)
         name = t.text("name")
         if name in ids:
             raise t.fail("duplicate mesh name")
@@ -183,8 +187,25 @@ def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
         raise t.fail(f"path '{rel}' must be relative and inside the scene's folder")
     if not file.is_file():
         raise SceneNotFound(f"{t.where}: mesh file '{rel}' not found")
-    ms, ins = load_mesh_file(file)
-    return merged_mesh(name, ms, ins, **fields)
+    animation = t.data.get("animation", 0)
+    if isinstance(animation, bool) or not isinstance(animation, (int, str)):
+        raise t.fail(f"'animation' must be a name or an index, got {animation!r}")
+    try:
+        ms, ins = load_mesh_file(file, animation)
+    except SceneError as e:  # name the scene file and the element too, not only the mesh file
+        raise type(e)(f"{t.where}: {e}") from None
+    if not any(m.skin is not None for m in ms):
+        if t.has("animation") or t.has("animation_offset"):
+            raise t.fail(f"'{rel}' has no skin: 'animation' and 'animation_offset' do not apply")
+        return merged_mesh(name, ms, ins, **fields)
+    if len(ms) != 1:
+        raise t.fail(f"'{rel}' holds {len(ms)} meshes: a skinned mesh file must hold exactly one")
+    mesh = ms[0]
+    mesh.name, mesh.double_sided, mesh.color = name, fields["double_sided"], fields["color"]
+    if t.has("animation_offset"):
+        from .animation import TimeShift
+        mesh.skin.animator = TimeShift(mesh.skin.animator, t.number("animation_offset"))
+    return mesh
 
 
 def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Instance]:

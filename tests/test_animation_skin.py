@@ -286,3 +286,39 @@ def test_point_skinning_stays_near_the_skinned_surface():
         gap = np.linalg.norm(lbs - exact, axis=1)
         assert gap[single].max() < 1e-9
         assert gap.max() < 0.01  # metres, on a 1.75 m robot
+
+
+def test_toml_skinned_file_meshes(tmp_path):
+    skinned_gltf(tmp_path / "strip.glb", times=(0.0, 1.0, 2.0))
+    toml = tmp_path / "chars.toml"
+    toml.write_text(
+        '[[mesh]]\nname = "a"\npath = "strip.glb"\nanimation = "bend"\n'
+        '[[mesh]]\nname = "b"\npath = "strip.glb"\nanimation = 0\nanimation_offset = 0.5\n'
+        '[[instance]]\nname = "a"\nmesh = "a"\ntranslate = [3.0, 0.0, 0.0]\n'
+        '[[instance]]\nname = "b"\nmesh = "b"\n')
+    scene = load_scene(toml)
+    a, b = scene.meshes
+    assert a.skin is not None and b.skin is not None
+    np.testing.assert_allclose(skinned_vertices(b, 0.2), skinned_vertices(a, 0.7), atol=1e-12)  # 0.5 s ahead
+    assert not np.allclose(skinned_vertices(a, 0.2), skinned_vertices(a, 0.7))
+    good = toml.read_text()
+    for value, pattern in (('"dance"', r"chars\.toml: mesh 'a'.*strip\.glb: no animation 'dance' \(has: bend\)"),
+                           ("1.5", r"chars\.toml: mesh 'a'.*'animation' must be a name or an index")):
+        toml.write_text(good.replace('animation = "bend"', f"animation = {value}"))
+        with pytest.raises(SceneFormatError, match=pattern):
+            load_scene(toml)
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    toml.write_text('[[mesh]]\nname = "s"\npath = "tri.obj"\nanimation = 0\n[[instance]]\nname = "s"\nmesh = "s"\n')
+    with pytest.raises(SceneFormatError, match=r"mesh 's'.*no skin"):
+        load_scene(toml)
+
+
+def test_fox_animation_by_name(tmp_path):
+    fox = shared("fox/Fox.glb")
+    from psao_scene.meshfile import load_mesh_file
+    survey = load_mesh_file(fox)[0][0].skin.animator.duration
+    walk = load_mesh_file(fox, "Walk")[0][0].skin.animator.duration
+    run = load_mesh_file(fox, 2)[0][0].skin.animator.duration
+    assert len({survey, walk, run}) == 3
+    with pytest.raises(SceneFormatError, match="Survey, Walk, Run"):
+        load_mesh_file(fox, "Swim")
