@@ -25,8 +25,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from protocol import pointword as pw
-from psao_server.animate import Frame, SceneAnimator, SkinnedPoints
-from psao_server.bake import BakeResult, scene_center, to_world
+from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds
+from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
 from psao_server.errors import ConfigError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, frustum_planes, in_any_view, reach_boxes,
@@ -46,6 +46,7 @@ class TickSettings:
     tracer: str = "embree"
     workers: int = 0  # tracer processes, 0 = all cores
     block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
+    fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
 
     def check(self) -> None:
         if not 0 <= self.threshold <= 255:
@@ -118,12 +119,21 @@ class ServerTick:
         self.inst_of = np.repeat(np.arange(len(sizes)), sizes)
         self.local_pos = np.concatenate([ps.positions for ps in bake.pointsets]).astype(np.float64) if n else np.zeros((0, 3))
         self.local_nrm = np.concatenate([ps.normals for ps in bake.pointsets]).astype(np.float32) if n else np.zeros((0, 3), np.float32)
+        self.back = np.concatenate([np.zeros(len(ps), bool) if (b := back_side_mask(ps, self.scene.meshes[inst.mesh].double_sided)) is None
+                                    else b for ps, inst in zip(bake.pointsets, self.scene.instances)]) if n else np.zeros(0, bool)
         self.slot = np.full(n, -1, np.int64)
         self.index = np.full(n, -1, np.int64)
         self._relocate_all()
         if self.grid.n_points() != int((self.slot >= 0).sum()):
             raise ConfigError("the grid's point ids do not match the bake's point sets (not built by Grid.build?)")
         self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
+        if self.kinds.skinned and self.settings.fit_grid:
+            bounds = skinned_point_bounds(self.scene, bake.pointsets, self.kinds.skinned, self.animator.skinner)
+            grown = grid_for_animation(self.grid, bounds)
+            if grown is not None:
+                log.info("grid boxes of skinned instances grown to cover their animation: the grid is replaced")
+                self.grid = bake.grid = grown
+                self._relocate_all()
         self.stale = np.zeros(n, dtype=bool)
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
@@ -291,7 +301,8 @@ class ServerTick:
             insts = self.inst_of[parked]
             for i in np.unique(insts).tolist():
                 sel = parked[insts == i]
-                kept = self.grid.insert_points(i, self.local_pos[sel], self.local_nrm[sel], codes[~here][insts == i], sel)
+                kept = self.grid.insert_points(i, self.local_pos[sel], self.local_nrm[sel], codes[~here][insts == i], sel,
+                                               back=self.back[sel])
                 changed += int(kept.sum())
             self._relocate_instances(np.unique(insts).tolist())
         return changed

@@ -1,0 +1,214 @@
+"""The server tick against brute force: a static scene costs nothing after the first sync, skipping is
+right (a full re-trace agrees within the threshold), rigid motion leaves point words alone, skinned
+points follow their triangles, the view restricts tracing, and the same time gives the same AO."""
+import numpy as np
+import pytest
+
+from protocol import pointword as pw
+from psao_scene import load_scene
+from psao_scene.camera import look_at, perspective
+from psao_scene.skinning import skin_points_reference
+from psao_server.bake import BakeSettings, bake_scene
+from psao_server.selection import frustum_planes, in_frustum
+from psao_server.tick import ServerTick, TickSettings
+
+RAYS = 8
+
+
+def make_tick(name, density=32, rays=RAYS, baked_time=0.0, **kw):
+    bake = bake_scene(load_scene(f"builtin:{name}"), BakeSettings(density=density, rays=rays, workers=1),
+                      show_progress=False)
+    tick = ServerTick(bake, TickSettings(rays=rays, workers=1, **kw), baked_time=baked_time)
+    bake.grid.take_dirty()
+    return tick, bake
+
+
+def full_retrace_codes(tick, t):
+    """AO codes of every point the tick holds, traced now at time t with the tick's own tracer."""
+    ids = np.flatnonzero(tick.present())
+    frame = tick.animator.frame(t)
+    pos, nrm = tick._world(frame, ids)
+    tick.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
+    return ids, pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
+
+
+def stored_codes(tick, ids):
+    return (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF).astype(np.int64)
+
+
+@pytest.mark.parametrize("baked_time", [0.0, None])
+def test_static_scene_traces_nothing_after_first_sync(baked_time):
+    tick, bake = make_tick("cornell", density=64, baked_time=baked_time)
+    try:
+        first = tick(bake.grid, 0.0)
+        assert first.traced == (0 if baked_time is not None else first.considered)
+        bake.grid.take_dirty()
+        for t in (0.1, 0.5, 3.0):
+            s = tick(bake.grid, t)
+            assert s.traced == 0 and s.changed == 0 and s.cells_dirty == 0
+            b, c = bake.grid.take_dirty()
+            assert len(b) == 0 and len(c) == 0
+    finally:
+        tick.close()
+
+
+def test_courtyard_skipped_points_agree_with_full_retrace():
+    tick, bake = make_tick("courtyard")
+    try:
+        for t in (0.4, 0.8):
+            s = tick(bake.grid, t)
+        assert 0 < s.traced < s.considered // 5, s
+        traced_last = np.zeros(len(tick.slot), bool)
+        ids, full = full_retrace_codes(tick, 0.8)
+        diff = np.abs(stored_codes(tick, ids) - full)
+        assert diff.max() <= tick.settings.threshold, f"max |stored - full| = {diff.max()} codes"
+        # and the skipping was real: the points near the boulders changed more than the threshold
+        assert s.changed > 0
+        del traced_last
+    finally:
+        tick.close()
+
+
+def test_same_time_twice_gives_no_update():
+    tick, bake = make_tick("courtyard")
+    try:
+        tick(bake.grid, 1.0)
+        bake.grid.take_dirty()
+        s = tick(bake.grid, 1.0)
+        assert s.traced > 0 and s.changed == 0 and s.cells_dirty == 0
+    finally:
+        tick.close()
+
+
+def rigid_words(tick, inst):
+    cells = np.flatnonzero(tick.grid.cell_instance == inst)
+    return cells, tick.grid.cells[cells].copy()
+
+
+def test_rigid_motion_keeps_point_words():
+    tick, bake = make_tick("courtyard")
+    try:
+        rolling = tick.kinds.rigid
+        assert len(rolling) == 3
+        before = {i: rigid_words(tick, i) for i in rolling}
+        t0 = tick.transforms().copy()
+        for t in (0.5, 1.0, 2.0):
+            tick(bake.grid, t)
+        assert not np.allclose(tick.transforms()[rolling], t0[rolling])  # they did move
+        for i in rolling:
+            cells, words = before[i]
+            cells2, words2 = rigid_words(tick, i)
+            np.testing.assert_array_equal(cells, cells2)  # no cell allocated or freed
+            np.testing.assert_array_equal(words2[:, 7], words[:, 7])  # keys
+            # position and normal bits unchanged; only the AO byte may change (the floor under it)
+            np.testing.assert_array_equal(words2[:, :7] & 0xFFFFFF00, words[:, :7] & 0xFFFFFF00)
+    finally:
+        tick.close()
+
+
+def test_far_rigid_motion_dirties_nothing():
+    """builtin:space: the tumbling asteroids are far from everything: no cell is dirtied by their motion."""
+    tick, bake = make_tick("space", density=8)
+    try:
+        for t in (1.0, 2.0, 5.0):
+            s = tick(bake.grid, t)
+            assert s.traced == 0 and s.cells_dirty == 0
+        assert not np.allclose(tick.transforms()[tick.kinds.rigid], tick.animator.transforms(0.0)[tick.kinds.rigid])
+    finally:
+        tick.close()
+
+
+def test_skinned_points_follow_their_triangles():
+    tick, bake = make_tick("robots")
+    try:
+        t = 0.73
+        tick(bake.grid, t)
+        scene = bake.scene
+        assert tick.kinds.skinned
+        for i in tick.kinds.skinned:
+            mesh = scene.meshes[scene.instances[i].mesh]
+            ps = bake.pointsets[i]
+            skin = mesh.skin
+            verts = skin_points_reference(skin.skinning_matrices(t), mesh.vertices, skin.joints, skin.weights)
+            tri = verts[mesh.faces[ps.faces]]
+            want = np.einsum("pk,pkj->pj", ps.barycentrics.astype(np.float64), tri)
+            ids = np.arange(tick.first_id[i], tick.first_id[i + 1])
+            np.testing.assert_allclose(tick.local_pos[ids], want, atol=1e-9)
+            moved = np.linalg.norm(want - ps.positions, axis=1)
+            assert moved.max() > 0.05  # the walk really deforms the mesh
+            # normals: the skinned triangle's, same side as generated
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            assert (np.einsum("ij,ij->i", n, tick.local_nrm[ids]) > 0.999).all()
+            # the grid holds them where they are now (exact side arrays, and the quantised word)
+            here = ids[tick.present()[ids]]
+            assert len(here) >= 0.9 * tick.tracked[ids].sum(), (len(here), tick.tracked[ids].sum())
+            np.testing.assert_allclose(bake.grid.point_local[tick.slot[here], tick.index[here]], tick.local_pos[here])
+            rec = bake.grid.instances[i]
+            words = bake.grid.cells[tick.slot[here], tick.index[here]]
+            _, q, _, _ = pw.unpack_point(words)
+            key = bake.grid.cells[tick.slot[here], 7].astype(np.int64)
+            dims = rec["dims"].astype(np.int64)
+            cell = np.stack([key % dims[0], (key // dims[0]) % dims[1], key // (dims[0] * dims[1])], axis=1)
+            decoded = rec["origin"] + (cell + pw.dequantise_cell_fraction(q)) * rec["cell_size"]
+            assert np.abs(decoded - tick.local_pos[here]).max() <= rec["cell_size"] / 64 + 1e-5
+    finally:
+        tick.close()
+
+
+def test_view_selection_traces_inside_and_catches_up_later():
+    tick, bake = make_tick("courtyard", baked_time=None)
+    try:
+        cam = look_at((0.0, 1.7, 3.0), (0.0, 1.5, -5.0))
+        proj = perspective(50.0, 16 / 9, 0.1, 100.0)
+        tick.set_cameras([(cam, proj)])
+        s = tick(bake.grid, 0.3)  # first sync, limited to the view
+        assert 0 < s.traced < s.considered
+        planes = frustum_planes(cam, proj, tick.settings.view.fov_margin)
+        every = np.flatnonzero(tick.present())
+        inside = in_frustum(tick._world(tick.last_frame, every)[0], planes, tick.settings.view.distance_margin)
+        assert s.traced == inside.sum()
+        np.testing.assert_array_equal(tick.stale[every], ~inside)  # the rest waits for a view
+        tick.set_cameras([])  # no camera: everything visible, so the stale points are traced now
+        s2 = tick(bake.grid, 0.3)
+        assert s2.traced >= (~inside).sum() and not tick.stale.any()
+        ids, full = full_retrace_codes(tick, 0.3)
+        assert np.abs(stored_codes(tick, ids) - full).max() <= tick.settings.threshold
+    finally:
+        tick.close()
+
+
+def test_selection_off_traces_every_visible_point():
+    tick, bake = make_tick("robots", selection=False)
+    try:
+        s = tick(bake.grid, 0.2)
+        assert s.traced == int(tick.tracked.sum())  # held by the grid, or parked and re-inserted
+        assert len(tick.stats_json()) == 1 and tick.stats_json()[0]["traced"] == s.traced
+    finally:
+        tick.close()
+
+
+def test_grid_boxes_cover_the_skinned_animation():
+    """Grid.build sizes boxes from the rest pose; the tick grows skinned instances' boxes so no point
+    ever falls outside, and the regridded grid holds the same points with the same words' AO."""
+    bake = bake_scene(load_scene("builtin:robots"), BakeSettings(density=32, rays=RAYS, workers=1), show_progress=False)
+    old = bake.grid.point_table()
+    tick = ServerTick(bake, TickSettings(rays=RAYS, workers=1))
+    try:
+        assert tick.grid is bake.grid
+        new = tick.grid.point_table()
+        o, n = np.argsort(old.point_id), np.argsort(new.point_id)
+        # a grown box moves cell borders: a few points of skinned instances may meet a full cell (the tick
+        # parks them and retries); every other instance keeps all its points
+        assert len(new) >= 0.99 * len(old)
+        still = ~np.isin(old.instance, tick.kinds.skinned)
+        assert np.isin(old.point_id[still], new.point_id).all()
+        common, io, inew = np.intersect1d(old.point_id[o], new.point_id[n], return_indices=True)
+        np.testing.assert_array_equal(old.ao_code[o][io], new.ao_code[n][inew])
+        np.testing.assert_array_equal(old.local_pos[o][io], new.local_pos[n][inew])
+        before = tick.grid.stats.dropped_outside
+        for t in np.linspace(0.05, 2.0, 6):
+            tick(tick.grid, t)
+        assert tick.grid.stats.dropped_outside == before
+    finally:
+        tick.close()
