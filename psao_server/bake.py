@@ -29,11 +29,14 @@ class BakeSettings:
     tracer: str = "embree"  # back-end name, see psao_server.tracer
     workers: int = 0  # tracer processes; 0 = all cores
     min_points: int = 64  # per instance
+    spawn_ratio: float = 2.0  # spawned / kept before elimination; the paper's 2; 4 closes most holes (slower)
     grid: GridSettings = field(default_factory=GridSettings)
 
     def check(self) -> None:
         if not np.isfinite(self.density) or self.density <= 0:
             raise ConfigError(f"density must be > 0, got {self.density}")
+        if not self.spawn_ratio >= 1.0:
+            raise ConfigError(f"spawn ratio must be >= 1, got {self.spawn_ratio}")
         if self.rays < 1:
             raise ConfigError(f"rays must be >= 1, got {self.rays}")
 
@@ -129,7 +132,8 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         t0 = time.perf_counter()
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
         pointsets = generate_scene_points(
-            scene, PointSettings(density=settings.density, min_points=settings.min_points, seed=settings.seed),
+            scene, PointSettings(density=settings.density, min_points=settings.min_points, seed=settings.seed,
+                                 spawn_ratio=settings.spawn_ratio),
             progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
         stats["seconds_points"] = time.perf_counter() - t0
 

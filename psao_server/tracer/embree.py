@@ -154,7 +154,8 @@ class EmbreeTracer(Tracer):
         pos = self._recentre(positions)
         nrm = np.asarray(normals, np.float32)
         ids = np.asarray(point_ids, np.int64)
-        step = max(1, s.chunk_points)
+        # At least one chunk per worker, so small point sets are spread over every worker too.
+        step = max(1, min(s.chunk_points, -(-len(pos) // self.workers)))
         for i in range(0, len(pos), step):
             yield (self._dynamic_version, *self._dynamic, pos[i:i + step], nrm[i:i + step], ids[i:i + step], s)
 
@@ -182,7 +183,7 @@ class EmbreeTracer(Tracer):
         out = []
         if len(positions) == 0:
             return np.zeros(0, np.float32)
-        pool = self._ensure_pool() if len(positions) > settings.chunk_points else None
+        pool = self._ensure_pool() if len(positions) >= 2 * self.workers else None
         jobs = self._jobs(positions, normals, point_ids, settings)
         results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
         try:
