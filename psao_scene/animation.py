@@ -289,19 +289,24 @@ def animation_hash(scene, times=tuple(np.linspace(0.0, 60.0, 17))) -> str:
     """sha256 of every animated transform and skinning matrix sampled at `times`: equal on two machines
     iff they animate the scene alike (Scene.content_hash covers only the geometry at rest)."""
     import hashlib
+
+    def stable(m) -> bytes:
+        # Rounded (and -0.0 folded into 0.0) so last-ulp differences between math libraries do not count.
+        return (np.round(np.asarray(m, dtype=np.float64), 6) + 0.0).tobytes()
+
     h = hashlib.sha256()
     for i, inst in enumerate(scene.instances):
         if inst.animation is not None:
             h.update(inst.name.encode())
             for t in times:
-                h.update(np.ascontiguousarray(inst.animation.matrix(t), dtype=np.float64).tobytes())
+                h.update(stable(inst.animation.matrix(t)))
     for m in scene.meshes:
         if m.skin is not None:
             h.update(m.name.encode())
             h.update(np.ascontiguousarray(m.skin.joints, dtype=np.int64).tobytes())
-            h.update(np.ascontiguousarray(m.skin.weights, dtype=np.float64).tobytes())
+            h.update(stable(m.skin.weights))
             for t in times:
-                h.update(np.ascontiguousarray(m.skin.skinning_matrices(t), dtype=np.float64).tobytes())
+                h.update(stable(m.skin.skinning_matrices(t)))
     return h.hexdigest()
 
 

@@ -73,7 +73,7 @@ class Scene:
         return lo, hi
 
     def content_hash(self) -> str:
-        """sha256 over geometry, instances and AO distance: client and server must agree on it."""
+        """sha256 over geometry, instances, animation and AO distance: client and server must agree on it."""
         h = hashlib.sha256()
         h.update(np.float64(self.ao_distance).tobytes())
         for m in self.meshes:
@@ -85,4 +85,7 @@ class Scene:
             h.update(i.name.encode())
             h.update(np.int64(i.mesh).tobytes())
             h.update(np.ascontiguousarray(i.transform, dtype=np.float64).tobytes())
+        from psao_scene.animation import animation_hash  # deferred: animation imports this module
+
+        h.update(animation_hash(self).encode())
         return h.hexdigest()
