@@ -246,7 +246,9 @@ def _json_default(v):
 
 def run(args) -> int:
     from psao_eval.metrics import LPIPS_NOTE
+    from psao_eval.processes import interrupt_on_sigterm
 
+    interrupt_on_sigterm()
     cfg = config_from_args(args)
     ensure_writable(cfg.out, "output folder")
     ensure_writable(cfg.cache, "cache folder")

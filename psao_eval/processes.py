@@ -28,6 +28,18 @@ def psao_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "psao.cli", *map(str, args)]
 
 
+def _child_setup() -> None:
+    """In the child before exec: SIGINT back to its default (a parent started in the background has it
+    ignored, and ignored signals survive exec; the client stops on SIGINT), and TERM likewise."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def spawn(args: list[str], **kwargs) -> subprocess.Popen:
+    """A `psao` child in its own session (process group), so kill_group takes its workers too."""
+    return subprocess.Popen(psao_command(*args), start_new_session=True, preexec_fn=_child_setup, **kwargs)
+
+
 def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
     """SIGTERM the child's process group, wait up to `grace` s, then SIGKILL whatever is left."""
     if proc.poll() is None:
@@ -45,6 +57,16 @@ def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
         pass
     if proc.poll() is None:
         proc.wait(5.0)
+
+
+def interrupt_on_sigterm() -> None:
+    """SIGTERM (and SIGHUP) raise KeyboardInterrupt in the main thread, so the `finally` blocks that kill
+    child servers run when a benchmark itself is terminated (the default action would skip them)."""
+    def handler(signum, _frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, handler)
 
 
 def last_json_line(text: str, what: str) -> dict:
@@ -65,8 +87,7 @@ def _tail(text: str, lines: int = 3) -> str:
 
 def run_cli(args: list[str], what: str, timeout: float) -> dict:
     """Run a `psao ...` command in its own process group to completion; its --json result."""
-    proc = subprocess.Popen(psao_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    proc = spawn(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -99,9 +120,8 @@ class ServerProcess:
         fd, name = tempfile.mkstemp(prefix="psao-serve-", suffix=".log")
         self.log_path = Path(name)
         with os.fdopen(fd, "w") as log:
-            self.proc = subprocess.Popen(
-                psao_command("serve", self.scene_spec, "--host", "127.0.0.1", "--port", "0", *self.extra),
-                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+            self.proc = spawn(["serve", self.scene_spec, "--host", "127.0.0.1", "--port", "0", *self.extra],
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         try:
             self.url = self._wait_listening()
         except BaseException:
@@ -160,16 +180,15 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
     fd, name = tempfile.mkstemp(prefix="psao-client-", suffix=".jsonl")
     os.close(fd)
     digests = Path(name)
-    proc = subprocess.Popen(psao_command("client", url, "--scene", scene_spec, "--json", "--no-reconnect",
-                                         "--reconnect-timeout", "20", "--digest-log", str(digests), *extra),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = spawn(["client", url, "--scene", scene_spec, "--json", "--no-reconnect", "--reconnect-timeout", "20",
+                  "--digest-log", str(digests), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for_snapshot(proc, digests, connect_timeout, what)
         if proc.poll() is None:
             time.sleep(seconds)
             proc.send_signal(signal.SIGINT)
         try:
-            out, err = proc.communicate(timeout=60.0)
+            out, err = proc.communicate(timeout=30.0)
         except subprocess.TimeoutExpired:
             raise EvalError(f"{what} did not stop on SIGINT") from None
     finally:

@@ -1,0 +1,177 @@
+"""`psao demo` (what `make demo` runs): the whole system once, on this machine, in about a minute.
+
+1. `psao bake builtin:courtyard` at a demo density (cached), then `psao serve` with that grid as a
+   separate process on a free 127.0.0.1 port;
+2. a headless `psao client` process connects, mirrors the grid (and renders the camera path itself when
+   this client has --render) for a few seconds: bytes on the wire and the mirror's digest;
+3. the camera path rendered with PSAO and SSAO from the same grid in one headless renderer, a few
+   frames scored against a low-spp RTAO reference;
+4. a short report on stdout and the paths of what it wrote under out/demo/.
+No arguments, no downloads. The server is killed (its process group) on every exit path.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENE = "builtin:courtyard"
+DENSITY = 96.0  # points per unit^2: a fraction of the bench's densities, so the demo stays short
+RAYS = 32  # AO rays per point in the demo bake
+FRAMES = 24  # frames rendered along the camera path
+SCORED = 3  # of which scored against RTAO
+SPP = 64  # RTAO rays per pixel for the demo's reference (the bench uses 512)
+SIZE = (640, 360)
+STREAM_SECONDS = 3.0
+OUT = Path("out") / "demo"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = "Serve the animated courtyard, stream it to a headless client, render, score and chart (no arguments)."
+
+
+def run(args) -> int:
+    from psao_eval.bench_cli import Log, bake_cached, ensure_writable
+    from psao_eval.processes import interrupt_on_sigterm
+    from psao_scene import load_scene
+
+    interrupt_on_sigterm()
+    t_start = time.perf_counter()
+    out = ensure_writable(OUT, "output folder")
+    cache = ensure_writable(Path("out") / ".cache", "cache folder")
+    log = Log()
+    scene = load_scene(SCENE)
+    grid_file, bake_stats = bake_cached(SCENE, scene, DENSITY, RAYS, cache, log)
+
+    stream = stream_demo(scene, grid_file, out, log)
+    quality = quality_demo(scene, grid_file, out, log)
+    written = write_demo_outputs(quality, out)
+    print_report(scene, bake_stats, stream, quality, written, time.perf_counter() - t_start)
+    return 0
+
+
+def stream_demo(scene, grid_file: Path, out: Path, log) -> dict:
+    """A real server and a real headless client; the client renders too when it can (--render)."""
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.processes import ServerProcess, client_has_render, run_client, stream_rates
+    from protocol.updates import state_digest
+
+    extra, frames_dir = [], None
+    if client_has_render():
+        frames_dir = out / "client_frames"
+        extra = ["--render", str(frames_dir), "--ao", "psao", "--size", f"{SIZE[0]}x{SIZE[1]}"]
+    log(f"psao serve {SCENE} (grid N={DENSITY:g}) and a headless psao client for {STREAM_SECONDS:g} s")
+    with ServerProcess(SCENE, ["--grid", str(grid_file), "--tick-hz", "30"]) as server:
+        stats = run_client(server.url, SCENE, STREAM_SECONDS, extra)
+        rates = stream_rates(stats)
+        rates["server_ms_tick"] = server.tick_ms()
+        rates["url"] = server.url
+    grid = load_grid_file(grid_file)
+    transforms = np.array([i.transform for i in scene.instances], dtype=np.float32)
+    rates["mirror_equals_bake"] = stats.get("mirror_digest") == state_digest(grid.instances, grid.buckets, grid.cells,
+                                                                             transforms)
+    rates["client_frames"] = len(list(frames_dir.glob("frame_*_composite_*.png"))) if frames_dir and frames_dir.is_dir() else 0
+    rates["client_frames_dir"] = str(frames_dir) if rates["client_frames"] else None
+    return rates
+
+
+def quality_demo(scene, grid_file: Path, out: Path, log) -> dict:
+    from PIL import Image
+
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.quality import QualityRenderer, frame_poses, reference_images, score_frames
+    from psao_eval.reference import ReferenceSettings
+
+    poses = frame_poses(scene, FRAMES, SIZE)
+    log(f"rendering {len(poses)} frames of the camera path with PSAO and SSAO at {SIZE[0]}x{SIZE[1]}")
+    t0 = time.perf_counter()
+    with QualityRenderer(scene, SIZE) as qr:
+        frames = qr.render(load_grid_file(grid_file), poses)
+        frame_wall_ms = 1e3 * (time.perf_counter() - t0) / len(poses)
+        gl = qr.gl_renderer
+    frames_dir = out / "frames"
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    for f in frames:
+        for m, ao in f.ao.items():
+            Image.fromarray((ao * 255 + 0.5).astype(np.uint8), mode="L").save(frames_dir / f"frame_{f.pose.index:03d}_ao_{m}.png")
+    picked = [frames[i] for i in np.linspace(0, len(frames) - 1, SCORED).round().astype(int)]
+    log(f"RTAO reference at {SPP} spp on {len(picked)} frames")
+    refs = reference_images(scene, picked, ReferenceSettings(spp=SPP, cache_dir=Path("out") / ".cache" / "rtao"))
+    rows = score_frames(picked, refs)
+    return {"frames": frames, "picked": picked, "refs": refs, "rows": rows, "frame_wall_ms": frame_wall_ms,
+            "gl_renderer": gl, "frames_dir": frames_dir}
+
+
+def write_demo_outputs(q: dict, out: Path) -> list[Path]:
+    from psao_eval import report
+
+    written = []
+    mid = len(q["picked"]) // 2
+    panels = []
+    for m in ("psao", "ssao"):
+        r = next(r for r in q["rows"] if r.frame == q["picked"][mid].pose.index and r.method == m)
+        panels.append((m.upper() if m == "ssao" else f"PSAO-{DENSITY:g}", q["picked"][mid].ao[m], r.flip_map, r.scores.as_dict()))
+    path = out / "side_by_side.png"
+    report.side_by_side(q["refs"][mid], panels, path)
+    written.append(path)
+    path = out / "frame_times.png"
+    frame_chart(q, path)
+    written.append(path)
+    path = out / "scores.json"
+    path.write_text(json.dumps([{"frame": r.frame, "method": r.method, **r.scores.as_dict()} for r in q["rows"]], indent=1))
+    written.append(path)
+    written.append(q["frames_dir"])
+    return written
+
+
+def frame_chart(q: dict, path: Path) -> None:
+    """Client GPU ms per frame along the path (PSAO and SSAO), and the scored frames' FLIP."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = q["frames"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    idx = [f.pose.index for f in frames]
+    for m, c in (("psao", "tab:blue"), ("ssao", "tab:orange")):
+        a.plot(idx, [f.gpu_ms[m] for f in frames], marker=".", color=c, label=m.upper())
+        sel = [r for r in q["rows"] if r.method == m]
+        b.plot([r.frame for r in sel], [r.scores.flip for r in sel], marker="o", color=c, label=m.upper())
+    a.set_xlabel("frame")
+    a.set_ylabel("client GPU ms (G-buffer + AO)")
+    a.legend()
+    a.grid(alpha=0.3)
+    b.set_xlabel("frame")
+    b.set_ylabel(f"FLIP vs RTAO {SPP} spp (lower is better)")
+    b.legend()
+    b.grid(alpha=0.3)
+    fig.suptitle(f"psao demo: {SCENE}, N={DENSITY:g}, {q['gl_renderer']}")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def print_report(scene, bake_stats: dict, s: dict, q: dict, written: list[Path], seconds: float) -> None:
+    from psao_eval.metrics import LPIPS_NOTE
+    from psao_eval.quality import mean_scores
+
+    ps, ss = mean_scores(q["rows"], "psao"), mean_scores(q["rows"], "ssao")
+    gpu = {m: float(np.median([f.gpu_ms[m] for f in q["frames"]])) for m in ("psao", "ssao")}
+    lines = [
+        f"psao demo: {scene.name}, PSAO N={DENSITY:g} ({bake_stats.get('points_kept', 0):,} points, {RAYS} rays/point), "
+        f"{SIZE[0]}x{SIZE[1]}, {q['gl_renderer']}",
+        f"stream   server {s['url']}: snapshot {s['snapshot_mb']:.2f} MB in {s['snapshot_s']:.2f} s, then "
+        f"{s['stream_mbit_s']:.3f} Mbit/s over {STREAM_SECONDS:g} s ({s['updates']} updates; server {s['server_ms_tick']:.2f} ms/tick); "
+        f"client mirror identical to the baked grid: {'yes' if s['mirror_equals_bake'] else 'no'}"
+        + (f"; client rendered {s['client_frames']} frames" if s["client_frames"] else ""),
+        f"frames   {len(q['frames'])} along the camera path; client GPU ms per frame (median): PSAO {gpu['psao']:.1f}, "
+        f"SSAO {gpu['ssao']:.1f}; wall {q['frame_wall_ms']:.0f} ms per frame (both methods, read-back included)",
+        f"quality  vs RTAO {SPP} spp on {len(q['picked'])} frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
+        f"FLIP {ps.flip:.3f} | SSAO PSNR {ss.psnr:.2f} dB, SSIM {ss.ssim:.3f}, FLIP {ss.flip:.3f}",
+        f"note     {LPIPS_NOTE}",
+        f"wrote    " + "\n         ".join(str(p) for p in written) + (f"\n         {s['client_frames_dir']}" if s["client_frames_dir"] else ""),
+        f"done in {seconds:.0f} s",
+    ]
+    print("\n".join(lines))
