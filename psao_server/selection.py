@@ -69,10 +69,6 @@ def expand(box: tuple[np.ndarray, np.ndarray], d: float) -> tuple[np.ndarray, np
     return np.asarray(box[0], np.float64) - d, np.asarray(box[1], np.float64) + d
 
 
-def boxes_overlap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
-    return bool(np.all(a[0] <= b[1]) and np.all(b[0] <= a[1]))
-
-
 def in_box(points: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     return np.all((points >= box[0]) & (points <= box[1]), axis=1)
 
@@ -107,13 +103,13 @@ class BlockIndex:
         c1 = np.minimum(self._coords(box[1])[0], self.dims - 1)
         if np.any(c1 < c0):
             return np.zeros(0, np.int64)
-        xs = np.arange(c0[0], c1[0] + 1)
-        rows = [(y, z) for z in range(c0[2], c1[2] + 1) for y in range(c0[1], c1[1] + 1)]
+        nx = c1[0] - c0[0] + 1
+        y, z = np.meshgrid(np.arange(c0[1], c1[1] + 1), np.arange(c0[2], c1[2] + 1), indexing="ij")
         # a row of blocks along x is one contiguous key range
-        starts = np.array([self._keys(np.array([[xs[0], y, z]]))[0] for y, z in rows])
+        starts = c0[0] + self.dims[0] * (y.ravel() + self.dims[1] * z.ravel())
         lo = np.searchsorted(self.sorted_keys, starts, side="left")
-        hi = np.searchsorted(self.sorted_keys, starts + len(xs), side="left")
-        idx = np.concatenate([self.order[a:b] for a, b in zip(lo, hi)]) if len(rows) else np.zeros(0, np.int64)
+        hi = np.searchsorted(self.sorted_keys, starts + nx, side="left")
+        idx = np.concatenate([self.order[a:b] for a, b in zip(lo.tolist(), hi.tolist()) if b > a] or [np.zeros(0, np.int64)])
         idx = idx[in_box(self.positions[idx], box)]
         return np.sort(idx)
 
@@ -144,10 +140,18 @@ def reach_boxes(motion: MotionInput, ao_distance: float) -> dict[int, list[tuple
 def rigid_in_company(motion: MotionInput, reach: dict, static_boxes: dict[int, tuple]) -> list[int]:
     """Rigid moving instances whose reach touches another instance's box (static, or moving now)."""
     others = list(static_boxes.items()) + list(motion.boxes_now.items())
+    if not others:
+        return []
+    ids = np.array([j for j, _ in others])
+    lo = np.array([b[0] for _, b in others], np.float64)
+    hi = np.array([b[1] for _, b in others], np.float64)
     out = []
     for i in motion.rigid:
-        if any(j != i and boxes_overlap(r, b) for r in reach[i] for j, b in others):
-            out.append(i)
+        for r in reach[i]:
+            touch = np.all((r[0] <= hi) & (lo <= r[1]), axis=1) & (ids != i)
+            if touch.any():
+                out.append(i)
+                break
     return out
 
 

@@ -214,8 +214,10 @@ class ServerTick:
         ids = self._select(frame)
         t_sel = time.perf_counter()
         pos, nrm = self._world(frame, ids)
-        self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
-        vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings) if len(ids) else np.zeros(0, np.float32)
+        vis = np.zeros(0, np.float32)
+        if len(ids):  # the moving scene is only (re)built when something is traced
+            self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
+            vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings)
         t_trace = time.perf_counter()
         changed = self._store(ids, pw.quantise_ao(vis), frame)
         t_grid = time.perf_counter()

@@ -1,0 +1,190 @@
+"""Server tick with the selection on and off, in one run, on the built-in dynamic scenes (issue 5).
+
+For each scene: bake at density N with the tick's ray count (the bake is the first sync at t = 0), then
+tick at 60 Hz scene time with a camera following the scene's first camera path (one client), draining
+the dirty sets after every tick as the service does. First with the selection on (points in the
+extended view that are on deforming geometry or within the AO distance of a moving instance), then,
+on the same grid, with the selection off (every point in the extended view, every tick). Reports per
+scene mean and median tick time and points traced per tick, the ratio of rays per tick (target >= 10x
+on courtyard and space), the stage split animate / select / trace / grid, and whether the median tick
+fits 16.7 ms (60 Hz) or which stage is the bottleneck.
+
+    .venv/bin/python -m benchmarks.bench_tick [--density 256] [--ticks 40] [--ticks-off 4] [--rays 32]
+        [--scenes courtyard,space,robots] [--workers 0] [--out out/bench_tick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+FRAME_S = 1.0 / 60.0
+RAY_RATIO_TARGET = 10.0
+RATIO_SCENES = ("courtyard", "space")
+STAGES = ("animate", "select", "trace", "grid")
+
+
+def camera_at_time(scene, t: float, aspect: float = 16 / 9):
+    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+    path = scene_camera(scene)
+    eye, target = camera_at(path, t)
+    lo, hi = scene.world_bounds()
+    far = 2.0 * float(np.linalg.norm(hi - lo))
+    return look_at(eye, target), perspective(path.fov_y, aspect, 0.05, far)
+
+
+def run_ticks(tick, scene, times) -> list[dict]:
+    out = []
+    for t in times:
+        tick.set_cameras([camera_at_time(scene, t)])
+        s = tick(tick.grid, t)
+        tick.grid.take_dirty()  # the service drains the dirty sets after every tick
+        out.append(s.to_dict())
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    total = np.array([r["seconds_total"] for r in rows]) * 1e3
+    res = {"ticks": len(rows), "mean_ms": float(total.mean()), "median_ms": float(np.median(total)),
+           "p90_ms": float(np.quantile(total, 0.9)),
+           "traced_mean": float(np.mean([r["traced"] for r in rows])),
+           "changed_mean": float(np.mean([r["changed"] for r in rows])),
+           "cells_dirty_mean": float(np.mean([r["cells_dirty"] for r in rows])),
+           "considered": int(rows[0]["considered"])}
+    for st in STAGES:
+        res[f"{st}_median_ms"] = float(np.median([r[f"seconds_{st}"] for r in rows]) * 1e3)
+    return res
+
+
+def bench_scene(name: str, args) -> dict:
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.tick import ServerTick, TickSettings
+
+    scene = load_scene(f"builtin:{name}")
+    t0 = time.perf_counter()
+    bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, workers=args.workers),
+                      show_progress=False)
+    bake_s = time.perf_counter() - t0
+    tick = ServerTick(bake, TickSettings(rays=args.rays, workers=args.workers), baked_time=0.0)
+    try:
+        tick.grid.take_dirty()
+        on_times = [FRAME_S * (k + 1) for k in range(args.ticks)]
+        rows_on = run_ticks(tick, scene, on_times)
+        tick.settings.selection = False
+        off_times = [on_times[-1] + FRAME_S * (k + 1) for k in range(args.ticks_off)]
+        rows_off = run_ticks(tick, scene, off_times)
+    finally:
+        tick.close()
+    on, off = summarise(rows_on), summarise(rows_off)
+    ratio = off["traced_mean"] / on["traced_mean"] if on["traced_mean"] else float("inf")
+    return {"scene": name, "points": int(bake.stats["points_kept"]), "bake_s": bake_s, "on": on, "off": off,
+            "ray_ratio": ratio, "rows_on": rows_on, "rows_off": rows_off}
+
+
+def bottleneck(summary: dict) -> str:
+    return max(STAGES, key=lambda st: summary[f"{st}_median_ms"])
+
+
+def print_table(results: list[dict], args) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"server tick, N = {args.density:g}, {args.rays} rays/point, one camera (scene's path), 60 Hz scene time")
+    for col in ("scene", "points", "selection", "ticks", "mean ms", "median ms", "traced/tick", "changed/tick",
+                "cells/tick", "animate", "select", "trace", "grid"):
+        table.add_column(col, justify="right")
+    for r in results:
+        for label in ("on", "off"):
+            s = r[label]
+            table.add_row(r["scene"], f"{r['points']:,}", label, str(s["ticks"]), f"{s['mean_ms']:.1f}",
+                          f"{s['median_ms']:.1f}", f"{s['traced_mean']:,.0f}", f"{s['changed_mean']:,.0f}",
+                          f"{s['cells_dirty_mean']:,.0f}",
+                          *(f"{s[f'{st}_median_ms']:.1f}" for st in STAGES))
+    console = Console(width=170)
+    console.print(table)
+    for r in results:
+        on = r["on"]
+        target = f" (target >= {RAY_RATIO_TARGET:g}x: {'met' if r['ray_ratio'] >= RAY_RATIO_TARGET else 'MISSED'})" \
+            if r["scene"] in RATIO_SCENES else ""
+        fits = on["median_ms"] <= 1e3 * FRAME_S
+        verdict = "fits 16.7 ms (60 Hz)" if fits else \
+            f"does NOT fit 16.7 ms: bottleneck {bottleneck(on)} ({on[bottleneck(on) + '_median_ms']:.1f} ms median)"
+        ratio = "all (0 traced with it)" if r["on"]["traced_mean"] == 0 else f"{r['ray_ratio']:.1f}x"
+        console.print(f"{r['scene']}: {ratio} fewer rays per tick with the selection{target}; "
+                      f"median tick {on['median_ms']:.1f} ms {verdict}")
+
+
+def chart(results: list[dict], path: Path, args) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    labels, bottoms = [], None
+    x = np.arange(2 * len(results))
+    colors = {"animate": "#6a9fd8", "select": "#9bd86a", "trace": "#d86a6a", "grid": "#d8c36a"}
+    split = {st: [] for st in STAGES}
+    for r in results:
+        for label in ("on", "off"):
+            labels.append(f"{r['scene']}\n{label}")
+            for st in STAGES:
+                split[st].append(r[label][f"{st}_median_ms"])
+    bottoms = np.zeros(len(labels))
+    for st in STAGES:
+        ax1.bar(x, split[st], bottom=bottoms, color=colors[st], label=st)
+        bottoms += np.array(split[st])
+    ax1.axhline(1e3 * FRAME_S, color="k", ls="--", lw=1, label="16.7 ms (60 Hz)")
+    ax1.set_xticks(x, labels, fontsize=8)
+    ax1.set_yscale("log")
+    ax1.set_ylabel("median tick time, ms (stages stacked)")
+    ax1.legend(fontsize=8)
+    names = [r["scene"] for r in results]
+    xs = np.arange(len(results))
+    ax2.bar(xs - 0.2, [r["on"]["traced_mean"] for r in results], 0.4, label="selection on")
+    ax2.bar(xs + 0.2, [r["off"]["traced_mean"] for r in results], 0.4, label="selection off (all visible)")
+    for k, r in enumerate(results):
+        label = "inf" if not np.isfinite(r["ray_ratio"]) else f"{r['ray_ratio']:.0f}x"
+        ax2.text(xs[k], max(r["off"]["traced_mean"], 1), label, ha="center", va="bottom", fontsize=9)
+    ax2.set_xticks(xs, names)
+    ax2.set_yscale("log")
+    ax2.set_ylabel("points traced per tick")
+    ax2.legend(fontsize=8)
+    fig.suptitle(f"PSAO server tick, N = {args.density:g}, {args.rays} rays per point")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--density", type=float, default=256.0)
+    ap.add_argument("--ticks", type=int, default=40, help="ticks with the selection on")
+    ap.add_argument("--ticks-off", type=int, default=4, help="ticks with the selection off (each traces every visible point)")
+    ap.add_argument("--rays", type=int, default=32)
+    ap.add_argument("--workers", type=int, default=0, help="tracer processes (0: all cores)")
+    ap.add_argument("--scenes", default="courtyard,space,robots")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_tick"))
+    args = ap.parse_args(argv)
+    if args.ticks < 1 or args.ticks_off < 1 or args.density <= 0 or args.rays < 1:
+        ap.error("ticks, ticks-off and rays must be >= 1, density > 0")
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name in args.scenes.split(","):
+        t0 = time.perf_counter()
+        results.append(bench_scene(name.strip(), args))
+        print(f"{name}: {results[-1]['points']:,} points, bake {results[-1]['bake_s']:.1f} s, "
+              f"benchmark {time.perf_counter() - t0:.1f} s", flush=True)
+    print_table(results, args)
+    chart(results, args.out / "bench_tick.png", args)
+    (args.out / "bench_tick.json").write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
+                                                          "results": results}, indent=1))
+    print(f"wrote {args.out / 'bench_tick.png'} and {args.out / 'bench_tick.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
