@@ -1,8 +1,10 @@
 """The server tick (DESIGN.md, server tick steps 1-5): animate, select, trace, quantise, threshold.
 
-    tick = ServerTick(bake_result, TickSettings())   # builds the static Embree scene once, starts workers
+    tick = ServerTick(bake_result, TickSettings())   # static Embree scene built once, workers started
+    grid = tick.grid                                   # serve this grid (fit_grid may have replaced bake.grid)
     tick.set_cameras([(view, proj), ...])              # from the clients' Camera messages
     tick(grid, t)                                      # one tick at scene time t (the service's TickFn)
+    plan = tick.prepare(t); tick.apply(plan)           # the same in two halves: prepare writes no grid
     tick.transforms()                                  # (n, 4, 4) float32, for every Update
 
 Points are identified by their stable point id (Grid.build numbers them instance by instance in
@@ -13,8 +15,10 @@ selection wanted but no client could see).
 
 Rigid instances never touch their points: the client moves them with the transform. Skinned instances
 re-place every point on the deformed mesh; points that leave their cell are moved by the grid, and
-points the grid could not keep (outside its padded box, full cell or bucket) are kept aside and
-re-inserted, with freshly traced AO, as soon as they fit again.
+points the grid could not keep (full cell or bucket) are kept aside ("parked") and re-inserted, with
+freshly traced AO, as soon as they fit again. Grid.build sizes an instance's box from its rest pose, so
+ServerTick first grows the boxes of skinned instances to their whole animation (TickSettings.fit_grid):
+that replaces bake.grid, and the service must be given tick.grid.
 """
 from __future__ import annotations
 
@@ -76,6 +80,16 @@ class TickStats:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass
+class TickPlan:
+    """A prepared tick: what apply() writes."""
+    frame: Frame
+    moved: np.ndarray  # ids of held skinned points with a new local position or normal
+    ids: np.ndarray  # ids traced
+    codes: np.ndarray  # their new AO codes
+    seconds: tuple[float, float, float]  # animate, select, trace
 
 
 class ServerTick:
@@ -205,58 +219,66 @@ class ServerTick:
         return [s.to_dict() for s in self.stats_history]
 
     def __call__(self, grid: Grid, t: float) -> TickStats:
+        """One tick at scene time t: prepare (no grid writes) then apply."""
         if grid is not self.grid:
-            raise ConfigError("ServerTick was built for another grid")
+            raise ConfigError("ServerTick was built for another grid (after fit_grid, use tick.grid)")
+        return self.apply(self.prepare(t))
+
+    def prepare(self, t: float) -> "TickPlan":
+        """Animate, select and trace at scene time t without writing the grid: it may run in a worker
+        thread while the event loop reads the grid for sending. `apply` must follow before the next one."""
         t_start = time.perf_counter()
         frame = self.animator.frame(t)
-        moved, parked = self._deform(frame)
+        moved = self._deform(frame)
         t_anim = time.perf_counter()
         ids = self._select(frame)
         t_sel = time.perf_counter()
-        pos, nrm = self._world(frame, ids)
         vis = np.zeros(0, np.float32)
         if len(ids):  # the moving scene is only (re)built when something is traced
+            pos, nrm = self._world(frame, ids)
             self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
             vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings)
         t_trace = time.perf_counter()
-        changed = self._store(ids, pw.quantise_ao(vis), frame)
-        t_grid = time.perf_counter()
-        self.last_frame = frame
-        self._transforms = frame.transforms.astype(np.float32)
+        return TickPlan(frame, moved, ids, pw.quantise_ao(vis), (t_anim - t_start, t_sel - t_anim, t_trace - t_sel))
+
+    def apply(self, plan: "TickPlan") -> TickStats:
+        """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on
+        the thread that owns the grid. Marks the cells and buckets it changes dirty."""
+        g0 = time.perf_counter()
+        if len(plan.moved):
+            self._check_locations(plan.moved)
+            self.grid.move_points(self.slot[plan.moved], self.index[plan.moved], self.local_pos[plan.moved],
+                                  self.local_nrm[plan.moved])
+            self._relocate_instances(self.kinds.skinned)
+        changed = self._store(plan.ids, plan.codes)
+        seconds_grid = time.perf_counter() - g0
+        self.last_frame = plan.frame
+        self._transforms = plan.frame.transforms.astype(np.float32)
         n = int(self.tracked.sum())
+        animate, select, trace = plan.seconds
         stats = TickStats(
-            tick=self.tick_count, t=float(t), considered=n, skipped=n - len(ids), traced=int(len(ids)),
-            changed=changed, moved=moved, parked=parked,
-            cells_dirty=int(np.count_nonzero(grid.dirty_cells)),
-            seconds_animate=t_anim - t_start, seconds_select=t_sel - t_anim, seconds_trace=t_trace - t_sel,
-            seconds_grid=(t_grid - t_trace) + self._grid_seconds, seconds_total=t_grid - t_start)
-        stats.seconds_animate -= self._grid_seconds  # move_points time is grid work, not animation
+            tick=self.tick_count, t=plan.frame.t, considered=n, skipped=n - len(plan.ids), traced=int(len(plan.ids)),
+            changed=changed, moved=int(len(plan.moved)), parked=int((self.tracked & ~self.present()).sum()),
+            cells_dirty=int(np.count_nonzero(self.grid.dirty_cells)),
+            seconds_animate=animate, seconds_select=select, seconds_trace=trace, seconds_grid=seconds_grid,
+            seconds_total=animate + select + trace + seconds_grid)
         self.tick_count += 1
         self.stats_history.append(stats)
         return stats
 
     # ------------------------------------------------------------------ steps
-    def _deform(self, frame: Frame) -> tuple[int, int]:
-        """Skinned points to their new local positions (grid.move_points); returns (moved, parked)."""
-        self._grid_seconds = 0.0
-        moved = 0
+    def _deform(self, frame: Frame) -> np.ndarray:
+        """Skinned points to their new local positions (the tick's arrays only); returns the ids of the
+        points the grid holds whose position or normal changed (apply moves them)."""
+        moved = []
         for i, sp in self.skinned.items():
             mesh = self.scene.meshes[self.scene.instances[i].mesh]
             pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
             ids = np.arange(self.first_id[i], self.first_id[i + 1])
             change = np.any(pos != self.local_pos[ids], axis=1) | np.any(nrm != self.local_nrm[ids], axis=1)
             self.local_pos[ids], self.local_nrm[ids] = pos, nrm
-            go = ids[change & self.present()[ids]]
-            moved += int(change.sum())
-            if len(go):
-                g0 = time.perf_counter()
-                self._check_locations(go)
-                self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
-                self._grid_seconds += time.perf_counter() - g0
-        g0 = time.perf_counter()
-        self._relocate_instances(self.kinds.skinned)
-        self._grid_seconds += time.perf_counter() - g0
-        return moved, int((self.tracked & ~self.present()).sum())
+            moved.append(ids[change & self.present()[ids]])
+        return np.concatenate(moved) if moved else np.zeros(0, np.int64)
 
     def _select(self, frame: Frame) -> np.ndarray:
         """Point ids to trace this tick (sorted); updates the stale flags."""
@@ -287,7 +309,7 @@ class ServerTick:
                 pos[sel], nrm[sel] = to_world(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
         return pos, nrm
 
-    def _store(self, ids: np.ndarray, codes: np.ndarray, frame: Frame) -> int:
+    def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
         """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
         here = self.present()[ids]
         have, new = ids[here], codes[here]

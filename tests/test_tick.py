@@ -210,3 +210,21 @@ def test_grid_boxes_cover_the_skinned_animation():
         assert tick.grid.stats.dropped_outside == before
     finally:
         tick.close()
+
+
+def test_prepare_writes_nothing_and_apply_writes_it():
+    """The service may run prepare() in a thread while it reads the grid: prepare must not touch it."""
+    tick, bake = make_tick("robots")
+    try:
+        g = tick.grid
+        before = (g.cells.copy(), g.buckets.copy(), g.dirty_cells.copy(), g.dirty_buckets.copy())
+        plan = tick.prepare(0.6)
+        for a, b in zip(before, (g.cells, g.buckets, g.dirty_cells, g.dirty_buckets)):
+            np.testing.assert_array_equal(a, b)
+        assert len(plan.moved) > 0 and len(plan.ids) > 0
+        s = tick.apply(plan)
+        assert s.moved == len(plan.moved) and s.cells_dirty > 0
+        assert not np.array_equal(before[0], g.cells)
+        np.testing.assert_allclose(tick.transforms(), tick.animator.transforms(0.6).astype(np.float32))
+    finally:
+        tick.close()
