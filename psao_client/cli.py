@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("url", help="server URL, e.g. ws://127.0.0.1:8765")
     p.add_argument("--scene", default="builtin:courtyard",
                    help="the client's own copy of the scene, checked against the server's (default builtin:courtyard)")
-    p.add_argument("--frames", type=int, default=None, help="stop after N updates (default: run until Ctrl-C)")
+    p.add_argument("--frames", type=int, default=None, help="stop after the snapshot and N updates (0: right after the snapshot; default: run until Ctrl-C)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
     p.add_argument("--token", default="", help="token the server requires")
     p.add_argument("--codecs", default=",".join(CODEC_CHOICES),

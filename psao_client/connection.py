@@ -32,6 +32,7 @@ from protocol.session import (
     ByeReceived,
     ClientConfig,
     ClientSession,
+    ClientState,
     RemoteError,
     SnapshotReceived,
     UpdateReceived,
@@ -89,7 +90,7 @@ class MirrorClient:
         self._stop.set()
 
     async def run(self, frames: int | None = None) -> ClientStats:
-        """Receive until `frames` Updates have been applied (None: until stop())."""
+        """Receive until the snapshot and then `frames` Updates have been applied (None: until stop())."""
         self._start = self._last_ok = time.perf_counter()
         pause = 0.1
         digests = open(self.digest_log, "a", buffering=1) if self.digest_log else None
@@ -152,7 +153,8 @@ class MirrorClient:
                     digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                               "digest": self.mirror.digest()}) + "\n")
                 seq += 1
-                if self._stop.is_set() or (frames is not None and self.stats.updates >= frames):
+                done = frames is not None and session.state == ClientState.STREAMING and self.stats.updates >= frames
+                if self._stop.is_set() or done:
                     await ws.send(session.bye())
                     await _discard_until_closed(ws, timeout=2.0)
                     return
