@@ -105,6 +105,8 @@ class MirrorClient:
                     raise ConnectError(f"{self.url}: bad data from the server: {exc}") from None
                 except (_Lost, ConnectionClosed, OSError, asyncio.TimeoutError, InvalidHandshake) as exc:
                     if not self.reconnect or time.perf_counter() - self._last_ok > self.reconnect_timeout:
+                        if not self.stats.messages:
+                            raise ConnectError(f"{self.url}: cannot connect ({_why(exc)})") from None
                         raise ConnectError(f"{self.url}: connection lost ({_why(exc)}), not reconnecting") from None
                     pause = 0.1 if time.perf_counter() - self._last_ok < 1.0 else min(2 * pause, 2.0)
                     await asyncio.sleep(pause)

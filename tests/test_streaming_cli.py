@@ -1,0 +1,91 @@
+"""`psao serve` and `psao client` as commands: one-line errors, refusals, clean shutdown on SIGINT."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def psao(*args, timeout=60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psao", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert len(lines) == 1 and text in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--tick-hz", "100"], "tick rate must be within 5..60"),
+    (["--density", "0"], "density must be > 0"),
+    (["--test-edits", "-1"], "--test-edits must be >= 0"),
+    (["--grid", "/nonexistent/grid.npz"], "not a PSAO grid file"),
+])
+def test_serve_bad_settings(args, text):
+    one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)
+
+
+def test_serve_unknown_scene():
+    one_line_error(psao("serve", "builtin:nope", "--port", "0"), "unknown scene")
+
+
+def test_client_cannot_connect():
+    one_line_error(psao("client", "ws://127.0.0.1:9", "--scene", "builtin:cornell", "--reconnect-timeout", "0.5"),
+                   "cannot connect")
+
+
+def test_client_bad_codecs_and_url():
+    one_line_error(psao("client", "ws://127.0.0.1:9", "--scene", "builtin:cornell", "--codecs", "gzip"), "gzip")
+    one_line_error(psao("client", "http:/nothing", "--scene", "builtin:cornell"), "bad server URL")
+
+
+@pytest.fixture(scope="module")
+def token_server(tmp_path_factory):
+    err = tmp_path_factory.mktemp("serve") / "serve.err"
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "16", "--rays",
+                             "2", "--port", "0", "--token", "s3cret", "--tick-hz", "10", "--test-edits", "5"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
+    end = time.time() + 90
+    while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
+        assert time.time() < end and proc.poll() is None, err.read_text()
+        time.sleep(0.1)
+    yield m.group(1), proc, err
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
+def test_client_refused_without_token(token_server):
+    url, _, err = token_server
+    one_line_error(psao("client", url, "--scene", "builtin:cornell", "--frames", "1"), "server refused: missing token")
+    assert "refused: missing token" in err.read_text()
+
+
+def test_client_refused_for_another_scene(token_server):
+    url, _, _ = token_server
+    one_line_error(psao("client", url, "--scene", "builtin:courtyard", "--token", "s3cret", "--frames", "1"),
+                   "scene hash mismatch")
+
+
+def test_client_with_token_then_server_stops_on_sigint(token_server):
+    url, proc, err = token_server
+    out = psao("client", url, "--scene", "builtin:cornell", "--token", "s3cret", "--frames", "5", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["updates"] == 5 and report["mirror_cells"] > 0 and report["codec"] == "zstd-stream"
+    assert set(report) >= {"bytes_received", "messages", "snapshot_bytes", "mirror_cells", "mirror_buckets", "seconds"}
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(20) == 0
+    assert "stopped on SIGINT" in err.read_text()
