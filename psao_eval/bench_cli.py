@@ -183,7 +183,7 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
         quality[d] = mean_scores(sc, "psao")
         meta = grids[d][1]
         quality[d] = {**quality[d].as_dict(), "client_ms_frame": _median([f.gpu_ms["psao"] for f in frames[d]]),
-                      "points": meta.get("points_kept"), "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])),
+                      "points": meta.get("points_kept"), "bake_trace_s": meta.get("seconds_trace"), "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])),
                       "frames": len(frames[d]), "spp": cfg.spp}
         panels.append((method_name(d), frames[d][pick].ao["psao"], sc[pick].flip_map, sc[pick].scores.as_dict()))
         log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f} "
@@ -245,10 +245,15 @@ def _json_default(v):
 
 
 def run(args) -> int:
-    from psao_eval.metrics import LPIPS_NOTE
     from psao_eval.processes import interrupt_on_sigterm
 
-    interrupt_on_sigterm()
+    with interrupt_on_sigterm():
+        return _run(args)
+
+
+def _run(args) -> int:
+    from psao_eval.metrics import LPIPS_NOTE
+
     cfg = config_from_args(args)
     ensure_writable(cfg.out, "output folder")
     ensure_writable(cfg.cache, "cache folder")

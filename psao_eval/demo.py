@@ -34,11 +34,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from psao_eval.bench_cli import Log, bake_cached, ensure_writable
     from psao_eval.processes import interrupt_on_sigterm
+
+    with interrupt_on_sigterm():
+        return _run(args)
+
+
+def _run(args) -> int:
+    from psao_eval.bench_cli import Log, bake_cached, ensure_writable
     from psao_scene import load_scene
 
-    interrupt_on_sigterm()
     t_start = time.perf_counter()
     out = ensure_writable(OUT, "output folder")
     cache = ensure_writable(Path("out") / ".cache", "cache folder")

@@ -6,6 +6,7 @@ benchmark never leaves a server behind.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -59,14 +60,20 @@ def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
         proc.wait(5.0)
 
 
-def interrupt_on_sigterm() -> None:
-    """SIGTERM (and SIGHUP) raise KeyboardInterrupt in the main thread, so the `finally` blocks that kill
-    child servers run when a benchmark itself is terminated (the default action would skip them)."""
+@contextlib.contextmanager
+def interrupt_on_sigterm():
+    """While inside: SIGTERM (and SIGHUP) raise KeyboardInterrupt in the main thread, so the `finally`
+    blocks that kill child servers run when a benchmark itself is terminated (the default action would
+    skip them). The previous handlers come back on exit."""
     def handler(signum, _frame):
         raise KeyboardInterrupt(signal.Signals(signum).name)
 
-    for sig in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, handler)
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
 
 
 def last_json_line(text: str, what: str) -> dict:

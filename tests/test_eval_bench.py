@@ -78,14 +78,22 @@ def test_tiny_bench_end_to_end(tmp_path):
     assert not wait_gone(str(tmp_path))
 
 
-def test_unwritable_out_dir_is_one_line_and_leaves_nothing(tmp_path):
+def run_in_process(args: list[str], capsys) -> tuple[int, str]:
+    """`psao bench` through the CLI dispatcher in this process (argument errors need no subprocess)."""
+    from psao.cli import main
+
+    assert args[:3] == [sys.executable, "-m", "psao.cli"]
+    rc = main(args[3:])
+    return rc, capsys.readouterr().err
+
+
+def test_unwritable_out_dir_is_one_line_and_leaves_nothing(tmp_path, capsys):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
-    r = subprocess.run(bench(tmp_path, "builtin:cornell", "--densities", "64", out=blocker / "sub"), cwd=ROOT,
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "output folder" in lines[0] and "cannot be written" in lines[0], r.stderr
+    rc, err = run_in_process(bench(tmp_path, "builtin:cornell", "--densities", "64", out=blocker / "sub"), capsys)
+    assert rc == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "output folder" in lines[0] and "cannot be written" in lines[0], err
     assert not wait_gone(str(tmp_path))
 
 
@@ -95,9 +103,10 @@ def test_unwritable_out_dir_is_one_line_and_leaves_nothing(tmp_path):
     (["--size", "12by4"], "frame size"),
     (["--frames", "0"], "--frames"),
 ])
-def test_bad_arguments_are_one_line(tmp_path, args, msg):
-    r = subprocess.run(bench(tmp_path, "builtin:cornell", *args), cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr
+def test_bad_arguments_are_one_line(tmp_path, capsys, args, msg):
+    rc, err = run_in_process(bench(tmp_path, "builtin:cornell", *args), capsys)
+    assert rc == 2 and msg in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_server_killed_mid_run_fails_cleanly(tmp_path):

@@ -1,0 +1,54 @@
+"""PSAO versus SSAO against the RTAO reference on every built-in scene (issue 6), via `psao bench`.
+
+Target: on every built-in scene PSAO at N = 512 has a higher PSNR and a lower FLIP than SSAO.
+Prints the table and one PASS/FAIL line per scene; exits 1 when a scene misses the target.
+
+    .venv/bin/python -m benchmarks.bench_quality [--densities 256,512] [--frames 4] [--spp 512] [--out out/bench_quality]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots")
+TARGET_N = 512.0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--densities", default="256,512")
+    p.add_argument("--tick-hz", default="60")
+    p.add_argument("--frames", type=int, default=4)
+    p.add_argument("--spp", type=int, default=512)
+    p.add_argument("--out", type=Path, default=Path("out") / "bench_quality")
+    a = p.parse_args(argv)
+    from psao.cli import main as psao_main
+
+    rc = psao_main(["bench", *BUILTINS, "--densities", a.densities, "--tick-hz", a.tick_hz, "--frames", str(a.frames),
+                    "--spp", str(a.spp), "--out", str(a.out)])
+    if rc != 0:
+        return rc
+    return 0 if check_target(json.loads((a.out / "results.json").read_text())) else 1
+
+
+def check_target(rows: list[dict], density: float = TARGET_N) -> bool:
+    ok = True
+    for scene in sorted({r["scene"] for r in rows}):
+        ssao = next(r for r in rows if r["scene"] == scene and r["method"] == "SSAO")
+        psao = [r for r in rows if r["scene"] == scene and r.get("density") == density]
+        if not psao:
+            print(f"{scene}: no PSAO-{density:g} row")
+            ok = False
+            continue
+        good = psao[0]["psnr"] > ssao["psnr"] and psao[0]["flip"] < ssao["flip"]
+        ok &= good
+        print(f"{scene}: PSAO-{density:g} PSNR {psao[0]['psnr']:.2f} dB vs SSAO {ssao['psnr']:.2f} dB "
+              f"(+{psao[0]['psnr'] - ssao['psnr']:.2f}), FLIP {psao[0]['flip']:.3f} vs {ssao['flip']:.3f}: "
+              f"{'PASS' if good else 'FAIL'}")
+    return ok
+
+
+if __name__ == "__main__":
+    sys.exit(main())
