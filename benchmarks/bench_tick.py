@@ -10,7 +10,11 @@ on courtyard and space), the stage split animate / select / trace / grid, and wh
 fits 16.7 ms (60 Hz) or which stage is the bottleneck.
 
     .venv/bin/python -m benchmarks.bench_tick [--density 256] [--ticks 40] [--ticks-off 4] [--rays 32]
-        [--scenes courtyard,space,robots] [--workers 0] [--out out/bench_tick]
+        [--scenes courtyard,space,robots] [--workers 0] [--out out/bench_tick] [--sweep 0,2,4,8,16]
+
+The threshold sweep (courtyard at --sweep-density) shows what the threshold buys: with R rays one ray
+is 255 / R codes, and the same point traces the same rays every tick, so thresholds below one ray's
+worth only filter nothing but rounding.
 """
 from __future__ import annotations
 
@@ -83,6 +87,41 @@ def bench_scene(name: str, args) -> dict:
     ratio = off["traced_mean"] / on["traced_mean"] if on["traced_mean"] else float("inf")
     return {"scene": name, "points": int(bake.stats["points_kept"]), "bake_s": bake_s, "on": on, "off": off,
             "ray_ratio": ratio, "rows_on": rows_on, "rows_off": rows_off}
+
+
+def threshold_sweep(name: str, thresholds: list[int], args) -> list[dict]:
+    """Changed points and dirty cells per tick against the threshold, on copies of one bake; and the
+    largest |stored - full re-trace| at the end over the points not waiting for a view (the threshold
+    bounds it)."""
+    import copy
+    from protocol import pointword as pw
+    from psao_scene import load_scene
+    from psao_server.bake import BakeResult, BakeSettings, bake_scene
+    from psao_server.tick import ServerTick, TickSettings
+
+    scene = load_scene(f"builtin:{name}")
+    bake = bake_scene(scene, BakeSettings(density=args.sweep_density, rays=args.rays, workers=args.workers),
+                      show_progress=False)
+    bake.tracer.close()
+    out = []
+    times = [FRAME_S * (k + 1) for k in range(args.sweep_ticks)]
+    for th in thresholds:
+        copy_ = BakeResult(scene, copy.deepcopy(bake.grid), bake.pointsets, bake.stats, None)
+        tick = ServerTick(copy_, TickSettings(rays=args.rays, workers=args.workers, threshold=th), baked_time=0.0)
+        try:
+            rows = run_ticks(tick, scene, times)
+            ids = np.flatnonzero(tick.present() & ~tick.stale)  # stale: outside the view, re-traced once seen
+            pos, nrm = tick.world_points(tick.last_frame, ids)
+            full = pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
+            stored = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF).astype(np.int64)
+        finally:
+            tick.close()
+        out.append({"threshold": th, "changed_mean": float(np.mean([r["changed"] for r in rows])),
+                    "cells_dirty_mean": float(np.mean([r["cells_dirty"] for r in rows])),
+                    "max_abs_error_codes": int(np.abs(stored - full).max()),
+                    "mean_abs_error_codes": float(np.abs(stored - full).mean()),
+                    "stale_points": int(tick.stale.sum())})
+    return out
 
 
 def bottleneck(summary: dict) -> str:
@@ -168,6 +207,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=0, help="tracer processes (0: all cores)")
     ap.add_argument("--scenes", default="courtyard,space,robots")
     ap.add_argument("--out", type=Path, default=Path("out/bench_tick"))
+    ap.add_argument("--sweep", default="0,2,4,8,16", help="thresholds (AO codes) for the courtyard sweep; '' skips it")
+    ap.add_argument("--sweep-density", type=float, default=64.0)
+    ap.add_argument("--sweep-ticks", type=int, default=20)
     args = ap.parse_args(argv)
     if args.ticks < 1 or args.ticks_off < 1 or args.density <= 0 or args.rays < 1:
         ap.error("ticks, ticks-off and rays must be >= 1, density > 0")
@@ -179,9 +221,19 @@ def main(argv=None) -> int:
         print(f"{name}: {results[-1]['points']:,} points, bake {results[-1]['bake_s']:.1f} s, "
               f"benchmark {time.perf_counter() - t0:.1f} s", flush=True)
     print_table(results, args)
+    sweep = []
+    if args.sweep:
+        sweep = threshold_sweep("courtyard", [int(x) for x in args.sweep.split(",")], args)
+        print(f"threshold sweep, courtyard N = {args.sweep_density:g}, {args.rays} rays "
+              f"(one ray is {255 / args.rays:.1f} codes), {args.sweep_ticks} ticks:")
+        for row in sweep:
+            print(f"  threshold {row['threshold']:3d} codes: changed/tick {row['changed_mean']:8.0f}, "
+                  f"dirty cells/tick {row['cells_dirty_mean']:7.0f}, |stored - full re-trace| max "
+                  f"{row['max_abs_error_codes']} mean {row['mean_abs_error_codes']:.3f} codes "
+                  f"({row['stale_points']} points outside the view wait, stale)")
     chart(results, args.out / "bench_tick.png", args)
     (args.out / "bench_tick.json").write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
-                                                          "results": results}, indent=1))
+                                                          "results": results, "threshold_sweep": sweep}, indent=1))
     print(f"wrote {args.out / 'bench_tick.png'} and {args.out / 'bench_tick.json'}")
     return 0
 

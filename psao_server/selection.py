@@ -96,7 +96,7 @@ class BlockIndex:
         return c[:, 0] + self.dims[0] * (c[:, 1] + self.dims[1] * c[:, 2])
 
     def query_box(self, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """Indices (into the positions given at construction) of the points inside the box, sorted."""
+        """Indices (into the positions given at construction) of the points inside the box, unordered."""
         if len(self.positions) == 0:
             return np.zeros(0, np.int64)
         c0 = np.maximum(self._coords(box[0])[0], 0)
@@ -110,8 +110,7 @@ class BlockIndex:
         lo = np.searchsorted(self.sorted_keys, starts, side="left")
         hi = np.searchsorted(self.sorted_keys, starts + nx, side="left")
         idx = np.concatenate([self.order[a:b] for a, b in zip(lo.tolist(), hi.tolist()) if b > a] or [np.zeros(0, np.int64)])
-        idx = idx[in_box(self.positions[idx], box)]
-        return np.sort(idx)
+        return idx[in_box(self.positions[idx], box)]
 
 
 # ---------------------------------------------------------------------------------------- policy
@@ -156,6 +155,9 @@ def rigid_in_company(motion: MotionInput, reach: dict, static_boxes: dict[int, t
 
 
 def static_points_near(index: BlockIndex, reach: dict) -> np.ndarray:
-    """Indices into the block index of static points within reach of any moving instance."""
-    hits = [index.query_box(b) for boxes in reach.values() for b in boxes]
-    return np.unique(np.concatenate(hits)) if hits else np.zeros(0, np.int64)
+    """Bool mask over the block index's points: within reach of any moving instance."""
+    out = np.zeros(len(index.positions), dtype=bool)
+    for boxes in reach.values():
+        for b in boxes:
+            out[index.query_box(b)] = True
+    return out

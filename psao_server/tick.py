@@ -231,11 +231,10 @@ class ServerTick:
         frame = self.animator.frame(t)
         moved = self._deform(frame)
         t_anim = time.perf_counter()
-        ids = self._select(frame)
+        ids, pos, nrm = self._select(frame)
         t_sel = time.perf_counter()
         vis = np.zeros(0, np.float32)
         if len(ids):  # the moving scene is only (re)built when something is traced
-            pos, nrm = self._world(frame, ids)
             self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
             vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings)
         t_trace = time.perf_counter()
@@ -280,26 +279,29 @@ class ServerTick:
             moved.append(ids[change & self.present()[ids]])
         return np.concatenate(moved) if moved else np.zeros(0, np.int64)
 
-    def _select(self, frame: Frame) -> np.ndarray:
-        """Point ids to trace this tick (sorted); updates the stale flags."""
+    def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Point ids to trace this tick (sorted) with their world positions and normals; updates the
+        stale flags."""
         candidates = self.tracked.copy() if not self.settings.selection or self.last_frame is None else self._motion_candidates(frame)
         candidates |= self.stale
         ids = np.flatnonzero(candidates & self.tracked)
-        visible = in_any_view(self._world(frame, ids)[0], self.cameras, self.settings.view.distance_margin)
+        pos, nrm = self.world_points(frame, ids)
+        visible = in_any_view(pos, self.cameras, self.settings.view.distance_margin)
         if self.settings.selection:
             self.stale[ids] = ~visible
-        return ids[visible]
+        return ids[visible], pos[visible], nrm[visible]
 
     def _motion_candidates(self, frame: Frame) -> np.ndarray:
         motion = MotionInput(frame.bounds, self.last_frame.bounds, self.kinds.rigid, self.kinds.skinned)
         reach = reach_boxes(motion, self.scene.ao_distance)
         out = np.zeros(len(self.tracked), dtype=bool)
-        out[self.static_ids[static_points_near(self.block_index, reach)]] = True
+        out[self.static_ids[static_points_near(self.block_index, reach)]] = True  # mask over static ids
         for i in self.kinds.skinned + rigid_in_company(motion, reach, self.static_boxes):
             out[self.first_id[i]:self.first_id[i + 1]] = True
         return out
 
-    def _world(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (P, 3) float64 and normals (P, 3) float32 of points `ids` in `frame`."""
         pos = self.world_pos[ids].copy()
         nrm = self.world_nrm[ids].copy()
         inst = self.inst_of[ids]

@@ -27,7 +27,7 @@ def full_retrace_codes(tick, t):
     """AO codes of every point the tick holds, traced now at time t with the tick's own tracer."""
     ids = np.flatnonzero(tick.present())
     frame = tick.animator.frame(t)
-    pos, nrm = tick._world(frame, ids)
+    pos, nrm = tick.world_points(frame, ids)
     tick.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
     return ids, pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
 
@@ -164,7 +164,7 @@ def test_view_selection_traces_inside_and_catches_up_later():
         assert 0 < s.traced < s.considered
         planes = frustum_planes(cam, proj, tick.settings.view.fov_margin)
         every = np.flatnonzero(tick.present())
-        inside = in_frustum(tick._world(tick.last_frame, every)[0], planes, tick.settings.view.distance_margin)
+        inside = in_frustum(tick.world_points(tick.last_frame, every)[0], planes, tick.settings.view.distance_margin)
         assert s.traced == inside.sum()
         np.testing.assert_array_equal(tick.stale[every], ~inside)  # the rest waits for a view
         tick.set_cameras([])  # no camera: everything visible, so the stale points are traced now
