@@ -50,9 +50,21 @@ def in_frustum(points: np.ndarray, planes: np.ndarray, distance_margin: float = 
     return (d >= -distance_margin).all(axis=1)
 
 
-def in_any_view(points: np.ndarray, planes_list: list[np.ndarray] | None, distance_margin: float) -> np.ndarray:
-    """Bool (P,): inside at least one extended frustum; all True when no view is known (None or [])."""
-    if not planes_list:
+def camera_planes(view, proj, fov_margin: float) -> np.ndarray | None:
+    """frustum_planes of a client's camera, or None (sees everything) for matrices that do not make
+    a frustum (not finite, singular): a bad camera costs tracing, never a missed update."""
+    v, p = np.asarray(view, np.float64), np.asarray(proj, np.float64)
+    if v.shape != (4, 4) or p.shape != (4, 4) or not (np.isfinite(v).all() and np.isfinite(p).all()):
+        return None
+    with np.errstate(all="ignore"):
+        planes = frustum_planes(v, p, fov_margin)
+    return planes if np.isfinite(planes).all() and (np.abs(planes[:, :3]).sum(axis=1) > 0.5).all() else None
+
+
+def in_any_view(points: np.ndarray, planes_list: list[np.ndarray | None] | None, distance_margin: float) -> np.ndarray:
+    """Bool (P,): inside at least one extended frustum; all True when no view is known (None or []) or
+    when one of them is None (a camera that could not be turned into a frustum)."""
+    if not planes_list or any(pl is None for pl in planes_list):
         return np.ones(len(points), dtype=bool)
     out = np.zeros(len(points), dtype=bool)
     for planes in planes_list:

@@ -33,7 +33,7 @@ from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, grid_for_an
 from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
 from psao_server.errors import ConfigError
 from psao_server.grid import NO_POINT, Grid
-from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, frustum_planes, in_any_view, reach_boxes,
+from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, camera_planes, in_any_view, reach_boxes,
                                    rigid_in_company, static_points_near)
 from psao_server.tracer import TraceSettings, make_tracer
 
@@ -208,8 +208,9 @@ class ServerTick:
 
     # ------------------------------------------------------------------ public API
     def set_cameras(self, cameras) -> None:
-        """Cameras as (view 4x4, projection 4x4) pairs (OpenGL conventions); [] means: every point visible."""
-        self.cameras = [frustum_planes(v, p, self.settings.view.fov_margin) for v, p in cameras]
+        """Cameras as (view 4x4, projection 4x4) pairs (OpenGL conventions); [] means: every point visible,
+        and so does a camera whose matrices make no frustum (NaN, singular)."""
+        self.cameras = [camera_planes(v, p, self.settings.view.fov_margin) for v, p in cameras]
 
     def transforms(self) -> np.ndarray:
         """(n_instances, 4, 4) float32 transforms of the last tick."""

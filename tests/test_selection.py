@@ -100,3 +100,14 @@ def test_rigid_instance_in_company_only_when_near_another_box():
     assert rigid_in_company(near, reach_boxes(near, 1.0), static) == [0]
     left = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([8.5, 0, 0], [9.5, 1, 1])}, rigid=[0], skinned=[])
     assert rigid_in_company(left, reach_boxes(left, 1.0), static) == [0]  # it just left: AO changes
+
+
+def test_bad_camera_sees_everything():
+    from psao_server.selection import camera_planes
+    pts = random_points(100, seed=4)
+    good = camera_planes(look_at((0, 0, 10), (0, 0, 0)), perspective(50.0, 1.0, 0.1, 40.0), 10.0)
+    assert good is not None and not in_any_view(pts, [good], 0.0).all()
+    nan = np.full((4, 4), np.nan)
+    assert camera_planes(nan, perspective(50.0, 1.0, 0.1, 40.0), 10.0) is None
+    assert camera_planes(np.eye(4), np.zeros((4, 4)), 10.0) is None
+    assert in_any_view(pts, [good, None], 0.0).all()
