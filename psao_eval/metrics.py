@@ -26,9 +26,10 @@ class Scores:
     psnr: float  # dB, capped at PSNR_CAP
     ssim: float
     flip: float  # mean FLIP error in [0, 1]
+    bias: float = 0.0  # mean of test - reference over the image (> 0: brighter, i.e. too little occlusion)
 
     def as_dict(self) -> dict:
-        return {"psnr": self.psnr, "ssim": self.ssim, "flip": self.flip}
+        return {"psnr": self.psnr, "ssim": self.ssim, "flip": self.flip, "bias": self.bias}
 
 
 def composite_ao(ao: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -94,7 +95,8 @@ def flip(reference: np.ndarray, test: np.ndarray) -> tuple[float, np.ndarray]:
 def score(reference: np.ndarray, test: np.ndarray) -> tuple[Scores, np.ndarray]:
     """All metrics of one composited AO image against the composited reference, and the FLIP map."""
     mean_flip, error_map = flip(reference, test)
-    return Scores(psnr=psnr(reference, test), ssim=ssim(reference, test), flip=mean_flip), error_map
+    bias = float(np.mean(np.asarray(test, np.float64) - np.asarray(reference, np.float64)))
+    return Scores(psnr=psnr(reference, test), ssim=ssim(reference, test), flip=mean_flip, bias=bias), error_map
 
 
 def magma(error_map: np.ndarray) -> np.ndarray:

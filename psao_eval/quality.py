@@ -136,4 +136,4 @@ def mean_scores(rows: list[FrameScores], method: str) -> Scores:
     if not sel:
         raise EvalError(f"no scores for method {method!r}")
     return Scores(psnr=float(np.mean([s.psnr for s in sel])), ssim=float(np.mean([s.ssim for s in sel])),
-                  flip=float(np.mean([s.flip for s in sel])))
+                  flip=float(np.mean([s.flip for s in sel])), bias=float(np.mean([s.bias for s in sel])))

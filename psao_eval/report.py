@@ -13,7 +13,7 @@ import numpy as np
 
 from psao_eval.metrics import magma
 
-CSV_FIELDS = ["scene", "method", "density", "tick_hz", "psnr", "ssim", "flip", "stream_mbit_s", "snapshot_mb",
+CSV_FIELDS = ["scene", "method", "density", "tick_hz", "psnr", "ssim", "flip", "bias", "stream_mbit_s", "snapshot_mb",
               "updates_per_s", "server_ms_tick", "bake_trace_s", "client_ms_frame", "points", "holes", "frames", "spp"]
 
 
@@ -47,11 +47,12 @@ def markdown_table(rows: list[dict]) -> str:
     """Table 1 of the paper, per scene: PSNR, SSIM, FLIP and Mbit/s for SSAO and PSAO at each density."""
     merged = table_rows(rows)
     rates = sorted({hz for r in merged for hz in r["mbit"]})
-    head = ["scene", "method", "PSNR (dB) ↑", "SSIM ↑", "FLIP ↓"] + [f"Mbit/s @{hz:g} Hz" for hz in rates] + \
+    head = ["scene", "method", "PSNR (dB) ↑", "SSIM ↑", "FLIP ↓", "mean AO bias"] + [f"Mbit/s @{hz:g} Hz" for hz in rates] + \
         ["snapshot MB", "client ms/frame", "server ms/tick", "bake trace s", "points"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in merged:
-        cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3)]
+        cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3),
+                 f"{r['bias']:+.3f}" if r.get("bias") is not None else "-"]
         cells += [_fmt(r["mbit"].get(hz), 3) if r["density"] else "-" for hz in rates]
         cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-", _fmt(r.get("client_ms_frame"), 1),
                   _fmt(r.get("server_ms_tick"), 2) if r["density"] else "-",

@@ -21,6 +21,7 @@ def test_identical_images(ao_pair):
     assert s.psnr == PSNR_CAP
     assert s.ssim == pytest.approx(1.0)
     assert s.flip == 0.0
+    assert s.bias == 0.0
     assert fmap.shape == ref.shape and np.all(fmap == 0)
 
 
@@ -41,6 +42,13 @@ def test_worse_images_score_worse(ao_pair):
     assert 0 < f_img < f_worse < 1
     assert map_img.min() >= 0 and map_img.max() <= 1
     assert f_img == pytest.approx(float(map_img.mean()), rel=1e-4)  # the mean is the map's mean
+
+
+def test_bias_is_the_mean_signed_difference():
+    ref = np.full((16, 16), 0.5, np.float32)
+    brighter = np.full((16, 16), 0.7, np.float32)
+    assert score(ref, brighter)[0].bias == pytest.approx(0.2, abs=1e-6)
+    assert score(brighter, ref)[0].bias == pytest.approx(-0.2, abs=1e-6)
 
 
 def test_flip_is_symmetric_enough_and_grey_in_grey_out():
