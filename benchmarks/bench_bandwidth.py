@@ -33,6 +33,7 @@ import numpy as np
 
 from protocol.codecs import Codec, codec_name
 from protocol.gridformat import POINTS_PER_CELL
+from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession, scene_hash_bytes
 from protocol.updates import GridDelta, Layout, state_digest
 
@@ -97,6 +98,21 @@ def record(name: str, grid, transforms: np.ndarray, tick_fn, ticks: int, tick_hz
                      snapshot.cell_capacity)
 
 
+def split(delta: GridDelta, limits: Limits = DEFAULT_LIMITS) -> list[GridDelta]:
+    """Cut a delta into messages within the per-message limits, as the server's pending drain does."""
+    n = max(1, -(-len(delta.cell_slots) // limits.max_cells_per_message),
+            -(-len(delta.bucket_ids) // limits.max_buckets_per_message))
+    if n == 1:
+        return [delta]
+    parts = []
+    for i, (b, c) in enumerate(zip(np.array_split(np.arange(len(delta.bucket_ids)), n),
+                                   np.array_split(np.arange(len(delta.cell_slots)), n))):
+        t = slice(None) if i == 0 else slice(0, 0)
+        parts.append(GridDelta(delta.cell_capacity, delta.transform_ids[t], delta.transforms[t],
+                               delta.bucket_ids[b], delta.buckets[b], delta.cell_slots[c], delta.cells[c]))
+    return parts
+
+
 def replay(rec: Recording, codec: Codec, layout: Layout, tick_hz: float) -> Row:
     from psao_client.mirror import Mirror
 
@@ -106,19 +122,23 @@ def replay(rec: Recording, codec: Codec, layout: Layout, tick_hz: float) -> Row:
     server.receive(client.hello())
     mirror = Mirror.from_welcome(client.receive(server.welcome(1, tick_hz, rec.n_buckets, rec.capacity,
                                                                rec.instances)).welcome)
-    data = server.snapshot(0, 1, rec.snapshot)
-    mirror.apply(client.receive(data).snapshot.delta)
-    snapshot_bytes = len(data)
+    chunks = split(rec.snapshot)
+    snapshot_bytes = 0
+    for i, chunk in enumerate(chunks):
+        data = server.snapshot(i, len(chunks), chunk)
+        mirror.apply(client.receive(data).snapshot.delta)
+        snapshot_bytes += len(data)
     total, enc, dec = 0, 0.0, 0.0
     for tick, delta in enumerate(rec.updates):
-        t0 = time.perf_counter()
-        data = server.update(tick, tick / tick_hz, delta)
-        t1 = time.perf_counter()
-        mirror.apply(client.receive(data).update.delta)
-        t2 = time.perf_counter()
-        total += len(data)
-        enc += t1 - t0
-        dec += t2 - t1
+        for part in split(delta):
+            t0 = time.perf_counter()
+            data = server.update(tick, tick / tick_hz, part)
+            t1 = time.perf_counter()
+            mirror.apply(client.receive(data).update.delta)
+            t2 = time.perf_counter()
+            total += len(data)
+            enc += t1 - t0
+            dec += t2 - t1
     if mirror.digest() != rec.final_digest:
         raise AssertionError(f"{rec.name} {codec_name(codec)} {layout.name}: mirror differs from the server")
     n = max(len(rec.updates), 1)
@@ -197,6 +217,7 @@ def main(argv=None) -> int:
     p.add_argument("--ticks", type=int, default=120)
     p.add_argument("--tick-hz", type=float, default=60.0)
     p.add_argument("--random-edits", type=int, default=2000, help="points per tick of the random-edit stream")
+    p.add_argument("--random-ticks", type=int, default=30, help="ticks of the random-edit stream")
     p.add_argument("--grid", type=Path, default=None, help="a baked grid (.npz) instead of baking")
     p.add_argument("--out", type=Path, default=Path("benchmarks/out"))
     p.add_argument("--skip-snapshot", action="store_true")
@@ -219,9 +240,11 @@ def main(argv=None) -> int:
     print(f"grid: {len(grid.allocated_cells()):,} cells, {len(grid.buckets):,} buckets, {grid.n_points():,} points "
           f"({time.perf_counter() - t0:.1f} s)")
 
+    t0 = time.perf_counter()
     recordings = [record("occluder", grid, transforms, MovingOccluder(scene, grid), args.ticks, args.tick_hz)]
-    recordings.append(record("random", grid, transforms, RandomEdits(args.random_edits, seed=1), args.ticks,
+    recordings.append(record("random", grid, transforms, RandomEdits(args.random_edits, seed=1), args.random_ticks,
                              args.tick_hz))
+    print(f"recorded {args.ticks} + {args.random_ticks} ticks ({time.perf_counter() - t0:.1f} s)")
 
     results: dict[str, list[Row]] = {}
     for rec in recordings:
