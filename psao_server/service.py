@@ -206,8 +206,9 @@ class Service:
             err = ProtocolError(f"no Hello within {self.settings.hello_timeout:g} s")
             await self._reject(ws, session, err, peer, None, code=m.ErrorCode.TIMEOUT)
             return
-        except ConnectionClosed:
-            log.info("connection from %s closed before Hello", peer)
+        except ConnectionClosed as exc:
+            if not self._too_big(exc, f"connection from {peer}"):
+                log.info("connection from %s closed before Hello", peer)
             return
         client = Client(peer, len(self.grid.buckets), len(self.grid.cells))
         self._connections.add(ws)
@@ -233,6 +234,8 @@ class Service:
         exc = next((t.exception() for t in done if not t.cancelled() and t.exception()), None)
         if isinstance(exc, ProtocolError):
             await self._reject(ws, session, exc, client.peer, client.id)
+        elif isinstance(exc, ConnectionClosed) and self._too_big(exc, f"client {client.id} from {client.peer}"):
+            pass
         elif isinstance(exc, ConnectionClosed) or exc is None:
             rcvd = exc.rcvd if isinstance(exc, ConnectionClosed) else None
             why = f"close {rcvd.code}" if rcvd else "connection lost" if exc else "said Bye"
@@ -240,6 +243,15 @@ class Service:
                      client.messages_sent, client.bytes_sent / 1e3)
         else:
             raise exc
+
+    def _too_big(self, exc: ConnectionClosed, who: str) -> bool:
+        """websockets itself closes (1009, no Error message) on a frame beyond max_size: log it as ours."""
+        if exc.sent is not None and exc.sent.code == 1009:
+            self.counters.rejected += 1
+            log.warning("%s closed on protocol error: message over %d bytes (close code 1009)", who,
+                        4 * self.settings.limits.client_message_bytes)
+            return True
+        return False
 
     async def _reject(self, ws, session: ServerSession, exc: ProtocolError, peer: str, client_id,
                       code: m.ErrorCode | None = None) -> None:

@@ -95,6 +95,7 @@ async def with_server(body, token=""):
 
 
 def run_case(caplog, messages, token="", after_welcome=False):
+    caplog.clear()
     caplog.set_level(logging.INFO, logger="psao.serve")
 
     async def body(url):
@@ -168,6 +169,15 @@ def test_token_refused(caplog, token, reason):
     error, code, line = run_case(caplog, [hello(token)], token="secret")
     assert error.code == m.ErrorCode.UNAUTHORIZED and code == 1008
     assert reason in line
+
+
+def test_message_beyond_the_socket_limit(caplog):
+    # Past 4x the client limit websockets refuses the frame itself (close 1009, no Error message).
+    error, code, line = run_case(caplog, [with_header(1, bytes(300 * 1024))])
+    assert error is None and code == 1009 and "message over" in line
+    # Between the protocol limit and that, the server still answers with an Error message.
+    error, code, line = run_case(caplog, [with_header(1, bytes(100 * 1024))])
+    assert error.code == m.ErrorCode.TOO_LARGE and code == 1009 and "over the limit" in line
 
 
 def test_silent_connection_times_out(caplog):
