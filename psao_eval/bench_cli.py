@@ -196,17 +196,20 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
             rows.append({**base, "tick_hz": None})
             continue
         for hz in cfg.tick_hz:
-            rows.append({**base, "tick_hz": hz, **stream_run(spec, scene.name, grids[d][0], d, hz, cfg, log)})
+            rows.append({**base, "tick_hz": hz, **stream_run(spec, scene, grids[d][0], d, hz, cfg, log)})
     return rows, {"scene": scene.name, "reference": refs[pick], "panels": panels}
 
 
-def stream_run(spec: str, name: str, grid: Path, density: float, hz: float, cfg: BenchConfig, log: Log) -> dict:
-    from psao_eval.processes import ServerProcess, run_client, stream_rates
+def stream_run(spec: str, scene, grid: Path, density: float, hz: float, cfg: BenchConfig, log: Log) -> dict:
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.processes import ServerProcess, run_client, stream_rates, welcome_bytes
 
+    name = scene.name
+    welcome = welcome_bytes(scene, load_grid_file(grid))
     with ServerProcess(spec, ["--grid", str(grid), "--density", f"{density:g}", "--rays", str(cfg.rays),
                               "--tick-hz", f"{hz:g}"]) as server:
         stats = run_client(server.url, spec, cfg.stream_seconds)
-        rates = stream_rates(stats)
+        rates = stream_rates(stats, welcome)
         rates["server_ms_tick"] = server.tick_ms()
         if not server.alive():
             raise EvalError(f"psao serve {spec} died during the run")

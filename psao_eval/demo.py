@@ -61,7 +61,7 @@ def _run(args) -> int:
 def stream_demo(scene, grid_file: Path, out: Path, log) -> dict:
     """A real server and a real headless client; the client renders too when it can (--render)."""
     from psao_client.render.gridfile import load_grid_file
-    from psao_eval.processes import ServerProcess, client_has_render, run_client, stream_rates
+    from psao_eval.processes import ServerProcess, client_has_render, run_client, stream_rates, welcome_bytes
     from protocol.updates import state_digest
 
     extra, frames_dir = [], None
@@ -71,10 +71,10 @@ def stream_demo(scene, grid_file: Path, out: Path, log) -> dict:
     log(f"psao serve {SCENE} (grid N={DENSITY:g}) and a headless psao client for {STREAM_SECONDS:g} s")
     with ServerProcess(SCENE, ["--grid", str(grid_file), "--tick-hz", "30"]) as server:
         stats = run_client(server.url, SCENE, STREAM_SECONDS, extra)
-        rates = stream_rates(stats)
+        grid = load_grid_file(grid_file)
+        rates = stream_rates(stats, welcome_bytes(scene, grid))
         rates["server_ms_tick"] = server.tick_ms()
         rates["url"] = server.url
-    grid = load_grid_file(grid_file)
     transforms = np.array([i.transform for i in scene.instances], dtype=np.float32)
     rates["mirror_equals_bake"] = stats.get("mirror_digest") == state_digest(grid.instances, grid.buckets, grid.cells,
                                                                              transforms)

@@ -230,9 +230,23 @@ def client_has_render() -> bool:
     return "--render" in out
 
 
-def stream_rates(stats: dict) -> dict:
-    """Bandwidth figures from the client's statistics: the snapshot and the steady stream after it."""
-    total = float(stats.get("bytes_received", 0))
+def welcome_bytes(scene, grid) -> int:
+    """Size of the server's Welcome for this grid (sent uncompressed before the snapshot: the client
+    counts it in bytes_received, it is not part of the stream after the snapshot)."""
+    from protocol import messages as m
+    from protocol.codecs import Codec
+    from protocol.session import scene_hash_bytes
+    from protocol.updates import Layout
+
+    msg = m.Welcome(scene_hash_bytes(scene.content_hash()), 1, Codec.NONE, Layout.PACKED, 60.0, len(grid.buckets),
+                    len(grid.cells), grid.instances)
+    return len(m.encode(msg))
+
+
+def stream_rates(stats: dict, welcome: int = 0) -> dict:
+    """Bandwidth figures from the client's statistics: the snapshot and the steady stream after it
+    (everything else the client received, less the Welcome)."""
+    total = float(stats.get("bytes_received", 0)) - welcome
     snap = float(stats.get("snapshot_bytes", 0))
     seconds = float(stats.get("seconds", 0.0))
     snap_s = float(stats.get("snapshot_seconds") or 0.0)
