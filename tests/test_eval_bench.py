@@ -109,8 +109,10 @@ def test_bad_arguments_are_one_line(tmp_path, capsys, args, msg):
     assert len(err.strip().splitlines()) == 1
 
 
-def test_server_killed_mid_run_fails_cleanly(tmp_path):
-    """Kill the server while the bench streams from it: one-line error, exit 2, no process left."""
+@pytest.mark.parametrize("victim", ["server", "bench"])
+def test_killed_mid_run_leaves_nothing(tmp_path, victim):
+    """SIGKILL the server while the bench streams from it (one-line error, exit 2), or SIGTERM the bench
+    itself (exit 130): either way no process of the run is left."""
     proc = subprocess.Popen(bench(tmp_path, "builtin:cornell", "--densities", "64", "--tick-hz", "30",
                                   "--stream-seconds", "60"), cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
@@ -123,14 +125,20 @@ def test_server_killed_mid_run_fails_cleanly(tmp_path):
             time.sleep(0.1)
         assert server is not None, "the bench never started a server"
         time.sleep(2.0)  # let the client connect and take its snapshot
-        os.kill(server, signal.SIGKILL)
+        if victim == "server":
+            os.kill(server, signal.SIGKILL)
+        else:
+            proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=90)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 2, err[-2000:]
-    assert "psao bench: error:" in err and "Traceback" not in err
+    if victim == "server":
+        assert proc.returncode == 2, err[-2000:]
+        assert "psao bench: error:" in err and "Traceback" not in err
+    else:
+        assert proc.returncode == 130, err[-2000:]
     assert not wait_gone(str(tmp_path))
 
 
