@@ -46,7 +46,8 @@ def frustum_planes(view: np.ndarray, proj: np.ndarray, fov_margin: float = 0.0) 
 
 def in_frustum(points: np.ndarray, planes: np.ndarray, distance_margin: float = 0.0) -> np.ndarray:
     """Bool (P,): points whose signed distance to every plane is >= -distance_margin."""
-    d = np.asarray(points, np.float64) @ planes[:, :3].T + planes[:, 3]
+    # einsum, not `@`: OpenBLAS threads on a (P, 3) x (3, 5) product are ~10x slower on busy cores
+    d = np.einsum("pj,kj->pk", np.asarray(points, np.float64), planes[:, :3]) + planes[:, 3]
     return (d >= -distance_margin).all(axis=1)
 
 
@@ -85,6 +86,16 @@ def in_box(points: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray
     return np.all((points >= box[0]) & (points <= box[1]), axis=1)
 
 
+def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Concatenation of arange(lo[k], hi[k]) over k, without a Python loop."""
+    counts = np.maximum(hi - lo, 0)
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    starts = np.repeat(lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    return starts + np.arange(total)
+
+
 class BlockIndex:
     """Points (fixed world positions) sorted by a coarse world block, for box queries."""
 
@@ -121,7 +132,7 @@ class BlockIndex:
         starts = c0[0] + self.dims[0] * (y.ravel() + self.dims[1] * z.ravel())
         lo = np.searchsorted(self.sorted_keys, starts, side="left")
         hi = np.searchsorted(self.sorted_keys, starts + nx, side="left")
-        idx = np.concatenate([self.order[a:b] for a, b in zip(lo.tolist(), hi.tolist()) if b > a] or [np.zeros(0, np.int64)])
+        idx = self.order[_ranges(lo, hi)]
         return idx[in_box(self.positions[idx], box)]
 
 
@@ -136,15 +147,21 @@ class MotionInput:
     skinned: list[int]
 
 
-def reach_boxes(motion: MotionInput, ao_distance: float) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
-    """Per moving instance, its boxes now and before expanded by the AO distance."""
+def reach_boxes(motion: MotionInput, ao_distance: float, merge_slack: float = 0.25) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per moving instance, its boxes now and before expanded by the AO distance. When the two overlap
+    so much that their union box is at most `merge_slack` larger in volume than the two together (the
+    usual small step per tick), the union box replaces them: one query instead of two."""
     out = {}
     for i, box in motion.boxes_now.items():
-        boxes = [expand(box, ao_distance)]
+        now = expand(box, ao_distance)
         before = motion.boxes_before.get(i)
-        if before is not None and not (np.array_equal(before[0], box[0]) and np.array_equal(before[1], box[1])):
-            boxes.append(expand(before, ao_distance))
-        out[i] = boxes
+        if before is None or (np.array_equal(before[0], box[0]) and np.array_equal(before[1], box[1])):
+            out[i] = [now]
+            continue
+        was = expand(before, ao_distance)
+        union = (np.minimum(now[0], was[0]), np.maximum(now[1], was[1]))
+        volume = lambda b: float(np.prod(np.maximum(b[1] - b[0], 0.0)))  # noqa: E731
+        out[i] = [union] if volume(union) <= (1 + merge_slack) * max(volume(now), volume(was)) else [now, was]
     return out
 
 

@@ -29,7 +29,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from protocol import pointword as pw
-from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds
+from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds,
+                                 to_world_points)
 from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
 from psao_server.errors import ConfigError
 from psao_server.grid import NO_POINT, Grid
@@ -309,7 +310,7 @@ class ServerTick:
         for i in self.kinds.moving:
             sel = np.flatnonzero(inst == i)
             if len(sel):
-                pos[sel], nrm[sel] = to_world(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
+                pos[sel], nrm[sel] = to_world_points(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
         return pos, nrm
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:

@@ -81,7 +81,7 @@ def box(lo, hi):
 def test_reach_uses_current_and_previous_boxes():
     motion = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([5, 0, 0], [6, 1, 1])}, rigid=[0], skinned=[])
     reach = reach_boxes(motion, 0.5)[0]
-    assert len(reach) == 2
+    assert len(reach) == 2  # far apart: two boxes
     np.testing.assert_allclose(reach[0][0], [-0.5, -0.5, -0.5])
     np.testing.assert_allclose(reach[1][1], [6.5, 1.5, 1.5])
     pts = np.array([[1.4, 0.5, 0.5], [3.0, 0.5, 0.5], [4.6, 0.5, 0.5], [6.6, 0.5, 0.5]])
@@ -90,6 +90,11 @@ def test_reach_uses_current_and_previous_boxes():
     # unmoved: one box only
     still = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([0, 0, 0], [1, 1, 1])}, rigid=[0], skinned=[])
     assert len(reach_boxes(still, 0.5)[0]) == 1
+    # a small step: one union box covering both
+    step = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {0: box([0.1, 0, 0], [1.1, 1, 1])}, rigid=[0], skinned=[])
+    (u,) = reach_boxes(step, 0.5)[0]
+    np.testing.assert_allclose(u[0], [-0.5, -0.5, -0.5])
+    np.testing.assert_allclose(u[1], [1.6, 1.5, 1.5])
 
 
 def test_rigid_instance_in_company_only_when_near_another_box():
