@@ -56,7 +56,11 @@ class ZstdSettings:
     strategy: int = zstandard.STRATEGY_LAZY  # the paper's "strategy 4"
 
     def parameters(self) -> zstandard.ZstdCompressionParameters:
-        return zstandard.ZstdCompressionParameters.from_level(self.level, strategy=self.strategy)
+        # Level and strategy only, the rest left to zstd, as ZSTD_CCtx_setParameter + ZSTD_compress2 do in
+        # the paper's C++: for a message of known size zstd then fits window and tables to it, which is
+        # both smaller and faster than from_level()'s parameters for an unknown size (so the baseline is
+        # the strong one). A stream has no known size and gets the same parameters as from_level().
+        return zstandard.ZstdCompressionParameters(compression_level=self.level, strategy=self.strategy)
 
     def compressor(self) -> zstandard.ZstdCompressor:
         return zstandard.ZstdCompressor(compression_params=self.parameters())

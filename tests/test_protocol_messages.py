@@ -231,3 +231,32 @@ def test_delta_structure_checked():
     d.transforms[0, 1, 1] = np.nan
     with pytest.raises(PayloadError, match="NaN"):
         decode_delta(Reader(encode_delta(d, Layout.PLAIN), "t"))
+
+
+def _mutate(rng, data: bytes) -> bytes:
+    p = bytearray(data)
+    for _ in range(int(rng.integers(1, 4))):
+        op = int(rng.integers(0, 3))
+        if op == 0 and p:
+            p[int(rng.integers(len(p)))] = int(rng.integers(0, 256))
+        elif op == 1 and p:
+            del p[int(rng.integers(len(p))):]
+        else:
+            p.insert(int(rng.integers(len(p) + 1)), int(rng.integers(0, 256)))
+    return bytes(p)
+
+
+def test_fuzzed_payloads_raise_protocol_errors_only():
+    """Flipped, cut and inserted bytes: every message either parses or raises a ProtocolError."""
+    from protocol.errors import ProtocolError
+
+    rng = np.random.default_rng(11)
+    originals = [m.Update(1, 0.0, _random_delta(rng, 12, 12), lay) for lay in Layout]
+    originals += [m.Snapshot(0, 2, _random_delta(rng, 5, 5), Layout.PACKED), m.Hello(HASH, 3, "tok"),
+                  m.Camera(np.eye(4), np.eye(4)), m.Error(3, "x"), m.SceneEdit(1, np.eye(4))]
+    for i in range(1500):
+        msg = originals[i % len(originals)]
+        try:
+            msg.parse(_mutate(rng, msg.serialize()))
+        except ProtocolError:
+            pass

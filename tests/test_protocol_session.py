@@ -226,3 +226,27 @@ def test_mirror_grows_shrinks_and_checks_indices():
         mirror.apply(GridDelta(13, transform_ids=[2], transforms=np.eye(4)[None]))
     with pytest.raises(MirrorError, match="refers to bucket"):
         Mirror(inst, 7, 4)
+
+
+@pytest.mark.parametrize("codec", [Codec.ZSTD, Codec.LZ4, Codec.ZSTD_STREAM])
+def test_corrupted_compressed_messages_raise_protocol_errors_only(codec):
+    from protocol.errors import ProtocolError
+    from test_protocol_messages import _mutate
+
+    rng = np.random.default_rng(int(codec))
+    g = SyntheticGrid(rng, n_buckets=64, capacity=64)
+    b, c = g.edit(20)
+    server, _, _ = handshake(codecs={codec}, server_codec=codec)
+    welcome = server.welcome(1, 60.0, len(g.buckets), len(g.cells), g.instances)
+    valid = server.snapshot(0, 1, g.delta(b, c, [0]))
+    outcomes = set()
+    for _ in range(150):
+        client = ClientSession(ClientConfig(HASH, codecs=frozenset({codec})))
+        client.receive(welcome)
+        data = _mutate(rng, valid)
+        try:
+            client.receive(data)
+            outcomes.add("parsed")
+        except ProtocolError as exc:
+            outcomes.add(type(exc).__name__)
+    assert "CodecError" in outcomes or "HeaderError" in outcomes
