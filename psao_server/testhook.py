@@ -92,13 +92,15 @@ class MovingOccluder:
     """A sphere of radius `radius` (world units) on a closed loop through the scene. It only changes AO,
     so the points' slots never change and their world positions are computed once."""
 
-    def __init__(self, scene: Scene, grid: Grid, radius: float | None = None, period: float = 8.0):
+    def __init__(self, scene: Scene, grid: Grid, radius: float | None = None, period: float = 8.0,
+                 threshold: int = 2):
         lo, hi = scene.world_bounds()
         self.center = 0.5 * (lo + hi)
         self.extent = 0.35 * (hi - lo)
         self.floor = lo[1]
         self.radius = float(radius if radius is not None else 2.0 * scene.ao_distance)
         self.period = float(period)
+        self.threshold = int(threshold)  # AO codes: smaller changes are not sent (the server's threshold)
         self.slot, self.index = np.nonzero(grid.point_id != NO_POINT)
         self.baked = (grid.cells[self.slot, self.index] & 0xFF).astype(np.float64)  # AO before the sphere
         inst = grid.cell_instance[self.slot]
@@ -118,4 +120,9 @@ class MovingOccluder:
         d = np.linalg.norm(self.world - self.position(t), axis=1)
         # Baked AO, darkened near the sphere: most at its surface, none beyond 2 radii.
         shade = np.clip(1.0 - (d - self.radius) / self.radius, 0.0, 1.0) ** 2
-        grid.set_ao(self.slot, self.index, np.rint(self.baked * (1.0 - 0.8 * shade)).astype(np.uint32))
+        ao = np.rint(self.baked * (1.0 - 0.8 * shade)).astype(np.int64)
+        current = (grid.cells[self.slot, self.index] & 0xFF).astype(np.int64)
+        # Like the server tick: a point is updated when its AO moved by at least the threshold, or
+        # when it reaches its target exactly (so AO settles back to the baked value once the sphere left).
+        go = (np.abs(ao - current) >= self.threshold) | ((ao == self.baked) & (ao != current))
+        grid.set_ao(self.slot[go], self.index[go], ao[go].astype(np.uint32))
