@@ -62,13 +62,10 @@ class Frame:
     transforms: np.ndarray  # (n_instances, 4, 4) float64 local-to-world
     mesh_vertices: dict[int, np.ndarray]  # skinned mesh index -> (V, 3) mesh-local vertices at t
     bounds: dict[int, tuple[np.ndarray, np.ndarray]]  # moving instance -> world (lo, hi) at t
+    spheres: dict[int, tuple[np.ndarray, float]]  # moving instance -> world bounding sphere (centre, radius)
     dynamic_vertices: np.ndarray  # (V, 3) world, all moving instances merged
     dynamic_faces: np.ndarray  # (F, 3) int64
     seconds_skinning: float = 0.0
-
-
-def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
 def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -100,10 +97,6 @@ class SceneAnimator:
         self.kinds = classify_instances(scene)
         self.skinner = SceneSkinner(scene, device=device)
         self._rest_transforms = np.array([inst.transform for inst in scene.instances], dtype=np.float64).reshape(-1, 4, 4)
-        # local corner boxes of rigid meshes: a transformed box is a cheap conservative world bound
-        self._local_corners = {i: _box_corners(scene.meshes[scene.instances[i].mesh].vertices.min(axis=0),
-                                               scene.meshes[scene.instances[i].mesh].vertices.max(axis=0))
-                               for i in self.kinds.rigid}
 
     # ------------------------------------------------------------------ static part
     def static_geometry(self) -> tuple[np.ndarray, np.ndarray]:
@@ -136,23 +129,24 @@ class SceneAnimator:
             if m not in mesh_vertices:
                 mesh_vertices[m] = self.skinner.vertices(m, t)
         seconds_skinning = time.perf_counter() - t0
-        bounds, verts, faces, base = {}, [], [], 0
+        bounds, spheres, verts, faces, base = {}, {}, [], [], 0
         for i in self.kinds.moving:
             inst = self.scene.instances[i]
             mesh = self.scene.meshes[inst.mesh]
             local = mesh_vertices.get(inst.mesh, mesh.vertices)
             m = transforms[i]
-            w = affine(local, m)
-            if i in self._local_corners:  # rigid: transformed local box (conservative, 8 points)
-                bounds[i] = world_box(self._local_corners[i], m)
-            else:
-                bounds[i] = (w.min(axis=0), w.max(axis=0))
+            w = affine(local, m)  # the moving scene needs them anyway: exact bounds come for free
+            lo, hi = w.min(axis=0), w.max(axis=0)
+            bounds[i] = (lo, hi)
+            centre = 0.5 * (lo + hi)
+            d = w - centre
+            spheres[i] = (centre, float(np.sqrt(np.einsum("pi,pi->p", d, d).max())))
             verts.append(w)
             faces.append(mesh.faces + base)
             base += len(w)
         dv = np.concatenate(verts) if verts else np.zeros((0, 3))
         df = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
-        return Frame(float(t), transforms, mesh_vertices, bounds, dv, df, seconds_skinning)
+        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning)
 
 
 # ---------------------------------------------------------------------------------- skinned points

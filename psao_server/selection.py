@@ -145,6 +145,19 @@ class MotionInput:
     boxes_before: dict[int, tuple[np.ndarray, np.ndarray]]  # moving instance -> AABB at the previous tick
     rigid: list[int]
     skinned: list[int]
+    spheres_now: dict[int, tuple[np.ndarray, float]] | None = None  # bounding spheres (centre, radius)
+    spheres_before: dict[int, tuple[np.ndarray, float]] | None = None
+
+
+def may_see_sphere(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, radius: float,
+                   ao_distance: float) -> np.ndarray:
+    """Bool (P,): can a ray of length ao_distance in the hemisphere about a point's normal reach the
+    sphere? Never when the sphere is farther than ao_distance, or wholly behind the point's tangent
+    plane (every ray goes into the half-space n . (q - p) >= 0). Conservative: True may still miss."""
+    d = np.asarray(centre, np.float64) - points
+    dist2 = np.einsum("pi,pi->p", d, d)
+    ahead = np.einsum("pi,pi->p", d, np.asarray(normals, np.float64))
+    return (dist2 <= (radius + ao_distance) ** 2) & (ahead >= -radius)
 
 
 def reach_boxes(motion: MotionInput, ao_distance: float, merge_slack: float = 0.25) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
@@ -183,10 +196,23 @@ def rigid_in_company(motion: MotionInput, reach: dict, static_boxes: dict[int, t
     return out
 
 
-def static_points_near(index: BlockIndex, reach: dict) -> np.ndarray:
-    """Bool mask over the block index's points: within reach of any moving instance."""
+def static_points_near(index: BlockIndex, reach: dict, motion: MotionInput | None = None,
+                       normals: np.ndarray | None = None, ao_distance: float = 0.0) -> np.ndarray:
+    """Bool mask over the block index's points: within reach of any moving instance. With the movers'
+    bounding spheres (motion) and the points' normals, points that cannot see a mover's sphere now or
+    before (may_see_sphere) are left out."""
     out = np.zeros(len(index.positions), dtype=bool)
-    for boxes in reach.values():
+    for i, boxes in reach.items():
+        spheres = []
+        if motion is not None and normals is not None and motion.spheres_now:
+            spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp]
         for b in boxes:
-            out[index.query_box(b)] = True
+            idx = index.query_box(b)
+            if spheres and len(idx):
+                p, n = index.positions[idx], normals[idx]
+                keep = np.zeros(len(idx), dtype=bool)
+                for c, r in spheres:
+                    keep |= may_see_sphere(p, n, c, r, ao_distance)
+                idx = idx[keep]
+            out[idx] = True
     return out

@@ -163,6 +163,7 @@ class ServerTick:
                                                                 self.local_nrm[ids])
         block = self.settings.block or self.scene.ao_distance
         self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
+        self.static_normals = self.world_nrm[self.static_ids].astype(np.float64)
 
     def _init_tracer(self) -> None:
         s = self.settings
@@ -294,10 +295,12 @@ class ServerTick:
         return ids[visible], pos[visible], nrm[visible]
 
     def _motion_candidates(self, frame: Frame) -> np.ndarray:
-        motion = MotionInput(frame.bounds, self.last_frame.bounds, self.kinds.rigid, self.kinds.skinned)
+        motion = MotionInput(frame.bounds, self.last_frame.bounds, self.kinds.rigid, self.kinds.skinned,
+                             frame.spheres, self.last_frame.spheres)
         reach = reach_boxes(motion, self.scene.ao_distance)
         out = np.zeros(len(self.tracked), dtype=bool)
-        out[self.static_ids[static_points_near(self.block_index, reach)]] = True  # mask over static ids
+        near = static_points_near(self.block_index, reach, motion, self.static_normals, self.scene.ao_distance)
+        out[self.static_ids[near]] = True
         for i in self.kinds.skinned + rigid_in_company(motion, reach, self.static_boxes):
             out[self.first_id[i]:self.first_id[i + 1]] = True
         return out

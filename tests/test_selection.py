@@ -116,3 +116,26 @@ def test_bad_camera_sees_everything():
     assert camera_planes(nan, perspective(50.0, 1.0, 0.1, 40.0), 10.0) is None
     assert camera_planes(np.eye(4), np.zeros((4, 4)), 10.0) is None
     assert in_any_view(pts, [good, None], 0.0).all()
+
+
+def test_may_see_sphere_is_conservative():
+    """Brute force: from every point the filter rejects, no hemisphere ray of length d meets the sphere;
+    and the filter does reject points behind their tangent plane and far away."""
+    from psao_server.selection import may_see_sphere
+    rng = np.random.default_rng(5)
+    centre, radius, d = np.array([0.3, -0.2, 0.5]), 0.8, 1.5
+    pts = rng.uniform(-2.5, 2.5, size=(4000, 3))
+    nrm = rng.normal(size=(4000, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    outside = np.linalg.norm(pts - centre, axis=1) > radius
+    pts, nrm = pts[outside], nrm[outside]
+    ok = may_see_sphere(pts, nrm, centre, radius, d)
+    assert 0.2 < ok.mean() < 0.8
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for p, n in zip(pts[~ok][:300], nrm[~ok][:300]):
+        hemi = np.where((dirs @ n)[:, None] >= 0, dirs, -dirs)
+        # ray-sphere: closest approach along each ray within [0, d]
+        t = np.clip((centre - p) @ hemi.T, 0.0, d)
+        closest = p + t[:, None] * hemi
+        assert (np.linalg.norm(closest - centre, axis=1) > radius).all()
