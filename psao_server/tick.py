@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -52,6 +53,7 @@ class TickSettings:
     workers: int = 0  # tracer processes, 0 = all cores
     block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
     fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
+    history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
 
     def check(self) -> None:
         if not 0 <= self.threshold <= 255:
@@ -113,7 +115,7 @@ class ServerTick:
         self._init_tracer()
         self.static_boxes = self.animator.static_bounds()
         self.cameras: list[np.ndarray] = []
-        self.stats_history: list[TickStats] = []
+        self.stats_history: deque[TickStats] = deque(maxlen=max(1, self.settings.history))
         self.tick_count = 0
         same_rays = bake.stats.get("rays") == self.settings.rays
         if baked_time is not None and same_rays:
@@ -202,7 +204,8 @@ class ServerTick:
         self._relocate_cells(np.flatnonzero(np.isin(self.grid.cell_instance, instances)))
 
     def _check_locations(self, ids: np.ndarray) -> None:
-        """Someone else (a compaction, a scene edit) may have moved points: find them again."""
+        """Someone else (a compaction, a scene edit) may have moved points: find them again (ids: points
+        believed present; afterwards present() tells where they really are)."""
         ok = self.grid.point_id[self.slot[ids], self.index[ids]] == ids
         if not ok.all():
             log.info("grid edited outside the tick: re-locating every point")
@@ -249,8 +252,8 @@ class ServerTick:
         g0 = time.perf_counter()
         if len(plan.moved):
             self._check_locations(plan.moved)
-            self.grid.move_points(self.slot[plan.moved], self.index[plan.moved], self.local_pos[plan.moved],
-                                  self.local_nrm[plan.moved])
+            go = plan.moved[self.present()[plan.moved]]
+            self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
             self._relocate_instances(self.kinds.skinned)
         changed = self._store(plan.ids, plan.codes)
         seconds_grid = time.perf_counter() - g0
@@ -318,11 +321,12 @@ class ServerTick:
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
         """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
+        if len(ids):
+            self._check_locations(ids[self.present()[ids]])
         here = self.present()[ids]
         have, new = ids[here], codes[here]
         changed = 0
         if len(have):
-            self._check_locations(have)
             old = (self.grid.cells[self.slot[have], self.index[have]] & np.uint32(0xFF)).astype(np.int64)
             write = np.abs(new.astype(np.int64) - old) > self.settings.threshold
             self.grid.set_ao(self.slot[have][write], self.index[have][write], new[write])

@@ -228,3 +228,17 @@ def test_prepare_writes_nothing_and_apply_writes_it():
         np.testing.assert_allclose(tick.transforms(), tick.animator.transforms(0.6).astype(np.float32))
     finally:
         tick.close()
+
+
+def test_grid_compacted_behind_the_ticks_back():
+    """A compaction renumbers every slot: the tick notices and finds its points again."""
+    tick, bake = make_tick("courtyard")
+    try:
+        tick(tick.grid, 0.3)
+        tick.grid.compact()
+        tick.grid.take_dirty()
+        tick(tick.grid, 0.6)
+        ids, full = full_retrace_codes(tick, 0.6)
+        assert np.abs(stored_codes(tick, ids) - full).max() <= tick.settings.threshold
+    finally:
+        tick.close()
