@@ -39,6 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", type=Path, default=Path("out") / ".cache", metavar="DIR",
                    help="cache of grids and RTAO references (default out/.cache)")
     p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
+    p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs (default 1)")
 
 
 @dataclass
@@ -56,6 +57,7 @@ class BenchConfig:
     out: Path
     cache: Path
     stream: bool = True
+    image_scale: float = 1.0
 
 
 def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
@@ -84,12 +86,15 @@ def config_from_args(args) -> BenchConfig:
     for name, v in (("frames", args.frames), ("spp", args.spp), ("rays", args.rays), ("ssao-samples", args.ssao_samples)):
         if v < 1:
             raise EvalError(f"--{name} must be >= 1, got {v}")
+    if not (0.05 <= args.image_scale <= 4):
+        raise EvalError(f"--image-scale must be within 0.05..4, got {args.image_scale}")
     if not (args.stream_seconds > 0 and math.isfinite(args.stream_seconds)):
         raise EvalError(f"--stream-seconds must be > 0, got {args.stream_seconds}")
     return BenchConfig(scenes=list(args.scenes), densities=parse_list(args.densities, "densities", 1e-3, 1e7),
                        tick_hz=parse_list(args.tick_hz, "tick-hz", 5, 60), frames=args.frames, spp=args.spp,
                        size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
-                       camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream)
+                       camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
+                       image_scale=args.image_scale)
 
 
 def ensure_writable(folder: Path, what: str) -> Path:
@@ -266,7 +271,7 @@ def _run(args) -> int:
         scene_rows, image = bench_scene(spec, cfg, log)
         rows += scene_rows
         images.append(image)
-    written = write_outputs(rows, images, cfg.out)
+    written = write_outputs(rows, images, cfg.out, cfg.image_scale)
     print(report_text(rows))
     print(LPIPS_NOTE)
     for p in written:

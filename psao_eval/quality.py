@@ -82,8 +82,10 @@ class QualityRenderer:
         self.renderer = FrameRenderer(scene, self.size, "both", ssao_samples=ssao_samples)
         self.gl_renderer = self.renderer.ctx.info.get("GL_RENDERER", "")
 
-    def render(self, grid, poses: list[FramePose]) -> list[RenderedFrame]:
-        """`grid` has instances, buckets and cells (a GridFile or a Grid)."""
+    def render(self, grid, poses: list[FramePose], timing_repeats: int = 3) -> list[RenderedFrame]:
+        """`grid` has instances, buckets and cells (a GridFile or a Grid). Each frame's pass times are
+        the minimum over `timing_repeats` submissions: on a shared CPU (llvmpipe) other processes only
+        ever add time."""
         r = self.renderer
         r.upload_grid(grid.instances, grid.buckets, grid.cells)
         r.set_transforms(rest_transforms(self.scene))
@@ -92,7 +94,11 @@ class QualityRenderer:
         for pose in poses:
             frame = r.render(pose.view, pose.proj)
             mask = frame.gbuffer.mask
-            ms = frame.gpu_ms
+            ms = dict(frame.gpu_ms)
+            for _ in range(max(0, timing_repeats - 1)):
+                r.submit(pose.view, pose.proj)
+                for k, v in r.timer.collect().items():
+                    ms[k] = min(ms.get(k, v), v)
             gpu = {"psao": ms.get("gbuffer", 0.0) + ms.get("psao", 0.0),
                    "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
             holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))

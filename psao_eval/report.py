@@ -52,7 +52,7 @@ def markdown_table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in merged:
         cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3),
-                 f"{r['bias']:+.3f}" if r.get("bias") is not None else "-"]
+                 f"{round(r['bias'], 3) + 0.0:+.3f}" if r.get("bias") is not None else "-"]
         cells += [_fmt(r["mbit"].get(hz), 3) if r["density"] else "-" for hz in rates]
         cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-", _fmt(r.get("client_ms_frame"), 1),
                   _fmt(r.get("server_ms_tick"), 2) if r["density"] else "-",
@@ -114,35 +114,50 @@ def runtime_chart(rows: list[dict], path: Path) -> None:
 
 
 def bandwidth_chart(rows: list[dict], path: Path) -> None:
-    """PSNR and FLIP against the stream's Mbit/s (after the snapshot) per density, one line per scene and
-    tick rate; SSAO as a horizontal reference line (no stream)."""
+    """PSNR and FLIP against the data PSAO sends: the snapshot (MB, once per connection) per density, one
+    line per scene, SSAO as a dotted line (it sends nothing); and the stream after the snapshot (Mbit/s)
+    against the server's tick rate, per scene and density."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scenes, colours = _scene_styles(rows)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
-    for ax, (ykey, ylabel) in zip(axes, [("psnr", "PSNR dB (higher is better)"), ("flip", "FLIP (lower is better)")]):
+    merged = table_rows(rows)
+    scenes, colours = _scene_styles(merged)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.2), constrained_layout=True)
+    for ax, (ykey, ylabel) in zip(axes[:2], [("psnr", "PSNR dB (higher is better)"), ("flip", "FLIP (lower is better)")]):
         for s in scenes:
-            ps = [r for r in rows if r["scene"] == s and r.get("density") and r.get("tick_hz")]
-            for hz in sorted({r["tick_hz"] for r in ps}):
-                pts = sorted([r for r in ps if r["tick_hz"] == hz], key=lambda r: r["density"])
-                ax.plot([max(r["stream_mbit_s"], 1e-4) for r in pts], [r[ykey] for r in pts], marker="o",
-                        color=colours[s], alpha=0.4 + 0.6 * hz / 60.0, label=f"{s} PSAO @{hz:g} Hz")
+            pts = sorted([r for r in merged if r["scene"] == s and r.get("density") and r.get("snapshot_mb")],
+                         key=lambda r: r["density"])
+            if pts:
+                ax.plot([r["snapshot_mb"] for r in pts], [r[ykey] for r in pts], marker="o", color=colours[s],
+                        label=f"{s} PSAO")
                 for r in pts:
-                    ax.annotate(f"N={r['density']:g}", (max(r["stream_mbit_s"], 1e-4), r[ykey]), fontsize=7,
+                    ax.annotate(f"N={r['density']:g}", (r["snapshot_mb"], r[ykey]), fontsize=7,
                                 textcoords="offset points", xytext=(3, 3))
-            for r in rows:
+            for r in merged:
                 if r["scene"] == s and r["method"] == "SSAO":
                     ax.axhline(r[ykey], color=colours[s], linestyle=":", linewidth=1)
         ax.set_xscale("log")
-        ax.set_xlabel("stream Mbit/s after the snapshot (log; 1e-4 = nothing sent)")
+        ax.set_xlabel("PSAO snapshot MB (log)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3, which="both")
+    ax = axes[2]
+    for s in scenes:
+        ps = [r for r in rows if r["scene"] == s and r.get("density") and r.get("tick_hz")]
+        for d in sorted({r["density"] for r in ps}):
+            pts = sorted([r for r in ps if r["density"] == d], key=lambda r: r["tick_hz"])
+            ax.plot([r["tick_hz"] for r in pts], [r["stream_mbit_s"] for r in pts], marker="o", color=colours[s],
+                    alpha=0.5 + 0.5 * (d == max(r["density"] for r in ps)), label=f"{s} N={d:g}")
+    ax.set_yscale("symlog", linthresh=0.01)
+    ax.set_ylim(bottom=0.0)
+    ax.set_xlabel("server tick rate (Hz)")
+    ax.set_ylabel("stream Mbit/s after the snapshot")
+    ax.grid(alpha=0.3, which="both")
     handles, labels = axes[0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside right center", fontsize=8)
-    fig.suptitle("Bandwidth versus quality (dotted: SSAO, which streams nothing)")
+    h2, l2 = axes[2].get_legend_handles_labels()
+    if handles or h2:
+        fig.legend(handles + h2, labels + l2, loc="outside right center", fontsize=7)
+    fig.suptitle("Bandwidth versus quality (dotted: SSAO, which sends nothing; a static scene streams ~0 after its snapshot)")
     fig.savefig(path, dpi=80)
     plt.close(fig)
 
