@@ -10,7 +10,8 @@ on courtyard and space), the stage split animate / select / trace / grid, and wh
 fits 16.7 ms (60 Hz) or which stage is the bottleneck.
 
     .venv/bin/python -m benchmarks.bench_tick [--density 256] [--ticks 40] [--ticks-off 4] [--rays 32]
-        [--scenes courtyard,space,robots] [--workers 0] [--out out/bench_tick] [--sweep 0,2,4,8,16]
+        [--scenes courtyard,space,robots] [--workers 0] [--tracer embree|warp] [--out out/bench_tick]
+        [--sweep 0,2,4,8,16]
 
 The threshold sweep (courtyard at --sweep-density) shows what the threshold buys: with R rays one ray
 is 255 / R codes, and the same point traces the same rays every tick, so thresholds below one ray's
@@ -73,7 +74,7 @@ def bench_scene(name: str, args) -> dict:
     bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, workers=args.workers),
                       show_progress=False)
     bake_s = time.perf_counter() - t0
-    tick = ServerTick(bake, TickSettings(rays=args.rays, workers=args.workers), baked_time=0.0)
+    tick = ServerTick(bake, TickSettings(rays=args.rays, workers=args.workers, tracer=args.tracer), baked_time=0.0)
     try:
         tick.grid.take_dirty()
         on_times = [FRAME_S * (k + 1) for k in range(args.ticks)]
@@ -107,7 +108,8 @@ def threshold_sweep(name: str, thresholds: list[int], args) -> list[dict]:
     times = [FRAME_S * (k + 1) for k in range(args.sweep_ticks)]
     for th in thresholds:
         copy_ = BakeResult(scene, copy.deepcopy(bake.grid), bake.pointsets, bake.stats, None)
-        tick = ServerTick(copy_, TickSettings(rays=args.rays, workers=args.workers, threshold=th), baked_time=0.0)
+        tick = ServerTick(copy_, TickSettings(rays=args.rays, workers=args.workers, threshold=th, tracer=args.tracer),
+                          baked_time=0.0)
         try:
             rows = run_ticks(tick, scene, times)
             ids = np.flatnonzero(tick.present() & ~tick.stale)  # stale: outside the view, re-traced once seen
@@ -132,7 +134,8 @@ def print_table(results: list[dict], args) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"server tick, N = {args.density:g}, {args.rays} rays/point, one camera (scene's path), 60 Hz scene time")
+    table = Table(title=f"server tick, N = {args.density:g}, {args.rays} rays/point, {args.tracer} tracer, one camera "
+                        f"(scene's path), 60 Hz scene time")
     for col in ("scene", "points", "selection", "ticks", "mean ms", "median ms", "traced/tick", "changed/tick",
                 "cells/tick", "animate", "select", "trace", "grid"):
         table.add_column(col, justify="right")
@@ -206,6 +209,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ticks-off", type=int, default=4, help="ticks with the selection off (each traces every visible point)")
     ap.add_argument("--rays", type=int, default=32)
     ap.add_argument("--workers", type=int, default=0, help="tracer processes (0: all cores)")
+    ap.add_argument("--tracer", default="embree", help="tracer back-end of the ticks: embree (CPU) or warp (CUDA when present)")
     ap.add_argument("--scenes", default="courtyard,space,robots")
     ap.add_argument("--out", type=Path, default=Path("out/bench_tick"))
     ap.add_argument("--sweep", default="0,2,4,8,16", help="thresholds (AO codes) for the courtyard sweep; '' skips it")
