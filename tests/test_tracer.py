@@ -126,5 +126,6 @@ def test_warp_ray_kernel_matches_numpy_reference():
     p = rng.normal(scale=100, size=(300, 3)).astype(np.float32)
     ids = rng.integers(0, 2**40, 300)
     o, d = RayBuffers().rays(p, n, *rotation_of(ids, 5), 64, 2.0)
-    np.testing.assert_allclose(d, cosine_directions(ids, n, 64, 5).reshape(-1, 3), atol=2e-6)
+    # the kernel rotates a table of azimuths instead of calling cos/sin per ray: equal to float rounding
+    np.testing.assert_allclose(d, cosine_directions(ids, n, 64, 5).reshape(-1, 3), atol=2e-5)
     np.testing.assert_array_equal(o, np.repeat(ray_origins(p, n, 2.0), 64, axis=0))

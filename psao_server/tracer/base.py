@@ -35,9 +35,10 @@ class Tracer:
         """(P,) float32 visibility in [0, 1] for world-space points and unit normals."""
         raise NotImplementedError
 
-    def raw_occlusion_rate(self, positions, normals, point_ids, settings) -> float:
-        """Rays per second of the bare occlusion query on the same rays and workers (overhead excluded)."""
-        raise NotImplementedError
+    def throughput(self) -> dict:
+        """Measured so far: rays_per_second, and where the back-end can tell, embree_rays_per_second (the
+        bare occlusion query on the same rays and workers) and trace_efficiency (their ratio)."""
+        return {}
 
     def close(self) -> None:
         pass

@@ -82,10 +82,17 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings):
     return _RAYS.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance)
 
 
-def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> np.ndarray:
+def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings):
+    """Visibility of a chunk of points, with the CPU seconds of the bare Embree query and of the whole
+    chunk: their ratio is the tracer's overhead over bare Embree on exactly the same rays, and CPU time
+    (unlike wall time) does not count what other processes on a busy machine take."""
+    t0 = time.process_time()
     org, dirs = _chunk_rays(pos, nrm, ids, s)
+    t1 = time.process_time()
     hit = scenes.occluded(org, dirs, s.ao_distance)
-    return 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
+    t2 = time.process_time()
+    vis = 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
+    return vis, t2 - t1, time.process_time() - t0
 
 
 # ---- worker-process side
@@ -107,14 +114,24 @@ def _worker_ping(_):
     return _WORKER is not None
 
 
-def _worker_raw(job):
-    """Bare occlusion throughput: rays are generated first, only `scene.run` is timed."""
-    version, dyn_v, dyn_f, pos, nrm, ids, s = job
-    _WORKER.update_dynamic(version, dyn_v, dyn_f)
-    org, dirs = _chunk_rays(pos, nrm, ids, s)
-    t0 = time.perf_counter()
-    _WORKER.occluded(org, dirs, s.ao_distance)
-    return time.perf_counter() - t0
+class CpuAccount:
+    """Rays traced and the CPU seconds they took, in the bare Embree query and in total."""
+
+    def __init__(self):
+        self.rays = 0
+        self.cpu_query = 0.0
+        self.cpu_total = 0.0
+
+    def add(self, rays: int, cpu_query: float, cpu_total: float) -> None:
+        self.rays += rays
+        self.cpu_query += cpu_query
+        self.cpu_total += cpu_total
+
+    def rates(self, workers: int) -> dict:
+        """Rays per second of the tracer and of bare Embree with `workers` processes fully busy."""
+        return {"rays_per_second": self.rays * workers / max(self.cpu_total, 1e-9),
+                "embree_rays_per_second": self.rays * workers / max(self.cpu_query, 1e-9),
+                "trace_efficiency": self.cpu_query / max(self.cpu_total, 1e-9)}
 
 
 class EmbreeTracer(Tracer):
@@ -130,6 +147,7 @@ class EmbreeTracer(Tracer):
         self._dynamic_version = 0
         self._local: _Scenes | None = None
         self._pool = None
+        self.account = CpuAccount()
 
     # geometry -------------------------------------------------------------
     def _recentre(self, vertices) -> np.ndarray:
@@ -187,8 +205,9 @@ class EmbreeTracer(Tracer):
         jobs = self._jobs(positions, normals, point_ids, settings)
         results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
         try:
-            for vis in results:
+            for vis, cpu_query, cpu_total in results:
                 out.append(vis)
+                self.account.add(len(vis) * settings.rays, cpu_query, cpu_total)
                 if progress is not None:
                     progress(len(vis))
         except BrokenProcessPool as exc:
@@ -196,22 +215,8 @@ class EmbreeTracer(Tracer):
             raise TracerError(f"an Embree worker process died: {exc}") from None
         return np.concatenate(out).astype(np.float32)
 
-    def raw_occlusion_rate(self, positions, normals, point_ids, settings: TraceSettings) -> float:
-        """Rays per second of bare `scene.run` on the same rays and worker processes."""
-        pool = self._ensure_pool()
-        jobs = list(self._jobs(positions, normals, point_ids, settings))
-        if pool is None:
-            t = 0.0
-            for j in jobs:
-                org, dirs = _chunk_rays(*j[3:])
-                t0 = time.perf_counter()
-                self._local.occluded(org, dirs, settings.ao_distance)
-                t += time.perf_counter() - t0
-            return len(positions) * settings.rays / max(t, 1e-9)
-        # Each worker's busy time is the sum of its chunks' run() times; jobs are spread evenly, so the
-        # wall time of the bare queries is the total busy time divided by the number of workers.
-        busy = sum(pool.map(_worker_raw, jobs))
-        return len(positions) * settings.rays / max(busy / self.workers, 1e-9)
+    def throughput(self) -> dict:
+        return self.account.rates(self.workers if self._pool is not None else 1)
 
     def close(self) -> None:
         if self._pool is not None:

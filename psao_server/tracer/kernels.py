@@ -6,6 +6,7 @@ buffers the Embree workers trace (numpy temporaries cost as much as Embree's own
 """
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 wp.config.quiet = True
@@ -55,6 +56,7 @@ def rays_kernel(
     normals: wp.array(dtype=wp.vec3),
     rot_a: wp.array(dtype=float),
     rot_b: wp.array(dtype=float),
+    phase: wp.array(dtype=wp.vec2),
     rays: int,
     ao_distance: float,
     offset_rel: float,
@@ -63,12 +65,24 @@ def rays_kernel(
     out_dirs: wp.array(dtype=wp.vec3),
 ):
     # One thread per point looping over its rays: a thread per ray costs ~5x more on Warp's CPU device.
+    # The azimuth 2 pi (frac(j * golden) + b) is the table's angle rotated by the point's 2 pi b, so the
+    # loop needs no trigonometry (same directions as ray_direction up to float rounding).
     i = wp.tid()
     n = normals[i]
     o = ray_origin(positions[i], n, offset_rel, offset_ao, ao_distance)
+    t = tangent(n)
+    bt = bitangent(n)
+    cb = wp.cos(6.283185307179586 * rot_b[i])
+    sb = wp.sin(6.283185307179586 * rot_b[i])
     for j in range(rays):
+        u1 = (float(j) + 0.5) / float(rays) + rot_a[i]
+        u1 = u1 - wp.floor(u1)
+        r = wp.sqrt(u1)
+        cs = phase[j]
+        c = cs[0] * cb - cs[1] * sb
+        sn = cs[1] * cb + cs[0] * sb
         out_origins[i * rays + j] = o
-        out_dirs[i * rays + j] = ray_direction(n, j, rays, rot_a[i], rot_b[i])
+        out_dirs[i * rays + j] = t * (r * c) + bt * (r * sn) + n * wp.sqrt(wp.max(0.0, 1.0 - u1))
 
 
 @wp.func
@@ -120,6 +134,12 @@ class RayBuffers:
             self.ray_capacity = points * rays
             self.origins = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
             self.dirs = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
+        if getattr(self, "phase_rays", None) != rays:
+            j = np.arange(rays, dtype=np.float64)
+            angle = 2.0 * np.pi * np.mod(j * GOLDEN, 1.0)
+            self.phase = wp.array(np.stack([np.cos(angle), np.sin(angle)], axis=1).astype(np.float32),
+                                  dtype=wp.vec2, device=self.device)
+            self.phase_rays = rays
         if points > self.point_capacity:
             self.point_capacity = points
             self.positions = wp.empty(points, dtype=wp.vec3, device=self.device)
@@ -138,7 +158,7 @@ class RayBuffers:
         self.rot_a.numpy()[:p] = rot_a
         self.rot_b.numpy()[:p] = rot_b
         wp.launch(rays_kernel, dim=p,
-                  inputs=[self.positions, self.normals, self.rot_a, self.rot_b, rays, float(ao_distance),
+                  inputs=[self.positions, self.normals, self.rot_a, self.rot_b, self.phase, rays, float(ao_distance),
                           float(OFFSET_REL), float(OFFSET_AO)],
                   outputs=[self.origins, self.dirs], device=self.device)
         n = p * rays

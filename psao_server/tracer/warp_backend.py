@@ -68,11 +68,3 @@ class WarpTracer(Tracer):
         if progress is not None:
             progress(n)
         return vis
-
-    def raw_occlusion_rate(self, positions, normals, point_ids, settings) -> float:
-        import time
-        wp.synchronize()
-        t0 = time.perf_counter()
-        self.visibility(positions, normals, point_ids, settings)
-        wp.synchronize()
-        return len(positions) * settings.rays / (time.perf_counter() - t0)
