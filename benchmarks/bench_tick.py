@@ -219,6 +219,8 @@ def main(argv=None) -> int:
     if args.ticks < 1 or args.ticks_off < 1 or args.density <= 0 or args.rays < 1:
         ap.error("ticks, ticks-off and rays must be >= 1, density > 0")
     args.out.mkdir(parents=True, exist_ok=True)
+    import os
+    print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other processes slow every stage)")
     results = []
     for name in args.scenes.split(","):
         t0 = time.perf_counter()
@@ -226,6 +228,7 @@ def main(argv=None) -> int:
         print(f"{name}: {results[-1]['points']:,} points, bake {results[-1]['bake_s']:.1f} s, "
               f"benchmark {time.perf_counter() - t0:.1f} s", flush=True)
     print_table(results, args)
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
     chart(results, args.out / "bench_tick.png", args)
     sweep = []
     if args.sweep:
