@@ -117,13 +117,16 @@ class ServerTick:
         self.cameras: list[np.ndarray] = []
         self.stats_history: deque[TickStats] = deque(maxlen=max(1, self.settings.history))
         self.tick_count = 0
-        same_rays = bake.stats.get("rays") == self.settings.rays
+        # the bake's AO is this tick's first sync only if it traced the same rays (count and seed)
+        same_rays = (bake.stats.get("rays") == self.settings.rays
+                     and bake.stats.get("seed", self.settings.seed) == self.settings.seed)
         if baked_time is not None and same_rays:
             self.last_frame: Frame | None = self.animator.frame(baked_time)
         else:
             if baked_time is not None:
-                log.info("bake traced %s rays, the tick %d: the first tick re-traces every visible point",
-                         bake.stats.get("rays"), self.settings.rays)
+                log.info("bake traced %s rays (seed %s), the tick %d (seed %d): the first tick re-traces every "
+                         "visible point", bake.stats.get("rays"), bake.stats.get("seed", "?"), self.settings.rays,
+                         self.settings.seed)
             self.last_frame = None
             self.stale[self.present()] = True
         self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
