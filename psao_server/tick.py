@@ -97,10 +97,12 @@ class TickPlan:
 
 class ServerTick:
     def __init__(self, bake: BakeResult, settings: TickSettings | None = None, baked_time: float | None = 0.0,
-                 close_bake_tracer: bool = True):
+                 close_bake_tracer: bool = True, trust_bake: bool = False):
         """`baked_time`: the scene time at which the bake traced the grid (its AO then counts as the first
-        sync when the bake used the same rays and seed), or None to re-trace everything visible on the
-        first tick. The bake's tracer saw the moving instances as static: it is closed unless told not to."""
+        sync when the bake used the same rays and seed, or always with `trust_bake`: e.g. a 128-ray bake
+        kept for the static parts while ticks trace fewer rays; a point re-traced later then jumps to the
+        tick's estimate once), or None to re-trace everything visible on the first tick. The bake's
+        tracer saw the moving instances as static: it is closed unless told not to."""
         self.settings = settings or TickSettings()
         self.settings.check()
         self.scene = bake.scene
@@ -120,7 +122,7 @@ class ServerTick:
         # the bake's AO is this tick's first sync only if it traced the same rays (count and seed)
         same_rays = (bake.stats.get("rays") == self.settings.rays
                      and bake.stats.get("seed", self.settings.seed) == self.settings.seed)
-        if baked_time is not None and same_rays:
+        if baked_time is not None and (same_rays or trust_bake):
             self.last_frame: Frame | None = self.animator.frame(baked_time)
         else:
             if baked_time is not None:
