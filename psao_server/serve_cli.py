@@ -112,7 +112,11 @@ async def _serve(service) -> int:
     got: list[str] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (got.append(s.name), stop.set()))
-    await service.run(stop)
+    try:
+        await service.run(stop)
+    except OSError as exc:  # the port is taken, the address is not ours, ...
+        s = service.settings
+        raise ConfigError(f"cannot listen on {s.host}:{s.port}: {exc.strerror or exc}") from None
     c = service.counters
     logging.getLogger("psao.serve").info(
         "stopped on %s after %d ticks: %d connections, %d rejected, %.1f MB sent",

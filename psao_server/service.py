@@ -288,18 +288,21 @@ class Service:
         self.counters.bytes_out += len(data)
         self.counters.messages_out += 1
 
-    def _log_digest(self, client: Client) -> None:
-        """After a message that left nothing pending, the client's mirror must equal this state."""
+    def _log_digest(self, client: Client, seq: int | None = None) -> None:
+        """After the message `seq` (default: the next one sent), which leaves nothing pending, the client's
+        mirror must equal this state."""
         if self._digests:
             g = self.grid
             digest = state_digest(g.instances, g.buckets, g.cells, self.transforms())
-            self._digests.write(json.dumps({"conn": client.id, "seq": client.messages_sent, "tick": self.tick,
+            seq = client.messages_sent if seq is None else seq
+            self._digests.write(json.dumps({"conn": client.id, "seq": seq, "tick": self.tick,
                                             "digest": digest}) + "\n")
 
     async def _write(self, ws, session: ServerSession, client: Client) -> None:
         grid, limits = self.grid, self.settings.limits
         plan = SnapshotPlan.of(grid, limits, self.settings.snapshot_cells_per_chunk)
-        for i in range(len(plan)):
+
+        async def chunk(i: int) -> bytes:
             cap = len(grid.cells)
             b, c = plan.bucket_chunks[i], plan.cell_chunks[i]
             c = c[c < cap]  # a compaction may have shrunk the pool since the plan
@@ -307,9 +310,20 @@ class Service:
             tids = client.read_transforms(self.transforms())
             delta = read_delta(grid, self.transforms(), tids, b, c)
             if i == len(plan) - 1 and not client.pending_anything():
-                self._log_digest(client)
-            data = await asyncio.to_thread(session.snapshot, i, len(plan), delta)
-            await self._send(ws, client, data)
+                self._log_digest(client, seq=len(plan))  # Welcome is message 0, chunk i is message i + 1
+            return await asyncio.to_thread(session.snapshot, i, len(plan), delta)
+
+        # The next chunk is read and compressed while this one is on its way (stream order is kept:
+        # chunk i+1 is compressed only after chunk i was).
+        upcoming = asyncio.create_task(chunk(0))
+        try:
+            for i in range(len(plan)):
+                data = await upcoming
+                if i + 1 < len(plan):
+                    upcoming = asyncio.create_task(chunk(i + 1))
+                await self._send(ws, client, data)
+        finally:
+            upcoming.cancel()
         while True:
             await client.wake.wait()
             client.wake.clear()

@@ -37,6 +37,17 @@ def test_serve_bad_settings(args, text):
     one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)
 
 
+def test_serve_port_taken():
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        one_line_error(psao("serve", "builtin:cornell", "--density", "8", "--rays", "1", "--port", str(port)),
+                       f"cannot listen on 127.0.0.1:{port}")
+
+
 def test_serve_unknown_scene():
     one_line_error(psao("serve", "builtin:nope", "--port", "0"), "unknown scene")
 
