@@ -39,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", type=Path, default=Path("out") / ".cache", metavar="DIR",
                    help="cache of grids and RTAO references (default out/.cache)")
     p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
+    p.add_argument("--animate", action="store_true",
+                   help="score animated scenes at each frame's scene time (server tick run in process; static otherwise)")
     p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs (default 1)")
 
 
@@ -58,6 +60,7 @@ class BenchConfig:
     cache: Path
     stream: bool = True
     image_scale: float = 1.0
+    animate: bool = False
 
 
 def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
@@ -94,7 +97,7 @@ def config_from_args(args) -> BenchConfig:
                        tick_hz=parse_list(args.tick_hz, "tick-hz", 5, 60), frames=args.frames, spp=args.spp,
                        size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
-                       image_scale=args.image_scale)
+                       image_scale=args.image_scale, animate=args.animate)
 
 
 def ensure_writable(folder: Path, what: str) -> Path:
@@ -154,6 +157,7 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
     """All rows of one scene and the data of its side-by-side image."""
     from psao_client.render.gridfile import load_grid_file
     from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
+    from psao_eval.dynamic import is_animated
     from psao_eval.reference import ReferenceSettings
     from psao_scene import load_scene
 
@@ -165,10 +169,14 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
 
     log(f"{scene.name}: rendering {len(poses)} frame(s) at {cfg.size[0]}x{cfg.size[1]}, PSAO at "
         f"{len(grids)} densities and SSAO")
-    frames = {}
+    frames, tick_ms = {}, {}
+    animate = cfg.animate and is_animated(scene)
     with QualityRenderer(scene, cfg.size, cfg.ssao_samples) as qr:
         for d, (path, _) in grids.items():
-            frames[d] = qr.render(load_grid_file(path), poses)
+            if animate:
+                frames[d], tick_ms[d] = animated_frames(qr, scene, d, poses, cfg, log)
+            else:
+                frames[d] = qr.render(load_grid_file(path), poses)
         gl_renderer = qr.gl_renderer
     first = frames[cfg.densities[0]]
     log(f"{scene.name}: RTAO reference, {cfg.spp} spp, {len(first)} frame(s) (cached in {cfg.cache / 'rtao'})")
@@ -177,7 +185,7 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
     rows = []
     ssao_scores = score_frames(first, refs, methods=("ssao",))
     s = mean_scores(ssao_scores, "ssao")
-    rows.append({"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(),
+    rows.append({"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(), "animated": animate,
                  "client_ms_frame": _median([f.gpu_ms["ssao"] for f in first]), "frames": len(first), "spp": cfg.spp,
                  "gl_renderer": gl_renderer})
     pick = len(first) // 2  # the side-by-side frame
@@ -189,7 +197,8 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
         meta = grids[d][1]
         quality[d] = {**quality[d].as_dict(), "client_ms_frame": _median([f.gpu_ms["psao"] for f in frames[d]]),
                       "points": meta.get("points_kept"), "bake_trace_s": meta.get("seconds_trace"), "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])),
-                      "frames": len(frames[d]), "spp": cfg.spp}
+                      "frames": len(frames[d]), "spp": cfg.spp, "animated": animate,
+                      "anim_tick_ms": tick_ms.get(d)}
         panels.append((method_name(d), frames[d][pick].ao["psao"], sc[pick].flip_map, sc[pick].scores.as_dict()))
         log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f} "
             f"(SSAO {s.psnr:.2f} dB, {s.flip:.3f})")
@@ -203,6 +212,17 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
         for hz in cfg.tick_hz:
             rows.append({**base, "tick_hz": hz, **stream_run(spec, scene, grids[d][0], d, hz, cfg, log)})
     return rows, {"scene": scene.name, "reference": refs[pick], "panels": panels}
+
+
+def animated_frames(qr, scene, density: float, poses, cfg: BenchConfig, log: Log):
+    """Frames of the animated scene at their own times: the server's tick in this process (see dynamic.py)."""
+    from psao_eval.dynamic import AnimatedServer, AnimatedSettings
+
+    hz = max(cfg.tick_hz)
+    log(f"{scene.name}: animated, N={density:g}: in-process bake and server ticks at {hz:g} Hz up to each frame")
+    with AnimatedServer(scene, AnimatedSettings(density=density, bake_rays=cfg.rays, tick_hz=hz)) as server:
+        frames = qr.render(server.grid, poses, before_frame=server.frame_state)
+        return frames, server.mean_tick_ms()
 
 
 def stream_run(spec: str, scene, grid: Path, density: float, hz: float, cfg: BenchConfig, log: Log) -> dict:

@@ -37,6 +37,7 @@ class RenderedFrame:
     gbuffer: object  # GBufferArrays
     gpu_ms: dict[str, float]  # method -> client GPU ms for the frame (G-buffer pass + the AO pass(es))
     holes: float = 0.0  # fraction of covered pixels where PSAO found no point (weight 0)
+    transforms: np.ndarray | None = None  # (n, 4, 4) instance transforms the frame was drawn with
 
 
 @dataclass
@@ -82,16 +83,21 @@ class QualityRenderer:
         self.renderer = FrameRenderer(scene, self.size, "both", ssao_samples=ssao_samples)
         self.gl_renderer = self.renderer.ctx.info.get("GL_RENDERER", "")
 
-    def render(self, grid, poses: list[FramePose], timing_repeats: int = 3) -> list[RenderedFrame]:
+    def render(self, grid, poses: list[FramePose], timing_repeats: int = 3, before_frame=None) -> list[RenderedFrame]:
         """`grid` has instances, buckets and cells (a GridFile or a Grid). Each frame's pass times are
         the minimum over `timing_repeats` submissions: on a shared CPU (llvmpipe) other processes only
-        ever add time."""
+        ever add time. `before_frame(pose) -> (grid, transforms)`, when given, supplies the grid state and
+        instance transforms of each frame (an animated scene); otherwise the grid is drawn at rest."""
         r = self.renderer
         r.upload_grid(grid.instances, grid.buckets, grid.cells)
         r.set_transforms(rest_transforms(self.scene))
         r.render(poses[0].view, poses[0].proj, read_gbuffer=False)  # warm-up: first-frame timings are bogus
         out = []
         for pose in poses:
+            if before_frame is not None:
+                g, transforms = before_frame(pose)
+                r.upload_grid(g.instances, g.buckets, g.cells)
+                r.set_transforms(transforms)
             frame = r.render(pose.view, pose.proj)
             mask = frame.gbuffer.mask
             ms = dict(frame.gpu_ms)
@@ -103,7 +109,7 @@ class QualityRenderer:
                    "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
             holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
             out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
-                                     frame.gbuffer, gpu, holes))
+                                     frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True)))
         return out
 
     def close(self) -> None:
@@ -118,10 +124,12 @@ class QualityRenderer:
 
 def reference_images(scene, frames: list[RenderedFrame], settings: ReferenceSettings,
                      show_progress: bool | None = None) -> list[np.ndarray]:
-    """Composited RTAO per frame (cached on disk by scene, camera, time, spp and size)."""
-    transforms = rest_transforms(scene)
+    """Composited RTAO per frame (cached on disk by scene, camera, time, transforms, spp and size); the
+    occluders are placed by the transforms each frame was drawn with."""
+    rest = rest_transforms(scene)
     refs = []
     for f in frames:
+        transforms = rest if f.transforms is None else f.transforms
         ao = reference_ao(scene, f.gbuffer, transforms, settings, FrameKey(f.pose.view, f.pose.proj, f.pose.time),
                           show_progress=show_progress)
         refs.append(composite_ao(ao, f.mask))
