@@ -34,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reconnect-timeout", type=float, default=10.0, help="give up after S seconds without a message")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append the mirror's state digest (jsonl) after every Snapshot and Update (tests)")
+    from psao_client.render.stream_render import add_render_arguments
+
+    add_render_arguments(p)  # --render OUTDIR and its options: a frame per applied update
 
 
 def _codecs(text: str):
@@ -46,6 +49,15 @@ def _codecs(text: str):
     return frozenset(CODEC_NAMES[n] for n in names)
 
 
+def _aspect(size: str | None) -> float:
+    """Width / height of a 'WxH' frame size; 16:9 without one (or a malformed one: the renderer reports it)."""
+    try:
+        w, h = (int(v) for v in str(size).lower().split("x"))
+        return w / h if w > 0 and h > 0 else 16 / 9
+    except ValueError:
+        return 16 / 9
+
+
 def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None):
     from protocol.session import scene_hash_bytes
     from psao_client.connection import MirrorClient, scene_camera_feed
@@ -56,7 +68,8 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
     return MirrorClient(
         args.url, scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
-        camera=scene_camera_feed(scene), on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
+        camera=scene_camera_feed(scene, _aspect(getattr(args, "size", None)), getattr(args, "camera_path", None)),
+        on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
         reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
     )
@@ -84,13 +97,27 @@ def run(args: argparse.Namespace, on_update=None) -> int:
     from psao_scene import load_scene
 
     scene = load_scene(args.scene)
+    renderer = None
+    if getattr(args, "render", None):
+        from psao_client.render.stream_render import make_render_callback
+
+        renderer = make_render_callback(scene, args)
+        # Frames use the camera pose this client sends at that moment (same clock).
+        on_update = lambda mirror, transforms, tick: renderer(mirror, transforms, tick,  # noqa: E731
+                                                              camera_time=client.clock())
     client = build_client(args, scene, on_update=on_update)
     t0 = time.perf_counter()
     try:
         asyncio.run(client.run(frames=args.frames))
     except KeyboardInterrupt:
         pass
+    finally:
+        if renderer is not None:
+            renderer.close()
     out = report(client, time.perf_counter() - t0)
+    if renderer is not None:
+        out["frames_rendered"] = renderer.frames
+        out["render_dir"] = str(args.render)
     if args.json:
         print(json.dumps(out))
     else:

@@ -39,7 +39,7 @@ from protocol.session import (
     Welcomed,
 )
 
-from .errors import ConnectError
+from .errors import ClientError, ConnectError
 from .mirror import Mirror
 
 OnMirror = Callable[[Mirror], None]
@@ -84,6 +84,10 @@ class MirrorClient:
         self.stats = ClientStats()
         self._stop = asyncio.Event()
         self._start = 0.0
+
+    def clock(self) -> float:
+        """Seconds since run() started: the time of the camera poses this client sends."""
+        return time.perf_counter() - self._start
 
     def stop(self) -> None:
         """Ask run() to say Bye and return after the message being handled."""
@@ -162,7 +166,7 @@ class MirrorClient:
                     return
                 now = time.perf_counter()
                 if self.camera and self.mirror is not None and now - last_camera >= self.camera_period:
-                    view, proj = self.camera(now - self._start)
+                    view, proj = self.camera(self.clock())
                     await ws.send(session.camera(view, proj))
                     last_camera = now
                 if self.read_delay:
@@ -208,11 +212,15 @@ def _why(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
-def scene_camera_feed(scene, aspect: float = 16 / 9) -> CameraFeed:
-    """Camera poses along the scene's camera path (or the default orbit), as float32 matrices."""
+def scene_camera_feed(scene, aspect: float = 16 / 9, path_name: str | None = None) -> CameraFeed:
+    """Camera poses along the scene's camera path (the named one, its first, or the default orbit), as
+    float32 matrices."""
     from psao_scene.camera import camera_at, look_at, perspective, scene_camera
 
-    path = scene_camera(scene)
+    try:
+        path = scene_camera(scene, path_name)
+    except KeyError as exc:
+        raise ClientError(str(exc.args[0])) from None
     lo, hi = scene.world_bounds()
     far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
     proj = perspective(path.fov_y, aspect, far * 1e-4, far).astype(np.float32)

@@ -32,6 +32,7 @@ class Mirror:
         self.version = 0
         self.dirty_buckets: set[int] = set()
         self.dirty_cells: set[int] = set()
+        self._fresh = True  # a new mirror (a new connection): everything differs from any older copy
         self._check_instances()
 
     @classmethod
@@ -74,9 +75,16 @@ class Mirror:
         self.version += 1
 
     def take_dirty(self) -> tuple[np.ndarray, np.ndarray]:
-        """(bucket indices, cell slots) changed since the last call, sorted; for partial GPU uploads."""
-        b = np.array(sorted(self.dirty_buckets), dtype=np.uint32)
-        c = np.array(sorted(i for i in self.dirty_cells if i < len(self.cells)), dtype=np.uint32)
+        """(bucket indices, cell slots) changed since the last call, sorted; for partial GPU uploads.
+        The first call on a new mirror returns every bucket and cell: after a reconnect the new mirror
+        replaces the old one entirely (the resync snapshot only carries what is allocated)."""
+        if self._fresh:
+            b = np.arange(len(self.buckets), dtype=np.uint32)
+            c = np.arange(len(self.cells), dtype=np.uint32)
+        else:
+            b = np.array(sorted(self.dirty_buckets), dtype=np.uint32)
+            c = np.array(sorted(i for i in self.dirty_cells if i < len(self.cells)), dtype=np.uint32)
+        self._fresh = False
         self.dirty_buckets.clear()
         self.dirty_cells.clear()
         return b, c

@@ -250,3 +250,15 @@ def test_corrupted_compressed_messages_raise_protocol_errors_only(codec):
         except ProtocolError as exc:
             outcomes.add(type(exc).__name__)
     assert "CodecError" in outcomes or "HeaderError" in outcomes
+
+
+def test_fresh_mirror_reports_everything_dirty_once():
+    inst = np.zeros(1, INSTANCE_DTYPE)
+    inst["bucket_count"] = 4
+    mirror = Mirror(inst, 4, 6)
+    b, c = mirror.take_dirty()
+    assert b.tolist() == [0, 1, 2, 3] and c.tolist() == list(range(6))
+    cells = np.tile(FREE_CELL, (1, 1))
+    mirror.apply(GridDelta(6, cell_slots=[2], cells=cells))
+    b, c = mirror.take_dirty()
+    assert b.tolist() == [] and c.tolist() == [2]

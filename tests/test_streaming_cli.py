@@ -90,6 +90,26 @@ def test_client_refused_for_another_scene(token_server):
                    "scene hash mismatch")
 
 
+def test_client_renders_frames_while_streaming(token_server, tmp_path):
+    url, proc, _ = token_server
+    if proc.poll() is not None:
+        pytest.skip("server already stopped by an earlier test")
+    out = psao("client", url, "--scene", "builtin:cornell", "--token", "s3cret", "--frames", "3", "--json",
+               "--render", str(tmp_path / "frames"), "--size", "64x48")
+    if out.returncode != 0 and "EGL" in out.stderr:
+        pytest.skip(f"no EGL here: {out.stderr.strip()}")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["frames_rendered"] == 3
+    assert len(list((tmp_path / "frames").glob("*.png"))) >= 3
+
+
+def test_client_unknown_camera_path(token_server):
+    url, _, _ = token_server
+    one_line_error(psao("client", url, "--scene", "builtin:cornell", "--camera-path", "nope", "--frames", "1"),
+                   "no camera path 'nope'")
+
+
 def test_client_with_token_then_server_stops_on_sigint(token_server):
     url, proc, err = token_server
     out = psao("client", url, "--scene", "builtin:cornell", "--token", "s3cret", "--frames", "5", "--json")
