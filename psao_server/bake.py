@@ -124,7 +124,7 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
     settings.check()
     if show_progress is None:
         show_progress = sys.stderr.isatty()
-    stats: dict = {"scene": scene.name, "density": settings.density, "rays": settings.rays}
+    stats: dict = {"scene": scene.name, "density": settings.density, "rays": settings.rays, "seed": settings.seed}
     tracer = make_tracer(settings.tracer, scene_center(scene), **({"workers": settings.workers} if settings.tracer == "embree" else {}))
     tracer.set_static(*scene_world_geometry(scene))
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)

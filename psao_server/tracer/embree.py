@@ -164,8 +164,7 @@ class EmbreeTracer(Tracer):
             self._dynamic = (None, None)
         else:
             self._dynamic = (self._recentre(vertices), np.asarray(faces, np.int32))
-        if self._local is not None:
-            self._local.update_dynamic(self._dynamic_version, *self._dynamic)
+        # The in-process scenes catch up lazily, when a small call traces here rather than in the workers.
 
     # tracing --------------------------------------------------------------
     def _jobs(self, positions, normals, point_ids, s: TraceSettings):
@@ -203,6 +202,8 @@ class EmbreeTracer(Tracer):
             return np.zeros(0, np.float32)
         pool = self._ensure_pool() if len(positions) >= 2 * self.workers else None
         jobs = self._jobs(positions, normals, point_ids, settings)
+        if pool is None:
+            self._local.update_dynamic(self._dynamic_version, *self._dynamic)
         results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
         try:
             for vis, cpu_query, cpu_total in results:
