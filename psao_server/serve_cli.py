@@ -31,10 +31,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--token", default="", help="clients must present this token")
     p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
                    help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
+    p.add_argument("--animate", action="store_true",
+                   help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
+    p.add_argument("--tick-rays", type=int, default=None, metavar="R",
+                   help="with --animate: rays per re-traced point (default: the tick's default)")
     p.add_argument("--test-edits", type=int, default=0, metavar="K",
                    help="test hook: edit about K points per tick (AO, moves, frees and allocations)")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append a state digest (jsonl) after every message that left nothing pending (tests)")
+
+
+def _animated(args):
+    """(scene, grid, tick) with the server tick running on a fresh bake (it needs the bake's point sets)."""
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.tick import ServerTick, TickSettings
+
+    if args.grid is not None:
+        raise ConfigError("--animate bakes the scene itself: it cannot serve a --grid file")
+    if args.test_edits:
+        raise ConfigError("--animate and --test-edits both edit the grid: choose one")
+    scene = load_scene(args.scene)
+    bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, seed=args.seed))
+    settings = TickSettings(seed=args.seed) if args.tick_rays is None else TickSettings(rays=args.tick_rays,
+                                                                                       seed=args.seed)
+    tick = ServerTick(bake, settings)  # closes the bake's tracer, starts its own
+    logging.getLogger("psao.serve").info("baked %s at N=%g: %d points; server tick on (%d rays per re-traced point)",
+                                         scene.name, args.density, bake.stats["points_kept"], tick.settings.rays)
+    return scene, tick.grid, tick
 
 
 def _load(args):
@@ -99,11 +123,19 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging()
     settings = _settings(args)
-    scene, grid = _load(args)
-    transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
-    tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
+    if args.animate:
+        scene, grid, tick = _animated(args)
+        transforms = tick.transforms
+    else:
+        scene, grid = _load(args)
+        transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
+        tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms)
-    return asyncio.run(_serve(service))
+    try:
+        return asyncio.run(_serve(service))
+    finally:
+        if hasattr(tick, "close"):
+            tick.close()
 
 
 async def _serve(service) -> int:

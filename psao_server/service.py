@@ -102,9 +102,16 @@ class Counters:
 
 
 class Service:
+    """`tick(grid, t)` runs at the tick rate; a tick object with `prepare(t)` and `apply(plan)` (the
+    server tick of psao_server.tick) runs its prepare in a worker thread (it writes no grid, so senders
+    keep reading the grid meanwhile) and its apply on the loop. `transforms()` gives the instance
+    transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
+    connected clients' latest camera poses whenever one changes."""
+
     def __init__(self, grid, scene_hash: bytes, settings: ServeSettings, tick: TickFn | None = None,
                  transforms: Callable[[], np.ndarray] | None = None,
-                 on_scene_edit: Callable[[int, np.ndarray], None] | None = None):
+                 on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
+                 on_cameras: Callable[[list], None] | None = None):
         settings.check()
         self.grid = grid
         self.settings = settings
@@ -113,6 +120,7 @@ class Service:
             transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
         self.on_scene_edit = on_scene_edit or getattr(transforms, "edit", None)
+        self.on_cameras = on_cameras or getattr(tick, "set_cameras", None)
         self.config = ServerConfig(scene_hash, settings.token, settings.codec, settings.layout, settings.zstd,
                                    settings.limits)
         self.registry = Registry()
@@ -163,7 +171,10 @@ class Service:
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
-            if self.tick_fn is not None:
+            if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
+                plan = await asyncio.to_thread(self.tick_fn.prepare, self.time)
+                self.tick_fn.apply(plan)
+            elif self.tick_fn is not None:
                 self.tick_fn(self.grid, self.time)
             self.tick += 1
             self.counters.ticks += 1
@@ -217,6 +228,8 @@ class Service:
         finally:
             self._connections.discard(ws)
             self.registry.remove(client)
+            if client.camera is not None:
+                self._cameras_changed()
 
     async def _serve_client(self, ws, session: ServerSession, client: Client, codec: Codec) -> None:
         grid = self.grid
@@ -274,6 +287,7 @@ class Service:
             event = session.receive(_binary(data))
             if isinstance(event, CameraReceived):
                 client.camera = (event.camera.view, event.camera.projection)
+                self._cameras_changed()
             elif isinstance(event, SceneEditReceived):
                 if self.on_scene_edit is None:
                     raise ProtocolError("this server does not accept scene edits")
@@ -281,6 +295,10 @@ class Service:
                 self.registry.wake_all()
             elif isinstance(event, ByeReceived):
                 return
+
+    def _cameras_changed(self) -> None:
+        if self.on_cameras is not None:
+            self.on_cameras([c.camera for c in self.registry if c.camera is not None])
 
     async def _send(self, ws, client: Client, data: bytes) -> None:
         await ws.send(data)

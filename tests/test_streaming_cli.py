@@ -37,6 +37,38 @@ def test_serve_bad_settings(args, text):
     one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)
 
 
+def test_animate_needs_its_own_bake():
+    one_line_error(psao("serve", "builtin:cornell", "--port", "0", "--animate", "--grid", "x.npz"),
+                   "cannot serve a --grid file")
+
+
+def test_animated_server_keeps_mirror_exact(tmp_path):
+    """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
+    err, slog, clog = tmp_path / "serve.err", tmp_path / "server.jsonl", tmp_path / "client.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:courtyard", "--animate", "--density", "8",
+                             "--rays", "4", "--tick-rays", "4", "--port", "0", "--tick-hz", "20",
+                             "--digest-log", str(slog)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=open(err, "w"), text=True)
+    try:
+        end = time.time() + 120
+        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
+            assert time.time() < end and proc.poll() is None, err.read_text()
+            time.sleep(0.1)
+        out = psao("client", m.group(1), "--frames", "30", "--json", "--digest-log", str(clog))
+        assert out.returncode == 0, out.stderr
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    server = {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, slog.read_text().splitlines())}
+    client = [json.loads(line) for line in clog.read_text().splitlines()]
+    both = [d for d in client if (d["conn"], d["seq"]) in server]
+    assert len(both) >= 25 and all(server[(d["conn"], d["seq"])] == d["digest"] for d in both)
+    assert "server tick on" in err.read_text()
+
+
 def test_serve_port_taken():
     import socket
 
