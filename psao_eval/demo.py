@@ -4,8 +4,9 @@
    separate process on a free 127.0.0.1 port;
 2. a headless `psao client` process connects, mirrors the grid (and renders the camera path itself when
    this client has --render) for a few seconds: bytes on the wire and the mirror's digest;
-3. the camera path rendered with PSAO and SSAO from the same grid in one headless renderer, a few
-   frames scored against a low-spp RTAO reference;
+3. the camera path with the scene animated (the server's tick in this process rolls the boulders and
+   re-traces around them up to each frame's time), PSAO and SSAO in one headless renderer, a few frames
+   scored against a low-spp RTAO reference with the boulders where the frame has them;
 4. a short report on stdout and the paths of what it wrote under out/demo/.
 No arguments, no downloads. The server is killed (its process group) on every exit path.
 """
@@ -52,7 +53,7 @@ def _run(args) -> int:
     grid_file, bake_stats = bake_cached(SCENE, scene, DENSITY, RAYS, cache, log)
 
     stream = stream_demo(scene, grid_file, out, log)
-    quality = quality_demo(scene, grid_file, out, log)
+    quality = quality_demo(scene, out, log)
     written = write_demo_outputs(quality, out)
     print_report(scene, bake_stats, stream, quality, written, time.perf_counter() - t_start)
     return 0
@@ -83,30 +84,37 @@ def stream_demo(scene, grid_file: Path, out: Path, log) -> dict:
     return rates
 
 
-def quality_demo(scene, grid_file: Path, out: Path, log) -> dict:
+def quality_demo(scene, out: Path, log) -> dict:
+    """The camera path with the scene animated: the server's tick in this process moves the boulders and
+    re-traces their surroundings up to each frame's time; PSAO and SSAO drawn from that grid state."""
     from PIL import Image
 
-    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.dynamic import AnimatedServer, AnimatedSettings
     from psao_eval.quality import QualityRenderer, frame_poses, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
 
     poses = frame_poses(scene, FRAMES, SIZE)
-    log(f"rendering {len(poses)} frames of the camera path with PSAO and SSAO at {SIZE[0]}x{SIZE[1]}")
-    t0 = time.perf_counter()
-    with QualityRenderer(scene, SIZE) as qr:
-        frames = qr.render(load_grid_file(grid_file), poses)
-        frame_wall_ms = 1e3 * (time.perf_counter() - t0) / len(poses)
-        gl = qr.gl_renderer
+    log(f"animating {SCENE} (server tick in this process, N={DENSITY:g}) and rendering {len(poses)} frames "
+        f"of the camera path with PSAO and SSAO at {SIZE[0]}x{SIZE[1]}")
+    with AnimatedServer(scene, AnimatedSettings(density=DENSITY, bake_rays=RAYS, tick_rays=RAYS, tick_hz=30.0)) as server:
+        with QualityRenderer(scene, SIZE) as qr:
+            t0 = time.perf_counter()
+            frames = qr.render(server.grid, poses, timing_repeats=1, before_frame=server.frame_state)
+            wall = time.perf_counter() - t0
+            gl = qr.gl_renderer
+        tick_s = sum(st.seconds_total for st in server.stats)
+        tick_ms = server.mean_tick_ms()
     frames_dir = out / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
     for f in frames:
-        for m, ao in f.ao.items():
-            Image.fromarray((ao * 255 + 0.5).astype(np.uint8), mode="L").save(frames_dir / f"frame_{f.pose.index:03d}_ao_{m}.png")
+        for m, rgb in (f.composite or {}).items():
+            Image.fromarray(rgb, mode="RGB").save(frames_dir / f"frame_{f.pose.index:03d}_{m}.png")
     picked = [frames[i] for i in np.linspace(0, len(frames) - 1, SCORED).round().astype(int)]
     log(f"RTAO reference at {SPP} spp on {len(picked)} frames")
     refs = reference_images(scene, picked, ReferenceSettings(spp=SPP, cache_dir=Path("out") / ".cache" / "rtao"))
     rows = score_frames(picked, refs)
-    return {"frames": frames, "picked": picked, "refs": refs, "rows": rows, "frame_wall_ms": frame_wall_ms,
+    return {"frames": frames, "picked": picked, "refs": refs, "rows": rows,
+            "frame_wall_ms": 1e3 * (wall - tick_s) / len(poses), "tick_ms": tick_ms,
             "gl_renderer": gl, "frames_dir": frames_dir}
 
 
@@ -172,8 +180,9 @@ def print_report(scene, bake_stats: dict, s: dict, q: dict, written: list[Path],
         f"client mirror identical to the baked grid: {'yes' if s['mirror_equals_bake'] else 'no'}"
         + (f"; client rendered {s['client_frames']} frames" if s["client_frames"] else ""),
         f"frames   {len(q['frames'])} along the camera path; client GPU ms per frame (median): PSAO {gpu['psao']:.1f}, "
-        f"SSAO {gpu['ssao']:.1f}; wall {q['frame_wall_ms']:.0f} ms per frame (both methods, read-back included)",
-        f"quality  vs RTAO {SPP} spp on {len(q['picked'])} frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
+        f"SSAO {gpu['ssao']:.1f}; wall {q['frame_wall_ms']:.0f} ms per frame (both methods, read-back included); "
+        f"server tick {q['tick_ms']:.0f} ms (rolling boulders, {RAYS} rays per re-traced point)",
+        f"quality  vs RTAO {SPP} spp on {len(q['picked'])} animated frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
         f"FLIP {ps.flip:.3f} | SSAO PSNR {ss.psnr:.2f} dB, SSIM {ss.ssim:.3f}, FLIP {ss.flip:.3f}",
         f"note     {LPIPS_NOTE}",
         f"wrote    " + "\n         ".join(str(p) for p in written) + (f"\n         {s['client_frames_dir']}" if s["client_frames_dir"] else ""),

@@ -38,6 +38,7 @@ class RenderedFrame:
     gpu_ms: dict[str, float]  # method -> client GPU ms for the frame (G-buffer pass + the AO pass(es))
     holes: float = 0.0  # fraction of covered pixels where PSAO found no point (weight 0)
     transforms: np.ndarray | None = None  # (n, 4, 4) instance transforms the frame was drawn with
+    composite: dict | None = None  # method -> (H, W, 3) uint8 lit colour x AO, as the client shows it
 
 
 @dataclass
@@ -109,7 +110,7 @@ class QualityRenderer:
                    "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
             holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
             out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
-                                     frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True)))
+                                     frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True), frame.composite))
         return out
 
     def close(self) -> None:
