@@ -125,52 +125,37 @@ class MirrorClient:
         limits = self.config.limits
         session = ClientSession(self.config)
         t0 = time.perf_counter()
-        last_camera = -1e9
+        cameras: asyncio.Task | None = None
         extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
         async with connect(self.url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0,
                            **extra) as ws:
             await ws.send(session.hello())
             seq = 0
-            async for data in ws:
-                if isinstance(data, str):
-                    raise ProtocolError("text message from the server")
-                event = session.receive(data)
-                self._last_ok = time.perf_counter()
-                self.stats.messages += 1
-                self.stats.bytes_received += len(data)
-                if isinstance(event, Welcomed):
-                    self._welcomed(event)
-                elif isinstance(event, SnapshotReceived):
-                    self.mirror.apply(event.snapshot.delta)
-                    self.stats.snapshot_bytes += len(data)
-                    if event.complete:
-                        self.stats.snapshot_seconds = time.perf_counter() - t0
-                        if self.on_snapshot:
-                            self.on_snapshot(self.mirror)
-                elif isinstance(event, UpdateReceived):
-                    self.mirror.apply(event.update.delta)
-                    self.mirror.tick = event.update.tick
-                    self.stats.updates += 1
-                    if self.on_update:
-                        self.on_update(self.mirror, self.mirror.transforms, event.update.tick)
-                elif isinstance(event, ByeReceived):
-                    raise _Lost("server said Bye")
-                if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
-                    digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
-                                              "digest": self.mirror.digest()}) + "\n")
-                seq += 1
-                done = frames is not None and session.state == ClientState.STREAMING and self.stats.updates >= frames
-                if self._stop.is_set() or done:
-                    await ws.send(session.bye())
-                    await _discard_until_closed(ws, timeout=2.0)
-                    return
-                now = time.perf_counter()
-                if self.camera and self.mirror is not None and now - last_camera >= self.camera_period:
-                    view, proj = self.camera(self.clock())
-                    await ws.send(session.camera(view, proj))
-                    last_camera = now
-                if self.read_delay:
-                    await asyncio.sleep(self.read_delay)
+            try:
+                async for data in ws:
+                    if isinstance(data, str):
+                        raise ProtocolError("text message from the server")
+                    event = session.receive(data)
+                    self._last_ok = time.perf_counter()
+                    self.stats.messages += 1
+                    self.stats.bytes_received += len(data)
+                    self._apply(event, len(data), t0)
+                    if isinstance(event, Welcomed) and self.camera is not None:
+                        cameras = asyncio.create_task(self._send_cameras(ws, session))
+                    if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
+                        digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
+                                                  "digest": self.mirror.digest()}) + "\n")
+                    seq += 1
+                    done = frames is not None and session.state == ClientState.STREAMING and self.stats.updates >= frames
+                    if self._stop.is_set() or done:
+                        await _cancel(cameras)
+                        await ws.send(session.bye())
+                        await _discard_until_closed(ws, timeout=2.0)
+                        return
+                    if self.read_delay:
+                        await asyncio.sleep(self.read_delay)
+            finally:
+                await _cancel(cameras)
         raise _Lost("server closed the connection")
 
     async def _small_buffer_socket(self) -> socket.socket:
@@ -185,6 +170,33 @@ class MirrorClient:
             raise
         return sock
 
+    def _apply(self, event, nbytes: int, t0: float) -> None:
+        """One received event into the mirror and the statistics; callbacks run here."""
+        if isinstance(event, Welcomed):
+            self._welcomed(event)
+        elif isinstance(event, SnapshotReceived):
+            self.mirror.apply(event.snapshot.delta)
+            self.stats.snapshot_bytes += nbytes
+            if event.complete:
+                self.stats.snapshot_seconds = time.perf_counter() - t0
+                if self.on_snapshot:
+                    self.on_snapshot(self.mirror)
+        elif isinstance(event, UpdateReceived):
+            self.mirror.apply(event.update.delta)
+            self.mirror.tick = event.update.tick
+            self.stats.updates += 1
+            if self.on_update:
+                self.on_update(self.mirror, self.mirror.transforms, event.update.tick)
+        elif isinstance(event, ByeReceived):
+            raise _Lost("server said Bye")
+
+    async def _send_cameras(self, ws, session: ClientSession) -> None:
+        """The camera pose at camera_hz, whether or not updates arrive (the server selects by it)."""
+        while True:
+            view, proj = self.camera(self.clock())
+            await ws.send(session.camera(view, proj))
+            await asyncio.sleep(self.camera_period)
+
     def _welcomed(self, event: Welcomed) -> None:
         w = event.welcome
         self.mirror = Mirror.from_welcome(w)
@@ -192,6 +204,15 @@ class MirrorClient:
         self.stats.codec = codec_name(w.codec)
         if self.on_connect:
             self.on_connect(self.mirror)
+
+
+async def _cancel(task: asyncio.Task | None) -> None:
+    if task is not None and not task.done():
+        task.cancel()
+        try:
+            await task
+        except (asyncio.CancelledError, ConnectionClosed):
+            pass
 
 
 async def _discard_until_closed(ws, timeout: float) -> None:
