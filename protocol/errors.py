@@ -4,7 +4,10 @@
     ├── HeaderError               bad magic, version, type, codec or length in a message header
     ├── LimitError                a length or decompressed size above its limit
     ├── PayloadError              a payload that does not parse as its message type says
-    └── CodecError                a codec not offered, or a compressed frame that does not decode
+    ├── CodecError                a codec not offered, or a compressed frame that does not decode
+    ├── RefusedError              a well-formed request the server will not serve (scene, token)
+    ├── UnexpectedMessage         a valid message where the conversation does not allow it
+    └── RemoteError               the peer sent an Error message
 
 Each carries a websocket close code (RFC 6455: 1002 protocol error, 1003 unsupported data,
 1008 policy violation, 1009 message too big) so both sides map errors the same way.
@@ -30,3 +33,31 @@ class PayloadError(ProtocolError):
 
 class CodecError(ProtocolError):
     close_code = 1003
+
+
+class RefusedError(ProtocolError):
+    """A well-formed request the server will not serve: wrong scene, missing or wrong token."""
+
+    close_code = 1008
+
+    def __init__(self, text: str, code: int):
+        super().__init__(text)
+        self.code = code
+
+
+class UnexpectedMessage(ProtocolError):
+    """A valid message at a point of the conversation where it is not allowed."""
+
+    close_code = 1002
+
+
+class RemoteError(ProtocolError):
+    """The peer sent an Error message."""
+
+    def __init__(self, code: int, text: str):
+        from protocol.messages import ErrorCode  # messages imports this module
+
+        name = ErrorCode(code).name if code in ErrorCode._value2member_map_ else str(code)
+        super().__init__(f"peer error {name}: {text}")
+        self.code = code
+        self.text = text

@@ -31,35 +31,10 @@ from .codecs import (
     codecs_from_mask,
     decompress_frame,
 )
-from .errors import CodecError, HeaderError, LimitError, PayloadError, ProtocolError
+from .errors import (CodecError, HeaderError, LimitError, PayloadError, ProtocolError, RefusedError, RemoteError,
+                     UnexpectedMessage)
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
 from .updates import GridDelta, Layout
-
-
-class RefusedError(ProtocolError):
-    """A well-formed request the server will not serve: wrong scene, missing or wrong token."""
-
-    close_code = 1008
-
-    def __init__(self, text: str, code: m.ErrorCode):
-        super().__init__(text)
-        self.code = code
-
-
-class UnexpectedMessage(ProtocolError):
-    """A valid message at a point of the conversation where it is not allowed."""
-
-    close_code = 1002
-
-
-class RemoteError(ProtocolError):
-    """The peer sent an Error message."""
-
-    def __init__(self, code: int, text: str):
-        name = m.ErrorCode(code).name if code in m.ErrorCode._value2member_map_ else str(code)
-        super().__init__(f"peer error {name}: {text}")
-        self.code = code
-        self.text = text
 
 
 def error_code_for(exc: ProtocolError) -> m.ErrorCode:
