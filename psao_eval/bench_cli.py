@@ -40,7 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="cache of grids and RTAO references (default out/.cache)")
     p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
     p.add_argument("--animate", action="store_true",
-                   help="score animated scenes at each frame's scene time (server tick run in process; static otherwise)")
+                   help="animated scenes: score each frame at its scene time (server tick in process) and stream "
+                        "from `psao serve --animate` (static scenes are unaffected)")
     p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs (default 1)")
 
 
@@ -226,20 +227,27 @@ def animated_frames(qr, scene, density: float, poses, cfg: BenchConfig, log: Log
 
 
 def stream_run(spec: str, scene, grid: Path, density: float, hz: float, cfg: BenchConfig, log: Log) -> dict:
-    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.dynamic import is_animated
     from psao_eval.processes import ServerProcess, run_client, stream_rates, welcome_bytes
 
     name = scene.name
-    welcome = welcome_bytes(scene, load_grid_file(grid))
-    with ServerProcess(spec, ["--grid", str(grid), "--density", f"{density:g}", "--rays", str(cfg.rays),
-                              "--tick-hz", f"{hz:g}"]) as server:
+    welcome = welcome_bytes(scene)
+    animate = cfg.animate and is_animated(scene)
+    # An animating server bakes the scene itself (its tick needs the point sets); a static one serves the grid.
+    source = ["--animate"] if animate else ["--grid", str(grid)]
+    if animate:
+        log(f"{name}: psao serve --animate N={density:g} @{hz:g} Hz (the server bakes first)")
+    with ServerProcess(spec, [*source, "--density", f"{density:g}", "--rays", str(cfg.rays), "--tick-hz", f"{hz:g}"],
+                       start_timeout=1800.0) as server:
         stats = run_client(server.url, spec, cfg.stream_seconds)
         rates = stream_rates(stats, welcome)
         rates["server_ms_tick"] = server.tick_ms()
+        rates["stream_animated"] = animate
         if not server.alive():
             raise EvalError(f"psao serve {spec} died during the run")
-    log(f"{name}: N={density:g} @{hz:g} Hz: snapshot {rates['snapshot_mb']:.2f} MB in {rates['snapshot_s']:.1f} s, "
-        f"then {rates['stream_mbit_s']:.3f} Mbit/s, server {rates['server_ms_tick']:.2f} ms/tick")
+    log(f"{name}: N={density:g} @{hz:g} Hz{' animated' if animate else ''}: snapshot {rates['snapshot_mb']:.2f} MB "
+        f"in {rates['snapshot_s']:.1f} s, then {rates['stream_mbit_s']:.3f} Mbit/s ({rates['updates_per_s']:.1f} "
+        f"updates/s), server {rates['server_ms_tick']:.2f} ms/tick")
     return rates
 
 

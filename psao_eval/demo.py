@@ -1,9 +1,9 @@
 """`psao demo` (what `make demo` runs): the whole system once, on this machine, in about a minute.
 
-1. `psao bake builtin:courtyard` at a demo density (cached), then `psao serve` with that grid as a
-   separate process on a free 127.0.0.1 port;
-2. a headless `psao client` process connects, mirrors the grid (and renders the camera path itself when
-   this client has --render) for a few seconds: bytes on the wire and the mirror's digest;
+1. `psao serve builtin:courtyard --animate` at a demo density as a separate process on a free
+   127.0.0.1 port (it bakes, then ticks: the boulders roll);
+2. a headless `psao client --render` process connects, mirrors the grid and renders what it receives
+   along the camera path for a few seconds: bytes on the wire, updates, frames;
 3. the camera path with the scene animated (the server's tick in this process rolls the boulders and
    re-traces around them up to each frame's time), PSAO and SSAO in one headless renderer, a few frames
    scored against a low-spp RTAO reference with the boulders where the frame has them;
@@ -26,7 +26,8 @@ FRAMES = 24  # frames rendered along the camera path
 SCORED = 3  # of which scored against RTAO
 SPP = 64  # RTAO rays per pixel for the demo's reference (the bench uses 512)
 SIZE = (640, 360)
-STREAM_SECONDS = 3.0
+STREAM_SECONDS = 4.0
+TICK_HZ = 30.0  # the served stream's tick rate
 OUT = Path("out") / "demo"
 
 
@@ -42,44 +43,38 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from psao_eval.bench_cli import Log, bake_cached, ensure_writable
+    from psao_eval.bench_cli import Log, ensure_writable
     from psao_scene import load_scene
 
     t_start = time.perf_counter()
     out = ensure_writable(OUT, "output folder")
-    cache = ensure_writable(Path("out") / ".cache", "cache folder")
+    ensure_writable(Path("out") / ".cache", "cache folder")
     log = Log()
     scene = load_scene(SCENE)
-    grid_file, bake_stats = bake_cached(SCENE, scene, DENSITY, RAYS, cache, log)
-
-    stream = stream_demo(scene, grid_file, out, log)
+    stream = stream_demo(scene, out, log)
     quality = quality_demo(scene, out, log)
     written = write_demo_outputs(quality, out)
-    print_report(scene, bake_stats, stream, quality, written, time.perf_counter() - t_start)
+    print_report(scene, stream, quality, written, time.perf_counter() - t_start)
     return 0
 
 
-def stream_demo(scene, grid_file: Path, out: Path, log) -> dict:
-    """A real server and a real headless client; the client renders too when it can (--render)."""
-    from psao_client.render.gridfile import load_grid_file
+def stream_demo(scene, out: Path, log) -> dict:
+    """A real animating server and a real headless client that renders what it receives (--render)."""
     from psao_eval.processes import ServerProcess, client_has_render, run_client, stream_rates, welcome_bytes
-    from protocol.updates import state_digest
 
     extra, frames_dir = [], None
     if client_has_render():
         frames_dir = out / "client_frames"
         extra = ["--render", str(frames_dir), "--ao", "psao", "--size", f"{SIZE[0]}x{SIZE[1]}"]
-    log(f"psao serve {SCENE} (grid N={DENSITY:g}) and a headless psao client for {STREAM_SECONDS:g} s")
-    with ServerProcess(SCENE, ["--grid", str(grid_file), "--tick-hz", "30"]) as server:
+    log(f"psao serve {SCENE} --animate (N={DENSITY:g}, {RAYS} rays, {TICK_HZ:g} Hz) and a headless psao client "
+        f"for {STREAM_SECONDS:g} s after its snapshot")
+    with ServerProcess(SCENE, ["--animate", "--density", f"{DENSITY:g}", "--rays", str(RAYS), "--tick-rays",
+                               str(RAYS), "--tick-hz", f"{TICK_HZ:g}"]) as server:
         stats = run_client(server.url, SCENE, STREAM_SECONDS, extra)
-        grid = load_grid_file(grid_file)
-        rates = stream_rates(stats, welcome_bytes(scene, grid))
+        rates = stream_rates(stats, welcome_bytes(scene))
         rates["server_ms_tick"] = server.tick_ms()
         rates["url"] = server.url
-    transforms = np.array([i.transform for i in scene.instances], dtype=np.float32)
-    rates["mirror_equals_bake"] = stats.get("mirror_digest") == state_digest(grid.instances, grid.buckets, grid.cells,
-                                                                             transforms)
-    rates["client_frames"] = len(list(frames_dir.glob("frame_*_composite_*.png"))) if frames_dir and frames_dir.is_dir() else 0
+    rates["client_frames"] = int(stats.get("frames_rendered", 0))
     rates["client_frames_dir"] = str(frames_dir) if rates["client_frames"] else None
     return rates
 
@@ -103,6 +98,7 @@ def quality_demo(scene, out: Path, log) -> dict:
             wall = time.perf_counter() - t0
             gl = qr.gl_renderer
         tick_s = sum(st.seconds_total for st in server.stats)
+        points = server.points
         tick_ms = server.mean_tick_ms()
     frames_dir = out / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
@@ -115,7 +111,7 @@ def quality_demo(scene, out: Path, log) -> dict:
     rows = score_frames(picked, refs)
     return {"frames": frames, "picked": picked, "refs": refs, "rows": rows,
             "frame_wall_ms": 1e3 * (wall - tick_s) / len(poses), "tick_ms": tick_ms,
-            "gl_renderer": gl, "frames_dir": frames_dir}
+            "gl_renderer": gl, "frames_dir": frames_dir, "points": points}
 
 
 def write_demo_outputs(q: dict, out: Path) -> list[Path]:
@@ -166,22 +162,22 @@ def frame_chart(q: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def print_report(scene, bake_stats: dict, s: dict, q: dict, written: list[Path], seconds: float) -> None:
+def print_report(scene, s: dict, q: dict, written: list[Path], seconds: float) -> None:
     from psao_eval.metrics import LPIPS_NOTE
     from psao_eval.quality import mean_scores
 
     ps, ss = mean_scores(q["rows"], "psao"), mean_scores(q["rows"], "ssao")
     gpu = {m: float(np.median([f.gpu_ms[m] for f in q["frames"]])) for m in ("psao", "ssao")}
     lines = [
-        f"psao demo: {scene.name}, PSAO N={DENSITY:g} ({bake_stats.get('points_kept', 0):,} points, {RAYS} rays/point), "
+        f"psao demo: {scene.name}, PSAO N={DENSITY:g} ({q['points']:,} points, {RAYS} rays/point), "
         f"{SIZE[0]}x{SIZE[1]}, {q['gl_renderer']}",
-        f"stream   server {s['url']}: snapshot {s['snapshot_mb']:.2f} MB in {s['snapshot_s']:.2f} s, then "
-        f"{s['stream_mbit_s']:.3f} Mbit/s over {STREAM_SECONDS:g} s ({s['updates']} updates; server {s['server_ms_tick']:.2f} ms/tick); "
-        f"client mirror identical to the baked grid: {'yes' if s['mirror_equals_bake'] else 'no'}"
-        + (f"; client rendered {s['client_frames']} frames" if s["client_frames"] else ""),
+        f"stream   psao serve --animate at {s['url']} ({TICK_HZ:g} Hz asked): snapshot {s['snapshot_mb']:.2f} MB in "
+        f"{s['snapshot_s']:.2f} s, then {s['stream_mbit_s']:.3f} Mbit/s over {STREAM_SECONDS:g} s, {s['updates']} updates "
+        f"({s['updates_per_s']:.1f}/s), server {s['server_ms_tick']:.1f} ms/tick"
+        + (f"; the headless client rendered {s['client_frames']} frames" if s["client_frames"] else ""),
         f"frames   {len(q['frames'])} along the camera path; client GPU ms per frame (median): PSAO {gpu['psao']:.1f}, "
         f"SSAO {gpu['ssao']:.1f}; wall {q['frame_wall_ms']:.0f} ms per frame (both methods, read-back included); "
-        f"server tick {q['tick_ms']:.0f} ms (rolling boulders, {RAYS} rays per re-traced point)",
+        f"in-process server tick {q['tick_ms']:.0f} ms (rolling boulders, {RAYS} rays per re-traced point)",
         f"quality  vs RTAO {SPP} spp on {len(q['picked'])} animated frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
         f"FLIP {ps.flip:.3f} | SSAO PSNR {ss.psnr:.2f} dB, SSIM {ss.ssim:.3f}, FLIP {ss.flip:.3f}",
         f"note     {LPIPS_NOTE}",

@@ -230,16 +230,20 @@ def client_has_render() -> bool:
     return "--render" in out
 
 
-def welcome_bytes(scene, grid) -> int:
-    """Size of the server's Welcome for this grid (sent uncompressed before the snapshot: the client
-    counts it in bytes_received, it is not part of the stream after the snapshot)."""
+def welcome_bytes(scene) -> int:
+    """Size of the server's Welcome for this scene (sent uncompressed before the snapshot: the client
+    counts it in bytes_received, it is not part of the stream after the snapshot). Its size depends on
+    the instance count only."""
+    import numpy as np
+
     from protocol import messages as m
     from protocol.codecs import Codec
+    from protocol.gridformat import INSTANCE_DTYPE
     from protocol.session import scene_hash_bytes
     from protocol.updates import Layout
 
-    msg = m.Welcome(scene_hash_bytes(scene.content_hash()), 1, Codec.NONE, Layout.PACKED, 60.0, len(grid.buckets),
-                    len(grid.cells), grid.instances)
+    msg = m.Welcome(scene_hash_bytes(scene.content_hash()), 1, Codec.NONE, Layout.PACKED, 60.0, 0, 0,
+                    np.zeros(len(scene.instances), INSTANCE_DTYPE))
     return len(m.encode(msg))
 
 

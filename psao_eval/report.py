@@ -14,7 +14,7 @@ import numpy as np
 from psao_eval.metrics import magma
 
 CSV_FIELDS = ["scene", "method", "density", "tick_hz", "psnr", "ssim", "flip", "bias", "stream_mbit_s", "snapshot_mb",
-              "updates_per_s", "server_ms_tick", "anim_tick_ms", "animated", "bake_trace_s", "client_ms_frame", "points", "holes", "frames", "spp"]
+              "updates_per_s", "server_ms_tick", "anim_tick_ms", "animated", "stream_animated", "bake_trace_s", "client_ms_frame", "points", "holes", "frames", "spp"]
 
 
 def _fmt(v, digits: int) -> str:
@@ -47,8 +47,12 @@ def markdown_table(rows: list[dict]) -> str:
     """Table 1 of the paper, per scene: PSNR, SSIM, FLIP and Mbit/s for SSAO and PSAO at each density."""
     merged = table_rows(rows)
     rates = sorted({hz for r in merged for hz in r["mbit"]})
+    ups = {}  # achieved updates per second at the highest rate (an animated server may fall behind)
+    for r in rows:
+        if rates and r.get("tick_hz") == rates[-1]:
+            ups[(r["scene"], r["method"])] = r.get("updates_per_s")
     head = ["scene", "method", "PSNR (dB) ↑", "SSIM ↑", "FLIP ↓", "mean AO bias"] + [f"Mbit/s @{hz:g} Hz" for hz in rates] + \
-        ["snapshot MB", "client ms/frame", "server ms/tick", "bake trace s", "points"]
+        (["updates/s"] if rates else []) + ["snapshot MB", "client ms/frame", "server ms/tick", "bake trace s", "points"]
     animated = any(r.get("anim_tick_ms") is not None for r in merged)
     if animated:
         head += ["animated tick ms"]
@@ -57,6 +61,8 @@ def markdown_table(rows: list[dict]) -> str:
         cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3),
                  f"{round(r['bias'], 3) + 0.0:+.3f}" if r.get("bias") is not None else "-"]
         cells += [_fmt(r["mbit"].get(hz), 3) if r["density"] else "-" for hz in rates]
+        if rates:
+            cells.append(_fmt(ups.get((r["scene"], r["method"])), 1) if r["density"] else "-")
         cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-", _fmt(r.get("client_ms_frame"), 1),
                   _fmt(r.get("server_ms_tick"), 2) if r["density"] else "-",
                   _fmt(r.get("bake_trace_s"), 1) if r["density"] else "-",
