@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with zstd, compress every message on its own as the paper does (no stream)")
     p.add_argument("--layout", choices=("packed", "plain"), default="packed",
                    help="update layout: packed (default) or the paper's plain uint32 layout")
+    p.add_argument("--stats-json", type=Path, default=None, metavar="FILE",
+                   help="append one JSON line per tick: points considered/traced/changed, dirty rows, stage times, bytes")
     p.add_argument("--tick-hz", type=float, default=60.0, help="server ticks per second, 5..60 (default 60)")
     p.add_argument("--token", default="", help="clients must present this token")
     p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
@@ -93,7 +95,7 @@ def _settings(args):
     if args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
-                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log,
+                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log, stats_json=args.stats_json,
                       send_buffer=args.send_buffer)
     s.check()
     return s

@@ -64,6 +64,7 @@ class ServeSettings:
     send_buffer: int = 128 * 1024
     stats_interval: float = 1.0  # seconds between live statistics lines
     digest_log: Path | None = None  # jsonl of state digests after every message that drained everything
+    stats_json: Path | None = None  # jsonl: one record per tick (the tick's own statistics, dirty rows, bytes)
 
     def check(self) -> None:
         if not 5.0 <= self.tick_hz <= 60.0:
@@ -98,6 +99,7 @@ class Counters:
     connections: int = 0
     rejected: int = 0
     tick_seconds: float = 0.0
+    encode_seconds: float = 0.0
     last: dict = field(default_factory=dict)
 
 
@@ -130,6 +132,8 @@ class Service:
         self.port: int | None = None
         self._connections: set[ServerConnection] = set()
         self._digests = open(settings.digest_log, "a", buffering=1) if settings.digest_log else None
+        self._stats_out = open(settings.stats_json, "a", buffering=1) if settings.stats_json else None
+        self.last_tick_stats: dict = {}
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None) -> None:
@@ -153,6 +157,8 @@ class Service:
             await self._say_goodbye()
         if self._digests:
             self._digests.close()
+        if self._stats_out:
+            self._stats_out.close()
 
     async def _say_goodbye(self) -> None:
         for ws in list(self._connections):
@@ -171,16 +177,18 @@ class Service:
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
+            stats = None
             if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
                 plan = await asyncio.to_thread(self.tick_fn.prepare, self.time)
-                self.tick_fn.apply(plan)
+                stats = self.tick_fn.apply(plan)
             elif self.tick_fn is not None:
-                self.tick_fn(self.grid, self.time)
+                stats = self.tick_fn(self.grid, self.time)
             self.tick += 1
             self.counters.ticks += 1
             b, c = self.grid.take_dirty()
             self.registry.broadcast(b, c, len(self.grid.cells))
             self.counters.tick_seconds += time.perf_counter() - t0
+            self._record_tick(stats, len(b), len(c), time.perf_counter() - t0)
             now = time.perf_counter()
             if now - last_stats >= self.settings.stats_interval:
                 self._log_stats(now - last_stats)
@@ -188,15 +196,33 @@ class Service:
             next_at = max(next_at + period, now)  # a late tick is not made up for
             await asyncio.sleep(next_at - now)
 
+    def _record_tick(self, stats, buckets_dirty: int, cells_dirty: int, seconds: float) -> None:
+        """Keep the tick's own statistics (the server tick's TickStats) for the live line and the jsonl."""
+        record = stats.to_dict() if hasattr(stats, "to_dict") else {}
+        record.update(service_tick=self.tick, time=self.time, buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
+                      seconds_tick=seconds, bytes_out=self.counters.bytes_out,
+                      seconds_encode_total=self.counters.encode_seconds, clients=len(self.registry))
+        self.last_tick_stats = record
+        if self._stats_out:
+            self._stats_out.write(json.dumps(record) + "\n")
+
     def _log_stats(self, dt: float) -> None:
         c, last = self.counters, self.counters.last
         rate = (c.bytes_out - last.get("bytes", 0)) / dt
         ticks = (c.ticks - last.get("ticks", 0)) / dt
         busy = (c.tick_seconds - last.get("tick_s", 0.0)) / dt
+        encode = (c.encode_seconds - last.get("encode_s", 0.0)) / max(c.ticks - last.get("ticks", 0), 1)
         pending = max((int(cl.pending_cells.sum()) for cl in self.registry), default=0)
-        log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients | out %.1f kB/s | most pending cells %d",
-                 self.tick, ticks, 100 * busy, len(self.registry), rate / 1e3, pending)
-        c.last = {"bytes": c.bytes_out, "ticks": c.ticks, "tick_s": c.tick_seconds}
+        s = self.last_tick_stats
+        work = ""
+        if "traced" in s:  # the server tick's split of the last tick
+            work = (f" | last tick: {s['traced']}/{s['considered']} points traced, {s['changed']} changed, "
+                    f"{s['cells_dirty']} cells | ms animate {1e3 * s['seconds_animate']:.1f} select "
+                    f"{1e3 * s['seconds_select']:.1f} trace {1e3 * s['seconds_trace']:.1f} grid "
+                    f"{1e3 * s['seconds_grid']:.1f} encode {1e3 * encode:.1f}")
+        log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients | out %.1f kB/s | most pending cells %d%s",
+                 self.tick, ticks, 100 * busy, len(self.registry), rate / 1e3, pending, work)
+        c.last = {"bytes": c.bytes_out, "ticks": c.ticks, "tick_s": c.tick_seconds, "encode_s": c.encode_seconds}
 
     # ---------------------------------------------------------------- connections
     async def _handler(self, ws: ServerConnection) -> None:
@@ -355,7 +381,9 @@ class Service:
                 self._log_digest(client)
             else:
                 client.wake.set()  # more than one message's worth: go again right away
+            t_encode = time.perf_counter()
             data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
+            self.counters.encode_seconds += time.perf_counter() - t_encode
             await self._send(ws, client, data)
             client.updates_sent += 1
 

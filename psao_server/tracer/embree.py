@@ -11,6 +11,7 @@ import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 import os
+import signal
 import time
 
 import numpy as np
@@ -101,6 +102,8 @@ _WORKER: _Scenes | None = None
 
 def _worker_init(static_vertices, static_faces):
     global _WORKER
+    # Ctrl-C reaches the whole process group: the parent shuts the pool down, workers must not die first.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _WORKER = _Scenes(static_vertices, static_faces)
 
 
