@@ -156,10 +156,7 @@ def method_name(density: float) -> str:
 
 def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict]:
     """All rows of one scene and the data of its side-by-side image."""
-    from psao_client.render.gridfile import load_grid_file
-    from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
-    from psao_eval.dynamic import is_animated
-    from psao_eval.reference import ReferenceSettings
+    from psao_eval.quality import frame_poses
     from psao_scene import load_scene
 
     scene = load_scene(spec)
@@ -167,6 +164,24 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
         log(f"warning: scene '{scene.name}' has no camera path: using an orbit around its bounds")
     poses = frame_poses(scene, cfg.frames, cfg.size, cfg.camera_path)
     grids = {d: bake_cached(spec, scene, d, cfg.rays, cfg.cache, log) for d in cfg.densities}
+    ssao_row, quality, image = score_scene(scene, poses, grids, cfg, log)
+    rows = [ssao_row]
+    for d in cfg.densities:
+        base = {"scene": scene.name, "method": method_name(d), "density": d, **quality[d]}
+        if not cfg.stream:
+            rows.append({**base, "tick_hz": None})
+            continue
+        for hz in cfg.tick_hz:
+            rows.append({**base, "tick_hz": hz, **stream_run(spec, scene, grids[d][0], d, hz, cfg, log)})
+    return rows, image
+
+
+def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[dict, dict, str, bool]:
+    """Frames per density (PSAO and SSAO in one renderer), in-process tick ms per density (animated
+    scenes with --animate), the GL renderer's name and whether the frames are animated."""
+    from psao_client.render.gridfile import load_grid_file
+    from psao_eval.dynamic import is_animated
+    from psao_eval.quality import QualityRenderer
 
     log(f"{scene.name}: rendering {len(poses)} frame(s) at {cfg.size[0]}x{cfg.size[1]}, PSAO at "
         f"{len(grids)} densities and SSAO")
@@ -178,41 +193,38 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
                 frames[d], tick_ms[d] = animated_frames(qr, scene, d, poses, cfg, log)
             else:
                 frames[d] = qr.render(load_grid_file(path), poses)
-        gl_renderer = qr.gl_renderer
-    first = frames[cfg.densities[0]]
+        return frames, tick_ms, qr.gl_renderer, animate
+
+
+def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[dict, dict, dict]:
+    """(SSAO row, PSAO quality per density, side-by-side image data) against the RTAO reference."""
+    from psao_eval.quality import mean_scores, reference_images, score_frames
+    from psao_eval.reference import ReferenceSettings
+
+    frames, tick_ms, gl_renderer, animate = render_scene(scene, poses, grids, cfg, log)
+    first = frames[cfg.densities[0]]  # every density draws the same G-buffers
     log(f"{scene.name}: RTAO reference, {cfg.spp} spp, {len(first)} frame(s) (cached in {cfg.cache / 'rtao'})")
     refs = reference_images(scene, first, ReferenceSettings(spp=cfg.spp, cache_dir=cfg.cache / "rtao"))
+    common = {"frames": len(first), "spp": cfg.spp, "animated": animate, "gl_renderer": gl_renderer}
 
-    rows = []
     ssao_scores = score_frames(first, refs, methods=("ssao",))
     s = mean_scores(ssao_scores, "ssao")
-    rows.append({"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(), "animated": animate,
-                 "client_ms_frame": _median([f.gpu_ms["ssao"] for f in first]), "frames": len(first), "spp": cfg.spp,
-                 "gl_renderer": gl_renderer})
+    ssao_row = {"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(), **common,
+                "client_ms_frame": _median([f.gpu_ms["ssao"] for f in first])}
     pick = len(first) // 2  # the side-by-side frame
-    panels = []
-    quality = {}
+    panels, quality = [], {}
     for d in cfg.densities:
         sc = score_frames(frames[d], refs, methods=("psao",))
-        quality[d] = mean_scores(sc, "psao")
         meta = grids[d][1]
-        quality[d] = {**quality[d].as_dict(), "client_ms_frame": _median([f.gpu_ms["psao"] for f in frames[d]]),
-                      "points": meta.get("points_kept"), "bake_trace_s": meta.get("seconds_trace"), "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])),
-                      "frames": len(frames[d]), "spp": cfg.spp, "animated": animate,
-                      "anim_tick_ms": tick_ms.get(d)}
+        quality[d] = {**mean_scores(sc, "psao").as_dict(), **common,
+                      "client_ms_frame": _median([f.gpu_ms["psao"] for f in frames[d]]),
+                      "points": meta.get("points_kept"), "bake_trace_s": meta.get("seconds_trace"),
+                      "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])), "anim_tick_ms": tick_ms.get(d)}
         panels.append((method_name(d), frames[d][pick].ao["psao"], sc[pick].flip_map, sc[pick].scores.as_dict()))
         log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f} "
             f"(SSAO {s.psnr:.2f} dB, {s.flip:.3f})")
     panels.append(("SSAO", first[pick].ao["ssao"], ssao_scores[pick].flip_map, ssao_scores[pick].scores.as_dict()))
-
-    for d in cfg.densities:
-        base = {"scene": scene.name, "method": method_name(d), "density": d, "gl_renderer": gl_renderer, **quality[d]}
-        if not cfg.stream:
-            rows.append({**base, "tick_hz": None})
-            continue
-        for hz in cfg.tick_hz:
-            rows.append({**base, "tick_hz": hz, **stream_run(spec, scene, grids[d][0], d, hz, cfg, log)})
-    return rows, {"scene": scene.name, "reference": refs[pick], "panels": panels}
+    return ssao_row, quality, {"scene": scene.name, "reference": refs[pick], "panels": panels}
 
 
 def animated_frames(qr, scene, density: float, poses, cfg: BenchConfig, log: Log):
