@@ -26,8 +26,8 @@ from psao_eval.errors import EvalError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="builtin:NAME, a scene .toml, or a glTF/OBJ/... file")
-    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated")
-    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated")
+    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated (default 128,256,512,1024)")
+    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated (default 5,15,30,60)")
     p.add_argument("--frames", type=int, default=4, help="frames along the camera path scored per scene (default 4)")
     p.add_argument("--spp", type=int, default=512, help="RTAO reference rays per pixel (default 512)")
     p.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
