@@ -3,7 +3,7 @@
 Target: on every built-in scene PSAO at N = 512 has a higher PSNR and a lower FLIP than SSAO.
 Prints the table and one PASS/FAIL line per scene; exits 1 when a scene misses the target.
 
-    .venv/bin/python -m benchmarks.bench_quality [--densities 256,512] [--frames 4] [--spp 512] [--out out/bench_quality]
+    .venv/bin/python -m benchmarks.bench_quality [--densities 256,512] [--frames 4] [--spp 512] [--animate] [--out DIR]
 """
 from __future__ import annotations
 
@@ -23,11 +23,12 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=4)
     p.add_argument("--spp", type=int, default=512)
     p.add_argument("--out", type=Path, default=Path("out") / "bench_quality")
+    p.add_argument("--animate", action="store_true", help="score animated scenes at their frame times (psao bench --animate)")
     a = p.parse_args(argv)
     from psao.cli import main as psao_main
 
     rc = psao_main(["bench", *BUILTINS, "--densities", a.densities, "--tick-hz", a.tick_hz, "--frames", str(a.frames),
-                    "--spp", str(a.spp), "--out", str(a.out)])
+                    "--spp", str(a.spp), "--out", str(a.out), *(["--animate"] if a.animate else [])])
     if rc != 0:
         return rc
     return 0 if check_target(json.loads((a.out / "results.json").read_text())) else 1
