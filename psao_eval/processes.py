@@ -191,8 +191,9 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
                   "--digest-log", str(digests), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for_snapshot(proc, digests, connect_timeout, what)
-        if proc.poll() is None:
-            time.sleep(seconds)
+        try:
+            proc.wait(seconds)  # returns early when the client stops by itself (a lost server)
+        except subprocess.TimeoutExpired:
             proc.send_signal(signal.SIGINT)
         try:
             out, err = proc.communicate(timeout=30.0)
