@@ -190,7 +190,7 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
     proc = spawn(["client", url, "--scene", scene_spec, "--json", "--no-reconnect", "--reconnect-timeout", "20",
                   "--digest-log", str(digests), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for_snapshot(proc, digests, connect_timeout, what)
+        t_snapshot = _wait_for_snapshot(proc, digests, connect_timeout, what)
         try:
             proc.wait(seconds)  # returns early when the client stops by itself (a lost server)
         except subprocess.TimeoutExpired:
@@ -199,6 +199,10 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
             out, err = proc.communicate(timeout=30.0)
         except subprocess.TimeoutExpired:
             raise EvalError(f"{what} did not stop on SIGINT") from None
+        # The stream's window: from the snapshot to the last message the client logged. The client's
+        # own `seconds` also counts its shutdown (closing the websocket can take seconds), which
+        # would dilute the rate.
+        t_last = digests.stat().st_mtime
     finally:
         kill_group(proc)
         digests.unlink(missing_ok=True)
@@ -207,14 +211,16 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
     stats = last_json_line(out, what)
     if not stats.get("snapshot_bytes"):
         raise EvalError(f"{what} received no snapshot: {_tail(err)}")
+    stats["window_seconds"] = max(t_last - t_snapshot, 1e-3) if stats.get("updates") else float(seconds)
     return stats
 
 
-def _wait_for_snapshot(proc: subprocess.Popen, digests: Path, timeout: float, what: str) -> None:
+def _wait_for_snapshot(proc: subprocess.Popen, digests: Path, timeout: float, what: str) -> float:
+    """Wall-clock time (time.time(), as file times) at which the client logged its snapshot."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if digests.stat().st_size > 0:
-            return
+            return digests.stat().st_mtime
         if proc.poll() is not None:
             err = proc.stderr.read() if proc.stderr else ""
             raise EvalError(f"{what} exited ({proc.returncode}) before its snapshot: {_tail(err)}")
@@ -255,7 +261,7 @@ def stream_rates(stats: dict, welcome: int = 0) -> dict:
     snap = float(stats.get("snapshot_bytes", 0))
     seconds = float(stats.get("seconds", 0.0))
     snap_s = float(stats.get("snapshot_seconds") or 0.0)
-    steady_s = max(seconds - snap_s, 1e-9)
+    steady_s = float(stats.get("window_seconds") or max(seconds - snap_s, 1e-9))
     return {
         "snapshot_mb": snap / 1e6,
         "snapshot_s": snap_s,
