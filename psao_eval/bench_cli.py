@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -307,6 +306,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
+    from psao_eval import report
     from psao_eval.metrics import LPIPS_NOTE
 
     cfg = config_from_args(args)
@@ -319,19 +319,10 @@ def _run(args) -> int:
         rows += scene_rows
         images.append(image)
     written = write_outputs(rows, images, cfg.out, cfg.image_scale)
-    print(report_text(rows))
+    print(report.markdown_table(rows))
     print(LPIPS_NOTE)
     for p in written:
         print(p)
     log("done")
     return 0
 
-
-def report_text(rows: list[dict]) -> str:
-    from psao_eval.report import markdown_table
-
-    return markdown_table(rows)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(run(argparse.Namespace()))
