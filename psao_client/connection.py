@@ -184,6 +184,7 @@ class MirrorClient:
         elif isinstance(event, UpdateReceived):
             self.mirror.apply(event.update.delta)
             self.mirror.tick = event.update.tick
+            self.mirror.server_time = float(event.update.server_time)
             self.stats.updates += 1
             if self.on_update:
                 self.on_update(self.mirror, self.mirror.transforms, event.update.tick)

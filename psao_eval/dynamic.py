@@ -8,9 +8,8 @@ the last one at the frame's time, the frame's camera as the only client view), t
 from the grid and the instance transforms of that last tick, as a client in lockstep would. The RTAO
 reference places the occluders with the same transforms (reference_images uses the frame's transforms).
 
-Skinned meshes: the client renderer draws them in their rest pose while the server's points follow the
-skinned surface, so on skinned characters PSAO and the reference see different geometry (a renderer
-gap, reported with the results rather than hidden).
+Skinned meshes are drawn posed at the frame's time (the time of the server's last tick), on the same
+deformed triangles the server's points follow; the reference traces that same pose.
 """
 from __future__ import annotations
 

@@ -39,6 +39,7 @@ class RenderedFrame:
     holes: float = 0.0  # fraction of covered pixels where PSAO found no point (weight 0)
     transforms: np.ndarray | None = None  # (n, 4, 4) instance transforms the frame was drawn with
     composite: dict | None = None  # method -> (H, W, 3) uint8 lit colour x AO, as the client shows it
+    skin_time: float | None = None  # seconds: skinned meshes were drawn posed at this time (None: rest pose)
 
 
 @dataclass
@@ -88,10 +89,12 @@ class QualityRenderer:
         """`grid` has instances, buckets and cells (a GridFile or a Grid). Each frame's pass times are
         the minimum over `timing_repeats` submissions: on a shared CPU (llvmpipe) other processes only
         ever add time. `before_frame(pose) -> (grid, transforms)`, when given, supplies the grid state and
-        instance transforms of each frame (an animated scene); otherwise the grid is drawn at rest."""
+        instance transforms of each frame (an animated scene, the server ticked up to pose.time, so skinned
+        meshes are drawn posed at pose.time); otherwise the grid is drawn at rest."""
         r = self.renderer
         r.upload_grid(grid.instances, grid.buckets, grid.cells)
         r.set_transforms(rest_transforms(self.scene))
+        r.set_skin_time(None)
         r.render(poses[0].view, poses[0].proj, read_gbuffer=False)  # warm-up: first-frame timings are bogus
         out = []
         for pose in poses:
@@ -99,6 +102,7 @@ class QualityRenderer:
                 g, transforms = before_frame(pose)
                 r.upload_grid(g.instances, g.buckets, g.cells)
                 r.set_transforms(transforms)
+                r.set_skin_time(pose.time)
             frame = r.render(pose.view, pose.proj)
             mask = frame.gbuffer.mask
             ms = dict(frame.gpu_ms)
@@ -110,7 +114,8 @@ class QualityRenderer:
                    "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
             holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
             out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
-                                     frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True), frame.composite))
+                                     frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True), frame.composite,
+                                     r.geometry.skin_time))
         return out
 
     def close(self) -> None:
@@ -126,12 +131,15 @@ class QualityRenderer:
 def reference_images(scene, frames: list[RenderedFrame], settings: ReferenceSettings,
                      show_progress: bool | None = None) -> list[np.ndarray]:
     """Composited RTAO per frame (cached on disk by scene, camera, time, transforms, spp and size); the
-    occluders are placed by the transforms each frame was drawn with."""
+    occluders are placed by the transforms each frame was drawn with, skinned meshes posed as drawn."""
+    from dataclasses import replace
+
     rest = rest_transforms(scene)
     refs = []
     for f in frames:
         transforms = rest if f.transforms is None else f.transforms
-        ao = reference_ao(scene, f.gbuffer, transforms, settings, FrameKey(f.pose.view, f.pose.proj, f.pose.time),
+        frame_settings = replace(settings, skin_time=f.skin_time)
+        ao = reference_ao(scene, f.gbuffer, transforms, frame_settings, FrameKey(f.pose.view, f.pose.proj, f.pose.time),
                           show_progress=show_progress)
         refs.append(composite_ao(ao, f.mask))
     return refs

@@ -5,9 +5,8 @@
 
 The pixels' world positions and normals come from the client's own G-buffer, so the reference sees
 exactly the surfaces the client shaded (same visibility, same double-sided normal flips). Occluders are
-the scene's triangles placed by the same instance transforms the frame was rendered with (and skinned
-at `skin_time` when given; the renderer draws skinned meshes in their rest pose, so the default is the
-rest pose too). Rays are the tracer's cosine-weighted set within the AO distance (Embree, every core),
+the scene's triangles placed by the same instance transforms the frame was rendered with, and skinned
+meshes posed at `skin_time` (the time the renderer posed them at; None = rest pose). Rays are the tracer's cosine-weighted set within the AO distance (Embree, every core),
 seeded by the pixel index, so a pixel's estimate is the same on every run.
 
 References are cached on disk (out/.cache/rtao/ by default) under a key of the scene's content hash,

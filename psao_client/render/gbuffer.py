@@ -107,13 +107,21 @@ def flat_shaded_arrays(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 class GeometryPass:
-    """One vertex array per mesh; one draw per instance with its model matrix."""
+    """One vertex array per mesh; one draw per instance with its model matrix.
+
+    Skinned meshes start in their rest pose; set_skin_time(t) poses them at scene time t (the server time
+    of the last Update) with the server's own skinning (psao_scene.skinning, Warp), so the G-buffer's
+    instance-local positions lie on the same deformed triangles the server spread the AO points over."""
 
     def __init__(self, ctx, scene, light: LightSettings | None = None):
         self._ctx = ctx
         self.program = compile_program(ctx, vertex_shader="gbuffer.vert.glsl", fragment_shader="gbuffer.frag.glsl")
+        self._scene = scene
         self._meshes = scene.meshes
         self._mesh_of_instance = [int(inst.mesh) for inst in scene.instances]
+        self._skinned = [m for m, mesh in enumerate(scene.meshes) if mesh.skin is not None and len(mesh.faces)]
+        self._skinner = None  # psao_scene.skinning.SceneSkinner, built on the first set_skin_time
+        self.skin_time: float | None = None  # None = rest pose
         self._vbos, self._vaos = [], []
         for mesh in scene.meshes:
             data = flat_shaded_arrays(mesh.vertices, mesh.faces)
@@ -125,6 +133,24 @@ class GeometryPass:
         self.program["u_light_dir"].value = tuple((direction / np.linalg.norm(direction)).tolist())
         self.program["u_ambient"].value = float(light.ambient)
         self.program["u_diffuse"].value = float(light.diffuse)
+
+    @property
+    def has_skins(self) -> bool:
+        return bool(self._skinned)
+
+    def set_skin_time(self, t: float | None) -> None:
+        """Pose every skinned mesh at scene time t seconds (None: the rest pose); rewrites their vertex
+        buffers in place (same size: the topology never changes)."""
+        if not self._skinned or t == self.skin_time:
+            return
+        if t is not None and self._skinner is None:
+            from psao_scene.skinning import SceneSkinner
+            self._skinner = SceneSkinner(self._scene, device="cpu")
+        for m in self._skinned:
+            mesh = self._meshes[m]
+            vertices = mesh.vertices if t is None else self._skinner.vertices(m, float(t))
+            self._vbos[m].write(flat_shaded_arrays(vertices, mesh.faces).tobytes())
+        self.skin_time = None if t is None else float(t)
 
     def draw(self, gbuffer: GBuffer, view: np.ndarray, proj: np.ndarray, transforms: np.ndarray) -> None:
         ctx = self._ctx

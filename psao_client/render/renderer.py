@@ -3,6 +3,7 @@
     with FrameRenderer(scene, size=(640, 360), ao_mode="both") as r:
         r.upload_grid(instances, buckets, cells)          # or update_grid(...) with dirty rows only
         r.set_transforms(transforms)                      # (n_instances, 4, 4), last received
+        r.set_skin_time(server_time)                      # skinned meshes posed as the server posed them
         frame = r.render(view, proj)                      # Frame
 
 Matrices are numpy math convention (column vectors, M @ v); proj is an OpenGL clip matrix.
@@ -102,6 +103,13 @@ class FrameRenderer:
         if not np.isfinite(t).all():
             raise RenderError("transforms contain NaN or infinity")
         self.transforms = t.copy()
+
+    def set_skin_time(self, t: float | None) -> None:
+        """Scene time (seconds) at which skinned meshes are drawn: the server time of the last Update,
+        which is when the server posed the points it sent. None = rest pose. No-op without skins."""
+        if t is not None and not np.isfinite(t):
+            raise RenderError(f"skin time {t} is not a finite number")
+        self.geometry.set_skin_time(t)
 
     # -- frames ------------------------------------------------------------------------------------------
     def render(self, view, proj, read_gbuffer: bool = True) -> Frame:

@@ -45,6 +45,7 @@ class StreamRenderer:
 
         self._sync(mirror)
         self.renderer.set_transforms(transforms)
+        self.renderer.set_skin_time(getattr(mirror, "server_time", None))
         t = float(tick) / self.tick_rate if camera_time is None else float(camera_time)
         view, proj = path_matrices(self.scene, self.path, t, self.size)
         frame = self.renderer.render(view, proj, read_gbuffer=False)

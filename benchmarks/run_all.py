@@ -1,0 +1,70 @@
+"""Every benchmark in one go (`make bench`), each with its default settings, in one process after another.
+
+Each script measures its own ratio against a baseline in the same run and exits 1 when its target is
+missed; this runner keeps going after a miss and ends with one line per benchmark and a non-zero exit
+if any missed or failed. `--only bake,tick` picks some; `--quick` passes each script the small settings
+listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine).
+
+    .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+# Order: cheapest first, so a broken install shows up early.
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality")
+
+# Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
+QUICK_ARGS = {
+    "points": ["--points", "200000", "--pcu-samples", "50000"],
+    "bake": ["--densities", "64", "--probes", "4000", "--probe-rays", "256"],
+    "bandwidth": ["--density", "64", "--animated-ticks", "20", "--ticks", "30", "--random-ticks", "10"],
+    "render": ["--densities", "64,256", "--frames", "2"],
+    "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
+    "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
+}
+
+
+def run_one(name: str, args: list[str]) -> tuple[int, float]:
+    """Run benchmarks.bench_NAME.main(args); returns (exit code, wall seconds). A crash counts as code 2."""
+    start = time.perf_counter()
+    try:
+        module = importlib.import_module(f"benchmarks.bench_{name}")
+        rc = int(module.main(args) or 0)
+    except SystemExit as exc:  # argparse errors and scripts that call sys.exit
+        rc = exc.code if isinstance(exc.code, int) else 1
+    except Exception as exc:  # keep going: one broken benchmark must not hide the others' figures
+        print(f"run_all: bench_{name} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        rc = 2
+    return rc, time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", default=",".join(BENCHMARKS), help="comma list of: " + ", ".join(BENCHMARKS))
+    ap.add_argument("--quick", action="store_true", help="small settings (QUICK_ARGS) for a smoke run")
+    a = ap.parse_args(argv)
+    names = [n.strip() for n in a.only.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        ap.error(f"unknown benchmark(s): {', '.join(unknown)}")
+
+    results = []
+    for name in names:
+        print(f"\n=== bench_{name} ===", flush=True)
+        rc, seconds = run_one(name, QUICK_ARGS[name] if a.quick else [])
+        results.append((name, rc, seconds))
+
+    print("\n=== summary ===")
+    for name, rc, seconds in results:
+        verdict = {0: "ok (exit 0)", 1: "MISSED a target (exit 1)"}.get(rc, f"FAILED (exit {rc})")
+        print(f"bench_{name:<10} {seconds:8.1f} s  {verdict}")
+    return 0 if all(rc == 0 for _, rc, _ in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
