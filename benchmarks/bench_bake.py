@@ -5,7 +5,11 @@ random surface probes against AO traced directly there with many rays, and the t
 against bare Embree occlusion on exactly the same rays and workers, in CPU seconds measured inside the
 workers during the bake itself (so other processes on a shared machine do not skew the ratio). Prints a table and writes a chart.
 
+--gap-fills 0,4 adds rows with psao_server.gapfill on (4 rounds of adding points where the client's
+lookup finds none) beside the paper's points, to compare holes, drops and time.
+
     python -m benchmarks.bench_bake [--scenes builtin:cornell,builtin:courtyard] [--densities 64,256,1024]
+        [--spawn-ratios 2,4] [--gap-fills 0,4]
 """
 from __future__ import annotations
 
@@ -17,20 +21,24 @@ import numpy as np
 
 from psao_scene import load_scene
 from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
+from psao_server.gapfill import GapFillSettings
 
 TARGETS = {"builtin:courtyard": 0.03, "builtin:cornell": 0.02}  # recon_mae at N=256 (issue 2)
 
 
-def measure(spec: str, density: float, rays: int, probes: int, probe_rays: int, spawn_ratio: float) -> dict:
+def measure(spec: str, density: float, rays: int, probes: int, probe_rays: int, spawn_ratio: float,
+            gap_fill: int = 0) -> dict:
     scene = load_scene(spec)
-    res = bake_scene(scene, BakeSettings(density=density, rays=rays, spawn_ratio=spawn_ratio))
+    res = bake_scene(scene, BakeSettings(density=density, rays=rays, spawn_ratio=spawn_ratio,
+                                         gap_fill=GapFillSettings(passes=gap_fill)))
     try:
         err = reconstruction_error(res.grid, scene, res.tracer, sample_probes(scene, probes), rays=probe_rays)
     finally:
         res.tracer.close()
     s = res.stats
     return {
-        "scene": spec, "density": density, "spawn_ratio": spawn_ratio, "points": s["points_kept"],
+        "scene": spec, "density": density, "spawn_ratio": spawn_ratio, "gap_fill": gap_fill, "points": s["points_kept"],
+        "points_gap_fill": s["points_gap_fill"], "seconds_gap_fill": s["seconds_gap_fill"],
         "dropped_pct": 100 * s["points_dropped_overflow"] / max(s["points_generated"], 1),
         "holes_pct": 100 * err["hole_fraction"], "recon_mae": err["recon_mae"], "recon_p99": err["recon_p99"],
         "seconds_points": s["seconds_points"], "seconds_trace": s["seconds_trace"],
@@ -45,19 +53,22 @@ def main(argv=None) -> int:
     ap.add_argument("--densities", default="64,256")
     ap.add_argument("--rays", type=int, default=128)
     ap.add_argument("--spawn-ratios", default="2", help="comma list: points spawned per point kept")
+    ap.add_argument("--gap-fills", default="0", help="comma list: gap-fill passes (0 = off), e.g. 0,4")
     ap.add_argument("--probes", type=int, default=20000)
     ap.add_argument("--probe-rays", type=int, default=1024)
     ap.add_argument("--out", type=Path, default=Path("out/bench_bake"))
     args = ap.parse_args(argv)
-    rows = [measure(spec, float(n), args.rays, args.probes, args.probe_rays, float(sr))
-            for spec in args.scenes.split(",") for sr in args.spawn_ratios.split(",") for n in args.densities.split(",")]
-    header = f"{'scene':20s} {'N':>6s} {'spawn':>5s} {'points':>10s} {'dropped%':>9s} {'holes%':>7s} {'MAE':>7s} {'p99':>6s} " \
+    rows = [measure(spec, float(n), args.rays, args.probes, args.probe_rays, float(sr), int(gf))
+            for spec in args.scenes.split(",") for sr in args.spawn_ratios.split(",")
+            for gf in args.gap_fills.split(",") for n in args.densities.split(",")]
+    header = f"{'scene':20s} {'N':>6s} {'spawn':>5s} {'fill':>4s} {'added':>7s} {'fill s':>6s} {'points':>10s} {'dropped%':>9s} {'holes%':>7s} {'MAE':>7s} {'p99':>6s} " \
              f"{'Mrays/s':>8s} {'Embree':>8s} {'eff':>5s} {'target':>10s}"
     print(header)
     for r in rows:
         target = TARGETS.get(r["scene"]) if r["density"] == 256 else None
         verdict = "" if target is None else ("pass" if r["recon_mae"] < target else "FAIL") + f" <{target}"
-        print(f"{r['scene']:20s} {r['density']:6g} {r['spawn_ratio']:5g} {r['points']:10,d} {r['dropped_pct']:9.3f} {r['holes_pct']:7.3f} "
+        print(f"{r['scene']:20s} {r['density']:6g} {r['spawn_ratio']:5g} {r['gap_fill']:4d} {r['points_gap_fill']:7,d} "
+              f"{r['seconds_gap_fill']:6.1f} {r['points']:10,d} {r['dropped_pct']:9.3f} {r['holes_pct']:7.3f} "
               f"{r['recon_mae']:7.4f} {r['recon_p99']:6.3f} {r['mrays_s']:8.2f} {r['embree_mrays_s']:8.2f} "
               f"{r['trace_efficiency']:5.2f} {verdict:>10s}")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -72,10 +83,10 @@ def _chart(rows, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    for spec, sr in dict.fromkeys((r["scene"], r["spawn_ratio"]) for r in rows):
-        rs = [r for r in rows if r["scene"] == spec and r["spawn_ratio"] == sr]
+    for spec, sr, gf in dict.fromkeys((r["scene"], r["spawn_ratio"], r["gap_fill"]) for r in rows):
+        rs = [r for r in rows if (r["scene"], r["spawn_ratio"], r["gap_fill"]) == (spec, sr, gf)]
         n = [r["density"] for r in rs]
-        label = f"{spec} spawn {sr:g}x"
+        label = f"{spec} spawn {sr:g}x" + (f" gap fill {gf}" if gf else "")
         axes[0].plot(n, [r["recon_mae"] for r in rs], "o-", label=label)
         axes[1].plot(n, [r["holes_pct"] for r in rs], "o-", label=label)
         axes[2].plot(n, [r["trace_efficiency"] for r in rs], "o-", label=label)

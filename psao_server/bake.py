@@ -16,6 +16,7 @@ from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.errors import ConfigError
+from psao_server.gapfill import GapFillSettings, fill_gaps
 from psao_server.grid import Grid, GridSettings
 from psao_server.points import PointSet, PointSettings, generate_scene_points, instance_seed, spawn_uniform, triangle_areas
 from psao_server.tracer import TraceSettings, Tracer, make_tracer
@@ -31,6 +32,7 @@ class BakeSettings:
     min_points: int = 64  # per instance
     spawn_ratio: float = 2.0  # spawned / kept before elimination; the paper's 2; 4 closes most holes (slower)
     grid: GridSettings = field(default_factory=GridSettings)
+    gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
 
     def check(self) -> None:
         if not np.isfinite(self.density) or self.density <= 0:
@@ -39,6 +41,8 @@ class BakeSettings:
             raise ConfigError(f"spawn ratio must be >= 1, got {self.spawn_ratio}")
         if self.rays < 1:
             raise ConfigError(f"rays must be >= 1, got {self.rays}")
+        if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
+            raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
 
 
 @dataclass
@@ -139,9 +143,21 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
 
         t0 = time.perf_counter()
         flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-        grid = Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
-                           for ps, f in zip(pointsets, flags)], settings.grid)
+
+        def build(sets: list[PointSet]) -> Grid:
+            return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
+                               for ps, f in zip(sets, flags)], settings.grid)
+
+        grid = build(pointsets)
         stats["seconds_grid"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        added = 0
+        if settings.gap_fill.passes > 0:
+            task = bar.add_task("gap fill", total=settings.gap_fill.passes) if bar else None
+            pointsets, grid, added = fill_gaps(scene, pointsets, grid, build, settings.gap_fill,
+                                               progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+        stats["points_gap_fill"] = int(added)
+        stats["seconds_gap_fill"] = time.perf_counter() - t0
 
         if hasattr(tracer, "warm_up"):
             tracer.warm_up()  # worker start-up is not tracing time

@@ -16,6 +16,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spawn-ratio", type=float, default=2.0,
                    help="points spawned per point kept before elimination (default 2, as the paper; 4 leaves fewer holes)")
+    p.add_argument("--gap-fill", type=int, default=0, metavar="PASSES",
+                   help="rounds of adding points where the client's lookup finds none (default 0: off)")
+    p.add_argument("--gap-fill-ratio", type=float, default=4.0, metavar="R",
+                   help="random candidates per kept point and round for --gap-fill (default 4)")
     p.add_argument("--ao-distance", type=float, default=None, help="override the scene's AO distance (world units)")
     p.add_argument("--tracer", default="embree", help="tracer back-end: embree (default) or warp")
     p.add_argument("--out", type=Path, default=None, help="grid file to write (.npz); default out/<scene>-N<density>.npz")
@@ -27,12 +31,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from psao_scene import load_scene
     from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
+    from psao_server.gapfill import GapFillSettings
 
     if args.probes < 0 or args.probe_rays < 1:
         raise ConfigError("--probes must be >= 0 and --probe-rays >= 1")
     scene = load_scene(args.scene, ao_distance=args.ao_distance)
     settings = BakeSettings(density=args.density, rays=args.rays, seed=args.seed, tracer=args.tracer,
-                            spawn_ratio=args.spawn_ratio)
+                            spawn_ratio=args.spawn_ratio,
+                            gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
     result = bake_scene(scene, settings)
     stats = dict(result.stats)
     try:

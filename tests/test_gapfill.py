@@ -1,0 +1,119 @@
+"""Gap filling (psao_server.gapfill): fewer holes, added points on the surface, the two sides of a
+double-sided instance kept aligned, the k-d pre-test never claims coverage the lookup does not give."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from protocol import gridformat as gf
+from protocol.reconstruct import reconstruct_ao
+from psao_scene import load_scene
+from psao_server.bake import back_side_mask, sample_probes
+from psao_server.gapfill import GapFillSettings, decoded_points, fill_gaps, kd_covered, surface_candidates, thin
+from psao_server.grid import Grid
+from psao_server.points import PointSettings, generate_scene_points
+
+DENSITY = 64.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Cornell box with its tall block made double-sided, so both point layouts are exercised."""
+    base = load_scene("builtin:cornell")
+    meshes = list(base.meshes)
+    k = base.instances[-1].mesh
+    meshes[k] = dataclasses.replace(meshes[k], double_sided=True)
+    return dataclasses.replace(base, meshes=meshes)
+
+
+def builder(scene):
+    flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
+
+    def build(sets):
+        return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
+                           for ps, f in zip(sets, flags)])
+    return build
+
+
+def holes(grid, probes) -> float:
+    _, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos, probes.local_normal)
+    return float((wsum == 0).mean())
+
+
+def test_gap_fill_reduces_holes_and_keeps_points_on_the_surface(scene):
+    build = builder(scene)
+    before = generate_scene_points(scene, PointSettings(density=DENSITY))
+    grid0 = build(before)
+    after, grid1, added = fill_gaps(scene, before, grid0, build, GapFillSettings(passes=4, ratio=4.0))
+    probes = sample_probes(scene, 20000, seed=4242)  # not the candidates' seed
+    h0, h1 = holes(grid0, probes), holes(grid1, probes)
+    assert added > 0 and h0 > 0.002
+    assert h1 < 0.5 * h0, f"holes {h0:.4%} -> {h1:.4%}"
+    assert added < 0.1 * sum(len(ps) for ps in before)  # a fill, not a second point set
+    for inst, ps0, ps in zip(scene.instances, before, after):
+        mesh = scene.meshes[inst.mesh]
+        tri = mesh.vertices[mesh.faces[ps.faces]]
+        on_tri = np.einsum("pk,pkj->pj", ps.barycentrics.astype(np.float64), tri)
+        assert np.abs(on_tri - ps.positions).max() < 1e-6  # on the triangle the point names
+        if mesh.double_sided:
+            h, h0_ = len(ps) // 2, len(ps0) // 2
+            assert len(ps) % 2 == 0
+            np.testing.assert_array_equal(ps.positions[:h], ps.positions[h:])
+            np.testing.assert_array_equal(ps.normals[:h], -ps.normals[h:])
+            np.testing.assert_array_equal(ps.positions[:h0_], ps0.positions[:h0_])  # old front half first
+        else:
+            np.testing.assert_array_equal(ps.positions[: len(ps0)], ps0.positions)
+
+
+def test_gap_fill_off_changes_nothing(scene):
+    build = builder(scene)
+    before = generate_scene_points(scene, PointSettings(density=DENSITY))
+    grid0 = build(before)
+    after, grid1, added = fill_gaps(scene, before, grid0, build, GapFillSettings(passes=0))
+    assert added == 0 and grid1 is grid0 and all(a is b for a, b in zip(after, before))
+
+
+def test_kd_pretest_is_stricter_than_the_lookup(scene):
+    """Wherever the k-d pre-test says covered, the exact lookup finds a point too."""
+    build = builder(scene)
+    grid = build(generate_scene_points(scene, PointSettings(density=DENSITY)))
+    table = grid.point_table()
+    rng = np.random.default_rng(5)
+    checked = 0
+    for i in range(len(scene.instances)):
+        cand = surface_candidates(scene, i, 1.0, 3000, rng)
+        ok = kd_covered(*decoded_points(grid, table, i), cand.local_pos, cand.local_normal,
+                        float(grid.instances[i]["radius"]))
+        _, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.full(ok.sum(), i),
+                                 cand.local_pos[ok], cand.local_normal[ok])
+        assert (wsum > 0).all()
+        checked += int(ok.sum())
+    assert checked > 10000
+
+
+def test_thin_keeps_points_apart():
+    pos = np.random.default_rng(1).random((2000, 3))
+    keep = thin(pos, 0.05)
+    from scipy.spatial import cKDTree
+    assert 0 < len(keep) < len(pos)
+    assert len(cKDTree(pos[keep]).query_pairs(0.05)) == 0
+    assert len(thin(pos[:1], 0.05)) == 1 and len(thin(pos[:0], 0.05)) == 0
+
+
+def test_no_point_is_offered_to_a_full_cell(scene):
+    build = builder(scene)
+    grid = build(generate_scene_points(scene, PointSettings(density=256.0)))
+    from psao_server.gapfill import has_room
+    from psao_server.grid import NO_POINT
+    counts = (grid.point_id != NO_POINT).sum(axis=1)
+    full = np.flatnonzero(counts >= gf.POINTS_PER_CELL)
+    roomy = np.flatnonzero((counts > 0) & (counts < gf.POINTS_PER_CELL))
+    assert len(full) and len(roomy)
+    for slots, expect in ((full, False), (roomy, True)):
+        for slot in slots[:20]:
+            i = int(grid.cell_instance[slot])
+            back = bool(grid.cells[slot, gf.KEY_WORD] & gf.BACK_BIT)
+            pos = grid.point_local[slot, :1]
+            assert has_room(grid, i, pos, back)[0] == expect
