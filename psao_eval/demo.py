@@ -7,7 +7,9 @@
 3. the camera path with the scene animated (the server's tick in this process rolls the boulders and
    re-traces around them up to each frame's time), PSAO and SSAO in one headless renderer, a few frames
    scored against a low-spp RTAO reference with the boulders where the frame has them;
-4. a short report on stdout and the paths of what it wrote under out/demo/.
+4. two of the frames the streaming client rendered itself scored the same way (its own PSAO images,
+   the G-buffer drawn again here from its frames.jsonl for SSAO and the reference);
+5. a short report on stdout and the paths of what it wrote under out/demo/.
 No arguments, no downloads. The server is killed (its process group) on every exit path.
 """
 from __future__ import annotations
@@ -24,6 +26,7 @@ DENSITY = 96.0  # points per unit^2: a fraction of the bench's densities, so the
 RAYS = 32  # AO rays per point in the demo bake
 FRAMES = 24  # frames rendered along the camera path
 SCORED = 3  # of which scored against RTAO
+CLIENT_SCORED = 2  # frames of the streaming client's own scored against RTAO
 SPP = 64  # RTAO rays per pixel for the demo's reference (the bench uses 512)
 SIZE = (640, 360)
 STREAM_SECONDS = 4.0
@@ -53,8 +56,9 @@ def _run(args) -> int:
     scene = load_scene(SCENE)
     stream = stream_demo(scene, out, log)
     quality = quality_demo(scene, out, log)
+    client = client_demo(scene, stream, log)
     written = write_demo_outputs(quality, out)
-    print_report(scene, stream, quality, written, time.perf_counter() - t_start)
+    print_report(scene, stream, quality, client, written, time.perf_counter() - t_start)
     return 0
 
 
@@ -77,6 +81,18 @@ def stream_demo(scene, out: Path, log) -> dict:
     rates["client_frames"] = int(stats.get("frames_rendered", 0))
     rates["client_frames_dir"] = str(frames_dir) if rates["client_frames"] else None
     return rates
+
+
+def client_demo(scene, stream: dict, log) -> list:
+    """The streaming client's own frames against RTAO (empty when it rendered none)."""
+    from psao_eval.client_frames import score_client_frames
+    from psao_eval.reference import ReferenceSettings
+
+    if not stream["client_frames_dir"]:
+        return []
+    log(f"RTAO reference at {SPP} spp on {CLIENT_SCORED} of the streaming client's own frames")
+    return score_client_frames(scene, stream["client_frames_dir"], CLIENT_SCORED,
+                               ReferenceSettings(spp=SPP, cache_dir=Path("out") / ".cache" / "rtao"))
 
 
 def quality_demo(scene, out: Path, log) -> dict:
@@ -162,7 +178,7 @@ def frame_chart(q: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def print_report(scene, s: dict, q: dict, written: list[Path], seconds: float) -> None:
+def print_report(scene, s: dict, q: dict, client: list, written: list[Path], seconds: float) -> None:
     from psao_eval.metrics import LPIPS_NOTE
     from psao_eval.quality import mean_scores
 
@@ -180,6 +196,10 @@ def print_report(scene, s: dict, q: dict, written: list[Path], seconds: float) -
         f"in-process server tick {q['tick_ms']:.0f} ms (rolling boulders, {RAYS} rays per re-traced point)",
         f"quality  vs RTAO {SPP} spp on {len(q['picked'])} animated frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
         f"FLIP {ps.flip:.3f} | SSAO PSNR {ss.psnr:.2f} dB, SSIM {ss.ssim:.3f}, FLIP {ss.flip:.3f}",
+        *([f"client   its own frames {', '.join(str(c.frame) for c in client)} vs RTAO {SPP} spp: PSAO PSNR "
+           f"{np.mean([c.psao.psnr for c in client]):.2f} dB, FLIP {np.mean([c.psao.flip for c in client]):.3f} | SSAO "
+           f"PSNR {np.mean([c.ssao.psnr for c in client]):.2f} dB, FLIP {np.mean([c.ssao.flip for c in client]):.3f}"]
+          if client else []),
         f"note     {LPIPS_NOTE}",
         f"wrote    " + "\n         ".join(str(p) for p in written) + (f"\n         {s['client_frames_dir']}" if s["client_frames_dir"] else ""),
         f"done in {seconds:.0f} s",

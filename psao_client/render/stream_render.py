@@ -7,10 +7,13 @@
 The first call uploads the whole mirror; later calls upload only the buckets and cells the mirror
 marked dirty since (Mirror.take_dirty), growing or cutting the cell table with the mirror's capacity.
 The camera follows the scene's path at the time the client passes (camera_time=...), or at
-tick / tick_rate seconds when it passes none.
+tick / tick_rate seconds when it passes none. Each frame also gets a line in OUTDIR/frames.jsonl (frame,
+tick, camera time, server time, instance transforms): what it takes to draw the same frame again, e.g.
+to score it against a ray-traced reference (psao_eval.client_frames).
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +41,7 @@ class StreamRenderer:
         self._uploaded_instances: np.ndarray | None = None
         self.frames = 0
         self.records: list[dict] = []  # per frame: tick, camera time, GPU ms per pass
+        (self.out_dir / "frames.jsonl").unlink(missing_ok=True)  # frames are numbered from 0 again
 
     def __call__(self, mirror, transforms, tick: int, camera_time: float | None = None) -> dict:
         from psao_client.render.output import save_frame
@@ -52,8 +56,18 @@ class StreamRenderer:
         save_frame(frame, self.out_dir, self.frames)
         record = {"frame": self.frames, "tick": int(tick), "time": t, "gpu_ms": frame.gpu_ms}
         self.records.append(record)
+        self._log(record, mirror, transforms)
         self.frames += 1
         return record
+
+    def _log(self, record: dict, mirror, transforms) -> None:
+        """One line per frame, appended as it is written (a killed client keeps the lines before)."""
+        line = dict(record, camera_path=self.path.name, size=list(self.size),
+                    server_time=float(getattr(mirror, "server_time", 0.0)),
+                    skin_time=self.renderer.geometry.skin_time,
+                    transforms=np.asarray(transforms, np.float64).reshape(-1, 16).tolist())
+        with open(self.out_dir / "frames.jsonl", "a", encoding="utf-8") as f:
+            f.write(json.dumps(line) + "\n")
 
     def _sync(self, mirror) -> None:
         """Full upload the first time (or when the instance table changed), dirty rows after that."""
