@@ -117,6 +117,9 @@ def run(args: argparse.Namespace, on_update=None) -> int:
     out = report(client, time.perf_counter() - t0)
     if renderer is not None:
         out["frames_rendered"] = renderer.frames
+        # per frame: tick, camera time and GPU milliseconds of each pass (timer queries)
+        out["frames"] = [{"frame": r["frame"], "tick": r["tick"], "time": r["time"], "gpu_ms": r["gpu_ms"]}
+                         for r in renderer.records]
         out["render_dir"] = str(args.render)
     if args.json:
         print(json.dumps(out))

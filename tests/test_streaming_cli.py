@@ -134,6 +134,11 @@ def test_client_renders_frames_while_streaming(token_server, tmp_path):
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["frames_rendered"] == 3
     assert len(list((tmp_path / "frames").glob("*.png"))) >= 3
+    # per-frame GPU times of each pass (timer queries), and the frame log the eval reads
+    assert [f["frame"] for f in report["frames"]] == [0, 1, 2]
+    for f in report["frames"]:
+        assert {"gbuffer", "psao", "composite"} <= set(f["gpu_ms"]) and all(v >= 0 for v in f["gpu_ms"].values())
+    assert len((tmp_path / "frames" / "frames.jsonl").read_text().splitlines()) == 3
 
 
 def test_client_unknown_camera_path(token_server):
