@@ -21,6 +21,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size (default 16)")
     parser.add_argument("--out", default="frames", metavar="DIR", help="output folder (default ./frames)")
     parser.add_argument("--json", action="store_true", help="print per-frame pass times as JSON (last line)")
+    parser.add_argument("--window", action="store_true",
+                        help="also show the frames in a window (needs a display and the 'glfw' package: pip install glfw)")
 
 
 def run(args) -> int:
@@ -43,7 +45,7 @@ def run(args) -> int:
         raise RenderError(str(exc.args[0])) from None
     out = Path(args.out)
     records = []
-    with FrameRenderer(scene, size, args.ao, ssao_samples=args.ssao_samples) as renderer:
+    with FrameRenderer(scene, size, args.ao, ssao_samples=args.ssao_samples, window=args.window) as renderer:
         renderer.upload_grid(grid.instances, grid.buckets, grid.cells)
         for i, t in enumerate(_progress(path_times(path, args.frames), quiet=args.json)):
             view, proj = path_matrices(scene, path, float(t), size)

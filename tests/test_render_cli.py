@@ -122,3 +122,17 @@ def test_no_egl_is_one_line_exit_2(cornell_grid, tmp_path):
                           "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO, env=env, timeout=120)
     assert res.returncode == 2 and "no EGL display available" in res.stderr and "Traceback" not in res.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_window_without_display_or_glfw_is_one_line_exit_2(cornell_grid, tmp_path):
+    """--window on a machine without glfw or without a display: one line naming why, nothing written."""
+    import os
+
+    _, _, grid_path = cornell_grid
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    res = subprocess.run([sys.executable, "-m", "psao", "render", "builtin:cornell", "--grid", str(grid_path),
+                          "--window", "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO,
+                         env=env, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and ("glfw" in res.stderr or "window" in res.stderr)
+    assert not (tmp_path / "o").exists()

@@ -55,7 +55,7 @@ def _window_context(size: tuple[int, int]):
     try:
         import glfw  # optional: not a dependency of the headless client
     except ImportError:
-        raise RenderError("a window needs the 'glfw' package, which is not installed; render headless instead") from None
+        raise RenderError("a window needs the 'glfw' package, which is not installed (pip install glfw); render headless instead") from None
     import moderngl
 
     if not glfw.init():

@@ -23,7 +23,7 @@ from psao_client.errors import RenderError
 
 class StreamRenderer:
     def __init__(self, scene, out_dir, size=(640, 360), ao_mode="psao", camera_path=None, ssao_samples=16,
-                 tick_rate: float = 30.0, ctx=None):
+                 tick_rate: float = 30.0, ctx=None, window: bool = False):
         from psao_client.render.renderer import FrameRenderer
         from psao_scene import scene_camera
 
@@ -37,7 +37,7 @@ class StreamRenderer:
         self.out_dir = Path(out_dir)
         self.size = tuple(size)
         self.tick_rate = float(tick_rate)
-        self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx)
+        self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx, window=window)
         self._uploaded_instances: np.ndarray | None = None
         self.frames = 0
         self.records: list[dict] = []  # per frame: tick, camera time, GPU ms per pass
@@ -102,6 +102,7 @@ def make_render_callback(scene, args) -> StreamRenderer:
         camera_path=getattr(args, "camera_path", None),
         ssao_samples=int(getattr(args, "ssao_samples", 16)),
         tick_rate=float(getattr(args, "tick_rate", 30.0) or 30.0),
+        window=bool(getattr(args, "window", False)),
     )
 
 
@@ -112,3 +113,5 @@ def add_render_arguments(parser) -> None:
     parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
     parser.add_argument("--ao", choices=("psao", "ssao", "both"), default="psao", help="AO method(s) for --render")
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
+    parser.add_argument("--window", action="store_true",
+                        help="also show the frames in a window (needs a display and the 'glfw' package: pip install glfw)")
