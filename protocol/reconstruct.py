@@ -4,8 +4,10 @@ It reads exactly the arrays the client holds (instances, buckets, cells) and doe
 `shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
 hash -> bucket -> linear scan for the key -> the cell's allocated points, weights
 max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,
-or 1 where all weights are 0. Double-sided instances (FLAG_DOUBLE_SIDED) also scan the back-side cells
-(key | BACK_BIT) of the block. Arithmetic is float32 like the shader's so the two agree to rounding.
+or 1 where all weights are 0. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
+(the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
+does; without `back` (a probe whose side nobody flagged) both keys are scanned and eq. 3's normal test
+keeps the right side's points. Arithmetic is float32 like the shader's so the two agree to rounding.
 """
 from __future__ import annotations
 
@@ -20,20 +22,23 @@ _BLOCK = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 
 
 
 def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal, t_n: float = T_N,
-                   t_d: float = T_D, chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
-    """AO (M,) float32 and the weight sum (M,) at fragments given in instance-local space."""
+                   t_d: float = T_D, chunk: int = 65536, back=None) -> tuple[np.ndarray, np.ndarray]:
+    """AO (M,) float32 and the weight sum (M,) at fragments given in instance-local space; `back` (M,)
+    bool: the fragment shows the back side of a double-sided instance (None: unknown, scan both)."""
     inst_ids = np.asarray(inst_ids, np.int64)
     local_pos = np.asarray(local_pos, np.float32).reshape(-1, 3)
     local_normal = np.asarray(local_normal, np.float32).reshape(-1, 3)
     ao = np.ones(len(inst_ids), np.float32)
     wsum = np.zeros(len(inst_ids), np.float32)
+    back = None if back is None else np.asarray(back, bool).reshape(-1)
     for s in range(0, len(inst_ids), chunk):
         sl = slice(s, s + chunk)
-        ao[sl], wsum[sl] = _reconstruct_chunk(instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d)
+        ao[sl], wsum[sl] = _reconstruct_chunk(instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl],
+                                              t_n, t_d, None if back is None else back[sl])
     return ao, wsum
 
 
-def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d):
+def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None):
     m = len(inst)
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
@@ -57,17 +62,21 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d):
     b = (h.astype(np.uint32) & (rec["bucket_count"][:, None] - np.uint32(1))).astype(np.int64) + rec["bucket_offset"][:, None].astype(np.int64)
     b = np.where(inside, b, 0)
     entries = buckets[b]  # (M, 8, 8, 2)
-    # 16 candidate cells: the block's front keys, then its back keys (EMPTY, never matched, if one-sided).
-    cell = np.concatenate([cell, cell], axis=1)
-    inside = np.concatenate([inside, inside & two_sided[:, None]], axis=1)
-    keys = np.concatenate([key, back_key], axis=1)
-    entries = np.concatenate([entries, entries], axis=1)
+    if back is not None:
+        # The side is known (the shader's case): one key per cell of the block, the back one where flagged.
+        keys = np.where((np.asarray(back, bool) & two_sided)[:, None], back_key, key)
+    else:
+        # 16 candidate cells: the block's front keys, then its back keys (EMPTY, never matched, if one-sided).
+        cell = np.concatenate([cell, cell], axis=1)
+        inside = np.concatenate([inside, inside & two_sided[:, None]], axis=1)
+        keys = np.concatenate([key, back_key], axis=1)
+        entries = np.concatenate([entries, entries], axis=1)
     # Entries are used-first and keys are unique in a bucket, so "first match before EMPTY" == "any match".
     match = (entries[..., 0] == keys[..., None]) & inside[..., None]
     found = match.any(axis=2)
     slot = np.take_along_axis(entries[..., 1], match.argmax(axis=2)[..., None], axis=2)[..., 0].astype(np.int64)
     slot = np.where(found, slot, 0)
-    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 16, 7)
+    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 8 or 16, 7)
     allocated, qpos, ncode, aocode = pw.unpack_point(words)
     # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
     valid = allocated & found[..., None]

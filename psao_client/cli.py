@@ -1,8 +1,8 @@
 """`psao client URL`: connect to a PSAO server, keep an exact mirror of its grid, report.
 
 Headless for now. The receive loop is `psao_client.connection.MirrorClient`; `build_client(args, scene,
-on_update=...)` lets another sub-command (a renderer) reuse the same options and plug in a per-update
-callback `on_update(mirror, transforms, tick)`.
+on_update=..., on_frame=...)` lets another sub-command reuse the same options and plug in a per-update
+callback `on_update(mirror, transforms, tick)` or a per-frame one `on_frame(mirror)` (--render: at --fps).
 """
 from __future__ import annotations
 
@@ -21,7 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("url", help="server URL, e.g. ws://127.0.0.1:8765")
     p.add_argument("--scene", default="builtin:courtyard",
                    help="the client's own copy of the scene, checked against the server's (default builtin:courtyard)")
-    p.add_argument("--frames", type=int, default=None, help="stop after the snapshot and N updates (0: right after the snapshot; default: run until Ctrl-C)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="stop after the snapshot and N updates, or with --render N rendered frames "
+                        "(0: right after the snapshot; default: run until Ctrl-C)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
     p.add_argument("--token", default="", help="token the server requires")
     p.add_argument("--codecs", default=",".join(CODEC_CHOICES),
@@ -36,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="append the mirror's state digest (jsonl) after every Snapshot and Update (tests)")
     from psao_client.render.stream_render import add_render_arguments
 
-    add_render_arguments(p)  # --render OUTDIR and its options: a frame per applied update
+    add_render_arguments(p)  # --render OUTDIR and its options: frames at the client's own rate (--fps)
 
 
 def _codecs(text: str):
@@ -58,7 +60,7 @@ def _aspect(size: str | None) -> float:
         return 16 / 9
 
 
-def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None):
+def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None, on_frame=None):
     from protocol.session import scene_hash_bytes
     from psao_client.connection import MirrorClient, scene_camera_feed
 
@@ -72,6 +74,7 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
         reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
+        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)),
     )
 
 
@@ -97,15 +100,17 @@ def run(args: argparse.Namespace, on_update=None) -> int:
     from psao_scene import load_scene
 
     scene = load_scene(args.scene)
-    renderer = None
+    renderer = on_frame = None
     if getattr(args, "render", None):
+        # At the client's own rate (--fps), whatever has arrived by then; frames use the camera pose this
+        # client sends at that moment (same clock).
+        on_frame = lambda mirror: renderer(mirror, mirror.transforms, mirror.tick,  # noqa: E731
+                                           camera_time=client.clock())
+    client = build_client(args, scene, on_update=on_update, on_frame=on_frame)  # checks the options first
+    if on_frame is not None:
         from psao_client.render.stream_render import make_render_callback
 
         renderer = make_render_callback(scene, args)
-        # Frames use the camera pose this client sends at that moment (same clock).
-        on_update = lambda mirror, transforms, tick: renderer(mirror, transforms, tick,  # noqa: E731
-                                                              camera_time=client.clock())
-    client = build_client(args, scene, on_update=on_update)
     t0 = time.perf_counter()
     try:
         asyncio.run(client.run(frames=args.frames))

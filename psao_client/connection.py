@@ -6,6 +6,8 @@ Thin around protocol.session.ClientSession (which decides what bytes mean). Anot
     on_connect(mirror)                      a new connection's fresh mirror (after Welcome)
     on_snapshot(mirror)                     the snapshot is complete: the mirror equals the server
     on_update(mirror, transforms, tick)     after every Update is applied
+    on_frame(mirror)                        at frame_hz, the client's own rate, from the snapshot on
+                                            (a renderer draws the latest state and transforms)
 
 After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
 fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried.
@@ -54,6 +56,7 @@ class ClientStats:
     snapshot_bytes: int = 0
     updates: int = 0
     reconnects: int = 0
+    frames: int = 0  # on_frame calls (frames rendered), all connections
     snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
     connection_id: int = 0
     codec: str = ""
@@ -69,11 +72,15 @@ class MirrorClient:
                  on_snapshot: OnMirror | None = None, on_update: OnUpdate | None = None,
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
-                 limits: Limits = DEFAULT_LIMITS):
+                 limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
         self.on_connect, self.on_snapshot, self.on_update = on_connect, on_snapshot, on_update
+        self.on_frame = on_frame
+        if not frame_hz > 0:
+            raise ClientError(f"frame rate must be > 0, got {frame_hz}")
+        self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
         self.reconnect = reconnect
@@ -94,7 +101,8 @@ class MirrorClient:
         self._stop.set()
 
     async def run(self, frames: int | None = None) -> ClientStats:
-        """Receive until the snapshot and then `frames` Updates have been applied (None: until stop())."""
+        """Receive until the snapshot and then `frames` Updates have been applied, or with on_frame,
+        until `frames` frames were rendered (None: until stop())."""
         self._start = self._last_ok = time.perf_counter()
         pause = 0.1
         digests = open(self.digest_log, "a", buffering=1) if self.digest_log else None
@@ -126,6 +134,7 @@ class MirrorClient:
         session = ClientSession(self.config)
         t0 = time.perf_counter()
         cameras: asyncio.Task | None = None
+        renders: asyncio.Task | None = None
         extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
         async with connect(self.url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0,
                            **extra) as ws:
@@ -142,13 +151,18 @@ class MirrorClient:
                     self._apply(event, len(data), t0)
                     if isinstance(event, Welcomed) and self.camera is not None:
                         cameras = asyncio.create_task(self._send_cameras(ws, session))
+                    if isinstance(event, SnapshotReceived) and event.complete and self.on_frame is not None:
+                        await _cancel(renders)
+                        renders = asyncio.create_task(self._render_frames(ws, session, frames))
                     if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                                   "digest": self.mirror.digest()}) + "\n")
                     seq += 1
-                    done = frames is not None and session.state == ClientState.STREAMING and self.stats.updates >= frames
+                    done = (frames is not None and self.on_frame is None and session.state == ClientState.STREAMING
+                            and self.stats.updates >= frames)
                     if self._stop.is_set() or done:
                         await _cancel(cameras)
+                        await _cancel(renders)
                         await ws.send(session.bye())
                         await _discard_until_closed(ws, timeout=2.0)
                         return
@@ -156,7 +170,25 @@ class MirrorClient:
                         await asyncio.sleep(self.read_delay)
             finally:
                 await _cancel(cameras)
+                await _cancel(renders)
+        if self._stop.is_set():  # the render task said Bye and closed: done, not lost
+            return
         raise _Lost("server closed the connection")
+
+    async def _render_frames(self, ws, session: ClientSession, frames: int | None) -> None:
+        """on_frame at the client's own rate with whatever the mirror holds by then; Updates are applied
+        between frames. After `frames` frames: Bye, and close, which ends the receive loop."""
+        next_t = time.perf_counter()
+        while True:
+            if frames is not None and self.stats.frames >= frames:
+                self._stop.set()
+                await ws.send(session.bye())
+                await ws.close()
+                return
+            self.on_frame(self.mirror)
+            self.stats.frames += 1
+            next_t = max(next_t + self.frame_period, time.perf_counter() - self.frame_period)  # no catch-up bursts
+            await asyncio.sleep(max(0.0, next_t - time.perf_counter()))
 
     async def _small_buffer_socket(self) -> socket.socket:
         uri = parse_uri(self.url)

@@ -61,25 +61,22 @@ uint psao_cell_key(uvec3 c, uvec3 dims) {
     return c.x + dims.x * (c.y + dims.y * c.z);
 }
 
-// Slots of cell c of an instance: x the front (or only) cell, y the back-side cell of a double-sided
-// instance (key | BACK_BIT, same bucket); PSAO_EMPTY where absent. Used entries come first, so one scan
-// of the bucket stops at EMPTY.
-uvec2 psao_find_cells(PsaoInstance inst, uvec3 c) {
+// Slot of cell c of an instance, or PSAO_EMPTY: its front (or only) cell, or with `back` on a
+// double-sided instance its back-side cell (key | BACK_BIT, same bucket). Used entries come first, so
+// the scan stops at EMPTY; keys are unique in a bucket, so it stops at the match too.
+uint psao_find_cell(PsaoInstance inst, uvec3 c, bool back) {
     uint bucket = inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u));
     uint key = psao_cell_key(c, inst.dims);
-    uint back_key = (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u ? (key | PSAO_BACK_BIT) : PSAO_EMPTY;
+    if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
     uint base = bucket * (PSAO_BUCKET_ENTRIES / 2u);
-    uvec2 slots = uvec2(PSAO_EMPTY);
     for (uint e = 0u; e < PSAO_BUCKET_ENTRIES / 2u; ++e) {
         uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
         if (pair.x == PSAO_EMPTY) break;
-        if (pair.x == key) slots.x = pair.y;
-        if (pair.x == back_key) slots.y = pair.y;
+        if (pair.x == key) return pair.y;
         if (pair.z == PSAO_EMPTY) break;
-        if (pair.z == key) slots.x = pair.w;
-        if (pair.z == back_key) slots.y = pair.w;
+        if (pair.z == key) return pair.w;
     }
-    return slots;
+    return PSAO_EMPTY;
 }
 
 // Normals: u_psao_normals[code] is pointword.oct_decode(code) (4+4-bit octahedral, levels 0..14,
@@ -133,8 +130,12 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 }
 
 // Paper eq. 4 over the 2x2x2 block floor(g - 0.5) + {0,1}^3 around local position x (normal nx) of
-// instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight.
-vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx) {
+// instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight. `back`: the fragment
+// shows the back side of a double-sided surface (the G-buffer flipped its normal), so only back-side
+// cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided instances.
+// (Scanning both keys and accumulating twice made the pass 1.5x slower on llvmpipe: twice the
+// unrolled code, even where the second half never runs.)
+vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     PsaoInstance inst = psao_instance(inst_id);
     vec3 g = (x - inst.origin) / inst.cell_size;
     ivec3 base = ivec3(floor(g - 0.5));
@@ -148,9 +149,8 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx) {
         ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
         if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
         if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
-        uvec2 slots = psao_find_cells(inst, uvec3(c));
-        if (slots.x != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slots.x, x, nx, wsum, aosum);
-        if (slots.y != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slots.y, x, nx, wsum, aosum);
+        uint slot = psao_find_cell(inst, uvec3(c), back);
+        if (slot != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slot, x, nx, wsum, aosum);
     }
     return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
 }

@@ -78,3 +78,15 @@ def test_back_side_points_are_ignored():
     # (random, not Poisson, points leave some probes without neighbours: those fall back to 1)
     assert (w_top > 0).mean() > 0.6 and (w_bot > 0).mean() > 0.6
     assert np.all(top[w_top > 0] == 1.0) and np.all(bottom[w_bot > 0] == 0.0)
+    # With the side flagged (the G-buffer's back-side bit, the shader's one-key lookup) the result is
+    # the same as scanning both keys and letting eq. 3's normal test pick the side.
+    ones, zeros = np.ones(100, bool), np.zeros(100, bool)
+    for nz, back, ao, w in ((1.0, zeros, top, w_top), (-1.0, ones, bottom, w_bot)):
+        ao1, w1 = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(100, int), x,
+                                 np.tile([0, 0, nz], (100, 1)), back=back)
+        np.testing.assert_array_equal(ao1, ao)
+        np.testing.assert_array_equal(w1, w)
+    # The wrong side flagged finds only points facing away: no weight at all.
+    _, w_wrong = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(100, int), x,
+                                np.tile([0, 0, 1.0], (100, 1)), back=ones)
+    assert np.all(w_wrong == 0)

@@ -157,3 +157,31 @@ def test_client_with_token_then_server_stops_on_sigint(token_server):
     proc.send_signal(signal.SIGINT)
     assert proc.wait(20) == 0
     assert "stopped on SIGINT" in err.read_text()
+
+
+def test_client_renders_at_its_own_rate_from_a_static_server(tmp_path):
+    """A static server sends nothing after the snapshot: the client still renders, at its own --fps,
+    and stops after --frames rendered frames."""
+    err = tmp_path / "serve.err"
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "16", "--rays", "8",
+                             "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
+    try:
+        end = time.time() + 120
+        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
+            assert time.time() < end and proc.poll() is None, err.read_text()
+            time.sleep(0.1)
+        t0 = time.time()
+        out = psao("client", m.group(1), "--scene", "builtin:cornell", "--frames", "4", "--fps", "10", "--json",
+                   "--render", str(tmp_path / "frames"), "--size", "64x48")
+        if out.returncode != 0 and "EGL" in out.stderr:
+            pytest.skip(f"no EGL here: {out.stderr.strip()}")
+        assert out.returncode == 0, out.stderr
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["updates"] == 0 and report["frames_rendered"] == 4
+    times = [f["time"] for f in report["frames"]]
+    assert all(b - a >= 0.08 for a, b in zip(times, times[1:])), times  # paced at about 1/10 s, not back to back
+    assert len(list((tmp_path / "frames").glob("frame_*_ao_psao.png"))) == 4
+    assert time.time() - t0 < 60

@@ -4,7 +4,7 @@ Attachments (GL's bottom-up rows; `read()` flips them to top-down images):
     world        RGBA32F  world position, w = 1 where covered (the mask)
     normal       RGBA32F  world normal, facing the camera on double-sided meshes
     local        RGBA32F  instance-local position (what the PSAO lookup needs, full float precision)
-    local_normal RGBA32F  instance-local normal
+    local_normal RGBA32F  instance-local normal, w = 1 where it shows the back side of a double-sided mesh
     color        RGBA16F  lit colour without AO (directional light + ambient), linear
     instance     R32UI    instance index + 1, 0 = background
     depth        R32F     view depth (> 0), 0 = background (the SSAO taps read this one channel)
@@ -33,6 +33,7 @@ class GBufferArrays:
     normal: np.ndarray  # (H, W, 3) float32
     local: np.ndarray  # (H, W, 3) float32
     local_normal: np.ndarray  # (H, W, 3) float32
+    back_side: np.ndarray  # (H, W) bool: the back side of a double-sided mesh (PSAO reads back-side cells)
     color: np.ndarray  # (H, W, 3) float32, linear
     instance: np.ndarray  # (H, W) int32, -1 = background
     depth: np.ndarray  # (H, W) float32 view depth, 0 = background
@@ -74,11 +75,13 @@ class GBuffer:
 
         world = grab("world", 4, np.float32, 4)
         inst = grab("instance", 1, np.uint32, 1)[..., 0].astype(np.int64) - 1
+        local_normal = grab("local_normal", 4, np.float32, 4)
         return GBufferArrays(
             world=world[..., :3],
             normal=grab("normal", 4, np.float32, 3),
             local=grab("local", 4, np.float32, 3),
-            local_normal=grab("local_normal", 4, np.float32, 3),
+            local_normal=local_normal[..., :3].copy(),
+            back_side=local_normal[..., 3] > 0.5,
             color=grab("color", 4, np.float16, 3),
             instance=inst.astype(np.int32),
             depth=grab("depth", 1, np.float32, 1)[..., 0],

@@ -1,7 +1,7 @@
-"""Rendering while streaming: `psao client URL --render OUTDIR` hands every applied update to this.
+"""Rendering while streaming: `psao client URL --render OUTDIR` calls this at its own frame rate (--fps).
 
     callback = make_render_callback(scene, args)   # args: render, camera_path, size, ao, ssao_samples
-    callback(mirror, transforms, tick)             # after each applied Update: renders one frame
+    callback(mirror, transforms, tick)             # renders one frame of the mirror's latest state
     callback.close()                               # releases the GL context
 
 The first call uploads the whole mirror; later calls upload only the buckets and cells the mirror
@@ -113,5 +113,8 @@ def add_render_arguments(parser) -> None:
     parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
     parser.add_argument("--ao", choices=("psao", "ssao", "both"), default="psao", help="AO method(s) for --render")
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
+    parser.add_argument("--fps", type=float, default=30.0, metavar="F",
+                        help="frames per second to render at, the client's own rate, whatever the server's tick rate "
+                             "(default 30; a slow GPU renders as fast as it can)")
     parser.add_argument("--window", action="store_true",
                         help="also show the frames in a window (needs a display and the 'glfw' package: pip install glfw)")
