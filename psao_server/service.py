@@ -100,7 +100,10 @@ class Counters:
     rejected: int = 0
     tick_seconds: float = 0.0
     encode_seconds: float = 0.0
+    cells_sent: int = 0  # cell rows in Updates, all clients
+    buckets_sent: int = 0  # bucket rows in Updates, all clients
     last: dict = field(default_factory=dict)
+    at_last_record: dict = field(default_factory=dict)  # the totals at the previous tick record
 
 
 class Service:
@@ -197,11 +200,19 @@ class Service:
             await asyncio.sleep(next_at - now)
 
     def _record_tick(self, stats, buckets_dirty: int, cells_dirty: int, seconds: float) -> None:
-        """Keep the tick's own statistics (the server tick's TickStats) for the live line and the jsonl."""
+        """Keep the tick's own statistics (the server tick's TickStats) for the live line and the jsonl.
+        Sends run on each client's own task, so what was sent (bytes, cell and bucket rows, encode time,
+        all clients) is counted since the previous tick record: the sends of the previous tick's changes."""
+        c = self.counters
+        totals = {"bytes_out": c.bytes_out, "cells_sent": c.cells_sent, "buckets_sent": c.buckets_sent,
+                  "seconds_encode": c.encode_seconds}
+        since = {k: v - c.at_last_record.get(k, 0) for k, v in totals.items()}
+        c.at_last_record = totals
         record = stats.to_dict() if hasattr(stats, "to_dict") else {}
         record.update(service_tick=self.tick, time=self.time, buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
-                      seconds_tick=seconds, bytes_out=self.counters.bytes_out,
-                      seconds_encode_total=self.counters.encode_seconds, clients=len(self.registry))
+                      seconds_tick=seconds, bytes_sent=since["bytes_out"], cells_sent=since["cells_sent"],
+                      buckets_sent=since["buckets_sent"], seconds_encode=since["seconds_encode"],
+                      bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry))
         self.last_tick_stats = record
         if self._stats_out:
             self._stats_out.write(json.dumps(record) + "\n")
@@ -384,6 +395,8 @@ class Service:
             t_encode = time.perf_counter()
             data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
             self.counters.encode_seconds += time.perf_counter() - t_encode
+            self.counters.cells_sent += len(c)
+            self.counters.buckets_sent += len(b)
             await self._send(ws, client, data)
             client.updates_sent += 1
 

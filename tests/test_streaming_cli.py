@@ -45,9 +45,10 @@ def test_animate_needs_its_own_bake():
 def test_animated_server_keeps_mirror_exact(tmp_path):
     """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
     err, slog, clog = tmp_path / "serve.err", tmp_path / "server.jsonl", tmp_path / "client.jsonl"
+    stats = tmp_path / "stats.jsonl"
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:courtyard", "--animate", "--density", "8",
                              "--rays", "4", "--tick-rays", "4", "--port", "0", "--tick-hz", "20",
-                             "--digest-log", str(slog)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                             "--digest-log", str(slog), "--stats-json", str(stats)], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=open(err, "w"), text=True)
     try:
         end = time.time() + 120
@@ -67,6 +68,14 @@ def test_animated_server_keeps_mirror_exact(tmp_path):
     both = [d for d in client if (d["conn"], d["seq"]) in server]
     assert len(both) >= 25 and all(server[(d["conn"], d["seq"])] == d["digest"] for d in both)
     assert "server tick on" in err.read_text()
+    # Per-tick statistics as JSON lines: stage times, and what was sent since the previous tick.
+    ticks = [json.loads(line) for line in stats.read_text().splitlines()]
+    assert len(ticks) >= 10
+    for key in ("considered", "traced", "changed", "cells_dirty", "cells_sent", "bytes_sent", "seconds_animate",
+                "seconds_trace", "seconds_grid", "seconds_encode"):
+        assert all(key in t and t[key] >= 0 for t in ticks), key
+    assert sum(t["bytes_sent"] for t in ticks) == ticks[-1]["bytes_out"] > 0
+    assert sum(t["cells_sent"] for t in ticks) > 0
 
 
 def test_serve_port_taken():
