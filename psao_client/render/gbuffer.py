@@ -33,11 +33,11 @@ class GBufferArrays:
     normal: np.ndarray  # (H, W, 3) float32
     local: np.ndarray  # (H, W, 3) float32
     local_normal: np.ndarray  # (H, W, 3) float32
-    back_side: np.ndarray  # (H, W) bool: the back side of a double-sided mesh (PSAO reads back-side cells)
     color: np.ndarray  # (H, W, 3) float32, linear
     instance: np.ndarray  # (H, W) int32, -1 = background
     depth: np.ndarray  # (H, W) float32 view depth, 0 = background
     mask: np.ndarray  # (H, W) bool, covered pixels
+    back_side: np.ndarray | None = None  # (H, W) bool: back side of a double-sided mesh (PSAO reads back-side cells)
 
 
 _LAYOUT = [  # name, components, dtype
