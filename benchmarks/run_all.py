@@ -1,8 +1,9 @@
 """Every benchmark in one go (`make bench`), each with its default settings, in one process after another.
 
-Each script measures its own ratio against a baseline in the same run and exits 1 when its target is
-missed; this runner keeps going after a miss and ends with one line per benchmark and a non-zero exit
-if any missed or failed. `--only bake,tick` picks some; `--quick` passes each script the small settings
+Each script measures its own ratio against a baseline in the same run and prints PASS or FAIL beside
+each target (bench_quality also exits 1 on a miss); this runner keeps going after a miss or a crash,
+ends with one line per benchmark (its exit status and how many of its target lines say FAIL) and exits
+non-zero if any benchmark failed or missed a target. `--only bake,tick` picks some; `--quick` passes each script the small settings
 listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine).
 
     .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick]
@@ -12,8 +13,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import io
+import re
 import sys
 import time
+from contextlib import redirect_stdout
 
 # Order: cheapest first, so a broken install shows up early.
 BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality")
@@ -29,18 +33,36 @@ QUICK_ARGS = {
 }
 
 
-def run_one(name: str, args: list[str]) -> tuple[int, float]:
-    """Run benchmarks.bench_NAME.main(args); returns (exit code, wall seconds). A crash counts as code 2."""
+class _Tee(io.TextIOBase):
+    """Writes through to the terminal and keeps a copy, so the verdicts can be counted afterwards."""
+
+    def __init__(self, out):
+        self.out, self.copy = out, io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.copy.write(text)
+        return self.out.write(text)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+def run_one(name: str, args: list[str]) -> tuple[int, int, float]:
+    """Run benchmarks.bench_NAME.main(args); returns (exit code, FAIL verdicts printed, wall seconds).
+    A crash counts as exit code 2."""
     start = time.perf_counter()
+    tee = _Tee(sys.stdout)
     try:
-        module = importlib.import_module(f"benchmarks.bench_{name}")
-        rc = int(module.main(args) or 0)
+        with redirect_stdout(tee):
+            module = importlib.import_module(f"benchmarks.bench_{name}")
+            rc = int(module.main(args) or 0)
     except SystemExit as exc:  # argparse errors and scripts that call sys.exit
         rc = exc.code if isinstance(exc.code, int) else 1
     except Exception as exc:  # keep going: one broken benchmark must not hide the others' figures
         print(f"run_all: bench_{name} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
         rc = 2
-    return rc, time.perf_counter() - start
+    fails = len(re.findall(r"\bFAIL\b", tee.copy.getvalue()))
+    return rc, fails, time.perf_counter() - start
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,14 +78,14 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for name in names:
         print(f"\n=== bench_{name} ===", flush=True)
-        rc, seconds = run_one(name, QUICK_ARGS[name] if a.quick else [])
-        results.append((name, rc, seconds))
+        rc, fails, seconds = run_one(name, QUICK_ARGS[name] if a.quick else [])
+        results.append((name, rc, fails, seconds))
 
     print("\n=== summary ===")
-    for name, rc, seconds in results:
-        verdict = {0: "ok (exit 0)", 1: "MISSED a target (exit 1)"}.get(rc, f"FAILED (exit {rc})")
+    for name, rc, fails, seconds in results:
+        verdict = f"exit {rc}" + (f", {fails} FAIL verdict(s)" if fails else ", no FAIL verdict")
         print(f"bench_{name:<10} {seconds:8.1f} s  {verdict}")
-    return 0 if all(rc == 0 for _, rc, _ in results) else 1
+    return 0 if all(rc == 0 and fails == 0 for _, rc, fails, _ in results) else 1
 
 
 if __name__ == "__main__":
