@@ -21,10 +21,8 @@ TARGET_RATIO = 1.5
 
 
 def build_grid(scene, density: float, bake: bool, rays: int):
-    from protocol import gridformat as gf
     from protocol import pointword as pw
-    from psao_server.bake import back_side_mask
-    from psao_server.grid import Grid
+    from psao_server.bake import build_scene_grid
     from psao_server.points import PointSettings, generate_points, instance_seed
 
     if bake:
@@ -36,10 +34,7 @@ def build_grid(scene, density: float, bake: bool, rays: int):
     settings = PointSettings(density=density)
     sets = [generate_points(scene.meshes[i.mesh], i.transform, settings, seed=instance_seed(0, k))
             for k, i in enumerate(scene.instances)]
-    # The grid the server would build: double-sided instances flagged, their back-side points in their own cells.
-    flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-    grid = Grid.build([(p.positions, p.normals, p.poisson_radius, f, back_side_mask(p, bool(f)))
-                       for p, f in zip(sets, flags)])
+    grid = build_scene_grid(scene, sets)  # as the server builds it: double-sided instances flagged
     t = grid.point_table()
     field = 0.55 + 0.45 * np.sin(1.3 * t.local_pos[:, 0]) * np.cos(0.9 * t.local_pos[:, 2])
     grid.set_ao(t.slot, t.index, pw.quantise_ao(field))

@@ -64,7 +64,7 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     entries = buckets[b]  # (M, 8, 8, 2)
     if back is not None:
         # The side is known (the shader's case): one key per cell of the block, the back one where flagged.
-        keys = np.where((np.asarray(back, bool) & two_sided)[:, None], back_key, key)
+        keys = np.where((back & two_sided)[:, None], back_key, key)
     else:
         # 16 candidate cells: the block's front keys, then its back keys (EMPTY, never matched, if one-sided).
         cell = np.concatenate([cell, cell], axis=1)

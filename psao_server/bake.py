@@ -81,6 +81,14 @@ def back_side_mask(ps: PointSet, double_sided: bool) -> np.ndarray | None:
     return np.arange(len(ps)) >= len(ps) // 2
 
 
+def build_scene_grid(scene: Scene, pointsets: list[PointSet], settings: GridSettings | None = None) -> Grid:
+    """The grid of a scene's point sets, one per instance: double-sided instances flagged, their
+    back-side points (the second half of their PointSet) in back-side cells."""
+    flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
+    return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f)))
+                       for ps, f in zip(pointsets, flags)], settings)
+
+
 def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:
     """World-space triangles of (some) instances merged into one vertex/face array."""
     verts, faces, base = [], [], 0
@@ -142,11 +150,8 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         stats["seconds_points"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-
         def build(sets: list[PointSet]) -> Grid:
-            return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
-                               for ps, f in zip(sets, flags)], settings.grid)
+            return build_scene_grid(scene, sets, settings.grid)
 
         grid = build(pointsets)
         stats["seconds_grid"] = time.perf_counter() - t0

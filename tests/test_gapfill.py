@@ -10,9 +10,8 @@ import pytest
 from protocol import gridformat as gf
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
-from psao_server.bake import back_side_mask, sample_probes
+from psao_server.bake import build_scene_grid, sample_probes
 from psao_server.gapfill import GapFillSettings, decoded_points, fill_gaps, kd_covered, surface_candidates, thin
-from psao_server.grid import Grid
 from psao_server.points import PointSettings, generate_scene_points
 
 DENSITY = 64.0
@@ -29,12 +28,7 @@ def scene():
 
 
 def builder(scene):
-    flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-
-    def build(sets):
-        return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f & gf.FLAG_DOUBLE_SIDED)))
-                           for ps, f in zip(sets, flags)])
-    return build
+    return lambda sets: build_scene_grid(scene, sets)
 
 
 def holes(grid, probes) -> float:

@@ -52,18 +52,16 @@ def test_back_side_of_a_double_sided_plane_reads_back_side_cells(ctx):
     pixel is flagged back-side and finds the back cells; seen from above, the front ones."""
     import dataclasses
 
-    from protocol import gridformat as gf
     from psao_client.render.views import look_at, perspective
     from psao_scene.model import Instance, Scene
-    from psao_server.bake import back_side_mask
-    from psao_server.grid import Grid
+    from psao_server.bake import build_scene_grid
     from psao_server.points import PointSettings, generate_points
     from test_render_gridbuild import plane_mesh
 
     mesh = dataclasses.replace(plane_mesh("sheet"), double_sided=True)
     scene = Scene("sheet", [mesh], [Instance("sheet", 0, np.eye(4))], ao_distance=0.5)
     ps = generate_points(mesh, np.eye(4), PointSettings(density=256))
-    grid = Grid.build([(ps.positions, ps.normals, ps.poisson_radius, gf.FLAG_DOUBLE_SIDED, back_side_mask(ps, True))])
+    grid = build_scene_grid(scene, [ps])
     t = grid.point_table()
     grid.set_ao(t.slot, t.index, np.where(t.local_normal[:, 1] > 0, 255, 0).astype(np.uint32))
     arrays = (grid.instances, grid.buckets, grid.cells)
