@@ -29,7 +29,9 @@ class Mirror:
         self.cells = np.tile(FREE_CELL, (cell_capacity, 1))
         self.transforms = np.tile(np.eye(4, dtype=np.float32), (len(self.instances), 1, 1))
         self.tick = -1  # last Update applied
-        self.server_time = 0.0  # seconds: the scene time of that Update (skinned meshes are posed at it)
+        # seconds: the scene time of that Update (skinned meshes are posed at it); None before the first,
+        # when the snapshot of a static server holds points of the rest pose
+        self.server_time: float | None = None
         self.version = 0
         self.dirty_buckets: set[int] = set()
         self.dirty_cells: set[int] = set()

@@ -115,7 +115,7 @@ class QualityRenderer:
             holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
             out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
                                      frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True), frame.composite,
-                                     r.geometry.skin_time))
+                                     r.skin_time))
         return out
 
     def close(self) -> None:

@@ -66,3 +66,24 @@ def test_skinned_mesh_drawn_at_the_server_time(ctx):
     # Back to the rest pose: the rest G-buffer lies on the rest mesh.
     back = rest.local[rest.instance == i].astype(np.float64)[:200]
     assert np.quantile(local_distance(mesh.vertices, mesh.faces, back), 0.99) < 1e-4
+
+
+def test_stream_renderer_poses_skins_at_the_update_time_and_rests_before(ctx, tmp_path):
+    """Before any Update (a static server's snapshot: points of the rest pose) skinned meshes are drawn
+    at rest; after one, at its server time."""
+    from protocol.updates import GridDelta
+    from psao_client.mirror import Mirror
+    from psao_client.render.stream_render import StreamRenderer
+    from psao_server.bake import build_scene_grid
+    from psao_server.points import PointSettings, generate_scene_points
+
+    scene = load_scene("builtin:robots")
+    grid = build_scene_grid(scene, generate_scene_points(scene, PointSettings(density=4.0)))
+    mirror = Mirror(grid.instances, len(grid.buckets), len(grid.cells))
+    mirror.apply(GridDelta(len(grid.cells), cell_slots=grid.allocated_cells(), cells=grid.cells[grid.allocated_cells()]))
+    with StreamRenderer(scene, tmp_path, size=(32, 24), ctx=ctx) as cb:
+        cb(mirror, mirror.transforms, tick=-1, camera_time=0.0)
+        assert cb.renderer.skin_time is None
+        mirror.server_time = T
+        cb(mirror, mirror.transforms, tick=0, camera_time=0.1)
+        assert cb.renderer.skin_time == T

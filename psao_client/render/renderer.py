@@ -104,6 +104,11 @@ class FrameRenderer:
             raise RenderError("transforms contain NaN or infinity")
         self.transforms = t.copy()
 
+    @property
+    def skin_time(self) -> float | None:
+        """Seconds at which skinned meshes are drawn now (None: rest pose)."""
+        return self.geometry.skin_time
+
     def set_skin_time(self, t: float | None) -> None:
         """Scene time (seconds) at which skinned meshes are drawn: the server time of the last Update,
         which is when the server posed the points it sent. None = rest pose. No-op without skins."""

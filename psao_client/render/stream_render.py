@@ -49,7 +49,7 @@ class StreamRenderer:
 
         self._sync(mirror)
         self.renderer.set_transforms(transforms)
-        self.renderer.set_skin_time(getattr(mirror, "server_time", None))
+        self.renderer.set_skin_time(mirror.server_time)
         t = float(tick) / self.tick_rate if camera_time is None else float(camera_time)
         view, proj = path_matrices(self.scene, self.path, t, self.size)
         frame = self.renderer.render(view, proj, read_gbuffer=False)
@@ -63,8 +63,7 @@ class StreamRenderer:
     def _log(self, record: dict, mirror, transforms) -> None:
         """One line per frame, appended as it is written (a killed client keeps the lines before)."""
         line = dict(record, camera_path=self.path.name, size=list(self.size),
-                    server_time=float(getattr(mirror, "server_time", 0.0)),
-                    skin_time=self.renderer.geometry.skin_time,
+                    server_time=mirror.server_time, skin_time=self.renderer.skin_time,
                     transforms=np.asarray(transforms, np.float64).reshape(-1, 16).tolist())
         with open(self.out_dir / "frames.jsonl", "a", encoding="utf-8") as f:
             f.write(json.dumps(line) + "\n")
