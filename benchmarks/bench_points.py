@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from benchmarks.verdicts import Verdicts
+
 SCENE_TARGET_S = 30.0
 SPEEDUP_TARGET = 10.0
 SAME_SIDE_COS = -0.5
@@ -273,6 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     summary: dict = {"scene": args.scene, "spawn_ratio": args.spawn_ratio}
 
+    v = Verdicts("bench_points")
     summary["warp_warm_up_seconds"] = warm_up()
     print(f"warm-up (Warp init, kernel load): {summary['warp_warm_up_seconds']:.2f} s")
 
@@ -280,8 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         part = run_scene(scene, settings, args.points)
         ok = part["seconds"] < SCENE_TARGET_S
         print(f"\nscene {args.scene}: {part['instances']} instances, density {part['density']:.1f}/unit^2, "
-              f"{part['spawned']} spawned -> {part['points']} points in {part['seconds']:.2f} s "
-              f"(target < {SCENE_TARGET_S:.0f} s: {'PASS' if ok else 'FAIL'})")
+              f"{part['spawned']} spawned -> {part['points']} points in {part['seconds']:.2f} s")
+        v.check(f"{args.scene} {part['points']} points, seconds", part["seconds"], "<", SCENE_TARGET_S)
         summary["scene_part"] = {k: v for k, v in part.items() if k != "sets"} | {"pass": ok}
 
     v, f = merged_mesh(scene)
@@ -314,14 +317,14 @@ def main(argv: list[str] | None = None) -> int:
         "min_spacing_all_pass": ours_sp.min_all >= pcu_sp.min_all,
         "min_spacing_same_side_pass": ours_sp.min_same_side >= pcu_sp.min_same_side,
     }
-    print(f"speed-up {speedup:.1f}x (target >= {SPEEDUP_TARGET:.0f}x: {'PASS' if checks['speedup_pass'] else 'FAIL'}); "
-          f"min spacing all pairs {'PASS' if checks['min_spacing_all_pass'] else 'FAIL'}, "
-          f"same side {'PASS' if checks['min_spacing_same_side_pass'] else 'FAIL'}")
+    v.check("speed-up over pcu.sample_mesh_poisson_disk", speedup, ">=", SPEEDUP_TARGET)
+    v.check("min spacing all pairs, ours / pcu's", ours_sp.min_all / pcu_sp.min_all, ">=", 1.0)
+    v.check("min spacing same side, ours / pcu's", ours_sp.min_same_side / pcu_sp.min_same_side, ">=", 1.0)
     summary["merged"] = {n: {"seconds": m["seconds"]} | vars(m["spacing"]) for n, m in merged.items()} | checks
     chart = write_charts(args.out, merged, args.scene)
     (args.out / "bench_points.json").write_text(json.dumps(summary, indent=2))
     print(f"chart: {chart}\n{json.dumps(summary)}")
-    return 0
+    return v.exit_code()
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """PSAO versus SSAO against the RTAO reference on every built-in scene (issue 6), via `psao bench`.
 
 Target: on every built-in scene PSAO at N = 512 has a higher PSNR and a lower FLIP than SSAO.
-Prints the table and one PASS/FAIL line per scene; exits 1 when a scene misses the target.
+Prints the table and two verdict lines per scene (PSNR, FLIP); exits 1 when a scene misses the target.
 
     .venv/bin/python -m benchmarks.bench_quality [--densities 256,512] [--frames 4] [--spp 512] [--animate] [--out DIR]
 """
@@ -11,6 +11,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+from benchmarks.verdicts import Verdicts
 
 BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots")
 TARGET_N = 512.0
@@ -31,24 +33,23 @@ def main(argv=None) -> int:
                     "--spp", str(a.spp), "--out", str(a.out), *(["--animate"] if a.animate else [])])
     if rc != 0:
         return rc
-    return 0 if check_target(json.loads((a.out / "results.json").read_text())) else 1
+    return check_target(json.loads((a.out / "results.json").read_text())).exit_code()
 
 
-def check_target(rows: list[dict], density: float = TARGET_N) -> bool:
-    ok = True
+def check_target(rows: list[dict], density: float = TARGET_N) -> Verdicts:
+    """Per scene: PSAO's PSNR minus SSAO's > 0 dB and PSAO's FLIP minus SSAO's < 0."""
+    v = Verdicts("bench_quality")
     for scene in sorted({r["scene"] for r in rows}):
         ssao = next(r for r in rows if r["scene"] == scene and r["method"] == "SSAO")
         psao = [r for r in rows if r["scene"] == scene and r.get("density") == density]
         if not psao:
-            print(f"{scene}: no PSAO-{density:g} row")
-            ok = False
+            v.record(f"{scene} PSAO-{density:g} row present", False)
             continue
-        good = psao[0]["psnr"] > ssao["psnr"] and psao[0]["flip"] < ssao["flip"]
-        ok &= good
-        print(f"{scene}: PSAO-{density:g} PSNR {psao[0]['psnr']:.2f} dB vs SSAO {ssao['psnr']:.2f} dB "
-              f"(+{psao[0]['psnr'] - ssao['psnr']:.2f}), FLIP {psao[0]['flip']:.3f} vs {ssao['flip']:.3f}: "
-              f"{'PASS' if good else 'FAIL'}")
-    return ok
+        v.check(f"{scene} PSAO-{density:g} PSNR minus SSAO's ({psao[0]['psnr']:.2f} vs {ssao['psnr']:.2f} dB)",
+                psao[0]["psnr"] - ssao["psnr"], ">", 0.0)
+        v.check(f"{scene} PSAO-{density:g} FLIP minus SSAO's ({psao[0]['flip']:.3f} vs {ssao['flip']:.3f})",
+                psao[0]["flip"] - ssao["flip"], "<", 0.0)
+    return v
 
 
 if __name__ == "__main__":

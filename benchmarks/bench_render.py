@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.verdicts import Verdicts
+
 TARGET_RATIO = 1.5
 
 
@@ -165,14 +167,14 @@ def main(argv=None) -> int:
     # Growth with N, normalised by SSAO (whose cost does not depend on N): the machine's load changes
     # between densities, the ratio measured on the same frames at the same time does not.
     spread = max(r["ratio_gpu"] for r in rows) / min(r["ratio_gpu"] for r in rows)
-    verdict = "PASS" if worst <= TARGET_RATIO else "MISS"
-    print(f"worst PSAO/SSAO GPU ratio {worst:.2f} (target <= {TARGET_RATIO}) {verdict}; "
-          f"ratio max/min over N {spread:.2f}")
+    print(f"ratio max/min over N {spread:.2f}")
+    v = Verdicts("bench_render")
+    v.check(f"worst PSAO/SSAO GPU time ratio over N={args.densities}", worst, "<=", TARGET_RATIO)
     chart(rows, Path(args.chart), f"{scene.name} {size[0]}x{size[1]}: PSAO vs SSAO-{args.ssao_samples}")
     print(f"chart: {args.chart}")
     if args.json:
         print(json.dumps({"rows": rows, "worst_ratio": worst, "spread": spread}))
-    return 0
+    return v.exit_code()
 
 
 if __name__ == "__main__":

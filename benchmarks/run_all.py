@@ -1,9 +1,9 @@
 """Every benchmark in one go (`make bench`), each with its default settings, in one process after another.
 
-Each script measures its own ratio against a baseline in the same run and prints PASS or FAIL beside
-each target (bench_quality also exits 1 on a miss); this runner keeps going after a miss or a crash,
-ends with one line per benchmark (its exit status and how many of its target lines say FAIL) and exits
-non-zero if any benchmark failed or missed a target. `--only bake,tick` picks some; `--quick` passes each script the small settings
+Each script measures its own ratio against a baseline in the same run, prints one `VERDICT PASS|FAIL`
+line per target (benchmarks.verdicts) and exits 1 on a miss; this runner keeps going after a miss or a
+crash, ends with one line per benchmark (its exit status and how many `VERDICT FAIL` lines it printed)
+and exits non-zero if any benchmark failed, crashed or missed a target. `--only bake,tick` picks some; `--quick` passes each script the small settings
 listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine).
 
     .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick]
@@ -14,10 +14,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import io
-import re
 import sys
 import time
 from contextlib import redirect_stdout
+
+from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
 BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality")
@@ -61,7 +62,7 @@ def run_one(name: str, args: list[str]) -> tuple[int, int, float]:
     except Exception as exc:  # keep going: one broken benchmark must not hide the others' figures
         print(f"run_all: bench_{name} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
         rc = 2
-    fails = len(re.findall(r"\bFAIL\b", tee.copy.getvalue()))
+    fails = count_failures(tee.copy.getvalue())
     return rc, fails, time.perf_counter() - start
 
 

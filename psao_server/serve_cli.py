@@ -57,7 +57,9 @@ def _animated(args):
     bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, seed=args.seed))
     settings = TickSettings(seed=args.seed) if args.tick_rays is None else TickSettings(rays=args.tick_rays,
                                                                                        seed=args.seed)
-    tick = ServerTick(bake, settings)  # closes the bake's tracer, starts its own
+    # The bake's AO is the tick's first sync even when it traced more rays than a tick does: otherwise the
+    # first tick would re-trace every visible point at once.
+    tick = ServerTick(bake, settings, trust_bake=True)  # closes the bake's tracer, starts its own
     logging.getLogger("psao.serve").info("baked %s at N=%g: %d points; server tick on (%d rays per re-traced point)",
                                          scene.name, args.density, bake.stats["points_kept"], tick.settings.rays)
     return scene, tick.grid, tick
