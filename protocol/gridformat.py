@@ -11,14 +11,20 @@ A free cell slot holds FREE_CELL (all points zero, key EMPTY). The key of a cell
 `hash(x, y, z) & (B - 1)` offset by the instance's first bucket. Double-sided instances keep the points of
 the back side in cells of their own, whose key has BACK_BIT set (same bucket as the front cell): both
 sides of a thin surface share space, and sharing cells would halve what a cell holds per side. The
-lookup of a double-sided instance scans both keys; the eq. 3 normal test rejects the wrong side. Points are stored in instance-local space:
+lookup at a fragment reads one key per cell: the back-side key where the G-buffer flags the fragment as
+the back side of a double-sided instance, else the front key. Points are stored in instance-local space:
 a point word's 5-bit codes q give the local position `origin + (cell + (q + 0.5) / 32) * cell_size`.
+
+The lookup thresholds T_N and T_D (paper eq. 3) live here too: the oracle (reconstruct.py), the gap fill
+and the shader (through shader_constants.py) read them from this module.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+from protocol import pointword as pw
 
 CELL_WORDS = 8
 POINTS_PER_CELL = 7
@@ -28,6 +34,12 @@ EMPTY = np.uint32(0xFFFFFFFF)
 MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz <= 2^30 keeps keys below BACK_BIT
 BACK_BIT = np.uint32(1 << 30)  # key flag: the cell holds back-side points of a double-sided instance
 KEY_MASK = np.uint32((1 << 30) - 1)
+HASH_Y = 17  # paper eq. 1: hash = x + y * Dx * HASH_Y + z * Dx * Dy * HASH_Z
+HASH_Z = 31
+
+# Paper eq. 3: a point counts at a fragment only if n_p . n_x > T_N and (n_p . (p - x) / |p - x|)^2 < T_D.
+T_N = 0.1  # normal threshold (cosine; paper value)
+T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
 
 FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
 EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)
@@ -52,28 +64,32 @@ INSTANCE_DTYPE = np.dtype(
 assert INSTANCE_DTYPE.itemsize == 48
 
 
+def _xyz_dims(x, y, z, dims):
+    """Cell coordinates and Dx, Dy as uint64; dims is (3,) or (..., 3), broadcast against x, y, z."""
+    dims = np.asarray(dims, dtype=np.uint64)
+    x, y, z = (np.asarray(v, dtype=np.uint64) for v in (x, y, z))
+    return x, y, z, dims[..., 0], dims[..., 1]
+
+
 def cell_hash(x: np.ndarray, y: np.ndarray, z: np.ndarray, dims) -> np.ndarray:
     """Paper eq. 1 in wrapping uint32 arithmetic, as GLSL's uint does: x + y*Dx*17 + z*Dx*Dy*31."""
-    dx = np.uint64(int(dims[0]))
-    dy = np.uint64(int(dims[1]))
+    x, y, z, dx, dy = _xyz_dims(x, y, z, dims)
     m = np.uint64(0xFFFFFFFF)
-    x = np.asarray(x, dtype=np.uint64)
-    y = np.asarray(y, dtype=np.uint64)
-    z = np.asarray(z, dtype=np.uint64)
-    h = (x + ((y * ((dx * np.uint64(17)) & m)) & m) + ((z * ((dx * dy * np.uint64(31)) & m)) & m)) & m
+    h = (x + ((y * ((dx * np.uint64(HASH_Y)) & m)) & m) + ((z * ((dx * dy * np.uint64(HASH_Z)) & m)) & m)) & m
     return h.astype(np.uint32)
 
 
-def bucket_index(x, y, z, dims, bucket_offset: int, bucket_count: int) -> np.ndarray:
-    """Global bucket index of cells (x, y, z) of an instance."""
-    return (cell_hash(x, y, z, dims) & np.uint32(bucket_count - 1)).astype(np.uint32) + np.uint32(bucket_offset)
+def bucket_index(x, y, z, dims, bucket_offset, bucket_count) -> np.ndarray:
+    """Global bucket index of cells (x, y, z) of an instance; dims (3,) or (..., 3), bucket_offset and
+    bucket_count (B, a power of two) scalars or arrays broadcast like x."""
+    mask = np.asarray(bucket_count, dtype=np.uint32) - np.uint32(1)
+    return ((cell_hash(x, y, z, dims) & mask) + np.asarray(bucket_offset, dtype=np.uint32)).astype(np.uint32)
 
 
 def cell_key(x, y, z, dims) -> np.ndarray:
-    x = np.asarray(x, dtype=np.uint64)
-    y = np.asarray(y, dtype=np.uint64)
-    z = np.asarray(z, dtype=np.uint64)
-    return (x + np.uint64(int(dims[0])) * (y + np.uint64(int(dims[1])) * z)).astype(np.uint32)
+    """Front key of cells (x, y, z): x + Dx * (y + Dy * z); dims (3,) or (..., 3) broadcast like x."""
+    x, y, z, dx, dy = _xyz_dims(x, y, z, dims)
+    return ((x + dx * (y + dy * z)) & np.uint64(0xFFFFFFFF)).astype(np.uint32)
 
 
 def key_to_cell(key, dims) -> np.ndarray:
@@ -104,5 +120,5 @@ def lookup_block_base(g: np.ndarray) -> np.ndarray:
 
 def decode_point_local(cell_xyz: np.ndarray, qpos: np.ndarray, origin, cell_size) -> np.ndarray:
     """Cell index (..., 3) and 5-bit codes (..., 3) -> local position (float32, as the shader computes it)."""
-    f = (np.asarray(qpos, dtype=np.float32) + np.float32(0.5)) / np.float32(32.0)
-    return np.asarray(origin, dtype=np.float32) + (np.asarray(cell_xyz, dtype=np.float32) + f) * np.float32(cell_size)
+    f = pw.dequantise_cell_fraction(qpos)
+    return np.asarray(origin, dtype=np.float32) + (np.asarray(cell_xyz, dtype=np.float32) + f) * np.asarray(cell_size, dtype=np.float32)

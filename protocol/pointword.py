@@ -24,8 +24,11 @@ POSITION_LEVELS = 1 << POSITION_BITS  # 32 steps per cell axis
 OCT_LEVELS_HALF = 7  # u in [-1, 1] -> q in [0, 14]
 AO_LEVELS = 255
 
-_SHIFT_X, _SHIFT_Y, _SHIFT_Z = 16, 21, 26
-_SHIFT_NORMAL = 8
+SHIFT_X, SHIFT_Y, SHIFT_Z = 16, 21, 26  # first bit of each 5-bit position code
+SHIFT_NORMAL = 8  # first bit of the 8-bit normal code (AO is bits 0-7)
+POSITION_MASK = POSITION_LEVELS - 1
+CODE_MASK = 0xFF  # the normal and the AO code are 8 bits each
+NORMAL_CODES = 1 << 8  # oct codes a decoder table needs (levels 15 included, clamped)
 
 
 def quantise_cell_fraction(frac: np.ndarray) -> np.ndarray:
@@ -78,7 +81,7 @@ def quantise_ao(visibility: np.ndarray) -> np.ndarray:
 
 
 def dequantise_ao(code: np.ndarray) -> np.ndarray:
-    return (np.asarray(code, dtype=np.uint32) & 0xFF).astype(np.float32) / np.float32(AO_LEVELS)
+    return (np.asarray(code, dtype=np.uint32) & CODE_MASK).astype(np.float32) / np.float32(AO_LEVELS)
 
 
 def pack_point(qpos: np.ndarray, normal_code: np.ndarray, ao_code: np.ndarray) -> np.ndarray:
@@ -86,11 +89,11 @@ def pack_point(qpos: np.ndarray, normal_code: np.ndarray, ao_code: np.ndarray) -
     qpos = np.asarray(qpos, dtype=np.uint32)
     return (
         ALLOCATED_BIT
-        | (qpos[..., 2] & 0x1F) << _SHIFT_Z
-        | (qpos[..., 1] & 0x1F) << _SHIFT_Y
-        | (qpos[..., 0] & 0x1F) << _SHIFT_X
-        | (np.asarray(normal_code, dtype=np.uint32) & 0xFF) << _SHIFT_NORMAL
-        | (np.asarray(ao_code, dtype=np.uint32) & 0xFF)
+        | (qpos[..., 2] & POSITION_MASK) << SHIFT_Z
+        | (qpos[..., 1] & POSITION_MASK) << SHIFT_Y
+        | (qpos[..., 0] & POSITION_MASK) << SHIFT_X
+        | (np.asarray(normal_code, dtype=np.uint32) & CODE_MASK) << SHIFT_NORMAL
+        | (np.asarray(ao_code, dtype=np.uint32) & CODE_MASK)
     ).astype(np.uint32)
 
 
@@ -98,11 +101,11 @@ def unpack_point(words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     """Point words -> (allocated bool, qpos (..., 3), normal code, ao code)."""
     w = np.asarray(words, dtype=np.uint32)
     allocated = (w & ALLOCATED_BIT) != 0
-    qpos = np.stack([(w >> _SHIFT_X) & 0x1F, (w >> _SHIFT_Y) & 0x1F, (w >> _SHIFT_Z) & 0x1F], axis=-1)
-    return allocated, qpos.astype(np.uint32), (w >> _SHIFT_NORMAL) & 0xFF, w & 0xFF
+    qpos = np.stack([(w >> SHIFT_X) & POSITION_MASK, (w >> SHIFT_Y) & POSITION_MASK, (w >> SHIFT_Z) & POSITION_MASK], axis=-1)
+    return allocated, qpos.astype(np.uint32), (w >> SHIFT_NORMAL) & CODE_MASK, w & CODE_MASK
 
 
 def with_ao(words: np.ndarray, ao_code: np.ndarray) -> np.ndarray:
     """Replace the AO byte of point words, keeping everything else."""
     w = np.asarray(words, dtype=np.uint32)
-    return ((w & np.uint32(0xFFFFFF00)) | (np.asarray(ao_code, dtype=np.uint32) & 0xFF)).astype(np.uint32)
+    return ((w & np.uint32(0xFFFFFF00)) | (np.asarray(ao_code, dtype=np.uint32) & CODE_MASK)).astype(np.uint32)

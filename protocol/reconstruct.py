@@ -15,9 +15,8 @@ import numpy as np
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
+from protocol.gridformat import T_D, T_N
 
-T_N = 0.1
-T_D = 0.7
 _BLOCK = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], dtype=np.int64)
 
 
@@ -39,28 +38,22 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
 
 
 def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None):
-    m = len(inst)
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
     r = rec["radius"].astype(np.float32)
     dims = rec["dims"].astype(np.int64)
     g = (x - origin) / s[:, None]
-    base = np.floor(g - np.float32(0.5)).astype(np.int64)
-    cell = base[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
+    cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
     inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
-    c = np.where(inside[..., None], cell, 0).astype(np.uint64)
-    dx = dims[:, 0:1].astype(np.uint64)
-    dy = dims[:, 1:2].astype(np.uint64)
-    key = ((c[..., 0] + dx * (c[..., 1] + dy * c[..., 2])) & np.uint64(0xFFFFFFFF)).astype(np.uint32)
+    c = np.where(inside[..., None], cell, 0)
+    cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
+    key = gf.cell_key(cx, cy, cz, dims[:, None, :])
     # Back-side cells of double-sided instances: same block, same buckets, key with BACK_BIT.
     two_sided = (rec["flags"] & gf.FLAG_DOUBLE_SIDED) != 0
     back_key = np.where(two_sided[:, None], key | gf.BACK_BIT, gf.EMPTY).astype(np.uint32)
-    mask32 = np.uint64(0xFFFFFFFF)
-    h = (c[..., 0] + ((c[..., 1] * ((dx * np.uint64(17)) & mask32)) & mask32)
-         + ((c[..., 2] * ((dx * dy * np.uint64(31)) & mask32)) & mask32)) & mask32
-    b = (h.astype(np.uint32) & (rec["bucket_count"][:, None] - np.uint32(1))).astype(np.int64) + rec["bucket_offset"][:, None].astype(np.int64)
-    b = np.where(inside, b, 0)
+    b = gf.bucket_index(cx, cy, cz, dims[:, None, :], rec["bucket_offset"][:, None], rec["bucket_count"][:, None])
+    b = np.where(inside, b.astype(np.int64), 0)
     entries = buckets[b]  # (M, 8, 8, 2)
     if back is not None:
         # The side is known (the shader's case): one key per cell of the block, the back one where flagged.
@@ -80,7 +73,7 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     allocated, qpos, ncode, aocode = pw.unpack_point(words)
     # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
     valid = allocated & found[..., None]
-    p = origin[:, None, None, :] + (cell[:, :, None, :].astype(np.float32) + (qpos.astype(np.float32) + np.float32(0.5)) / np.float32(32.0)) * s[:, None, None, None]
+    p = gf.decode_point_local(cell[:, :, None, :], qpos, origin[:, None, None, :], s[:, None, None, None])
     n_p = pw.oct_decode(ncode)
     d_vec = p - x[:, None, None, :]
     dist = np.sqrt((d_vec * d_vec).sum(axis=-1))

@@ -26,7 +26,8 @@ from scipy.spatial import cKDTree
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from protocol.reconstruct import T_D, T_N, reconstruct_ao
+from protocol.gridformat import T_D, T_N
+from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import NO_POINT, Grid
 from psao_server.points import PointSet, spawn_uniform, triangle_areas

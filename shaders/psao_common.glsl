@@ -3,28 +3,14 @@
 // bit; protocol/reconstruct.py is the Python oracle of psao_reconstruct() (paper eq. 2-4).
 //
 // Storage: the three tables are integer textures used as flat arrays (PSAO_TABLE_WIDTH texels per row,
-// RGBA32UI): instances 3 texels per record, buckets 4 texels (2 entries each), cells 2 texels (7 point
-// words + key). Normals come from u_psao_normals, the 256 results of pointword.oct_decode in float32.
-// Why not storage buffers: on Mesa llvmpipe every SSBO load is a per-lane scalar loop, and the pass
-// measured 3.4x the SSAO pass with SSBOs against about 1x with textures (benchmarks/bench_render.py,
-// psao_client/render/gpu_grid.py). The bytes are the same as gridformat's, texel for texel. Cells of
-// the 2x2x2 block farther than r from the fragment are skipped before hashing.
-
-#ifndef PSAO_T_N
-#define PSAO_T_N 0.1   // eq. 3 normal threshold
-#endif
-#ifndef PSAO_T_D
-#define PSAO_T_D 0.7   // eq. 3 distance-direction threshold
-#endif
-
-#define PSAO_EMPTY 0xFFFFFFFFu
-#define PSAO_BACK_BIT 0x40000000u   // key flag of back-side cells (gridformat.BACK_BIT)
-#define PSAO_FLAG_DOUBLE_SIDED 1u
-#define PSAO_ALLOCATED 0x80000000u
-#define PSAO_POINTS_PER_CELL 7
-#define PSAO_BUCKET_ENTRIES 8u
-#define PSAO_TABLE_WIDTH 4096u  // texels per texture row: gpu_grid.TABLE_WIDTH
-#define PSAO_TABLE_SHIFT 12u    // log2(PSAO_TABLE_WIDTH)
+// RGBA32UI): instances PSAO_INSTANCE_TEXELS texels per record, buckets PSAO_BUCKET_TEXELS (2 entries
+// each), cells PSAO_CELL_TEXELS (7 point words + key); the bytes are gridformat's, texel for texel.
+// Normals come from u_psao_normals, the results of pointword.oct_decode in float32. Cells of the 2x2x2
+// block farther than r from the fragment are skipped before hashing.
+//
+// Every constant below (PSAO_*) comes from protocol/ through the generated include: the shader holds
+// no copy of a layout value or threshold (tests/test_shader_constants.py checks).
+#include "psao_constants.glsl"
 
 struct PsaoInstance {
     vec3 origin;        // local-space corner of cell (0, 0, 0)
@@ -36,25 +22,26 @@ struct PsaoInstance {
     uint flags;
 };
 
-uniform usampler2D u_psao_instances;  // INSTANCE_DTYPE records, 48 bytes = 3 texels each
-uniform usampler2D u_psao_buckets;    // (key, slot) x 8 per bucket = 4 texels
-uniform usampler2D u_psao_cells;      // 7 point words + key per cell = 2 texels
-uniform vec4 u_psao_normals[256];     // oct code -> unit normal (xyz)
+uniform usampler2D u_psao_instances;  // INSTANCE_DTYPE records, PSAO_INSTANCE_TEXELS texels each
+uniform usampler2D u_psao_buckets;    // (key, slot) x PSAO_BUCKET_ENTRIES per bucket
+uniform usampler2D u_psao_cells;      // point words + key per cell
+uniform vec4 u_psao_normals[PSAO_NORMAL_CODES];  // oct code -> unit normal (xyz)
 
 uvec4 psao_fetch(usampler2D table, uint texel) {
     return texelFetch(table, ivec2(texel & (PSAO_TABLE_WIDTH - 1u), texel >> PSAO_TABLE_SHIFT), 0);
 }
 
 PsaoInstance psao_instance(uint id) {
-    uvec4 a = psao_fetch(u_psao_instances, 3u * id);
-    uvec4 b = psao_fetch(u_psao_instances, 3u * id + 1u);
-    uvec4 c = psao_fetch(u_psao_instances, 3u * id + 2u);
+    uint first = PSAO_INSTANCE_TEXELS * id;
+    uvec4 a = psao_fetch(u_psao_instances, first);
+    uvec4 b = psao_fetch(u_psao_instances, first + 1u);
+    uvec4 c = psao_fetch(u_psao_instances, first + 2u);
     return PsaoInstance(uintBitsToFloat(a.xyz), uintBitsToFloat(a.w), b.xyz, b.w, c.x, uintBitsToFloat(c.y), c.z);
 }
 
 // Paper eq. 1 in wrapping uint arithmetic (gridformat.cell_hash).
 uint psao_cell_hash(uvec3 c, uvec3 dims) {
-    return c.x + c.y * (dims.x * 17u) + c.z * (dims.x * dims.y * 31u);
+    return c.x + c.y * (dims.x * PSAO_HASH_Y) + c.z * (dims.x * dims.y * PSAO_HASH_Z);
 }
 
 uint psao_cell_key(uvec3 c, uvec3 dims) {
@@ -68,8 +55,8 @@ uint psao_find_cell(PsaoInstance inst, uvec3 c, bool back) {
     uint bucket = inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u));
     uint key = psao_cell_key(c, inst.dims);
     if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
-    uint base = bucket * (PSAO_BUCKET_ENTRIES / 2u);
-    for (uint e = 0u; e < PSAO_BUCKET_ENTRIES / 2u; ++e) {
+    uint base = bucket * PSAO_BUCKET_TEXELS;
+    for (uint e = 0u; e < PSAO_BUCKET_TEXELS; ++e) {
         uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
         if (pair.x == PSAO_EMPTY) break;
         if (pair.x == key) return pair.y;
@@ -82,18 +69,18 @@ uint psao_find_cell(PsaoInstance inst, uvec3 c, bool back) {
 // Normals: u_psao_normals[code] is pointword.oct_decode(code) (4+4-bit octahedral, levels 0..14,
 // level 15 clamped to 14), from gpu_grid.normal_table().
 vec3 psao_point_normal(uint word) {
-    return u_psao_normals[(word >> 8) & 0xFFu].xyz;
+    return u_psao_normals[(word >> PSAO_SHIFT_NORMAL) & PSAO_CODE_MASK].xyz;
 }
 
 // Local position of a point word in cell c (gridformat.decode_point_local): centre of its 5-bit step.
 vec3 psao_point_position(PsaoInstance inst, uvec3 c, uint word) {
-    uvec3 q = uvec3((word >> 16) & 0x1Fu, (word >> 21) & 0x1Fu, (word >> 26) & 0x1Fu);
-    vec3 f = (vec3(q) + 0.5) / 32.0;
+    uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
+    vec3 f = (vec3(q) + 0.5) / PSAO_POSITION_LEVELS;
     return inst.origin + (vec3(c) + f) * inst.cell_size;
 }
 
 float psao_point_ao(uint word) {
-    return float(word & 0xFFu) / 255.0;
+    return float(word & PSAO_CODE_MASK) / PSAO_AO_LEVELS;
 }
 
 // Paper eq. 2-3: weight of point p (normal np) for the fragment at x with normal nx, radius r.
@@ -111,8 +98,8 @@ float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
 
 // Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c).
 void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
-    uvec4 lo = psao_fetch(u_psao_cells, 2u * slot);
-    uvec4 hi = psao_fetch(u_psao_cells, 2u * slot + 1u);
+    uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
+    uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
     uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
     for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
         uint word = words[k];
@@ -133,8 +120,6 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 // instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight. `back`: the fragment
 // shows the back side of a double-sided surface (the G-buffer flipped its normal), so only back-side
 // cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided instances.
-// (Scanning both keys and accumulating twice made the pass 1.5x slower on llvmpipe: twice the
-// unrolled code, even where the second half never runs.)
 vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     PsaoInstance inst = psao_instance(inst_id);
     vec3 g = (x - inst.origin) / inst.cell_size;

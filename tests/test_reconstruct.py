@@ -3,7 +3,8 @@ import numpy as np
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from protocol.reconstruct import T_D, T_N, reconstruct_ao
+from protocol.gridformat import T_D, T_N
+from protocol.reconstruct import reconstruct_ao
 from psao_server.grid import Grid
 
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, EMPTY_BUCKET, FREE_CELL, INSTANCE_DTYPE
-from protocol.pointword import oct_decode
+from protocol.pointword import NORMAL_CODES, oct_decode
+from protocol.shader_constants import TABLE_WIDTH
 from psao_client.errors import RenderError
 
-TABLE_WIDTH = 4096  # texels per row; PSAO_TABLE_WIDTH in psao_common.glsl
 TEXEL_WORDS = 4  # RGBA32UI
 MERGE_GAP_ROWS = 32  # dirty runs closer than this many rows are written as one range
 # Texture units the grid occupies (the passes use the low units for G-buffer inputs).
@@ -43,8 +43,8 @@ def dirty_runs(indices: np.ndarray, max_gap: int = MERGE_GAP_ROWS) -> list[tuple
 def normal_table() -> np.ndarray:
     """(256, 4) float32: the unit normal of every 8-bit oct code exactly as pointword.oct_decode gives
     it; the shader reads these (u_psao_normals) instead of decoding, so shader and oracle agree."""
-    table = np.zeros((256, 4), dtype=np.float32)
-    table[:, :3] = oct_decode(np.arange(256, dtype=np.uint32))
+    table = np.zeros((NORMAL_CODES, 4), dtype=np.float32)
+    table[:, :3] = oct_decode(np.arange(NORMAL_CODES, dtype=np.uint32))
     return table
 
 

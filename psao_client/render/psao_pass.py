@@ -3,15 +3,13 @@
 Output: an RG32F texture, r = AO in [0, 1] (1 on background and where no point has weight),
 g = the weight sum (0 marks a hole: no point within reach).
 
-A full-screen fragment pass (psao_ao.frag.glsl). A compute-shader version of the same include was
-measured too and dropped: on llvmpipe it took 166 ms against 142 ms for the fragment pass (courtyard,
-640x360, N=64, wall time with ctx.finish(), storage-buffer tables at the time), and timer queries do
-not see compute dispatches there.
+A full-screen fragment pass (psao_ao.frag.glsl); the thresholds are compiled in as defines.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from protocol import gridformat as gf
 from psao_client.render.gbuffer import GBuffer
 from psao_client.render.gpu_grid import GpuGrid
 from psao_client.render.shaderlib import compile_program
@@ -19,8 +17,8 @@ from psao_client.render.shaderlib import compile_program
 
 @dataclass
 class PsaoSettings:
-    t_n: float = 0.1  # eq. 3 normal threshold (paper value)
-    t_d: float = 0.7  # eq. 3 distance-direction threshold (paper value)
+    t_n: float = gf.T_N  # eq. 3 normal threshold (cosine)
+    t_d: float = gf.T_D  # eq. 3 distance-direction threshold (squared cosine)
 
 
 class PsaoPass:

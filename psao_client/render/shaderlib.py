@@ -1,7 +1,8 @@
 """The one GLSL loader: `#version` on line 1, `#include "file.glsl"`, `#define` injection, readable errors.
 
-Every shader lives in `shaders/*.glsl` at the repository root; Python never holds shader source. The
-loader expands includes recursively (each file at most once per program, so an include needs no guard)
+Every shader lives in `shaders/*.glsl`; Python never holds shader source. One include is generated
+rather than read: `psao_constants.glsl` is protocol/shader_constants.define_block(), the lookup's
+constants from protocol/ (so the shader holds no copy of them). The loader expands includes recursively (each file at most once per program, so an include needs no guard)
 and keeps, for every line of the expanded text, the file and line it came from. Drivers report errors
 as a line of the text they compiled (Mesa "0:LINE(COL)", NVIDIA "0(LINE)"); `compile_program` maps
 that back to `file:line`. (`#line` directives are not used: Mesa attributes some errors to the wrong
@@ -13,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocol import shader_constants
 from psao_client.errors import RenderError
 
 SHADER_DIR = Path(__file__).resolve().parents[2] / "shaders"
@@ -66,7 +68,13 @@ def load_shader(name: str, defines: dict[str, object] | None = None, shader_dir:
     return ShaderSource(text="\n".join(t for t, _, _ in out) + "\n", origins=[(f, ln) for _, f, ln in out])
 
 
+# Includes answered by a function of protocol/ values instead of a file.
+GENERATED_INCLUDES = {shader_constants.INCLUDE_NAME: shader_constants.define_block}
+
+
 def _read(root: Path, name: str) -> list[str]:
+    if name in GENERATED_INCLUDES:
+        return GENERATED_INCLUDES[name]().splitlines()
     path = root / name
     try:
         return path.read_text(encoding="utf-8").splitlines()
