@@ -17,7 +17,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path of the scene (default: its first)")
     parser.add_argument("--frames", type=int, default=1, metavar="N", help="frames spread over the path (default 1)")
     parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
-    parser.add_argument("--ao", choices=("psao", "ssao", "both"), default="psao", help="AO method(s) to render")
+    parser.add_argument("--ao", default="psao", metavar="METHODS",
+                        help="AO method(s) to render: psao, ssao, gtao, comma-separated, or both (= psao,ssao); default psao")
+    parser.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default) or ultra")
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size (default 16)")
     parser.add_argument("--out", default="frames", metavar="DIR", help="output folder (default ./frames)")
     parser.add_argument("--json", action="store_true", help="print per-frame pass times as JSON (last line)")
@@ -29,7 +31,7 @@ def run(args) -> int:
     from psao_client.errors import RenderError
     from psao_client.render.gridfile import check_scene, load_grid_file
     from psao_client.render.output import parse_size, save_frame
-    from psao_client.render.renderer import FrameRenderer
+    from psao_client.render.renderer import FrameRenderer, MethodOptions
     from psao_client.render.views import path_matrices, path_times
     from psao_scene import load_scene, scene_camera
 
@@ -45,7 +47,8 @@ def run(args) -> int:
         raise RenderError(str(exc.args[0])) from None
     out = Path(args.out)
     records = []
-    with FrameRenderer(scene, size, args.ao, ssao_samples=args.ssao_samples, window=args.window) as renderer:
+    with FrameRenderer(scene, size, args.ao, window=args.window,
+                       options=MethodOptions.from_args(args)) as renderer:
         renderer.upload_grid(grid.instances, grid.buckets, grid.cells)
         for i, t in enumerate(_progress(path_times(path, args.frames), quiet=args.json)):
             view, proj = path_matrices(scene, path, float(t), size)

@@ -1,8 +1,8 @@
-"""`psao bench SCENE...`: PSAO and SSAO against an RTAO reference, and PSAO's stream, on real processes.
+"""`psao bench SCENE...`: PSAO and the baselines (--methods) against an RTAO reference, and PSAO's stream.
 
 For every scene:
   1. `psao bake` per density (a real process; grids cached under CACHE/grids by scene hash, N and rays);
-  2. quality: PSAO from each grid and SSAO, in one headless renderer along the camera path, against RTAO
+  2. quality: PSAO from each grid and every baseline method, in one headless renderer along the camera path, against RTAO
      traced from the same G-buffer (cached under CACHE/rtao), scored with PSNR, SSIM and FLIP;
   3. stream: per density and tick rate a real `psao serve --grid FILE --density N --tick-hz H` process on a
      free 127.0.0.1 port and a real headless `psao client` for --stream-seconds after its snapshot:
@@ -23,6 +23,7 @@ from pathlib import Path
 from psao_eval.errors import EvalError
 
 TICK_RAYS = 32  # rays per re-traced point of an animating server (the tick's default)
+DEFAULT_METHODS = ("ssao", "gtao", "psao")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,6 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
     p.add_argument("--rays", type=int, default=128, help="AO rays per point in the bake (default 128)")
     p.add_argument("--ssao-samples", type=int, default=16, help="SSAO kernel size (default 16)")
+    p.add_argument("--methods", default=",".join(DEFAULT_METHODS), metavar="LIST",
+                   help=f"AO methods scored, comma-separated, psao among them (default {','.join(DEFAULT_METHODS)}; "
+                        "psao = one row per density)")
+    p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default), ultra")
     p.add_argument("--stream-seconds", type=float, default=3.0, help="client run after its snapshot, per config (default 3)")
     p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (default: the scene's first)")
     p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder (default out/bench)")
@@ -63,6 +68,18 @@ class BenchConfig:
     stream: bool = True
     image_scale: float = 1.0
     animate: bool = False
+    methods: tuple[str, ...] = DEFAULT_METHODS
+    gtao_preset: str = "quality"
+
+    @property
+    def baselines(self) -> tuple[str, ...]:
+        """The methods scored beside PSAO, in the renderer's order."""
+        return tuple(m for m in self.methods if m != "psao")
+
+    def method_options(self):
+        from psao_client.render.renderer import MethodOptions
+
+        return MethodOptions(ssao_samples=self.ssao_samples, gtao_preset=self.gtao_preset)
 
 
 def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
@@ -95,11 +112,30 @@ def config_from_args(args) -> BenchConfig:
         raise EvalError(f"--image-scale must be within 0.05..4, got {args.image_scale}")
     if not (args.stream_seconds > 0 and math.isfinite(args.stream_seconds)):
         raise EvalError(f"--stream-seconds must be > 0, got {args.stream_seconds}")
+    methods = parse_methods(args.methods)
+    from psao_client.render.gtao_pass import GTAO_PRESETS
+
+    if args.gtao_preset not in GTAO_PRESETS:
+        raise EvalError(f"--gtao-preset {args.gtao_preset!r}: expected one of {', '.join(GTAO_PRESETS)}")
     return BenchConfig(scenes=list(args.scenes), densities=parse_list(args.densities, "densities", 1e-3, 1e7),
                        tick_hz=parse_list(args.tick_hz, "tick-hz", 5, 60), frames=args.frames, spp=args.spp,
                        size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
-                       image_scale=args.image_scale, animate=args.animate)
+                       image_scale=args.image_scale, animate=args.animate, methods=methods,
+                       gtao_preset=args.gtao_preset)
+
+
+def parse_methods(text: str) -> tuple[str, ...]:
+    from psao_client.errors import RenderError
+    from psao_client.render.renderer import parse_ao_modes
+
+    try:
+        methods = parse_ao_modes(text)
+    except RenderError as exc:
+        raise EvalError(f"--methods: {exc}") from None
+    if "psao" not in methods:
+        raise EvalError("--methods must include psao: every row of Table 1 is compared with it")
+    return methods
 
 
 def ensure_writable(folder: Path, what: str) -> Path:
@@ -165,8 +201,8 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
         log(f"warning: scene '{scene.name}' has no camera path: using an orbit around its bounds")
     poses = frame_poses(scene, cfg.frames, cfg.size, cfg.camera_path)
     grids = {d: bake_cached(spec, scene, d, cfg.rays, cfg.cache, log) for d in cfg.densities}
-    ssao_row, quality, image = score_scene(scene, poses, grids, cfg, log)
-    rows = [ssao_row]
+    baseline_rows, quality, image = score_scene(scene, poses, grids, cfg, log)
+    rows = list(baseline_rows)
     for d in cfg.densities:
         base = {"scene": scene.name, "method": method_name(d), "density": d, **quality[d]}
         if not cfg.stream:
@@ -178,17 +214,17 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
 
 
 def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[dict, dict, str, bool]:
-    """Frames per density (PSAO and SSAO in one renderer), in-process tick ms per density (animated
-    scenes with --animate), the GL renderer's name and whether the frames are animated."""
+    """Frames per density (PSAO and the baselines in one renderer), in-process tick ms per density
+    (animated scenes with --animate), the GL renderer's name and whether the frames are animated."""
     from psao_client.render.gridfile import load_grid_file
     from psao_eval.dynamic import is_animated
     from psao_eval.quality import QualityRenderer
 
     log(f"{scene.name}: rendering {len(poses)} frame(s) at {cfg.size[0]}x{cfg.size[1]}, PSAO at "
-        f"{len(grids)} densities and SSAO")
+        f"{len(grids)} densities and {', '.join(m.upper() for m in cfg.baselines) or 'no baseline'}")
     frames, tick_ms = {}, {}
     animate = cfg.animate and is_animated(scene)
-    with QualityRenderer(scene, cfg.size, cfg.ssao_samples) as qr:
+    with QualityRenderer(scene, cfg.size, methods=cfg.methods, options=cfg.method_options()) as qr:
         for d, (path, _) in grids.items():
             if animate:
                 frames[d], tick_ms[d] = animated_frames(qr, scene, d, poses, cfg, log)
@@ -197,8 +233,8 @@ def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple
         return frames, tick_ms, qr.gl_renderer, animate
 
 
-def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[dict, dict, dict]:
-    """(SSAO row, PSAO quality per density, side-by-side image data) against the RTAO reference."""
+def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict, dict]:
+    """(baseline rows, PSAO quality per density, side-by-side image data) against the RTAO reference."""
     from psao_eval.quality import mean_scores, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
 
@@ -208,11 +244,15 @@ def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[
     refs = reference_images(scene, first, ReferenceSettings(spp=cfg.spp, cache_dir=cfg.cache / "rtao"))
     common = {"frames": len(first), "spp": cfg.spp, "animated": animate, "gl_renderer": gl_renderer}
 
-    ssao_scores = score_frames(first, refs, methods=("ssao",))
-    s = mean_scores(ssao_scores, "ssao")
-    ssao_row = {"scene": scene.name, "method": "SSAO", "density": None, "tick_hz": None, **s.as_dict(), **common,
-                "client_ms_frame": _median([f.gpu_ms["ssao"] for f in first])}
     pick = len(first) // 2  # the side-by-side frame
+    baseline_rows, baseline_panels = [], []
+    for m in cfg.baselines:
+        sc = score_frames(first, refs, methods=(m,))
+        s = mean_scores(sc, m)
+        baseline_rows.append({"scene": scene.name, "method": m.upper(), "density": None, "tick_hz": None,
+                              **s.as_dict(), **common, "client_ms_frame": _median([f.gpu_ms[m] for f in first])})
+        baseline_panels.append((m.upper(), first[pick].ao[m], sc[pick].flip_map, sc[pick].scores.as_dict()))
+        log(f"{scene.name}: {m.upper()} PSNR {s.psnr:.2f} dB, FLIP {s.flip:.3f}")
     panels, quality = [], {}
     for d in cfg.densities:
         sc = score_frames(frames[d], refs, methods=("psao",))
@@ -222,10 +262,8 @@ def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[
                       "points": meta.get("points_kept"), "bake_trace_s": meta.get("seconds_trace"),
                       "holes": float(sum(f.holes for f in frames[d]) / len(frames[d])), "anim_tick_ms": tick_ms.get(d)}
         panels.append((method_name(d), frames[d][pick].ao["psao"], sc[pick].flip_map, sc[pick].scores.as_dict()))
-        log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f} "
-            f"(SSAO {s.psnr:.2f} dB, {s.flip:.3f})")
-    panels.append(("SSAO", first[pick].ao["ssao"], ssao_scores[pick].flip_map, ssao_scores[pick].scores.as_dict()))
-    return ssao_row, quality, {"scene": scene.name, "reference": refs[pick], "panels": panels}
+        log(f"{scene.name}: {method_name(d)} PSNR {quality[d]['psnr']:.2f} dB, FLIP {quality[d]['flip']:.3f}")
+    return baseline_rows, quality, {"scene": scene.name, "reference": refs[pick], "panels": panels + baseline_panels}
 
 
 def animated_frames(qr, scene, density: float, poses, cfg: BenchConfig, log: Log):

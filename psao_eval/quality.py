@@ -75,14 +75,16 @@ def rest_transforms(scene) -> np.ndarray:
 
 
 class QualityRenderer:
-    """One headless FrameRenderer rendering PSAO and SSAO together, reused for every grid and frame."""
+    """One headless FrameRenderer rendering PSAO and the baselines together, reused for every grid and frame.
+    gpu_ms of a method is the G-buffer pass plus its own passes (timer names MODE and MODE_*)."""
 
-    def __init__(self, scene, size: tuple[int, int], ssao_samples: int = 16):
-        from psao_client.render.renderer import FrameRenderer
+    def __init__(self, scene, size: tuple[int, int], ssao_samples: int = 16, methods=("psao", "ssao"), options=None):
+        from psao_client.render.renderer import FrameRenderer, MethodOptions
 
         self.scene = scene
         self.size = tuple(size)
-        self.renderer = FrameRenderer(scene, self.size, "both", ssao_samples=ssao_samples)
+        options = options or MethodOptions(ssao_samples=int(ssao_samples))
+        self.renderer = FrameRenderer(scene, self.size, ",".join(methods), options=options)
         self.gl_renderer = self.renderer.ctx.info.get("GL_RENDERER", "")
 
     def render(self, grid, poses: list[FramePose], timing_repeats: int = 3, before_frame=None) -> list[RenderedFrame]:
@@ -110,9 +112,10 @@ class QualityRenderer:
                 r.submit(pose.view, pose.proj)
                 for k, v in r.timer.collect().items():
                     ms[k] = min(ms.get(k, v), v)
-            gpu = {"psao": ms.get("gbuffer", 0.0) + ms.get("psao", 0.0),
-                   "ssao": ms.get("gbuffer", 0.0) + ms.get("ssao", 0.0) + ms.get("ssao_blur", 0.0)}
-            holes = float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
+            gpu = {m: ms.get("gbuffer", 0.0) + sum(v for k, v in ms.items() if k == m or k.startswith(m + "_"))
+                   for m in r.modes}
+            holes = 0.0 if frame.psao_weight is None else \
+                float(((frame.psao_weight <= 0) & mask).sum() / max(int(mask.sum()), 1))
             out.append(RenderedFrame(pose, {m: composite_ao(a, mask) for m, a in frame.ao.items()}, mask,
                                      frame.gbuffer, gpu, holes, np.array(r.transforms, copy=True), frame.composite,
                                      r.skin_time))

@@ -1,6 +1,7 @@
 """Benchmark outputs: the Table 1 style table (Markdown and CSV), charts and side-by-side images.
 
-A result row is a dict with: scene, method ("SSAO" or "PSAO-N"), density (N or None), tick_hz (or None),
+A result row is a dict with: scene, method ("PSAO-N" or a baseline: "SSAO", "GTAO", ...), density (N or
+None), tick_hz (or None),
 psnr, ssim, flip, stream_mbit_s, snapshot_mb, server_ms_tick, client_ms_frame, points, holes.
 """
 from __future__ import annotations
@@ -80,8 +81,11 @@ def _scene_styles(rows):
     return scenes, colours
 
 
+BASELINE_MARKERS = {"SSAO": "s", "GTAO": "^", "NNAO": "D", "MLP": "P", "AOGAN": "X"}
+
+
 def runtime_chart(rows: list[dict], path: Path) -> None:
-    """FLIP and PSNR against server ms per tick (PSAO) and client ms per frame (PSAO and SSAO)."""
+    """FLIP and PSNR against server ms per tick (PSAO) and client ms per frame (PSAO and every baseline)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -98,10 +102,11 @@ def runtime_chart(rows: list[dict], path: Path) -> None:
         for row, (ykey, ylabel) in enumerate([("flip", "FLIP (lower is better)"), ("psnr", "PSNR dB (higher is better)")]):
             ax = axes[row, col]
             for s in scenes:
-                for method_kind, marker in (("PSAO", "o"), ("SSAO", "s")):
-                    pts = [r for r in merged if r["scene"] == s and r["method"].startswith(method_kind)]
-                    if xkey != "client_ms_frame" and method_kind == "SSAO":
-                        continue  # SSAO has no server
+                for method_kind, marker in (("PSAO", "o"), *BASELINE_MARKERS.items()):
+                    pts = [r for r in merged if r["scene"] == s and (r["method"] == method_kind or (
+                        method_kind == "PSAO" and r["method"].startswith("PSAO-")))]
+                    if xkey != "client_ms_frame" and method_kind != "PSAO":
+                        continue  # the baselines have no server
                     pts = [r for r in pts if r.get(xkey) is not None and math.isfinite(r[xkey])]
                     pts.sort(key=lambda r: r.get("density") or 0)
                     if not pts:
@@ -122,7 +127,8 @@ def runtime_chart(rows: list[dict], path: Path) -> None:
     handles, labels = axes[0, 2].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="outside right center", fontsize=8)
-    fig.suptitle("Runtime versus error against RTAO (circles PSAO-N, squares SSAO)")
+    fig.suptitle("Runtime versus error against RTAO (circles PSAO-N; squares SSAO, triangles GTAO, diamonds NNAO, "
+                 "plus MLP, crosses AOGAN (CPU ms))")
     fig.savefig(path, dpi=80)
     plt.close(fig)
 

@@ -60,7 +60,7 @@ def test_tiny_bench_end_to_end(tmp_path):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     rows = json.loads((out / "results.json").read_text())
     by_method = {r["method"]: r for r in rows}
-    assert set(by_method) == {"SSAO", "PSAO-128"}
+    assert set(by_method) == {"SSAO", "GTAO", "PSAO-128"}  # the default --methods ssao,gtao,psao
     for row in rows:
         assert 10 < row["psnr"] < 60, row
         assert 0 < row["flip"] < 1, row
@@ -71,7 +71,7 @@ def test_tiny_bench_end_to_end(tmp_path):
     assert 0 <= psao["stream_mbit_s"] < 0.1  # a static scene sends (almost) nothing after its snapshot
     assert psao["points"] > 0
     with open(out / "table.csv") as fh:
-        assert len(list(csv.DictReader(fh))) == 2
+        assert len(list(csv.DictReader(fh))) == 3
     md = (out / "table.md").read_text()
     assert "| cornell | PSAO-128 |" in md and "Mbit/s @30 Hz" in md
     assert "LPIPS not computed" in r.stdout
@@ -102,6 +102,9 @@ def test_unwritable_out_dir_is_one_line_and_leaves_nothing(tmp_path, capsys):
     (["--tick-hz", "90"], "outside 5..60"),
     (["--size", "12by4"], "frame size"),
     (["--frames", "0"], "--frames"),
+    (["--methods", "ssao,hbao,psao"], "unknown AO method 'hbao'"),
+    (["--methods", "ssao,gtao"], "must include psao"),
+    (["--gtao-preset", "fast"], "--gtao-preset"),
 ])
 def test_bad_arguments_are_one_line(tmp_path, capsys, args, msg):
     rc, err = run_in_process(bench(tmp_path, "builtin:cornell", *args), capsys)

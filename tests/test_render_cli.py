@@ -59,6 +59,8 @@ def test_render_writes_numbered_pngs_and_json_last_line(cornell_grid, tmp_path):
     (["--size", "99999x10"], "above this OpenGL's limit"),
     (["--size", "big"], "expected WIDTHxHEIGHT"),
     (["--camera-path", "nope"], "no camera path 'nope'"),
+    (["--ao", "psao,hbao"], "unknown AO method 'hbao'"),
+    (["--ao", "gtao", "--gtao-preset", "fast"], "GTAO preset 'fast'"),
 ])
 def test_bad_arguments_are_one_line_exit_2(cornell_grid, tmp_path, extra, message):
     _, _, grid_path = cornell_grid

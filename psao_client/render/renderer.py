@@ -1,6 +1,6 @@
-"""FrameRenderer: geometry pass, PSAO and/or SSAO, composite; frames back as numpy arrays.
+"""FrameRenderer: geometry pass, the AO methods asked for, composite; frames back as numpy arrays.
 
-    with FrameRenderer(scene, size=(640, 360), ao_mode="both") as r:
+    with FrameRenderer(scene, size=(640, 360), ao_mode="psao,gtao") as r:   # or "both" = psao,ssao
         r.upload_grid(instances, buckets, cells)          # or update_grid(...) with dirty rows only
         r.set_transforms(transforms)                      # (n_instances, 4, 4), last received
         r.set_skin_time(server_time)                      # skinned meshes posed as the server posed them
@@ -19,11 +19,45 @@ from psao_client.render.composite import CompositePass, read_channel
 from psao_client.render.context import check_frame_size, create_context, present, release_context
 from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
 from psao_client.render.gpu_grid import GpuGrid
+from psao_client.render.gtao_pass import GtaoPass, GtaoSettings
 from psao_client.render.psao_pass import PsaoPass, PsaoSettings
 from psao_client.render.ssao_pass import SsaoPass, SsaoSettings
 from psao_client.render.timing import PassTimer
 
-AO_MODES = {"psao": ("psao",), "ssao": ("ssao",), "both": ("psao", "ssao")}
+AO_METHODS = ("psao", "ssao", "gtao")  # every AO method the renderer runs, in drawing order
+AO_ALIASES = {"both": ("psao", "ssao")}
+
+
+def parse_ao_modes(text: str) -> tuple[str, ...]:
+    """'psao', 'both' or a comma-separated list of AO_METHODS -> the methods, in AO_METHODS order."""
+    names = []
+    for part in str(text).split(","):
+        part = part.strip().lower()
+        if not part:
+            continue
+        found = AO_ALIASES.get(part, (part,))
+        for name in found:
+            if name not in AO_METHODS:
+                raise RenderError(f"unknown AO method {part!r}: expected one of {', '.join(AO_METHODS + tuple(AO_ALIASES))}")
+            names.append(name)
+    if not names:
+        raise RenderError("no AO method given")
+    return tuple(m for m in AO_METHODS if m in names)
+
+
+@dataclass
+class MethodOptions:
+    """Settings of the baseline methods beside PSAO."""
+
+    ssao_samples: int = 16  # SSAO kernel size
+    gtao_preset: str = "quality"  # a key of GTAO_PRESETS
+
+    @classmethod
+    def from_args(cls, args) -> "MethodOptions":
+        """From parsed `psao render` / `psao client` arguments (absent options keep their defaults)."""
+        d = cls()
+        return cls(ssao_samples=int(getattr(args, "ssao_samples", d.ssao_samples)),
+                   gtao_preset=str(getattr(args, "gtao_preset", d.gtao_preset)))
 
 
 @dataclass
@@ -51,10 +85,10 @@ class FrameRenderer:
         light: LightSettings | None = None,
         psao: PsaoSettings | None = None,
         timing: bool = True,
+        options: MethodOptions | None = None,
     ):
-        if ao_mode not in AO_MODES:
-            raise RenderError(f"AO mode {ao_mode!r}: expected one of {', '.join(AO_MODES)}")
-        self.modes = AO_MODES[ao_mode]
+        self.modes = parse_ao_modes(ao_mode)
+        options = options or MethodOptions(ssao_samples=int(ssao_samples))
         self._own_ctx = ctx is None
         self.window = bool(window) and ctx is None
         self.ctx = ctx if ctx is not None else create_context(window=window, size=size)
@@ -67,12 +101,16 @@ class FrameRenderer:
             self.gbuffer = self._own(GBuffer(self.ctx, self.size))
             self.geometry = self._own(GeometryPass(self.ctx, scene, light))
             self.grid = self._own(GpuGrid(self.ctx))
-            self.psao = self.ssao = None
+            self.psao = self.ssao = self.gtao = None
+            self.passes = {}  # method -> pass with .output (AO in channel 0)
             if "psao" in self.modes:
-                self.psao = self._own(PsaoPass(self.ctx, self.gbuffer, self.grid, psao))
+                self.psao = self.passes["psao"] = self._own(PsaoPass(self.ctx, self.gbuffer, self.grid, psao))
             if "ssao" in self.modes:
-                settings = SsaoSettings(samples=int(ssao_samples), radius=float(scene.ao_distance))
-                self.ssao = self._own(SsaoPass(self.ctx, self.gbuffer, settings))
+                settings = SsaoSettings(samples=int(options.ssao_samples), radius=float(scene.ao_distance))
+                self.ssao = self.passes["ssao"] = self._own(SsaoPass(self.ctx, self.gbuffer, settings))
+            if "gtao" in self.modes:
+                settings = GtaoSettings.preset(options.gtao_preset, float(scene.ao_distance))
+                self.gtao = self.passes["gtao"] = self._own(GtaoPass(self.ctx, self.gbuffer, settings))
             self.composites = {m: self._own(CompositePass(self.ctx, self.gbuffer)) for m in self.modes}
             self.timer = PassTimer(self.ctx, enabled=timing)
         except BaseException:
@@ -129,8 +167,9 @@ class FrameRenderer:
         if self.psao is not None:
             ao["psao"] = read_channel(self.psao.output, self.size, 2, 0)
             weight = read_channel(self.psao.output, self.size, 2, 1)
-        if self.ssao is not None:
-            ao["ssao"] = read_channel(self.ssao.output, self.size, 1, 0)
+        for mode, p in self.passes.items():
+            if mode != "psao":
+                ao[mode] = read_channel(p.output, self.size, 1, 0)
         return Frame(
             composite={m: c.read() for m, c in self.composites.items()},
             ao=ao,
@@ -152,9 +191,12 @@ class FrameRenderer:
                 self.ssao.run_occlusion(view, proj)
             with t.measure("ssao_blur"):
                 self.ssao.run_blur()
+        for mode, p in self.passes.items():
+            if mode not in ("psao", "ssao"):
+                p.run(view, proj, t)  # times its own stages as MODE and MODE_*
         with t.measure("composite"):
             for mode, comp in self.composites.items():
-                comp.run(self.psao.output if mode == "psao" else self.ssao.output)
+                comp.run(self.passes[mode].output)
         if self.window:  # show the first mode's composite; the window is a view, frames still come back
             present(self.ctx, next(iter(self.composites.values())).fbo)
 

@@ -23,7 +23,7 @@ from psao_client.errors import RenderError
 
 class StreamRenderer:
     def __init__(self, scene, out_dir, size=(640, 360), ao_mode="psao", camera_path=None, ssao_samples=16,
-                 tick_rate: float = 30.0, ctx=None, window: bool = False):
+                 tick_rate: float = 30.0, ctx=None, window: bool = False, options=None):
         from psao_client.render.renderer import FrameRenderer
         from psao_scene import scene_camera
 
@@ -37,7 +37,8 @@ class StreamRenderer:
         self.out_dir = Path(out_dir)
         self.size = tuple(size)
         self.tick_rate = float(tick_rate)
-        self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx, window=window)
+        self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx, window=window,
+                                      options=options)
         self._uploaded_instances: np.ndarray | None = None
         self.frames = 0
         self.records: list[dict] = []  # per frame: tick, camera time, GPU ms per pass
@@ -90,8 +91,9 @@ class StreamRenderer:
 
 def make_render_callback(scene, args) -> StreamRenderer:
     """From the client's parsed arguments: args.render (OUTDIR), args.camera_path, args.size ('WxH'),
-    args.ao ('psao'|'ssao'|'both'); optional args.ssao_samples and args.tick_rate."""
+    args.ao (methods, see parse_ao_modes); optional args.ssao_samples and args.tick_rate."""
     from psao_client.render.output import parse_size
+    from psao_client.render.renderer import MethodOptions
 
     return StreamRenderer(
         scene,
@@ -102,6 +104,7 @@ def make_render_callback(scene, args) -> StreamRenderer:
         ssao_samples=int(getattr(args, "ssao_samples", 16)),
         tick_rate=float(getattr(args, "tick_rate", 30.0) or 30.0),
         window=bool(getattr(args, "window", False)),
+        options=MethodOptions.from_args(args),
     )
 
 
@@ -110,7 +113,9 @@ def add_render_arguments(parser) -> None:
     parser.add_argument("--render", metavar="OUTDIR", default=None, help="render frames (PNG) into OUTDIR")
     parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path for --render")
     parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
-    parser.add_argument("--ao", choices=("psao", "ssao", "both"), default="psao", help="AO method(s) for --render")
+    parser.add_argument("--ao", default="psao", metavar="METHODS",
+                        help="AO method(s) for --render: psao, ssao, gtao, comma-separated, or both (= psao,ssao); default psao")
+    parser.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default) or ultra")
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
     parser.add_argument("--fps", type=float, default=30.0, metavar="F",
                         help="frames per second to render at, the client's own rate, whatever the server's tick rate "
