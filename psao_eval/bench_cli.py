@@ -39,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"AO methods scored, comma-separated, psao among them (default {','.join(DEFAULT_METHODS)}; "
                         "psao = one row per density)")
     p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default), ultra")
+    p.add_argument("--mlp-steps", type=int, default=1500,
+                   help="Adam steps of MLP baking, trained per scene on the first density's grid (default 1500)")
     p.add_argument("--stream-seconds", type=float, default=3.0, help="client run after its snapshot, per config (default 3)")
     p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (default: the scene's first)")
     p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder (default out/bench)")
@@ -70,16 +72,17 @@ class BenchConfig:
     animate: bool = False
     methods: tuple[str, ...] = DEFAULT_METHODS
     gtao_preset: str = "quality"
+    mlp_steps: int = 1500
 
     @property
     def baselines(self) -> tuple[str, ...]:
         """The methods scored beside PSAO, in the renderer's order."""
         return tuple(m for m in self.methods if m != "psao")
 
-    def method_options(self):
+    def method_options(self, **weights):
         from psao_client.render.renderer import MethodOptions
 
-        return MethodOptions(ssao_samples=self.ssao_samples, gtao_preset=self.gtao_preset)
+        return MethodOptions(ssao_samples=self.ssao_samples, gtao_preset=self.gtao_preset, **weights)
 
 
 def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
@@ -105,7 +108,8 @@ def config_from_args(args) -> BenchConfig:
         raise EvalError(str(exc)) from None
     if min(size) < 8:
         raise EvalError(f"--size {args.size}: frames must be at least 8x8 pixels")
-    for name, v in (("frames", args.frames), ("spp", args.spp), ("rays", args.rays), ("ssao-samples", args.ssao_samples)):
+    for name, v in (("frames", args.frames), ("spp", args.spp), ("rays", args.rays), ("ssao-samples", args.ssao_samples),
+                    ("mlp-steps", args.mlp_steps)):
         if v < 1:
             raise EvalError(f"--{name} must be >= 1, got {v}")
     if not (0.05 <= args.image_scale <= 4):
@@ -122,7 +126,7 @@ def config_from_args(args) -> BenchConfig:
                        size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
                        image_scale=args.image_scale, animate=args.animate, methods=methods,
-                       gtao_preset=args.gtao_preset)
+                       gtao_preset=args.gtao_preset, mlp_steps=args.mlp_steps)
 
 
 def parse_methods(text: str) -> tuple[str, ...]:
@@ -224,13 +228,47 @@ def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple
         f"{len(grids)} densities and {', '.join(m.upper() for m in cfg.baselines) or 'no baseline'}")
     frames, tick_ms = {}, {}
     animate = cfg.animate and is_animated(scene)
-    with QualityRenderer(scene, cfg.size, methods=cfg.methods, options=cfg.method_options()) as qr:
+    weights = learned_weights(scene, grids, cfg, log)
+    with QualityRenderer(scene, cfg.size, methods=cfg.methods,
+                         options=cfg.method_options(**{f"{m}_weights": str(w["path"]) for m, w in weights.items()})) as qr:
         for d, (path, _) in grids.items():
             if animate:
                 frames[d], tick_ms[d] = animated_frames(qr, scene, d, poses, cfg, log)
             else:
                 frames[d] = qr.render(load_grid_file(path), poses)
-        return frames, tick_ms, qr.gl_renderer, animate
+        return frames, tick_ms, qr.gl_renderer, animate, weights
+
+
+def learned_weights(scene, grids: dict, cfg: BenchConfig, log: Log) -> dict[str, dict]:
+    """method -> {path, bytes, train_s, trained_on} for the learned methods among cfg.methods."""
+    out = {}
+    if "mlp" in cfg.methods:
+        out["mlp"] = mlp_cached(scene, grids[cfg.densities[0]][0], cfg, log)
+    return out
+
+
+def mlp_cached(scene, grid_file: Path, cfg: BenchConfig, log: Log) -> dict:
+    """MLP baking weights of this scene, trained on its grid (a bake, like PSAO's: trained on the scene it
+    shows, scored on RTAO pixels it never saw); cached beside the grids."""
+    from psao_client.render.gridfile import load_grid_file
+    from psao_client.render.weights import load_weights, save_weights, weight_bytes
+    from psao_eval.learn.mlp_train import MlpTrainSettings, train_mlp
+
+    settings = MlpTrainSettings(steps=cfg.mlp_steps)
+    path = cfg.cache / "mlp" / f"{grid_file.stem}-S{settings.steps}-P{settings.points}-seed{settings.seed}.npz"
+    if path.is_file():
+        try:
+            arrays, header = load_weights(path, "mlp")
+            return {"path": path, "bytes": weight_bytes(arrays), "train_s": header.get("train_s"),
+                    "trained_on": scene.name}
+        except Exception:  # noqa: BLE001 - a damaged cache entry is trained again
+            pass
+    log(f"{scene.name}: psao train mlp ({settings.steps} steps, {len(scene.instances)} object(s))")
+    result = train_mlp(load_grid_file(grid_file), settings)
+    nbytes = save_weights(path, "mlp", result.arrays, {"scene_hash": scene.content_hash(), "hidden": list(settings.hidden),
+                                                       "train_s": result.seconds})
+    log(f"{scene.name}: MLP trained in {result.seconds:.1f} s, loss {result.losses[0]:.4f} -> {result.losses[-1]:.4f}")
+    return {"path": path, "bytes": nbytes, "train_s": result.seconds, "trained_on": scene.name}
 
 
 def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict, dict]:
@@ -238,7 +276,7 @@ def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[
     from psao_eval.quality import mean_scores, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
 
-    frames, tick_ms, gl_renderer, animate = render_scene(scene, poses, grids, cfg, log)
+    frames, tick_ms, gl_renderer, animate, weights = render_scene(scene, poses, grids, cfg, log)
     first = frames[cfg.densities[0]]  # every density draws the same G-buffers
     log(f"{scene.name}: RTAO reference, {cfg.spp} spp, {len(first)} frame(s) (cached in {cfg.cache / 'rtao'})")
     refs = reference_images(scene, first, ReferenceSettings(spp=cfg.spp, cache_dir=cfg.cache / "rtao"))
@@ -250,7 +288,9 @@ def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[
         sc = score_frames(first, refs, methods=(m,))
         s = mean_scores(sc, m)
         baseline_rows.append({"scene": scene.name, "method": m.upper(), "density": None, "tick_hz": None,
-                              **s.as_dict(), **common, "client_ms_frame": _median([f.gpu_ms[m] for f in first])})
+                              **s.as_dict(), **common, "client_ms_frame": _median([f.gpu_ms[m] for f in first]),
+                              "weight_bytes": weights.get(m, {}).get("bytes"), "train_s": weights.get(m, {}).get("train_s"),
+                              "trained_on": weights.get(m, {}).get("trained_on")})
         baseline_panels.append((m.upper(), first[pick].ao[m], sc[pick].flip_map, sc[pick].scores.as_dict()))
         log(f"{scene.name}: {m.upper()} PSNR {s.psnr:.2f} dB, FLIP {s.flip:.3f}")
     panels, quality = [], {}

@@ -15,7 +15,8 @@ import numpy as np
 from psao_eval.metrics import magma
 
 CSV_FIELDS = ["scene", "method", "density", "tick_hz", "psnr", "ssim", "flip", "bias", "stream_mbit_s", "snapshot_mb",
-              "updates_per_s", "server_ms_tick", "anim_tick_ms", "animated", "stream_animated", "bake_trace_s", "client_ms_frame", "points", "holes", "frames", "spp"]
+              "updates_per_s", "server_ms_tick", "anim_tick_ms", "animated", "stream_animated", "bake_trace_s", "client_ms_frame", "points", "holes", "frames", "spp",
+              "weight_bytes", "train_s", "trained_on"]
 
 
 def _fmt(v, digits: int) -> str:
@@ -53,7 +54,8 @@ def markdown_table(rows: list[dict]) -> str:
         if rates and r.get("tick_hz") == rates[-1]:
             ups[(r["scene"], r["method"])] = r.get("updates_per_s")
     head = ["scene", "method", "PSNR (dB) ↑", "SSIM ↑", "FLIP ↓", "mean AO bias"] + [f"Mbit/s @{hz:g} Hz" for hz in rates] + \
-        (["updates/s"] if rates else []) + ["snapshot MB", "client ms/frame", "server ms/tick", "bake trace s", "points"]
+        (["updates/s"] if rates else []) + ["snapshot MB", "weights kB", "client ms/frame", "server ms/tick", "bake trace s",
+                                            "points"]
     animated = any(r.get("anim_tick_ms") is not None for r in merged)
     if animated:
         head += ["animated tick ms"]
@@ -64,7 +66,8 @@ def markdown_table(rows: list[dict]) -> str:
         cells += [_fmt(r["mbit"].get(hz), 3) if r["density"] else "-" for hz in rates]
         if rates:
             cells.append(_fmt(ups.get((r["scene"], r["method"])), 1) if r["density"] else "-")
-        cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-", _fmt(r.get("client_ms_frame"), 1),
+        cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-",
+                  _fmt(r["weight_bytes"] / 1e3, 1) if r.get("weight_bytes") else "-", _fmt(r.get("client_ms_frame"), 1),
                   _fmt(r.get("server_ms_tick"), 2) if r["density"] else "-",
                   _fmt(r.get("bake_trace_s"), 1) if r["density"] else "-",
                   f"{r['points']:,}" if r.get("points") else "-"]

@@ -20,11 +20,14 @@ from psao_client.render.context import check_frame_size, create_context, present
 from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
 from psao_client.render.gpu_grid import GpuGrid
 from psao_client.render.gtao_pass import GtaoPass, GtaoSettings
+from psao_client.render.mlp_pass import MlpPass, load_mlp_weights
+from psao_client.render.nnao_net import load_nnao_weights
+from psao_client.render.nnao_pass import NnaoPass
 from psao_client.render.psao_pass import PsaoPass, PsaoSettings
 from psao_client.render.ssao_pass import SsaoPass, SsaoSettings
 from psao_client.render.timing import PassTimer
 
-AO_METHODS = ("psao", "ssao", "gtao")  # every AO method the renderer runs, in drawing order
+AO_METHODS = ("psao", "ssao", "gtao", "nnao", "mlp")  # every AO method the renderer runs, in drawing order
 AO_ALIASES = {"both": ("psao", "ssao")}
 
 
@@ -51,13 +54,18 @@ class MethodOptions:
 
     ssao_samples: int = 16  # SSAO kernel size
     gtao_preset: str = "quality"  # a key of GTAO_PRESETS
+    mlp_weights: str | None = None  # weights file of `psao train mlp` for this scene
+    nnao_weights: str | None = None  # weights file of `psao train nnao`; None = the shipped one
+    nnao_samples: int = 64  # first-layer cells evaluated per pixel (of 961)
 
     @classmethod
     def from_args(cls, args) -> "MethodOptions":
         """From parsed `psao render` / `psao client` arguments (absent options keep their defaults)."""
         d = cls()
         return cls(ssao_samples=int(getattr(args, "ssao_samples", d.ssao_samples)),
-                   gtao_preset=str(getattr(args, "gtao_preset", d.gtao_preset)))
+                   gtao_preset=str(getattr(args, "gtao_preset", d.gtao_preset)),
+                   mlp_weights=getattr(args, "mlp_weights", None), nnao_weights=getattr(args, "nnao_weights", None),
+                   nnao_samples=int(getattr(args, "nnao_samples", d.nnao_samples)))
 
 
 @dataclass
@@ -111,11 +119,22 @@ class FrameRenderer:
             if "gtao" in self.modes:
                 settings = GtaoSettings.preset(options.gtao_preset, float(scene.ao_distance))
                 self.gtao = self.passes["gtao"] = self._own(GtaoPass(self.ctx, self.gbuffer, settings))
+            if "nnao" in self.modes:
+                arrays = load_nnao_weights(options.nnao_weights)[0]
+                self.passes["nnao"] = self._own(NnaoPass(self.ctx, self.gbuffer, arrays, float(scene.ao_distance),
+                                                         options.nnao_samples))
+            if "mlp" in self.modes:
+                self.passes["mlp"] = self._own(MlpPass(self.ctx, self.gbuffer, self._mlp_arrays(options)))
             self.composites = {m: self._own(CompositePass(self.ctx, self.gbuffer)) for m in self.modes}
             self.timer = PassTimer(self.ctx, enabled=timing)
         except BaseException:
             self.release()
             raise
+
+    def _mlp_arrays(self, options: MethodOptions):
+        if not options.mlp_weights:
+            raise RenderError("AO method mlp needs a weights file (--mlp-weights FILE, from `psao train mlp`)")
+        return load_mlp_weights(options.mlp_weights, self.scene)[0]
 
     def _own(self, obj):
         self._objects.append(obj)

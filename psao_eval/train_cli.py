@@ -1,0 +1,136 @@
+"""`psao train mlp|nnao ...`: train a learned AO baseline and write its weights file.
+
+    psao train mlp SCENE --grid GRID.npz --out mlp.npz      # MLP baking: one network per object of SCENE
+    psao train nnao SCENE... --out nnao.npz                 # NNAO: one network for every scene
+
+Training is numpy on the CPU and seeded: the same command gives the same weights. With --json the last
+stdout line is a JSON summary (seconds, weight bytes, first and last loss).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from psao_eval.errors import EvalError
+
+
+def add_arguments(p) -> None:
+    sub = p.add_subparsers(dest="method", required=True, metavar="METHOD")
+    m = sub.add_parser("mlp", help="MLP AO baking (Erra et al.): per-object networks from a baked grid's AO points")
+    m.add_argument("scene", metavar="SCENE")
+    m.add_argument("--grid", required=True, metavar="FILE", help="baked grid of SCENE (psao bake)")
+    m.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
+    m.add_argument("--steps", type=int, default=2000, help="Adam steps (default 2000)")
+    m.add_argument("--points", type=int, default=8192, help="training points per object (default 8192)")
+    m.add_argument("--seed", type=int, default=1)
+    m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+
+    n = sub.add_parser("nnao", help="NNAO (Holden et al.): one network trained on G-buffers and RTAO at sampled pixels")
+    n.add_argument("scenes", nargs="*", metavar="SCENE",
+                   help="training scenes (default: scenes/pavilion.toml and scenes/playground.toml, kept out of the "
+                        "benchmark)")
+    n.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
+    n.add_argument("--frames", type=int, default=16, help="frames per scene (default 16)")
+    n.add_argument("--pixels", type=int, default=768, help="sampled pixels per frame (default 768)")
+    n.add_argument("--spp", type=int, default=256, help="RTAO rays per sampled pixel (default 256)")
+    n.add_argument("--epochs", type=int, default=12, help="passes over the data (default 12)")
+    n.add_argument("--steps", type=int, default=None, help="Adam steps instead of --epochs")
+    n.add_argument("--seed", type=int, default=1)
+    n.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+
+
+def _positive(name: str, value: int) -> None:
+    if value < 1:
+        raise EvalError(f"--{name} must be >= 1, got {value}")
+
+
+def _progress(quiet: bool):
+    start = time.perf_counter()
+    last = [0.0]
+
+    def report(step: int, total: int, loss: float) -> None:
+        now = time.perf_counter()
+        if not quiet and (now - last[0] > 2.0 or step == total):
+            last[0] = now
+            print(f"[{now - start:6.1f} s] step {step}/{total}, loss {loss:.5f}", file=sys.stderr)
+    return report
+
+
+def run(args) -> int:
+    if args.method == "mlp":
+        return run_mlp(args)
+    if args.method == "nnao":
+        return run_nnao(args)
+    raise EvalError(f"unknown training method {args.method!r}")
+
+
+def run_mlp(args) -> int:
+    from psao_client.render.gridfile import check_scene, load_grid_file
+    from psao_client.render.weights import save_weights
+    from psao_eval.learn.mlp_train import MlpTrainSettings, train_mlp
+    from psao_scene import load_scene
+
+    _positive("steps", args.steps)
+    _positive("points", args.points)
+    scene = load_scene(args.scene)
+    grid = load_grid_file(args.grid)
+    check_scene(grid, scene, args.grid)
+    settings = MlpTrainSettings(steps=args.steps, points=args.points, seed=args.seed)
+    result = train_mlp(grid, settings, progress=_progress(args.json))
+    header = {"scene_hash": scene.content_hash(), "scene": scene.name, "hidden": list(settings.hidden),
+              "steps": settings.steps, "points": settings.points, "seed": settings.seed, "grid": Path(args.grid).name}
+    nbytes = save_weights(args.out, "mlp", result.arrays, header)
+    summary = {"method": "mlp", "scene": scene.name, "out": str(args.out), "weight_bytes": nbytes,
+               "instances": len(grid.instances), "instances_trained": result.instances_trained,
+               "seconds": round(result.seconds, 2), "loss_first": result.losses[0], "loss_last": result.losses[-1]}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.out}: {nbytes:,} bytes of weights for {result.instances_trained} object(s), "
+              f"loss {summary['loss_first']:.5f} -> {summary['loss_last']:.5f} in {result.seconds:.1f} s",
+              file=sys.stderr)
+    return 0
+
+
+def run_nnao(args) -> int:
+    from psao_client.render.weights import save_weights
+    from psao_eval.learn.nnao_train import TRAINING_SCENES, NnaoDataSettings, NnaoTrainSettings, build_dataset, train_nnao
+    from psao_scene import load_scene
+
+    for name in ("frames", "pixels", "spp", "epochs"):
+        _positive(name, getattr(args, name))
+    if args.steps is not None:
+        _positive("steps", args.steps)
+    specs = list(args.scenes) or list(TRAINING_SCENES)
+    scenes = [load_scene(s) for s in specs]
+    data = NnaoDataSettings(frames=args.frames, pixels=args.pixels, spp=args.spp, seed=args.seed)
+    t0 = time.perf_counter()
+    quiet = args.json
+
+    def data_progress(n: int) -> None:
+        if not quiet:
+            print(f"[{time.perf_counter() - t0:6.1f} s] {n:,} training pixels traced", file=sys.stderr)
+
+    x, y = build_dataset(scenes, data, progress=data_progress)
+    data_s = time.perf_counter() - t0
+    train = NnaoTrainSettings(epochs=args.epochs, seed=args.seed)
+    result = train_nnao(x, y, train, steps=args.steps, progress=_progress(quiet))
+    header = {"trained_on": [s.name for s in scenes], "frames": data.frames, "pixels": data.pixels, "spp": data.spp,
+              "epochs": train.epochs, "steps": len(result.losses), "seed": args.seed, "samples": int(len(y)),
+              "data_s": round(data_s, 1), "train_s": round(result.seconds, 1)}
+    nbytes = save_weights(args.out, "nnao", result.arrays, header)
+    k = max(1, len(result.losses) // 20)
+    summary = {"method": "nnao", "out": str(args.out), "weight_bytes": nbytes, "samples": int(len(y)),
+               "trained_on": header["trained_on"], "data_s": header["data_s"], "train_s": header["train_s"],
+               "loss_first": float(np.mean(result.losses[:k])), "loss_last": float(np.mean(result.losses[-k:]))}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.out}: {nbytes:,} bytes, {len(y):,} pixels of {', '.join(header['trained_on'])}, loss "
+              f"{summary['loss_first']:.5f} -> {summary['loss_last']:.5f}, {data_s:.0f} s data + {result.seconds:.0f} s "
+              "training", file=sys.stderr)
+    return 0
