@@ -21,7 +21,7 @@ from contextlib import redirect_stdout
 from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality")
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -31,6 +31,8 @@ QUICK_ARGS = {
     "render": ["--densities", "64,256", "--frames", "2"],
     "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
+    "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "1", "--spp", "32",
+              "--clip", "8", "--bitrates", "0.25,1,4,20"],
 }
 
 

@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from psao_eval import video_bench
 from psao_eval.errors import EvalError
 
 TICK_RAYS = 32  # rays per re-traced point of an animating server (the tick's default)
@@ -51,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="animated scenes: score each frame at its scene time (server tick in process) and stream "
                         "from `psao serve --animate` (static scenes are unaffected)")
     p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs (default 1)")
+    video_bench.add_arguments(p)
 
 
 @dataclass
@@ -73,6 +75,7 @@ class BenchConfig:
     methods: tuple[str, ...] = DEFAULT_METHODS
     gtao_preset: str = "quality"
     mlp_steps: int = 1500
+    video: video_bench.VideoBenchConfig | None = None  # --video: the video AO streaming competitor
 
     @property
     def baselines(self) -> tuple[str, ...]:
@@ -126,7 +129,8 @@ def config_from_args(args) -> BenchConfig:
                        size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
                        image_scale=args.image_scale, animate=args.animate, methods=methods,
-                       gtao_preset=args.gtao_preset, mlp_steps=args.mlp_steps)
+                       gtao_preset=args.gtao_preset, mlp_steps=args.mlp_steps,
+                       video=video_bench.config_from_args(args))
 
 
 def parse_methods(text: str) -> tuple[str, ...]:
@@ -195,8 +199,9 @@ def method_name(density: float) -> str:
     return f"PSAO-{density:g}"
 
 
-def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict]:
-    """All rows of one scene and the data of its side-by-side image."""
+def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict, tuple | None]:
+    """All rows of one scene, the data of its side-by-side image and, with --video, the video
+    comparison's rows and image."""
     from psao_eval.quality import frame_poses
     from psao_scene import load_scene
 
@@ -214,7 +219,8 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
             continue
         for hz in cfg.tick_hz:
             rows.append({**base, "tick_hz": hz, **stream_run(spec, scene, grids[d][0], d, hz, cfg, log)})
-    return rows, image
+    video = video_bench.compare_scene(spec, scene, poses, grids, cfg, cfg.video, log) if cfg.video else None
+    return rows, image, video
 
 
 def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[dict, dict, str, bool]:
@@ -391,12 +397,22 @@ def _run(args) -> int:
     ensure_writable(cfg.out, "output folder")
     ensure_writable(cfg.cache, "cache folder")
     log = Log()
-    rows, images = [], []
+    rows, images, video_rows, video_images = [], [], [], []
     for spec in cfg.scenes:
-        scene_rows, image = bench_scene(spec, cfg, log)
+        scene_rows, image, video = bench_scene(spec, cfg, log)
         rows += scene_rows
         images.append(image)
+        if video:
+            rows += video_bench.table1_rows(video[0])
+            video_rows += video[0]
+            video_images.append(video[1])
     written = write_outputs(rows, images, cfg.out, cfg.image_scale)
+    if cfg.video:
+        from psao_eval import video_report
+
+        costs = video_bench.client_costs(video_rows, cfg.video.clients)
+        written += video_report.write_outputs(video_rows, video_images, costs, cfg.out, cfg.image_scale)
+        print(video_report.table1_markdown(video_rows))
     print(report.markdown_table(rows))
     print(LPIPS_NOTE)
     for p in written:

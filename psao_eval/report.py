@@ -1,8 +1,9 @@
 """Benchmark outputs: the Table 1 style table (Markdown and CSV), charts and side-by-side images.
 
-A result row is a dict with: scene, method ("PSAO-N" or a baseline: "SSAO", "GTAO", ...), density (N or
-None), tick_hz (or None),
-psnr, ssim, flip, stream_mbit_s, snapshot_mb, server_ms_tick, client_ms_frame, points, holes.
+A result row is a dict with: scene, method ("PSAO-N", a baseline: "SSAO", "GTAO", ..., or the video
+competitor "Video-BM"), density (N or None), tick_hz (or None),
+psnr, ssim, flip, stream_mbit_s, snapshot_mb, server_ms_tick, client_ms_frame, points, holes. Video rows
+(video: True) stream at tick_hz = their frame rate; their server_ms_tick is per client per frame.
 """
 from __future__ import annotations
 
@@ -63,12 +64,13 @@ def markdown_table(rows: list[dict]) -> str:
     for r in merged:
         cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3),
                  f"{round(r['bias'], 3) + 0.0:+.3f}" if r.get("bias") is not None else "-"]
-        cells += [_fmt(r["mbit"].get(hz), 3) if r["density"] else "-" for hz in rates]
+        streams = r["density"] or r.get("video")  # PSAO and the video competitor send; SSAO does not
+        cells += [_fmt(r["mbit"].get(hz), 3) if streams else "-" for hz in rates]
         if rates:
             cells.append(_fmt(ups.get((r["scene"], r["method"])), 1) if r["density"] else "-")
         cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-",
                   _fmt(r["weight_bytes"] / 1e3, 1) if r.get("weight_bytes") else "-", _fmt(r.get("client_ms_frame"), 1),
-                  _fmt(r.get("server_ms_tick"), 2) if r["density"] else "-",
+                  _fmt(r.get("server_ms_tick"), 2) if streams else "-",
                   _fmt(r.get("bake_trace_s"), 1) if r["density"] else "-",
                   f"{r['points']:,}" if r.get("points") else "-"]
         if animated:

@@ -1,0 +1,79 @@
+"""PSAO against per-client video of server-rendered AO (H.264 through PyAV), via `psao bench --video`.
+
+Runs the bench on an animated and a static built-in scene with PSAO at several densities and the video
+at several bitrates, 0 / 50 / 100 ms of latency, the camera run `--camera-speed` times faster before
+each scored frame, and prints the video tables. Targets (VERDICT lines):
+  * the codec round trip: decoded frames against the server's rendered AO at the highest bitrate,
+    PSNR >= 40 dB (what the client shows is what the server rendered, up to the codec);
+  * rate control: measured Mbit/s within 0.5..1.5x of each target bitrate >= 0.5 Mbit/s;
+  * equal bandwidth: on the animated scene, the PSAO densities' Mbit/s lie inside the video sweep's
+    range (fraction of densities >= 0.5), so the two curves can be read at equal Mbit/s;
+  * latency: the video's PSNR drops from 0 ms to the largest latency on the moving camera (> 0 dB).
+No target says which method wins: the tables and charts show that, per scene.
+
+    .venv/bin/python -m benchmarks.bench_video [--scenes builtin:robots,builtin:cornell] [--size 320x180] ...
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from benchmarks.verdicts import Verdicts
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="builtin:robots,builtin:cornell", help="comma-separated scenes")
+    p.add_argument("--densities", default="32,64,128,256")
+    p.add_argument("--bitrates", default="0.25,0.5,1,2,4,8,20", help="video Mbit/s; the last is the round-trip check's")
+    p.add_argument("--size", default="320x180")
+    p.add_argument("--frames", type=int, default=2)
+    p.add_argument("--spp", type=int, default=128, help="RTAO reference rays per pixel")
+    p.add_argument("--video-spp", type=int, default=8)
+    p.add_argument("--clip", type=int, default=20, help="video frames streamed before each scored frame")
+    p.add_argument("--camera-speed", type=float, default=4.0)
+    p.add_argument("--out", type=Path, default=Path("out") / "bench_video")
+    p.add_argument("--cache", type=Path, default=Path("out") / ".cache")
+    a = p.parse_args(argv)
+    from psao.cli import main as psao_main
+
+    rc = psao_main(["bench", *a.scenes.split(","), "--densities", a.densities, "--tick-hz", "60",
+                    "--frames", str(a.frames), "--spp", str(a.spp), "--size", a.size, "--no-stream", "--animate",
+                    "--out", str(a.out), "--cache", str(a.cache), "--video", "--video-bitrates", a.bitrates,
+                    "--video-spp", str(a.video_spp), "--video-clip", str(a.clip), "--camera-speed",
+                    str(a.camera_speed), "--latency-ms", "0,50,100"])
+    if rc != 0:
+        return rc
+    print((a.out / "video_table.md").read_text())
+    return check(json.loads((a.out / "video_results.json").read_text())["rows"]).exit_code()
+
+
+def check(rows: list[dict]) -> Verdicts:
+    v = Verdicts("bench_video")
+    L0, L1 = min(r["latency_ms"] for r in rows), max(r["latency_ms"] for r in rows)
+    for scene in sorted({r["scene"] for r in rows}):
+        video = [r for r in rows if r["scene"] == scene and r["kind"] == "video" and r["bitrate"] is not None
+                 and not r["reprojected"]]
+        at0 = [r for r in video if r["latency_ms"] == L0]
+        top = max(at0, key=lambda r: r["bitrate"])
+        v.check(f"{scene} decoded vs rendered PSNR dB at {top['bitrate']:g} Mbit/s", top["codec_psnr"], ">=", 40.0)
+        ratios = [r["mbit_s"] / r["bitrate"] for r in at0 if r["bitrate"] >= 0.5]
+        v.check(f"{scene} measured / target Mbit/s, lowest", min(ratios), ">=", 0.5)
+        v.check(f"{scene} measured / target Mbit/s, highest", max(ratios), "<=", 1.5)
+        psao = [r for r in rows if r["scene"] == scene and r["kind"] == "psao" and r["latency_ms"] == L0]
+        if any(r["animated"] for r in psao):
+            lo, hi = min(r["mbit_s"] for r in at0), max(r["mbit_s"] for r in at0)
+            inside = sum(lo <= r["mbit_s"] <= hi for r in psao) / len(psao)
+            v.check(f"{scene} PSAO densities inside the video's Mbit/s range (fraction)", inside, ">=", 0.5)
+        if L1 > L0:
+            mid = sorted(at0, key=lambda r: r["bitrate"])[len(at0) // 2]
+            late = next(r for r in video if r["bitrate"] == mid["bitrate"] and r["latency_ms"] == L1)
+            v.check(f"{scene} {mid['method']} PSNR loss from {L0:g} to {L1:g} ms (dB)", mid["psnr"] - late["psnr"],
+                    ">", 0.0)
+    return v
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""The video AO streaming competitor: server render, H.264 round trip, reprojection, the bench's
+--video end to end, and its bad input."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psao_eval.errors import EvalError
+from psao_eval.metrics import psnr
+from psao_eval.video import VideoServer, VideoSettings, decode_stream, encode_stream, reproject
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = (96, 54)
+
+
+@pytest.fixture(scope="module")
+def cornell_frames():
+    """Six client frames of the Cornell box 0.8 s apart on its camera path (the camera moves about 20
+    pixels from the first to the last), with a tiny grid."""
+    from psao_client.render.views import path_matrices
+    from psao_eval.quality import FramePose, QualityRenderer
+    from psao_scene import load_scene, scene_camera
+    from psao_server.bake import BakeSettings, bake_scene
+
+    scene = load_scene("builtin:cornell")
+    path = scene_camera(scene)
+    poses = [FramePose(i, 0.8 * i, *path_matrices(scene, path, 0.8 * i, SIZE)) for i in range(6)]
+    bake = bake_scene(scene, BakeSettings(density=16, rays=4))
+    with QualityRenderer(scene, SIZE) as qr:
+        frames = qr.render(bake.grid, poses, timing_repeats=1)
+    return scene, frames
+
+
+@pytest.fixture(scope="module")
+def rendered(cornell_frames):
+    scene, frames = cornell_frames
+    with VideoServer(scene, VideoSettings(spp=4, workers=1)) as server:
+        out = [server.render(f) for f in frames]
+    return [ao for ao, _ in out], [cost for _, cost in out]
+
+
+def test_server_traces_every_covered_pixel(cornell_frames, rendered):
+    _, frames = cornell_frames
+    aos, costs = rendered
+    for f, ao, cost in zip(frames, aos, costs):
+        assert cost.rays == 4 * int(f.mask.sum())
+        assert np.all(ao[~f.mask] == 1.0)
+        covered = ao[f.mask]
+        assert covered.min() >= 0 and covered.max() <= 1 and covered.std() > 0.02  # the box has real occlusion
+
+
+def test_decoded_frames_match_rendered_within_codec_error(rendered):
+    aos, _ = rendered
+    high = encode_stream(aos, VideoSettings(bitrate_mbit=20.0, fps=60))
+    decoded = decode_stream(high)
+    assert len(decoded) == len(aos)
+    for a, d in zip(aos, decoded):
+        assert d.shape == a.shape
+        # 8-bit luma: the round trip at a high bitrate is within a few code values everywhere
+        assert np.abs(d - a).mean() < 2.0 / 255 and np.abs(d - a).max() < 24.0 / 255
+        assert psnr(a, d) > 40.0
+    low = encode_stream(aos, VideoSettings(bitrate_mbit=0.05, fps=60))
+    assert low.total_bytes < high.total_bytes
+    err_low = np.mean([np.abs(d - a).mean() for a, d in zip(aos, decode_stream(low))])
+    err_high = np.mean([np.abs(d - a).mean() for a, d in zip(aos, decoded)])
+    assert err_low > err_high
+
+
+def test_odd_frame_sizes_round_trip(rendered):
+    aos = [a[:53, :95] for a in rendered[0]]
+    decoded = decode_stream(encode_stream(aos, VideoSettings(bitrate_mbit=20.0)))
+    assert all(d.shape == (53, 95) for d in decoded)
+    assert psnr(aos[0], decoded[0]) > 40.0
+
+
+def test_reprojection_follows_the_surfaces(cornell_frames):
+    """A pattern fixed on the surfaces, drawn for an old pose and reprojected with the new pose's depth,
+    lands where the new pose sees it; shown unreprojected it does not."""
+    _, frames = cornell_frames
+    old, new = frames[0], frames[-1]
+
+    def pattern(world):
+        return (0.5 + 0.5 * np.sin(25.0 * world[..., 0]) * np.cos(21.0 * world[..., 1])).astype(np.float32)
+
+    src = np.where(old.mask, pattern(old.gbuffer.world), 1.0)
+    want = pattern(new.gbuffer.world)
+    warped, valid = reproject(src, old.gbuffer.world, old.mask, old.pose.view, old.pose.proj,
+                              new.gbuffer.world, new.mask)
+    assert valid.sum() > 0.8 * new.mask.sum()
+    err_warped = np.abs(warped - want)[valid].mean()
+    err_plain = np.abs(src - want)[valid].mean()
+    assert err_warped < 0.05 and err_plain > 2 * err_warped
+
+
+@pytest.mark.parametrize("change,msg", [
+    ({"codec": "mjpeg2000"}, "unknown video codec"),
+    ({"bitrate_mbit": 0.0}, "bitrate must be > 0"),
+    ({"bitrate_mbit": -1.0}, "bitrate must be > 0"),
+    ({"spp": 0}, "rays per pixel"),
+])
+def test_settings_are_checked(change, msg):
+    with pytest.raises(EvalError, match=msg):
+        replace(VideoSettings(), **change).check()
+
+
+def bench(tmp_path: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "psao.cli", "bench", "builtin:cornell", "--cache", str(tmp_path / "cache"),
+            "--out", str(tmp_path / "out"), "--size", "96x54", "--spp", "8", "--frames", "2", "--no-stream",
+            "--densities", "64", "--tick-hz", "60", *extra]
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--video-codec", "mjpeg2000"], "unknown video codec 'mjpeg2000'"),
+    (["--video-bitrates", "0"], "bitrate must be > 0"),
+    (["--video-bitrates", "1,-2"], "bitrate must be > 0"),
+    (["--latency-ms", "-50"], "latency must be >= 0"),
+])
+def test_bad_video_arguments_are_one_line(tmp_path, capsys, args, msg):
+    from psao.cli import main  # the CLI dispatcher in this process: argument errors need no subprocess
+
+    rc = main(bench(tmp_path, "--video", *args)[3:])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1 and msg in lines[0], err
+
+
+def test_bench_video_end_to_end(tmp_path):
+    r = subprocess.run(bench(tmp_path, "--video", "--video-bitrates", "0.5,4", "--video-spp", "2",
+                             "--video-clip", "3", "--latency-ms", "0,50", "--clients", "1,10"),
+                       cwd=ROOT, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = tmp_path / "out"
+    for name in ("video_table.md", "video_results.json", "video_bandwidth_quality.png", "video_latency.png",
+                 "video_clients.png", "frame_video_cornell.png", "table.md"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    data = json.loads((out / "video_results.json").read_text())
+    rows = data["rows"]
+    video = {(r["method"], r["latency_ms"], r["reprojected"]): r for r in rows if r["kind"] == "video"}
+    assert set(video) == {(m, L, rep) for m in ("Video-0.5M", "Video-4M", "Video-raw")
+                          for L, rep in ((0.0, False), (50.0, False), (50.0, True))}
+    assert video[("Video-4M", 0.0, False)]["mbit_s"] > video[("Video-0.5M", 0.0, False)]["mbit_s"] > 0
+    psao = [r for r in rows if r["kind"] == "psao"]
+    assert {r["latency_ms"] for r in psao} == {0.0, 50.0}
+    # a static scene's grid is the same at every latency
+    assert psao[0]["psnr"] == psao[1]["psnr"]
+    costs = {(c["method"], c["clients"]): c for c in data["clients"]}
+    v1, v10 = costs[("Video-4M", 1)], costs[("Video-4M", 10)]
+    assert v10["ms_total"] == pytest.approx(10 * v1["ms_total"]) and v1["ms_per_client"] > 0
+    assert "Video-4M" in (out / "table.md").read_text()
