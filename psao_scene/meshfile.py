@@ -105,9 +105,31 @@ def load_mesh_file(path: Path, animation: int | str = 0) -> tuple[list[Mesh], li
             f"{path}: unsupported mesh format '{ext or '(none)'}' (supported: {', '.join(MESH_EXTENSIONS)})")
     if not path.is_file():
         raise SceneNotFound(f"{path}: mesh file not found")
+    check_not_a_stand_in(path)
     if ext in GLTF_EXTENSIONS:
         return load_gltf(path, animation)
     return _load_with_trimesh(path)
+
+
+# What a file that should be a mesh may really be: the first bytes tell (a download that saved a web page,
+# a clone without `git lfs pull`). Checked before any parser sees the file.
+LFS_POINTER_PREFIX = b"version https://git-lfs.github.com/spec/"
+HTML_PREFIXES = (b"<!doctype html", b"<html", b"<head", b"<!--")
+
+
+def check_not_a_stand_in(path: Path) -> None:
+    """SceneFormatError naming what the file really is when it is a Git LFS pointer or an HTML page."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    text = head.lstrip(b"\xef\xbb\xbf \t\r\n")
+    if text.startswith(LFS_POINTER_PREFIX):
+        raise SceneFormatError(f"{path}: this is a Git LFS pointer, not the mesh: fetch the file itself "
+                               f"(git lfs pull) or download the real file")
+    if text.lower().startswith(HTML_PREFIXES):
+        raise SceneFormatError(f"{path}: this is an HTML page, not a mesh file (a download link that returned "
+                               f"a web page?)")
+    if len(head) == 0:
+        raise SceneFormatError(f"{path}: the file is empty")
 
 
 def _load_with_trimesh(path: Path) -> tuple[list[Mesh], list[Instance]]:
@@ -151,6 +173,18 @@ def merged_mesh(name: str, meshes: list[Mesh], instances: list[Instance], **mesh
 
 # ---------------------------------------------------------------- glTF through pygltflib
 
+DRACO = "KHR_draco_mesh_compression"
+# Extensions a file may require that PSAO reads: Draco-compressed and quantised geometry (integer
+# accessors, read and normalised like any other), and those that only change textures, materials or
+# lights, which PSAO does not use (AO needs geometry alone), so ignoring them is safe.
+SUPPORTED_REQUIRED_EXTENSIONS = frozenset({
+    DRACO, "KHR_mesh_quantization", "KHR_texture_transform", "KHR_texture_basisu", "EXT_texture_webp",
+    "EXT_texture_avif", "KHR_materials_unlit", "KHR_materials_emissive_strength", "KHR_materials_ior",
+    "KHR_materials_specular", "KHR_materials_transmission", "KHR_materials_volume", "KHR_materials_clearcoat",
+    "KHR_materials_sheen", "KHR_materials_iridescence", "KHR_materials_anisotropy",
+    "KHR_materials_pbrSpecularGlossiness", "KHR_materials_variants", "KHR_lights_punctual",
+})
+
 _COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
                      5126: np.float32}
 _TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
@@ -170,6 +204,11 @@ class GltfFile:
             raise SceneFormatError(f"{path}: cannot parse glTF: {type(e).__name__}: {e}".splitlines()[0]) from None
         if self.doc is None:
             raise SceneFormatError(f"{path}: cannot parse glTF")
+        unsupported = [e for e in (self.doc.extensionsRequired or []) if e not in SUPPORTED_REQUIRED_EXTENSIONS]
+        if unsupported:
+            raise SceneFormatError(
+                f"{path}: requires glTF extension{'s' if len(unsupported) > 1 else ''} {', '.join(unsupported)}, "
+                f"which PSAO cannot read (supported: {', '.join(sorted(SUPPORTED_REQUIRED_EXTENSIONS))})")
         self._buffers: dict[int, bytes] = {}
 
     def buffer(self, i: int) -> bytes:
@@ -185,7 +224,8 @@ class GltfFile:
             else:
                 file = self.path.parent / uri
                 if not file.is_file():
-                    raise SceneNotFound(f"{self.path}: buffer file '{uri}' not found")
+                    raise SceneNotFound(f"{self.path}: this glTF keeps its geometry in '{uri}', which is not next "
+                                        f"to it: copy that file beside the .gltf (or use the .glb)")
                 self._buffers[i] = file.read_bytes()
         return self._buffers[i]
 
@@ -313,14 +353,23 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
         if prim.attributes.POSITION is None or tri_mode not in (4, 5, 6):
             log.warning("%s: %s: skipped (no positions or not triangles)", g.path, what)
             continue
-        v = g.accessor(prim.attributes.POSITION, what).astype(np.float64)
-        idx = (g.accessor(prim.indices, what).reshape(-1).astype(np.int64) if prim.indices is not None
-               else np.arange(len(v), dtype=np.int64))
+        draco = (prim.extensions or {}).get(DRACO)
+        if draco is not None:
+            v, tri, skin = _draco_primitive(g, draco, what)
+        else:
+            v = g.accessor(prim.attributes.POSITION, what).astype(np.float64)
+            idx = (g.accessor(prim.indices, what).reshape(-1).astype(np.int64) if prim.indices is not None
+                   else np.arange(len(v), dtype=np.int64))
+            tri = _triangles(tri_mode, idx)
+            skin = None
+            if prim.attributes.JOINTS_0 is not None and prim.attributes.WEIGHTS_0 is not None:
+                skin = (g.accessor(prim.attributes.JOINTS_0, what), g.accessor(prim.attributes.WEIGHTS_0, what))
+        # Morph targets (prim.targets) are left out: the mesh is read at rest, its base positions.
         verts.append(v)
-        faces.append(_triangles(tri_mode, idx) + offset)
-        if prim.attributes.JOINTS_0 is not None and prim.attributes.WEIGHTS_0 is not None:
-            joints.append(g.accessor(prim.attributes.JOINTS_0, what).astype(np.int64))
-            weights.append(g.accessor(prim.attributes.WEIGHTS_0, what).astype(np.float64))
+        faces.append(tri + offset)
+        if skin is not None:
+            joints.append(skin[0].astype(np.int64))
+            weights.append(skin[1].astype(np.float64))
         offset += len(v)
         if prim.material is not None and pi == 0:
             mat = g.doc.materials[prim.material]
@@ -334,6 +383,37 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
     return GltfMeshData(name, np.concatenate(verts), np.concatenate(faces),
                         np.concatenate(joints) if skinned else None,
                         np.concatenate(weights) if skinned else None, color, double_sided)
+
+
+def _draco_primitive(g: GltfFile, ext: dict, what: str):
+    """(positions (V, 3) float64, triangles (F, 3), (joints, weights) or None) of a Draco-compressed
+    primitive (KHR_draco_mesh_compression: its buffer view holds the Draco mesh; `attributes` maps glTF
+    attribute names to Draco attribute ids). Draco keeps its own vertex order, used for every attribute."""
+    import DracoPy
+
+    try:
+        view = g.doc.bufferViews[int(ext["bufferView"])]
+        data = g.buffer(view.buffer)[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength]
+        mesh = DracoPy.decode(data)
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise SceneFormatError(f"{g.path}: {what}: cannot read its Draco data ({type(e).__name__}: {e})".splitlines()[0]) from None
+    except Exception as e:  # DracoPy raises its own kinds on corrupt data
+        raise SceneFormatError(f"{g.path}: {what}: Draco data does not decode ({type(e).__name__})") from None
+    ids = ext.get("attributes", {})
+
+    def attribute(name):
+        if name not in ids:
+            return None
+        found = mesh.get_attribute_by_unique_id(int(ids[name]))
+        return None if found is None else np.asarray(found["data"])
+
+    pos = attribute("POSITION")
+    if pos is None:
+        pos = np.asarray(mesh.points)
+    faces = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
+    joints, weights = attribute("JOINTS_0"), attribute("WEIGHTS_0")
+    skin = None if joints is None or weights is None else (joints, weights)
+    return np.asarray(pos, np.float64).reshape(-1, 3), faces, skin
 
 
 # What malformed glTF fields raise deep inside the reader (wrong types, indices out of range, bad
