@@ -26,8 +26,10 @@ class Mesh:
         n = np.cross(b - a, c - a)
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
-    def area(self) -> float:
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
+    def area(self, linear: np.ndarray | None = None) -> float:
+        """Surface area, of the mesh as placed by the 3x3 `linear` part of a transform when given."""
+        v = self.vertices if linear is None else self.vertices @ np.asarray(linear, np.float64).T
+        a, b, c = (v[self.faces[:, i]] for i in range(3))
         return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 

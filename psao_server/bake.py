@@ -18,13 +18,16 @@ from psao_scene.model import Scene
 from psao_server.errors import ConfigError
 from psao_server.gapfill import GapFillSettings, fill_gaps
 from psao_server.grid import Grid, GridSettings
+from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings, resolve_density
 from psao_server.points import PointSet, PointSettings, generate_scene_points, instance_seed, spawn_uniform, triangle_areas
 from psao_server.tracer import TraceSettings, Tracer, make_tracer
 
 
 @dataclass
 class BakeSettings:
-    density: float = 256.0  # N, final points per world unit^2
+    density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
+    points: float | None = None  # total point budget instead of a density
+    max_points: float = DEFAULT_MAX_POINTS  # refuse a setting whose estimate exceeds this many points
     rays: int = 128  # rays per point
     seed: int = 0
     tracer: str = "embree"  # back-end name, see psao_server.tracer
@@ -35,14 +38,17 @@ class BakeSettings:
     gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
 
     def check(self) -> None:
-        if not np.isfinite(self.density) or self.density <= 0:
-            raise ConfigError(f"density must be > 0, got {self.density}")
+        self.sampling().check()
         if not self.spawn_ratio >= 1.0:
             raise ConfigError(f"spawn ratio must be >= 1, got {self.spawn_ratio}")
         if self.rays < 1:
             raise ConfigError(f"rays must be >= 1, got {self.rays}")
         if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
             raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
+
+
+    def sampling(self) -> SamplingSettings:
+        return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points)
 
 
 @dataclass
@@ -136,7 +142,11 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
     settings.check()
     if show_progress is None:
         show_progress = sys.stderr.isatty()
-    stats: dict = {"scene": scene.name, "density": settings.density, "rays": settings.rays, "seed": settings.seed}
+    # Before anything is allocated: the density this scene gets and the points it will take (ConfigError
+    # naming the count and what to pass above settings.max_points).
+    density, estimate = resolve_density(scene, settings.sampling(), settings.min_points)
+    stats: dict = {"scene": scene.name, "density": density, "points_estimated": estimate, "rays": settings.rays,
+                   "seed": settings.seed}
     tracer = make_tracer(settings.tracer, scene_center(scene), **({"workers": settings.workers} if settings.tracer == "embree" else {}))
     tracer.set_static(*scene_world_geometry(scene))
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
@@ -144,7 +154,7 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         t0 = time.perf_counter()
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
         pointsets = generate_scene_points(
-            scene, PointSettings(density=settings.density, min_points=settings.min_points, seed=settings.seed,
+            scene, PointSettings(density=density, min_points=settings.min_points, seed=settings.seed,
                                  spawn_ratio=settings.spawn_ratio),
             progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
         stats["seconds_points"] = time.perf_counter() - t0

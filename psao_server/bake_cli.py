@@ -6,12 +6,13 @@ import json
 import sys
 from pathlib import Path
 
+from psao_server import sampling
 from psao_server.errors import ConfigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="builtin:NAME, a scene .toml, or a mesh file (glTF, GLB, OBJ, ...)")
-    p.add_argument("--density", type=float, default=256.0, help="points per world unit^2 after elimination (default 256)")
+    sampling.add_arguments(p)
     p.add_argument("--rays", type=int, default=128, help="AO rays per point (default 128)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spawn-ratio", type=float, default=2.0,
@@ -35,10 +36,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.probes < 0 or args.probe_rays < 1:
         raise ConfigError("--probes must be >= 0 and --probe-rays >= 1")
-    scene = load_scene(args.scene, ao_distance=args.ao_distance)
-    settings = BakeSettings(density=args.density, rays=args.rays, seed=args.seed, tracer=args.tracer,
+    settings = BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed, tracer=args.tracer,
                             spawn_ratio=args.spawn_ratio,
                             gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
+    settings.check()  # a bad number fails before the scene loads
+    scene = load_scene(args.scene, ao_distance=args.ao_distance)
     result = bake_scene(scene, settings)
     stats = dict(result.stats)
     try:
@@ -48,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
             stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=args.probe_rays))
     finally:
         result.tracer.close()
-    out = args.out or Path("out") / f"{scene.name}-N{args.density:g}.npz"
+    out = args.out or Path("out") / f"{scene.name}-N{stats['density']:.4g}.npz"
     out.parent.mkdir(parents=True, exist_ok=True)
     result.grid.save(out, scene_hash=scene.content_hash(), meta={"scene": args.scene, **{k: v for k, v in stats.items() if isinstance(v, (int, float, str))}})
     stats["out"] = str(out)

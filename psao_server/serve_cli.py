@@ -8,6 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
+from psao_server import sampling
 from psao_server.errors import ConfigError
 
 CODEC_CHOICES = ("zstd", "lz4", "none")
@@ -17,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="builtin:NAME, a scene .toml, or a mesh file")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default loopback only)")
     p.add_argument("--port", type=int, default=8765, help="TCP port (0 picks a free one; default 8765)")
-    p.add_argument("--density", type=float, default=256.0, help="points per world unit^2 (default 256)")
+    sampling.add_arguments(p)
     p.add_argument("--rays", type=int, default=128, help="AO rays per point for the bake (default 128)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grid", type=Path, default=None, help="serve this baked grid (.npz from psao bake) instead of baking")
@@ -54,14 +55,14 @@ def _animated(args):
     if args.test_edits:
         raise ConfigError("--animate and --test-edits both edit the grid: choose one")
     scene = load_scene(args.scene)
-    bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, seed=args.seed))
+    bake = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed))
     settings = TickSettings(seed=args.seed) if args.tick_rays is None else TickSettings(rays=args.tick_rays,
                                                                                        seed=args.seed)
     # The bake's AO is the tick's first sync even when it traced more rays than a tick does: otherwise the
     # first tick would re-trace every visible point at once.
     tick = ServerTick(bake, settings, trust_bake=True)  # closes the bake's tracer, starts its own
     logging.getLogger("psao.serve").info("baked %s at N=%g: %d points; server tick on (%d rays per re-traced point)",
-                                         scene.name, args.density, bake.stats["points_kept"], tick.settings.rays)
+                                         scene.name, bake.stats["density"], bake.stats["points_kept"], tick.settings.rays)
     return scene, tick.grid, tick
 
 
@@ -79,10 +80,10 @@ def _load(args):
         if len(grid.instances) != len(scene.instances):
             raise ConfigError(f"{args.grid} has {len(grid.instances)} instances, {args.scene} has {len(scene.instances)}")
         return scene, grid
-    result = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays, seed=args.seed))
+    result = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed))
     result.tracer.close()
     logging.getLogger("psao.serve").info(
-        "baked %s at N=%g: %d points in %d cells", scene.name, args.density, result.stats["points_kept"],
+        "baked %s at N=%g: %d points in %d cells", scene.name, result.stats["density"], result.stats["points_kept"],
         result.stats["cells"])
     return scene, result.grid
 
@@ -127,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging()
     settings = _settings(args)
+    sampling.SamplingSettings(**sampling.bake_kwargs(args)).check()  # a bad number fails before the scene loads
     if args.animate:
         scene, grid, tick = _animated(args)
         transforms = tick.transforms

@@ -69,7 +69,7 @@ def test_cornell_accuracy_targets():
 
 
 def test_bad_settings_are_rejected():
-    with pytest.raises(ConfigError, match="density must be > 0"):
+    with pytest.raises(ConfigError, match="density must be a finite number > 0"):
         BakeSettings(density=0).check()
     with pytest.raises(ConfigError, match="rays"):
         BakeSettings(rays=0).check()
@@ -94,8 +94,8 @@ def test_cli_json_has_every_field(tmp_path):
 @pytest.mark.parametrize("args,needle", [
     (("bake", "missing_file.glb"), "not found"),
     (("bake", "builtin:nope"), "unknown scene"),
-    (("bake", "builtin:cornell", "--density", "0"), "density must be > 0"),
-    (("bake", "builtin:cornell", "--density", "-5"), "density must be > 0"),
+    (("bake", "builtin:cornell", "--density", "0"), "density must be a finite number > 0"),
+    (("bake", "builtin:cornell", "--density", "-5"), "density must be a finite number > 0"),
     (("bake", "scene.xyz"), "unsupported"),
 ])
 def test_cli_bad_input_is_one_line(args, needle):

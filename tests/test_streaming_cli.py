@@ -29,7 +29,7 @@ def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
 
 @pytest.mark.parametrize("args, text", [
     (["--tick-hz", "100"], "tick rate must be within 5..60"),
-    (["--density", "0"], "density must be > 0"),
+    (["--density", "0"], "density must be a finite number > 0"),
     (["--test-edits", "-1"], "--test-edits must be >= 0"),
     (["--grid", "/nonexistent/grid.npz"], "not a PSAO grid file"),
 ])

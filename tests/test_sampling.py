@@ -1,0 +1,88 @@
+"""Scale-aware default density, point budgets and the estimate checked before anything is generated."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psao_scene import load_scene
+from psao_server.errors import ConfigError
+from psao_server.sampling import (POINTS_PER_AO_AREA, SamplingSettings, default_density, estimate_points,
+                                  resolve_density)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_box_obj(path: Path, size: float) -> Path:
+    """A closed box of edge `size` (12 triangles) as an OBJ file."""
+    v = [(x, y, z) for x in (0, size) for y in (0, size) for z in (0, size)]
+    f = [(1, 2, 4), (1, 4, 3), (5, 7, 8), (5, 8, 6), (1, 5, 6), (1, 6, 2), (3, 4, 8), (3, 8, 7), (1, 3, 7),
+         (1, 7, 5), (2, 6, 8), (2, 8, 4)]
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(f"f {a} {b} {c}\n" for a, b, c in f))
+    return path
+
+
+def test_courtyard_default_is_its_measured_density():
+    scene = load_scene("builtin:courtyard")
+    assert default_density(scene) == pytest.approx(256.0)
+    density, count = resolve_density(scene, SamplingSettings(), min_points=64)
+    assert density == pytest.approx(256.0) and count == estimate_points(scene, 256.0, 64)
+
+
+def test_default_sampling_does_not_depend_on_units(tmp_path):
+    small = load_scene(write_box_obj(tmp_path / "mm.obj", 2.0))
+    huge = load_scene(write_box_obj(tmp_path / "km.obj", 2.0e5))
+    n_small = resolve_density(small, SamplingSettings(), 64)[1]
+    n_huge = resolve_density(huge, SamplingSettings(), 64)[1]
+    assert n_small == n_huge > 64 * 6
+    # points per AO-distance squared, as promised
+    area = 6 * 2.0 ** 2
+    assert n_small == pytest.approx(POINTS_PER_AO_AREA * area / small.ao_distance ** 2, rel=1e-6)
+
+
+def test_point_budget_sets_the_density(tmp_path):
+    scene = load_scene(write_box_obj(tmp_path / "b.obj", 3.0))
+    density, count = resolve_density(scene, SamplingSettings(points=5000), 1)
+    assert density == pytest.approx(5000 / 54.0) and count == pytest.approx(5000, abs=6)
+
+
+@pytest.mark.parametrize("kw", [dict(density=0.0), dict(density=-3.0), dict(density=math.nan), dict(density=math.inf),
+                                dict(points=0), dict(points=-1), dict(points=math.nan), dict(max_points=0),
+                                dict(max_points=math.nan), dict(density=5.0, points=100)])
+def test_bad_numbers_are_refused(kw):
+    with pytest.raises(ConfigError):
+        SamplingSettings(**kw).check()
+
+
+def test_estimate_above_the_limit_names_count_and_what_to_pass(tmp_path):
+    scene = load_scene(write_box_obj(tmp_path / "big.obj", 1000.0))
+    with pytest.raises(ConfigError) as err:
+        resolve_density(scene, SamplingSettings(density=16.0, max_points=1e6), 64)
+    text = str(err.value)
+    assert "96,000,000 points" in text and "--density" in text and "--points 1000000" in text and "\n" not in text
+
+
+def psao(*args):
+    return subprocess.run([sys.executable, "-m", "psao", *map(str, args)], capture_output=True, text=True,
+                          cwd=REPO, timeout=300)
+
+
+def test_cli_refuses_a_huge_file_before_generating(tmp_path):
+    """A file in huge units at an absolute density: one line naming the count, exit 2, nothing written."""
+    obj = write_box_obj(tmp_path / "huge.obj", 1.0e5)
+    res = psao("bake", obj, "--density", 16, "--out", tmp_path / "g.npz")
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip() and "Warp" not in ln]
+    assert len(lines) == 1 and "960,000,000,000 points" in lines[0] and "--max-points" in lines[0]
+    assert not (tmp_path / "g.npz").exists()
+
+
+@pytest.mark.parametrize("args", [("--density", "nan"), ("--points", "0")])
+def test_cli_bad_number_is_one_line(args, tmp_path):
+    res = psao("bake", "builtin:cornell", *args, "--out", tmp_path / "g.npz")
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip() and "Warp" not in ln]
+    assert res.returncode == 2 and len(lines) == 1 and "must be a finite number > 0" in lines[0]
