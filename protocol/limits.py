@@ -30,6 +30,15 @@ class Limits:
     max_cells_per_message: int = 1 << 16
     max_buckets_per_message: int = 1 << 16
     max_snapshot_chunks: int = 1 << 16
+    # The scene (SceneData): one zstd frame of protocol.scenefile bytes, sent in chunks.
+    scene_bytes: int = 256 * 1024 * 1024  # compressed, all chunks together
+    scene_payload_bytes: int = 1024 * 1024 * 1024  # the decompressed scene file
+    scene_chunk_bytes: int = 1024 * 1024  # what the server puts into one SceneData message
+    max_scene_meshes: int = 1 << 16  # meshes, and camera paths
+    max_scene_vertices: int = 1 << 26  # per mesh
+    max_scene_faces: int = 1 << 26  # per mesh
+    max_skin_samples: int = 1 << 14  # sampled poses per skin
+    max_scene_camera_keys: int = 1 << 16
     # Decompression: input is fed in pieces this small, so the output overshoots a cap by at most
     # piece / 4 * 128 KiB (a zstd RLE block is 4 bytes for 128 KiB) before the cap check stops it.
     decompress_piece_bytes: int = 128

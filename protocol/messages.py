@@ -19,6 +19,9 @@ every field (sizes before allocation, finite matrices, UTF-8 text) and raises pr
     SceneEdit  client -> server  instance id, 4x4 float32 local-to-world transform
     Error      both              code, text; the sender then closes the connection
     Bye        both              empty; a clean goodbye
+    SceneRequest client -> server  before Hello: the scene hash the client has cached (or zeros), token
+    SceneData  server -> client  scene hash, chunk i of n of the scene blob (one zstd frame of a
+                                 protocol.scenefile); n = 0: the client's cached scene is current
 """
 from __future__ import annotations
 
@@ -50,6 +53,8 @@ class MessageType(IntEnum):
     SCENE_EDIT = 6
     ERROR = 7
     BYE = 8
+    SCENE_REQUEST = 9
+    SCENE_DATA = 10
 
 
 class ErrorCode(IntEnum):
@@ -124,6 +129,15 @@ def _text(raw: memoryview, what: str) -> str:
         raise PayloadError(f"{what} is not valid UTF-8") from None
 
 
+def _bounded_text(r: Reader, n: int, most: int, what: str) -> str:
+    """The last field of a message: n bytes of UTF-8 text, at most `most`, and nothing after it."""
+    if n > most:
+        raise LimitError(f"{what} of {n} bytes over the limit of {most}")
+    text = _text(r.take(n), what)
+    r.done()
+    return text
+
+
 # ----------------------------------------------------------------------------------------------- messages
 
 _HELLO = struct.Struct("<HI32sH")  # version, codec mask, scene hash, token length
@@ -147,10 +161,7 @@ class Hello:
     def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Hello":
         r = Reader(payload, "Hello")
         version, mask, scene_hash, n_tok = r.unpack(_HELLO)
-        if n_tok > limits.token_bytes:
-            raise LimitError(f"Hello: token of {n_tok} bytes over the limit of {limits.token_bytes}")
-        token = _text(r.take(n_tok), "Hello token")
-        r.done()
+        token = _bounded_text(r, n_tok, limits.token_bytes, "Hello: token")
         return cls(scene_hash=scene_hash, codec_mask=mask, token=token, version=version)
 
 
@@ -301,11 +312,7 @@ class Error:
     def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Error":
         r = Reader(payload, "Error")
         code, n = r.unpack(_ERROR)
-        if n > limits.error_text_bytes:
-            raise LimitError(f"Error: text of {n} bytes over the limit of {limits.error_text_bytes}")
-        text = _text(r.take(n), "Error text")
-        r.done()
-        return cls(code, text)
+        return cls(code, _bounded_text(r, n, limits.error_text_bytes, "Error: text"))
 
 
 @dataclass
@@ -321,8 +328,67 @@ class Bye:
         return cls()
 
 
-MESSAGE_CLASSES = {cls.TYPE: cls for cls in (Hello, Welcome, Snapshot, Update, Camera, SceneEdit, Error, Bye)}
-Message = Hello | Welcome | Snapshot | Update | Camera | SceneEdit | Error | Bye
+_SCENE_REQUEST = struct.Struct("<32sH")  # cached scene hash (zeros: none), token length
+NO_SCENE = bytes(SCENE_HASH_BYTES)
+
+
+@dataclass
+class SceneRequest:
+    """Asks for the server's scene before Hello; `cached` is the hash of a scene the client already holds."""
+
+    TYPE = MessageType.SCENE_REQUEST
+    cached: bytes = NO_SCENE
+    token: str = ""
+
+    def serialize(self) -> bytes:
+        if len(self.cached) != SCENE_HASH_BYTES:
+            raise PayloadError(f"SceneRequest: cached hash must be {SCENE_HASH_BYTES} bytes, got {len(self.cached)}")
+        tok = self.token.encode("utf-8")
+        return _SCENE_REQUEST.pack(self.cached, len(tok)) + tok
+
+    @classmethod
+    def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "SceneRequest":
+        r = Reader(payload, "SceneRequest")
+        cached, n_tok = r.unpack(_SCENE_REQUEST)
+        return cls(cached, _bounded_text(r, n_tok, limits.token_bytes, "SceneRequest: token"))
+
+
+_SCENE_DATA = struct.Struct("<32sIII")  # scene hash, chunk index, chunk count, blob bytes (all chunks)
+
+
+@dataclass
+class SceneData:
+    """Chunk `chunk` of `n_chunks` of the scene blob of `total` bytes; n_chunks = 0 (and no data): the
+    scene the client named in SceneRequest.cached is the one served."""
+
+    TYPE = MessageType.SCENE_DATA
+    scene_hash: bytes
+    chunk: int
+    n_chunks: int
+    total: int
+    data: bytes = b""
+
+    def serialize(self) -> bytes:
+        return _SCENE_DATA.pack(self.scene_hash, self.chunk, self.n_chunks, self.total) + bytes(self.data)
+
+    @classmethod
+    def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "SceneData":
+        r = Reader(payload, "SceneData")
+        scene_hash, chunk, n_chunks, total = r.unpack(_SCENE_DATA)
+        if total > limits.scene_bytes:
+            raise LimitError(f"SceneData: scene of {total} bytes over the limit of {limits.scene_bytes}")
+        most = -(-limits.scene_bytes // limits.scene_chunk_bytes)
+        if n_chunks > most or (n_chunks and chunk >= n_chunks) or (not n_chunks and (chunk or total)):
+            raise PayloadError(f"SceneData: chunk {chunk} of {n_chunks} ({total} bytes) is out of range")
+        data = r.rest()
+        if len(data) > limits.scene_chunk_bytes:
+            raise LimitError(f"SceneData: chunk of {len(data)} bytes over the limit of {limits.scene_chunk_bytes}")
+        return cls(scene_hash, chunk, n_chunks, total, bytes(data))
+
+
+MESSAGE_CLASSES = {cls.TYPE: cls for cls in (Hello, Welcome, Snapshot, Update, Camera, SceneEdit, Error, Bye,
+                                              SceneRequest, SceneData)}
+Message = Hello | Welcome | Snapshot | Update | Camera | SceneEdit | Error | Bye | SceneRequest | SceneData
 
 
 def encode(msg: Message) -> bytes:

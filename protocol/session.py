@@ -6,7 +6,9 @@ the protocol allows. It does no I/O, so it is tested without sockets; the asynci
 are thin loops around it.
 
 Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
-Client:  AWAIT_WELCOME --Welcome--> SNAPSHOT --last chunk--> STREAMING --Bye / Error--> CLOSED
+         (in AWAIT_HELLO one SceneRequest is answered with SceneData; the state stays AWAIT_HELLO)
+Client:  [AWAIT_SCENE --last SceneData-->] AWAIT_WELCOME --Welcome--> SNAPSHOT --last chunk--> STREAMING
+         --Bye / Error--> CLOSED   (a client without the scene asks for it first: scene_request())
 
 Any malformed or unexpected input raises a ProtocolError subclass; `error_reply(exc)` gives the Error
 message and websocket close code to answer it with.
@@ -34,6 +36,7 @@ from .codecs import (
 from .errors import (CodecError, HeaderError, LimitError, PayloadError, ProtocolError, RefusedError, RemoteError,
                      UnexpectedMessage)
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
+from .scenefile import SceneFile
 from .updates import GridDelta, Layout
 
 
@@ -115,6 +118,11 @@ class HelloAccepted:
 
 
 @dataclass
+class SceneRequested:
+    request: m.SceneRequest
+
+
+@dataclass
 class CameraReceived:
     camera: m.Camera
 
@@ -138,6 +146,7 @@ class ServerSession:
         self.codec: Codec | None = None
         self.traffic = Traffic()
         self._compress = None
+        self.scene_requests = 0
 
     # ------------------------------------------------------------------ inbound
     def receive(self, data: bytes):
@@ -154,6 +163,15 @@ class ServerSession:
             raise CodecError("clients may not send zstd-stream payloads")
         payload = decompress_frame(header.codec, body, limits.client_payload_bytes, limits)
         if self.state == ServerState.AWAIT_HELLO:
+            if header.type == m.MessageType.SCENE_REQUEST and not self.scene_requests:
+                request = m.SceneRequest.parse(payload, limits)
+                self._check_token(request.token)
+                self.scene_requests += 1
+                return SceneRequested(request)
+            if header.type == m.MessageType.BYE and self.scene_requests:  # took the scene, leaves
+                m.Bye.parse(payload, limits)
+                self.state = ServerState.CLOSED
+                return ByeReceived()
             if header.type != m.MessageType.HELLO:
                 raise UnexpectedMessage(f"expected Hello, got {header.type.name}")
             return self._accept(m.Hello.parse(payload, limits))
@@ -167,13 +185,17 @@ class ServerSession:
             return ByeReceived()
         raise UnexpectedMessage(f"a client may not send {header.type.name} here")
 
+    def _check_token(self, token: str) -> None:
+        cfg = self.config
+        if cfg.token and not hmac.compare_digest(token.encode(), cfg.token.encode()):
+            reason = "missing token" if not token else "wrong token"
+            raise RefusedError(reason, m.ErrorCode.UNAUTHORIZED)
+
     def _accept(self, hello: m.Hello) -> HelloAccepted:
         cfg = self.config
         if hello.version != m.PROTOCOL_VERSION:
             raise HeaderError(f"Hello: unsupported protocol version {hello.version}")
-        if cfg.token and not hmac.compare_digest(hello.token.encode(), cfg.token.encode()):
-            reason = "missing token" if not hello.token else "wrong token"
-            raise RefusedError(reason, m.ErrorCode.UNAUTHORIZED)
+        self._check_token(hello.token)
         if hello.scene_hash != cfg.scene_hash:
             raise RefusedError(
                 f"scene hash mismatch: client has {hello.scene_hash.hex()[:12]}, server serves "
@@ -207,6 +229,17 @@ class ServerSession:
     def update(self, tick: int, server_time: float, delta: GridDelta) -> bytes:
         return self._grid_message(m.Update(tick, server_time, delta, self.config.layout))
 
+    def scene_data(self, request: m.SceneRequest, blob: bytes) -> list[bytes]:
+        """SceneData messages answering `request`: the scene blob in chunks, or one empty message when
+        the client's cached scene is the one served."""
+        h = self.config.scene_hash
+        if request.cached == h:
+            return [self.traffic.sent(m.encode(m.SceneData(h, 0, 0, 0)))]
+        size = self.config.limits.scene_chunk_bytes
+        n = max(1, -(-len(blob) // size))
+        return [self.traffic.sent(m.encode(m.SceneData(h, i, n, len(blob), blob[i * size:(i + 1) * size])))
+                for i in range(n)]
+
     def bye(self) -> bytes:
         self.state = ServerState.CLOSED
         return self.traffic.sent(m.encode(m.Bye()))
@@ -222,6 +255,7 @@ class ServerSession:
 
 
 class ClientState(Enum):
+    AWAIT_SCENE = auto()
     AWAIT_WELCOME = auto()
     SNAPSHOT = auto()
     STREAMING = auto()
@@ -230,7 +264,7 @@ class ClientState(Enum):
 
 @dataclass(frozen=True)
 class ClientConfig:
-    scene_hash: bytes
+    scene_hash: bytes | None  # None: take the server's scene (scene_request() before hello())
     token: str = ""
     codecs: frozenset = frozenset(Codec)
     limits: Limits = DEFAULT_LIMITS
@@ -253,6 +287,13 @@ class UpdateReceived:
 
 
 @dataclass
+class SceneReceived:
+    scene_hash: bytes
+    scene: SceneFile | None  # None: the cached scene named in the request is current
+    blob_bytes: int  # compressed bytes received
+
+
+@dataclass
 class ClientSession:
     """Client end of one connection (a reconnect starts a new session)."""
 
@@ -264,9 +305,25 @@ class ClientSession:
     _stream: StreamDecompressor | None = None
     _next_chunk: int = 0
     _n_chunks: int = 0
+    scene_hash: bytes | None = None  # the scene Hello names: the configured one, or the server's
+    _cached: bytes = m.NO_SCENE
+    _scene_parts: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.scene_hash = self.config.scene_hash
+
+    def scene_request(self, cached: bytes = m.NO_SCENE) -> bytes:
+        """Ask for the server's scene (before hello()); `cached`: the hash of a scene already held."""
+        if self.state != ClientState.AWAIT_WELCOME or self.traffic.messages_out:
+            raise UnexpectedMessage("SceneRequest must be the first message of a connection")
+        self.state = ClientState.AWAIT_SCENE
+        self._cached = cached
+        return self.traffic.sent(m.encode(m.SceneRequest(cached, self.config.token)))
 
     def hello(self) -> bytes:
-        msg = m.Hello(self.config.scene_hash, codec_mask(self.config.codecs), self.config.token)
+        if self.scene_hash is None:
+            raise UnexpectedMessage("Hello needs a scene hash: configure one or receive the server's scene first")
+        msg = m.Hello(self.scene_hash, codec_mask(self.config.codecs), self.config.token)
         return self.traffic.sent(m.encode(msg))
 
     def camera(self, view: np.ndarray, projection: np.ndarray) -> bytes:
@@ -288,8 +345,8 @@ class ClientSession:
         return decompress_frame(header.codec, body, limits.server_payload_bytes, limits)
 
     def receive(self, data: bytes):
-        """One server message -> Welcomed | SnapshotReceived | UpdateReceived | ByeReceived.
-        An Error message raises RemoteError."""
+        """One server message -> SceneReceived | None (a SceneData chunk before the last) | Welcomed |
+        SnapshotReceived | UpdateReceived | ByeReceived. An Error message raises RemoteError."""
         limits = self.config.limits
         self.traffic.messages_in += 1
         self.traffic.bytes_in += len(data)
@@ -306,6 +363,8 @@ class ClientSession:
             m.Bye.parse(payload, limits)
             self.state = ClientState.CLOSED
             return ByeReceived()
+        if self.state == ClientState.AWAIT_SCENE and t == m.MessageType.SCENE_DATA:
+            return self._scene_chunk(m.SceneData.parse(payload, limits))
         if self.state == ClientState.AWAIT_WELCOME and t == m.MessageType.WELCOME:
             return self._welcomed(m.Welcome.parse(payload, limits))
         if self.state == ClientState.SNAPSHOT and t == m.MessageType.SNAPSHOT:
@@ -316,11 +375,42 @@ class ClientSession:
             return UpdateReceived(m.Update.parse(payload, limits))
         raise UnexpectedMessage(f"unexpected {t.name} in state {self.state.name}")
 
+    def _scene_chunk(self, d: m.SceneData) -> SceneReceived | None:
+        """Collect SceneData chunks; the last one gives the parsed scene (None until then)."""
+        limits = self.config.limits
+        if self.config.scene_hash is not None and d.scene_hash != self.config.scene_hash:
+            raise RefusedError(f"scene hash mismatch: server serves {d.scene_hash.hex()[:12]}, client has "
+                               f"{self.config.scene_hash.hex()[:12]}", m.ErrorCode.SCENE_MISMATCH)
+        if d.n_chunks == 0:
+            if d.scene_hash != self._cached:
+                raise PayloadError("SceneData: 'cached scene is current' for a scene this client does not hold")
+            return self._scene_done(SceneReceived(d.scene_hash, None, 0))
+        first = self._scene_parts[0] if self._scene_parts else d
+        if d.chunk != len(self._scene_parts) or (d.n_chunks, d.total, d.scene_hash) != (first.n_chunks, first.total,
+                                                                                       first.scene_hash):
+            raise UnexpectedMessage(f"SceneData chunk {d.chunk} of {d.n_chunks}, expected {len(self._scene_parts)} "
+                                    f"of {first.n_chunks}")
+        self._scene_parts.append(d)
+        received = sum(len(p.data) for p in self._scene_parts)
+        if received > d.total or (d.chunk == d.n_chunks - 1) != (received == d.total):
+            raise PayloadError(f"SceneData: {received} bytes in chunks 0..{d.chunk} of a {d.total}-byte scene")
+        if d.chunk < d.n_chunks - 1:
+            return None
+        blob = b"".join(p.data for p in self._scene_parts)
+        raw = decompress_frame(Codec.ZSTD, blob, limits.scene_payload_bytes, limits)
+        return self._scene_done(SceneReceived(d.scene_hash, SceneFile.parse(raw, limits), len(blob)))
+
+    def _scene_done(self, event: SceneReceived) -> SceneReceived:
+        self.scene_hash = event.scene_hash
+        self._scene_parts = []
+        self.state = ClientState.AWAIT_WELCOME
+        return event
+
     def _welcomed(self, w: m.Welcome) -> Welcomed:
-        if w.scene_hash != self.config.scene_hash:
+        if w.scene_hash != self.scene_hash:
             raise RefusedError(
                 f"scene hash mismatch: server serves {w.scene_hash.hex()[:12]}, client has "
-                f"{self.config.scene_hash.hex()[:12]}",
+                f"{self.scene_hash.hex()[:12]}",
                 m.ErrorCode.SCENE_MISMATCH,
             )
         if w.codec not in self.config.codecs:

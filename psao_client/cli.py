@@ -19,8 +19,9 @@ CODEC_CHOICES = ("zstd-stream", "zstd", "lz4", "none")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("url", help="server URL, e.g. ws://127.0.0.1:8765")
-    p.add_argument("--scene", default="builtin:courtyard",
-                   help="the client's own copy of the scene, checked against the server's (default builtin:courtyard)")
+    p.add_argument("--scene", default=None,
+                   help="the client's own copy of the scene, checked against the server's "
+                        "(default: load the server's scene from the server)")
     p.add_argument("--frames", type=int, default=None,
                    help="stop after the snapshot and N updates, or with --render N rendered frames "
                         "(0: right after the snapshot; default: run until Ctrl-C)")
@@ -60,7 +61,9 @@ def _aspect(size: str | None) -> float:
         return 16 / 9
 
 
-def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None, on_frame=None):
+def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=None, on_snapshot=None, on_frame=None,
+                 scene_hash: bytes | None = None):
+    """The client of `args`; `scene_hash` names the scene in Hello (default: the scene's content hash)."""
     from protocol.session import scene_hash_bytes
     from psao_client.connection import MirrorClient, scene_camera_feed
 
@@ -69,7 +72,7 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
     if args.read_delay < 0:
         raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
     return MirrorClient(
-        args.url, scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
+        args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
         camera=scene_camera_feed(scene, _aspect(getattr(args, "size", None)), getattr(args, "camera_path", None)),
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
@@ -96,17 +99,25 @@ def report(client, seconds: float) -> dict:
     }
 
 
-def run(args: argparse.Namespace, on_update=None) -> int:
+def client_scene(args: argparse.Namespace):
+    """(scene, hash for Hello or None, scene bytes fetched): --scene from disk, else the server's."""
+    from psao_client.connection import fetch_scene
     from psao_scene import load_scene
 
-    scene = load_scene(args.scene)
+    if args.scene is not None:
+        return load_scene(args.scene), None, 0
+    return asyncio.run(fetch_scene(args.url, args.token))
+
+
+def run(args: argparse.Namespace, on_update=None) -> int:
+    scene, scene_hash, scene_bytes = client_scene(args)
     renderer = on_frame = None
     if getattr(args, "render", None):
         # At the client's own rate (--fps), whatever has arrived by then; frames use the camera pose this
         # client sends at that moment (same clock).
         on_frame = lambda mirror: renderer(mirror, mirror.transforms, mirror.tick,  # noqa: E731
                                            camera_time=client.clock())
-    client = build_client(args, scene, on_update=on_update, on_frame=on_frame)  # checks the options first
+    client = build_client(args, scene, on_update=on_update, on_frame=on_frame, scene_hash=scene_hash)
     if on_frame is not None:
         from psao_client.render.stream_render import make_render_callback
 
@@ -120,6 +131,7 @@ def run(args: argparse.Namespace, on_update=None) -> int:
         if renderer is not None:
             renderer.close()
     out = report(client, time.perf_counter() - t0)
+    out["scene_bytes"] = scene_bytes
     if renderer is not None:
         out["frames_rendered"] = renderer.frames
         # per frame: tick, camera time and GPU milliseconds of each pass (timer queries)

@@ -36,6 +36,7 @@ from protocol.session import (
     ClientSession,
     ClientState,
     RemoteError,
+    SceneReceived,
     SnapshotReceived,
     UpdateReceived,
     Welcomed,
@@ -144,6 +145,8 @@ class MirrorClient:
                 async for data in ws:
                     if isinstance(data, str):
                         raise ProtocolError("text message from the server")
+                    if session.state == ClientState.CLOSED:  # the render task said Bye: drop what is in flight
+                        continue
                     event = session.receive(data)
                     self._last_ok = time.perf_counter()
                     self.stats.messages += 1
@@ -257,6 +260,34 @@ async def _discard_until_closed(ws, timeout: float) -> None:
                 pass
     except (TimeoutError, ConnectionClosed):
         pass
+
+
+async def fetch_scene(url: str, token: str = "", limits: Limits = DEFAULT_LIMITS, timeout: float = 60.0):
+    """The server's scene: (psao_scene Scene, scene hash bytes, compressed bytes received), over one short
+    connection (SceneRequest, SceneData chunks, Bye)."""
+    from .scene_import import scene_from_file
+
+    session = ClientSession(ClientConfig(None, token, frozenset(Codec), limits))
+    try:
+        async with connect(url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0) as ws:
+            await ws.send(session.scene_request())
+            async with asyncio.timeout(timeout):
+                async for data in ws:
+                    if isinstance(data, str):
+                        raise ProtocolError("text message from the server")
+                    event = session.receive(data)
+                    if isinstance(event, SceneReceived):
+                        await ws.send(session.bye())
+                        return scene_from_file(event.scene, f"{url} scene"), event.scene_hash, event.blob_bytes
+            raise ConnectError(f"{url}: the server closed the connection before sending its scene")
+    except InvalidURI as exc:
+        raise ConnectError(f"bad server URL: {exc}") from None
+    except RemoteError as exc:
+        raise ConnectError(f"{url}: server refused: {exc.text}") from None
+    except ProtocolError as exc:
+        raise ConnectError(f"{url}: bad scene data from the server: {exc}") from None
+    except (ConnectionClosed, OSError, TimeoutError, InvalidHandshake) as exc:
+        raise ConnectError(f"{url}: cannot fetch the scene ({_why(exc)})") from None
 
 
 def _why(exc: BaseException) -> str:

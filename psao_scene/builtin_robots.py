@@ -49,6 +49,11 @@ class WalkCycle:
     parents: np.ndarray = field(default_factory=lambda: np.array([p for _, p, _ in SKELETON]))
     rest: np.ndarray = field(default_factory=lambda: np.array([pos for _, _, pos in SKELETON]))
 
+    @property
+    def duration(self) -> float:
+        """Seconds of one walk cycle: the joint matrices repeat with this period."""
+        return 1.0 / self.frequency
+
     def __post_init__(self):
         self.order = topological_order(self.parents)
         self.offsets = np.array([self.rest[k] - (self.rest[p] if p >= 0 else 0.0)

@@ -123,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from protocol.session import scene_hash_bytes
+    from psao_server.scene_export import scene_blob
     from psao_server.service import Service, StaticTransforms
     from psao_server.testhook import RandomEdits
 
@@ -136,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
         scene, grid = _load(args)
         transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
-    service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms)
+    service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
+                      scene_blob=scene_blob(scene))
     try:
         return asyncio.run(_serve(service))
     finally:

@@ -6,6 +6,9 @@ tick rate (the test hook today, the real server tick of the Dynamic issue later)
 dirty sets and hands them to every client. Each client's sender sends the snapshot, then waits for work
 and sends one Update at a time: while a message is being written (a slow reader), ticks only accumulate
 in that client's pending sets, so its queue never holds more than one message.
+
+The same port answers plain HTTP GETs with the web client's page (psao_server.webpage, an allow-list);
+before Hello a connection may ask for the scene (SceneRequest), answered from `scene_blob`.
 """
 from __future__ import annotations
 
@@ -20,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
+from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
 
 from protocol import messages as m
 from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings, codec_name
@@ -32,12 +37,14 @@ from protocol.session import (
     HelloAccepted,
     RefusedError,
     SceneEditReceived,
+    SceneRequested,
     ServerConfig,
     ServerSession,
     error_reply,
 )
 from protocol.updates import Layout, state_digest
 
+from . import webpage
 from .clients import Client, Registry, SnapshotPlan, read_delta
 from .errors import ConfigError
 
@@ -111,13 +118,15 @@ class Service:
     server tick of psao_server.tick) runs its prepare in a worker thread (it writes no grid, so senders
     keep reading the grid meanwhile) and its apply on the loop. `transforms()` gives the instance
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
-    connected clients' latest camera poses whenever one changes."""
+    connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob)
+    answers SceneRequest; without it a SceneRequest is refused."""
 
     def __init__(self, grid, scene_hash: bytes, settings: ServeSettings, tick: TickFn | None = None,
                  transforms: Callable[[], np.ndarray] | None = None,
                  on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
-                 on_cameras: Callable[[list], None] | None = None):
+                 on_cameras: Callable[[list], None] | None = None, scene_blob: bytes | None = None):
         settings.check()
+        self.scene_blob = scene_blob
         self.grid = grid
         self.settings = settings
         self.tick_fn = tick
@@ -144,9 +153,11 @@ class Service:
         # The user-space write buffer is bounded like the kernel's: a slow reader blocks our send early.
         write_limit = min(32 * 1024, s.send_buffer) if s.send_buffer else 32 * 1024
         async with serve(self._handler, s.host, s.port, compression=None, write_limit=write_limit,
-                         max_size=4 * s.limits.client_message_bytes, max_queue=16) as server:
+                         max_size=4 * s.limits.client_message_bytes, max_queue=16,
+                         process_request=self._http) as server:
             self.port = server.sockets[0].getsockname()[1]
-            log.info("listening on ws://%s:%d (codec %s, layout %s, %g Hz%s)", s.host, self.port,
+            log.info("listening on ws://%s:%d, web client on http://%s:%d/ (codec %s, layout %s, %g Hz%s)",
+                     s.host, self.port, s.host, self.port,
                      codec_name(s.codec), s.layout.name.lower(), s.tick_hz, ", token required" if s.token else "")
             if ready:
                 ready(self.port)
@@ -244,8 +255,13 @@ class Service:
         if sock is not None and self.settings.send_buffer:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.settings.send_buffer)
         try:
-            hello = await asyncio.wait_for(ws.recv(), self.settings.hello_timeout)
-            event = session.receive(_binary(hello))
+            event = await self._next_handshake_event(ws, session)
+            if isinstance(event, SceneRequested):
+                await self._send_scene(ws, session, event)
+                event = await self._next_handshake_event(ws, session)
+                if isinstance(event, ByeReceived):
+                    log.info("connection from %s took the scene and left", peer)
+                    return
             assert isinstance(event, HelloAccepted)
         except ProtocolError as exc:
             await self._reject(ws, session, exc, peer, None)
@@ -267,6 +283,28 @@ class Service:
             self.registry.remove(client)
             if client.camera is not None:
                 self._cameras_changed()
+
+    async def _next_handshake_event(self, ws, session: ServerSession):
+        return session.receive(_binary(await asyncio.wait_for(ws.recv(), self.settings.hello_timeout)))
+
+    async def _send_scene(self, ws, session: ServerSession, event: SceneRequested) -> None:
+        if self.scene_blob is None:
+            raise ProtocolError("this server does not send its scene")
+        for data in session.scene_data(event.request, self.scene_blob):
+            await ws.send(data)
+            self.counters.bytes_out += len(data)
+            self.counters.messages_out += 1
+
+    def _http(self, connection: ServerConnection, request: Request) -> Response | None:
+        """Plain GETs get the web page's files (webpage.answer); websocket upgrades go on to _handler."""
+        if "websocket" in request.headers.get("Upgrade", "").lower():
+            return None
+        a = webpage.answer(request.path)
+        if a.status != 200:
+            log.info("HTTP %d for %s", a.status, request.path[:200])
+        headers = Headers([("Content-Type", a.content_type), ("Content-Length", str(len(a.body))),
+                           ("Cache-Control", "no-cache"), ("X-Content-Type-Options", "nosniff")])
+        return Response(a.status, a.reason, headers, a.body)
 
     async def _serve_client(self, ws, session: ServerSession, client: Client, codec: Codec) -> None:
         grid = self.grid

@@ -1,0 +1,202 @@
+"""Scene delivery: SceneRequest / SceneData bytes, the scene file format, the session flow, a real server
+sending its scene to `psao client URL` without --scene, and the HTTP allow-list on the serve port."""
+from __future__ import annotations
+
+import asyncio
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+import zstandard
+
+from protocol import messages as m
+from protocol.errors import LimitError, PayloadError, RefusedError, UnexpectedMessage
+from protocol.limits import Limits
+from protocol.scenefile import CameraPathData, InstanceData, MeshData, SceneFile, SkinData, skin_pose
+from protocol.session import ClientConfig, ClientSession, SceneReceived, SceneRequested, ServerConfig, ServerSession
+from psao_client.connection import MirrorClient, fetch_scene
+from psao_scene import load_scene
+from psao_server.grid import Grid
+from psao_server.scene_export import scene_blob, scene_file
+from psao_server.service import ServeSettings, Service
+from psao_server.webpage import ASSETS, answer
+
+HASH = bytes(range(32))
+H = bytes.fromhex
+
+
+def header(mtype: int, length: int) -> bytes:
+    return b"PSAO" + H("0100") + bytes([mtype, 0]) + length.to_bytes(4, "little")
+
+
+def test_scene_request_bytes_both_ways():
+    data = m.encode(m.SceneRequest(HASH, "tk"))
+    assert data == header(9, 36) + HASH + H("0200") + b"tk"
+    back = m.SceneRequest.parse(bytes(32) + H("0000"))
+    assert back == m.SceneRequest(m.NO_SCENE, "")
+    with pytest.raises(LimitError):
+        m.SceneRequest.parse(bytes(32) + H("ffff") + b"x" * 0xFFFF)
+    with pytest.raises(PayloadError):
+        m.SceneRequest.parse(bytes(31))
+
+
+def test_scene_data_bytes_both_ways_and_limits():
+    data = m.encode(m.SceneData(HASH, 1, 3, 10, b"abc"))
+    assert data == header(10, 47) + HASH + H("01000000") + H("03000000") + H("0a000000") + b"abc"
+    assert m.SceneData.parse(HASH + H("00000000") * 3) == m.SceneData(HASH, 0, 0, 0, b"")
+    small = Limits(scene_bytes=8, scene_chunk_bytes=4)
+    with pytest.raises(LimitError):
+        m.SceneData.parse(HASH + H("00000000") + H("01000000") + H("09000000"), small)
+    with pytest.raises(LimitError):
+        m.SceneData.parse(HASH + H("00000000") + H("01000000") + H("05000000") + b"12345", small)
+    with pytest.raises(PayloadError):  # chunk index beyond the count
+        m.SceneData.parse(HASH + H("02000000") + H("02000000") + H("05000000"))
+
+
+def tiny_scene_file(skinned=True) -> SceneFile:
+    skin = None
+    if skinned:
+        mats = np.zeros((2, 1, 3, 4), np.float32)
+        mats[:, 0, :, :3] = np.eye(3)
+        mats[1, 0, 1, 3] = 2.0  # joint 0 moves up by 2 at t = period / 2
+        skin = SkinData(np.zeros((3, 4), np.uint8), np.tile([[1, 0, 0, 0]], (3, 1)).astype(np.float32), 1.0, mats)
+    mesh = MeshData("tri", np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], np.float32), np.array([[0, 2, 1]], np.uint32),
+                    True, (0.5, 0.25, 1.0), skin)
+    path = CameraPathData("p", 60.0, True, np.array([[0, 1, 2, 3, 0, 0, 0]], np.float32))
+    return SceneFile("t", 2.0, [mesh], [InstanceData("i", 0, np.eye(4, dtype=np.float32))], [path])
+
+
+def test_scene_file_bytes_and_round_trip():
+    raw = tiny_scene_file(skinned=False).serialize()
+    head = b"PSCN" + H("0100") + H("0000") + np.float64(2.0).tobytes() + H("0100") + b"t" + H("01000000") * 3
+    mesh = (H("0300") + b"tri" + bytes([1, 0, 0, 0]) + np.array([0.5, 0.25, 1.0], "<f4").tobytes()
+            + H("03000000") + H("01000000"))
+    assert raw.startswith(head + mesh)
+    back = SceneFile.parse(raw)
+    assert back.meshes[0].double_sided and back.meshes[0].color == (0.5, 0.25, 1.0) and back.meshes[0].skin is None
+    assert np.array_equal(back.meshes[0].faces, [[0, 2, 1]])
+    sk = SceneFile.parse(tiny_scene_file().serialize()).meshes[0].skin
+    assert sk.period == 1.0 and sk.matrices.shape == (2, 1, 3, 4)
+    assert skin_pose(sk, 0.25)[0, 1, 3] == pytest.approx(1.0) and skin_pose(sk, 1.75)[0, 1, 3] == pytest.approx(1.0)
+    assert skin_pose(sk, 0.5)[0, 3, 3] == 1.0
+
+
+@pytest.mark.parametrize("cut, error", [
+    (lambda b: b[:-1], PayloadError),  # truncated
+    (lambda b: b"XSCN" + b[4:], PayloadError),  # magic
+    (lambda b: b + b"\0", PayloadError),  # trailing bytes
+])
+def test_bad_scene_files_are_protocol_errors(cut, error):
+    with pytest.raises(error):
+        SceneFile.parse(cut(tiny_scene_file().serialize()))
+
+
+def test_scene_file_counts_checked_before_allocation():
+    raw = bytearray(tiny_scene_file(skinned=False).serialize())
+    at = raw.index(b"tri") + 3 + 4 + 12  # the mesh's vertex count
+    raw[at:at + 4] = (1 << 30).to_bytes(4, "little")
+    with pytest.raises(LimitError):
+        SceneFile.parse(bytes(raw))
+    raw[at:at + 4] = (1000).to_bytes(4, "little")  # under the limit, but not in the data
+    with pytest.raises(PayloadError):
+        SceneFile.parse(bytes(raw))
+
+
+def test_session_scene_flow_chunks_cache_and_token():
+    blob = zstandard.ZstdCompressor().compress(tiny_scene_file().serialize())
+    server = ServerSession(ServerConfig(HASH, token="s", limits=Limits(scene_chunk_bytes=16)))
+    client = ClientSession(ClientConfig(None, token="s"))
+    event = server.receive(client.scene_request())
+    assert isinstance(event, SceneRequested)
+    msgs = server.scene_data(event.request, blob)
+    assert len(msgs) == -(-len(blob) // 16) > 1
+    got = [client.receive(d) for d in msgs]
+    assert got[:-1] == [None] * (len(msgs) - 1) and isinstance(got[-1], SceneReceived)
+    assert got[-1].scene.meshes[0].name == "tri" and client.scene_hash == HASH
+    assert server.receive(client.hello()).codec is not None
+    # A client holding the scene gets one empty SceneData.
+    c2, s2 = ClientSession(ClientConfig(None, token="s")), ServerSession(ServerConfig(HASH, token="s"))
+    (only,) = s2.scene_data(s2.receive(c2.scene_request(HASH)).request, blob)
+    assert c2.receive(only) == SceneReceived(HASH, None, 0)
+    # Wrong token: refused before any scene byte; a second request: unexpected.
+    with pytest.raises(RefusedError):
+        ServerSession(ServerConfig(HASH, token="s")).receive(ClientSession(ClientConfig(None, token="x")).scene_request())
+    with pytest.raises(UnexpectedMessage):
+        s3 = ServerSession(ServerConfig(HASH))
+        c3 = ClientSession(ClientConfig(None))
+        s3.receive(c3.scene_request())
+        s3.receive(m.encode(m.SceneRequest()))
+
+
+def test_client_with_a_scene_refuses_another_servers_scene():
+    client = ClientSession(ClientConfig(bytes(32)))
+    client.scene_request()
+    with pytest.raises(RefusedError):
+        client.receive(m.encode(m.SceneData(HASH, 0, 1, 3, b"abc")))
+
+
+def test_exported_builtin_scene_poses_like_the_original():
+    scene = load_scene("builtin:robots")
+    f = SceneFile.parse(scene_file(scene).serialize())
+    for mesh, got in zip(scene.meshes, f.meshes):
+        assert np.allclose(mesh.vertices, got.vertices, atol=1e-5)
+        if mesh.skin is not None:
+            # Sampled at 120 Hz: within 5 mm of the animator (the error is largest at the kink of the walk
+            # cycle's knee angle, max(0, -cos)), against an AO distance of 1 m.
+            for t in np.linspace(0.0, 4.0, 41):
+                assert np.abs(mesh.skin.skinning_matrices(t) - skin_pose(got.skin, t)).max() < 5e-3
+
+
+def test_http_allow_list_serves_only_page_files():
+    assert answer("/psao_constants.js").status == 200
+    for path in ("/../pyproject.toml", "/%2e%2e/pyproject.toml", "/vendor%2Ffzstd.js", "//etc/passwd", "/etc/passwd",
+                 "/shaders/../../pyproject.toml", "/node_modules/fzstd/package.json", "/web/index.html", ""):
+        assert answer(path).status == 404, path
+    assert all(not name.startswith("/") and ".." not in name for name, _ in ASSETS.values())
+
+
+
+
+async def _serve_scene(scene, fn):
+    from test_streaming_service import make_grid  # a small real grid
+
+    from protocol.session import scene_hash_bytes
+    h = scene_hash_bytes(scene.content_hash())
+    service = Service(make_grid(200), h, ServeSettings(port=0, tick_hz=30, stats_interval=1e9),
+                      scene_blob=scene_blob(scene))
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
+    await ready.wait()
+    try:
+        return h, await fn(service.port)
+    finally:
+        stop.set()
+        await task
+
+
+def test_client_without_a_scene_takes_the_servers():
+    scene = load_scene("builtin:cornell")
+
+    async def use(port):
+        url = f"ws://127.0.0.1:{port}"
+        got, h, nbytes = await fetch_scene(url)
+        stats = await asyncio.wait_for(MirrorClient(url, h).run(frames=0), 30)
+
+        def get(path):
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}") as r:
+                    return r.status, r.read()
+            except urllib.error.HTTPError as exc:
+                return exc.code, exc.read()
+        http = await asyncio.to_thread(lambda: [get(p) for p in ("/psao_constants.js", "/../pyproject.toml",
+                                                                 "/%2e%2e/Makefile", "/vendor%2Ffzstd.js")])
+        return got, h, nbytes, stats, http
+
+    h, (got, sent_hash, nbytes, stats, http) = asyncio.run(_serve_scene(scene, use))
+    assert sent_hash == h and nbytes == len(scene_blob(scene)) and stats.messages >= 2
+    assert [m.name for m in got.meshes] == [m.name for m in scene.meshes]
+    assert np.allclose(got.meshes[0].vertices, scene.meshes[0].vertices, atol=1e-6)
+    assert got.ao_distance == scene.ao_distance and list(got.camera_paths) == list(scene.camera_paths)
+    assert http[0][0] == 200 and b"PROTOCOL_VERSION" in http[0][1]
+    assert [s for s, _ in http[1:]] == [404, 404, 404]
