@@ -66,6 +66,8 @@ class Frame:
     dynamic_vertices: np.ndarray  # (V, 3) world, all moving instances merged
     dynamic_faces: np.ndarray  # (F, 3) int64
     seconds_skinning: float = 0.0
+    skinned_vertices: np.ndarray | None = None  # (V, 3) world, skinned instances merged (None: none)
+    skinned_faces: np.ndarray | None = None  # (F, 3) int64
 
 
 def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -130,6 +132,7 @@ class SceneAnimator:
                 mesh_vertices[m] = self.skinner.vertices(m, t)
         seconds_skinning = time.perf_counter() - t0
         bounds, spheres, verts, faces, base = {}, {}, [], [], 0
+        skinned_v, skinned_f, skinned_base = [], [], 0
         for i in self.kinds.moving:
             inst = self.scene.instances[i]
             mesh = self.scene.meshes[inst.mesh]
@@ -144,9 +147,15 @@ class SceneAnimator:
             verts.append(w)
             faces.append(mesh.faces + base)
             base += len(w)
+            if inst.mesh in mesh_vertices:
+                skinned_v.append(w)
+                skinned_f.append(mesh.faces + skinned_base)
+                skinned_base += len(w)
         dv = np.concatenate(verts) if verts else np.zeros((0, 3))
         df = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
-        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning)
+        sv = np.concatenate(skinned_v) if skinned_v else None
+        sf = np.concatenate(skinned_f) if skinned_f else np.zeros((0, 3), np.int64)
+        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning, sv, sf)
 
 
 # ---------------------------------------------------------------------------------- skinned points

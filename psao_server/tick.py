@@ -19,10 +19,20 @@ points the grid could not keep (full cell or bucket) are kept aside ("parked") a
 freshly traced AO, as soon as they fit again. Grid.build sizes an instance's box from its rest pose, so
 ServerTick first grows the boxes of skinned instances to their whole animation (TickSettings.fit_grid):
 that replaces bake.grid, and the service must be given tick.grid.
+
+Two ways to trace (TickSettings.budget):
+    None      every selected point in a view is re-traced with `rays` rays in this very tick, however
+              long that takes (the reference the budgeted tick is measured against)
+    settings  the time-budgeted tick of psao_server.budget: selected points have their ray history reset
+              and wait in a priority queue; each tick traces as many as its time budget allows with a
+              few rays each (`round_rays`), accumulating up to `rays` per point. A scene at rest
+              converges and then traces nothing; idle budget refines points the bake traced with
+              fewer rays than `rays` (progressive start).
 """
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
@@ -33,6 +43,7 @@ from protocol import pointword as pw
 from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds,
                                  to_world_points)
 from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
+from psao_server.budget import BudgetSettings, RefineQueue, TraceBudget, measure_tracer
 from psao_server.errors import ConfigError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, camera_planes, in_any_view, reach_boxes,
@@ -54,12 +65,21 @@ class TickSettings:
     block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
     fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
     history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
+    budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)
 
     def check(self) -> None:
         if not 0 <= self.threshold <= 255:
             raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")
         if self.rays < 1:
             raise ConfigError(f"tick rays must be >= 1, got {self.rays}")
+        b = self.budget
+        if b is not None:
+            if not (math.isfinite(b.tick_hz) and b.tick_hz > 0):
+                raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
+            if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
+                raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
+            if b.round_rays < 1 or b.min_points < 1:
+                raise ConfigError(f"round rays and min points must be >= 1, got {b.round_rays}, {b.min_points}")
         if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
             raise ConfigError(f"view margins out of range: {self.view}")
 
@@ -80,6 +100,11 @@ class TickStats:
     seconds_trace: float
     seconds_grid: float
     seconds_total: float
+    queue: int = 0  # points waiting for a trace (budgeted) or for a view (unbudgeted)
+    queue_oldest_ms: float = 0.0  # how long the longest-waiting of them has waited
+    budget_ms: float = 0.0  # the trace budget of this tick (0: unbudgeted)
+    budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
+    batch: int = 0  # points the budget allowed this tick
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -93,6 +118,8 @@ class TickPlan:
     ids: np.ndarray  # ids traced
     codes: np.ndarray  # their new AO codes
     seconds: tuple[float, float, float]  # animate, select, trace
+    batch: int = 0  # points the budget allowed (budgeted tick)
+    budget_s: float = 0.0
 
 
 class ServerTick:
@@ -122,7 +149,8 @@ class ServerTick:
         # the bake's AO is this tick's first sync only if it traced the same rays (count and seed)
         same_rays = (bake.stats.get("rays") == self.settings.rays
                      and bake.stats.get("seed", self.settings.seed) == self.settings.seed)
-        if baked_time is not None and (same_rays or trust_bake):
+        # (the budgeted tick always takes it, as so many rays of each point's history)
+        if baked_time is not None and (same_rays or trust_bake or self.settings.budget is not None):
             self.last_frame: Frame | None = self.animator.frame(baked_time)
         else:
             if baked_time is not None:
@@ -131,6 +159,9 @@ class ServerTick:
                          self.settings.seed)
             self.last_frame = None
             self.stale[self.present()] = True
+        self.budget: TraceBudget | None = None
+        if self.settings.budget is not None:
+            self._init_budget(bake)
         self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
 
     # ------------------------------------------------------------------ set-up
@@ -177,8 +208,39 @@ class ServerTick:
         kwargs = {"workers": s.workers} if s.tracer == "embree" else {}
         self.tracer = make_tracer(s.tracer, scene_center(self.scene), **kwargs)
         self.tracer.set_static(*self.animator.static_geometry())
+        # rigid movers are built once and posed per tick; only deforming meshes are rebuilt
+        self.tracer.set_rigid([(self.scene.meshes[self.scene.instances[i].mesh].vertices,
+                                self.scene.meshes[self.scene.instances[i].mesh].faces) for i in self.kinds.rigid])
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()  # forks the workers: before any thread or event loop starts
+
+    def _init_budget(self, bake: BakeResult) -> None:
+        """The refinement queue, with the bake's AO as each point's first rays of history when the bake
+        belongs to a known time, and the tracer's speed measured once on a few points."""
+        self.queue = RefineQueue(len(self.tracked), self.settings.rays)
+        ids = np.flatnonzero(self.present())
+        if self.last_frame is not None:
+            codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)
+            self.queue.seed_from_codes(ids, codes, int(bake.stats.get("rays", self.settings.rays)))
+        sample = self.static_ids[:4096] if len(self.static_ids) else ids[:4096]
+        frame = self.animator.frame(0.0)
+        pos, nrm = self.world_points(frame, sample)
+        self.pose_tracer(frame)
+        rate, overhead = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings(0))
+        self.budget = TraceBudget(self.settings.budget, rate, overhead)
+        log.info("tick budget: tracer measured at %.2f Mrays/s (%.1f ms per call); %s", rate / 1e6, 1e3 * overhead,
+                 f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
+                 f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
+
+    def _round_settings(self, tick: int) -> TraceSettings:
+        """One accumulation round: a few rays, a ray set of its own (the seed advances every tick and differs
+        from the bake's)."""
+        rays = min(self.settings.budget.round_rays, self.settings.rays)
+        return TraceSettings(rays=rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed + 1 + tick)
+
+    def pose_tracer(self, frame: Frame) -> None:
+        """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
+        self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid])
 
     def close(self) -> None:
         self.tracer.close()
@@ -242,14 +304,47 @@ class ServerTick:
         frame = self.animator.frame(t)
         moved = self._deform(frame)
         t_anim = time.perf_counter()
+        if self.budget is not None:
+            return self._prepare_budgeted(frame, moved, t_start, t_anim)
         ids, pos, nrm = self._select(frame)
         t_sel = time.perf_counter()
         vis = np.zeros(0, np.float32)
         if len(ids):  # the moving scene is only (re)built when something is traced
-            self.tracer.set_dynamic(frame.dynamic_vertices, frame.dynamic_faces)
+            self.pose_tracer(frame)
             vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings)
         t_trace = time.perf_counter()
         return TickPlan(frame, moved, ids, pw.quantise_ao(vis), (t_anim - t_start, t_sel - t_anim, t_trace - t_sel))
+
+    def _prepare_budgeted(self, frame: Frame, moved: np.ndarray, t_start: float, t_anim: float) -> "TickPlan":
+        """Reset the history of the points the motion may have changed, pick as many waiting points as
+        the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
+        now = t_anim
+        if self.last_frame is None or not self.settings.selection:
+            changed = self.tracked
+        else:
+            changed = self._motion_candidates(frame) & self.tracked
+        self.queue.reset(np.flatnonzero(changed), now)
+        round_settings = self._round_settings(self.tick_count)
+        k = self.budget.points(round_settings.rays)
+        waiting = self.queue.waiting(self.tracked)  # parked skinned points too: a trace re-inserts them
+        limit = max(16 * k, 20000)
+        if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
+            key = (self.queue.rays[waiting] > 0) * 2e9 + (self.queue.waiting_since[waiting] - now)
+            waiting = np.sort(waiting[np.argpartition(key, limit - 1)[:limit]])
+        pos, nrm = self.world_points(frame, waiting)
+        visible = in_any_view(pos, self.cameras, self.settings.view.distance_margin)
+        chosen = self.queue.pick(waiting, visible, k)
+        t_sel = time.perf_counter()
+        codes = np.zeros(0, np.uint32)
+        if len(chosen):
+            at = np.searchsorted(waiting, chosen)
+            self.pose_tracer(frame)
+            vis = self.tracer.visibility(pos[at], nrm[at], chosen, round_settings)
+            codes = self.queue.add(chosen, vis, round_settings.rays, time.perf_counter())
+        t_trace = time.perf_counter()
+        self.budget.observe_trace(len(chosen) * round_settings.rays, t_trace - t_sel)
+        return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
+                        batch=k, budget_s=self.budget.budget_s())
 
     def apply(self, plan: "TickPlan") -> TickStats:
         """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on
@@ -261,7 +356,7 @@ class ServerTick:
             self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
             self._relocate_instances(self.kinds.skinned)
         changed = self._store(plan.ids, plan.codes)
-        seconds_grid = time.perf_counter() - g0
+        seconds_grid = self.stats_grid_s = time.perf_counter() - g0
         self.last_frame = plan.frame
         self._transforms = plan.frame.transforms.astype(np.float32)
         n = int(self.tracked.sum())
@@ -271,10 +366,20 @@ class ServerTick:
             changed=changed, moved=int(len(plan.moved)), parked=int((self.tracked & ~self.present()).sum()),
             cells_dirty=int(np.count_nonzero(self.grid.dirty_cells)),
             seconds_animate=animate, seconds_select=select, seconds_trace=trace, seconds_grid=seconds_grid,
-            seconds_total=animate + select + trace + seconds_grid)
+            seconds_total=animate + select + trace + seconds_grid, **self._queue_stats(plan, trace))
         self.tick_count += 1
         self.stats_history.append(stats)
         return stats
+
+    def _queue_stats(self, plan: "TickPlan", trace_s: float) -> dict:
+        if self.budget is None:
+            return {"queue": int(np.count_nonzero(self.stale))}
+        animate, select, _ = plan.seconds
+        self.budget.observe_other(animate + select + self.stats_grid_s)
+        return {"queue": self.queue.length(self.tracked),
+                "queue_oldest_ms": self.queue.oldest_ms(self.tracked, time.perf_counter()),
+                "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
+                "batch": plan.batch}
 
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> np.ndarray:
@@ -302,14 +407,33 @@ class ServerTick:
             self.stale[ids] = ~visible
         return ids[visible], pos[visible], nrm[visible]
 
+    def _moved_since(self, frame: Frame, last: Frame) -> list[int]:
+        """Moving instances whose transform or (skinned) mesh differs between the two frames."""
+        out = []
+        for i in self.kinds.moving:
+            m = self.scene.instances[i].mesh
+            same = np.array_equal(frame.transforms[i], last.transforms[i]) and (
+                m not in frame.mesh_vertices or np.array_equal(frame.mesh_vertices[m], last.mesh_vertices.get(m)))
+            if not same:
+                out.append(i)
+        return out
+
     def _motion_candidates(self, frame: Frame) -> np.ndarray:
-        motion = MotionInput(frame.bounds, self.last_frame.bounds, self.kinds.rigid, self.kinds.skinned,
-                             frame.spheres, self.last_frame.spheres)
-        reach = reach_boxes(motion, self.scene.ao_distance)
+        """Points whose AO the motion since the last tick may have changed. Movers that stood still
+        since then count as static boxes for the company test and select nothing themselves."""
+        moved = self._moved_since(frame, self.last_frame)
         out = np.zeros(len(self.tracked), dtype=bool)
+        if not moved:
+            return out
+        pick = lambda d: {i: d[i] for i in moved if i in d}  # noqa: E731
+        motion = MotionInput(pick(frame.bounds), pick(self.last_frame.bounds),
+                             [i for i in self.kinds.rigid if i in moved], [i for i in self.kinds.skinned if i in moved],
+                             pick(frame.spheres), pick(self.last_frame.spheres))
+        reach = reach_boxes(motion, self.scene.ao_distance)
         near = static_points_near(self.block_index, reach, motion, self.static_normals, self.scene.ao_distance)
         out[self.static_ids[near]] = True
-        for i in self.kinds.skinned + rigid_in_company(motion, reach, self.static_boxes):
+        standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
+        for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
             out[self.first_id[i]:self.first_id[i + 1]] = True
         return out
 

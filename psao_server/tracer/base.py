@@ -19,6 +19,8 @@ class TraceSettings:
     seed: int = 0
     workers: int = 0  # 0 = all cores
     chunk_points: int = 2048  # points per work item (bounds memory: chunk * rays directions)
+    local_rays: int = 16384  # calls with fewer rays than this trace in the calling process (a hand-over to
+    # worker processes costs more than tracing them, the more so on a busy machine)
 
 
 class Tracer:
@@ -27,8 +29,30 @@ class Tracer:
     def set_static(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         raise NotImplementedError
 
-    def set_dynamic(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def set_rigid(self, meshes: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Rigidly moving meshes, (local vertices, faces) each, placed per tick by set_dynamic's
+        `rigid_transforms`. Call before tracing starts. This default keeps them to merge into world
+        triangles (merge_rigid) for back-ends that rebuild their moving scene every tick anyway."""
+        self._rigid_meshes = [(np.asarray(v, np.float64), np.asarray(f, np.int64)) for v, f in meshes]
+
+    def set_dynamic(self, vertices: np.ndarray, faces: np.ndarray, rigid_transforms: np.ndarray | None = None) -> None:
+        """The moving part of the scene now: world triangles that deform (None: none) and the 4x4
+        local-to-world transforms of the set_rigid meshes (None: leave them out)."""
         raise NotImplementedError
+
+    def merge_rigid(self, vertices, faces, rigid_transforms) -> tuple[np.ndarray | None, np.ndarray]:
+        """World triangles of the deforming part and of the rigid meshes at their transforms, merged."""
+        parts_v = [] if vertices is None else [np.asarray(vertices, np.float64)]
+        parts_f = [] if vertices is None else [np.asarray(faces, np.int64)]
+        base = sum(len(v) for v in parts_v)
+        if rigid_transforms is not None:
+            for (v, f), m in zip(getattr(self, "_rigid_meshes", []), np.asarray(rigid_transforms, np.float64)):
+                parts_v.append(v @ m[:3, :3].T + m[:3, 3])
+                parts_f.append(f + base)
+                base += len(v)
+        if not parts_v:
+            return None, np.zeros((0, 3), np.int64)
+        return np.concatenate(parts_v), np.concatenate(parts_f)
 
     def visibility(self, positions: np.ndarray, normals: np.ndarray, point_ids: np.ndarray,
                    settings: TraceSettings) -> np.ndarray:

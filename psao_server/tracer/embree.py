@@ -21,37 +21,75 @@ from psao_server.tracer.base import TraceSettings, Tracer
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
-    from embreex import rtcore_scene
+    from embreex import rtcore, rtcore_scene
     from embreex.mesh_construction import TriangleMesh
     _IMPORT_ERROR = None
 except ImportError as exc:  # pragma: no cover - embreex is a hard dependency here
     _IMPORT_ERROR = exc
 
 
+_DEVICE = None  # one Embree device per process: every scene built here shares it
+
+
 def _build_scene(vertices: np.ndarray, faces: np.ndarray):
+    global _DEVICE
     if len(faces) == 0:
         return None
-    scene = rtcore_scene.EmbreeScene()
+    if _DEVICE is None:
+        _DEVICE = rtcore.EmbreeDevice()
+    scene = rtcore_scene.EmbreeScene(_DEVICE)
     TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
     return scene
 
 
-class _Scenes:
-    """The Embree scenes of one process: static (built once) and dynamic (rebuilt per version)."""
+class _Rigid:
+    """A rigidly moving mesh traced in its own local frame: built once; each tick only its pose changes,
+    and rays are taken into the local frame instead (an affine map keeps the ray parameter t, so the
+    occlusion distance needs no rescaling)."""
 
-    def __init__(self, static_vertices, static_faces):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.scene = _build_scene(vertices, faces)
+        v = np.asarray(vertices, np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    def occluded(self, pose: np.ndarray, origins, dirs, tmax) -> np.ndarray:
+        """Rays (world, re-centred) occluded by this mesh at `pose` (4x4 local -> world); only rays
+        starting within tmax of its world box are traced."""
+        hit = np.zeros(len(origins), dtype=bool)
+        if self.scene is None:
+            return hit
+        w = self.corners @ pose[:3, :3].T + pose[:3, 3]
+        lo, hi = w.min(axis=0) - tmax, w.max(axis=0) + tmax
+        near = np.flatnonzero(np.all((origins >= lo) & (origins <= hi), axis=1))
+        if len(near):
+            inv = np.linalg.inv(pose)
+            o = (origins[near] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
+            d = (dirs[near] @ inv[:3, :3].T).astype(np.float32)
+            hit[near] = self.scene.run(o, d, dists=np.full(len(near), tmax, np.float32), query="OCCLUDED") != -1
+        return hit
+
+
+class _Scenes:
+    """The Embree scenes of one process: static (built once), rigid movers (built once, posed per call)
+    and the deforming rest (rebuilt per version)."""
+
+    def __init__(self, static_vertices, static_faces, rigid=()):
         self.static = _build_scene(static_vertices, static_faces)
+        self.rigid = [_Rigid(v, f) for v, f in rigid]
+        self.rigid_poses = None
         self.dynamic = None
         self.dynamic_version = -1
 
-    def update_dynamic(self, version, vertices, faces):
+    def update_dynamic(self, version, vertices, faces, rigid_poses=None):
         if version != self.dynamic_version:
             self.dynamic = _build_scene(vertices, faces) if vertices is not None else None
             self.dynamic_version = version
+        self.rigid_poses = rigid_poses
 
     def occluded(self, origins, dirs, tmax) -> np.ndarray:
-        """A ray is occluded if either scene hits within tmax; the dynamic scene only sees the rays the
-        static one let through."""
+        """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
+        ones before let through."""
         dists = np.full(len(origins), tmax, np.float32)
         if self.static is not None:
             hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
@@ -61,6 +99,12 @@ class _Scenes:
             todo = np.flatnonzero(~hit)
             if len(todo):
                 hit[todo] = self.dynamic.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
+        if self.rigid_poses is not None:
+            for mesh, pose in zip(self.rigid, self.rigid_poses):
+                todo = np.flatnonzero(~hit)
+                if len(todo) == 0:
+                    break
+                hit[todo] = mesh.occluded(pose, origins[todo], dirs[todo], tmax)
         return hit
 
 
@@ -87,29 +131,29 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings):
     """Visibility of a chunk of points, with the CPU seconds of the bare Embree query and of the whole
     chunk: their ratio is the tracer's overhead over bare Embree on exactly the same rays, and CPU time
     (unlike wall time) does not count what other processes on a busy machine take."""
-    t0 = time.process_time()
+    t0 = time.thread_time()
     org, dirs = _chunk_rays(pos, nrm, ids, s)
-    t1 = time.process_time()
+    t1 = time.thread_time()
     hit = scenes.occluded(org, dirs, s.ao_distance)
-    t2 = time.process_time()
+    t2 = time.thread_time()
     vis = 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
-    return vis, t2 - t1, time.process_time() - t0
+    return vis, t2 - t1, time.thread_time() - t0
 
 
 # ---- worker-process side
 _WORKER: _Scenes | None = None
 
 
-def _worker_init(static_vertices, static_faces):
+def _worker_init(static_vertices, static_faces, rigid):
     global _WORKER
     # Ctrl-C reaches the whole process group: the parent shuts the pool down, workers must not die first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _WORKER = _Scenes(static_vertices, static_faces)
+    _WORKER = _Scenes(static_vertices, static_faces, rigid)
 
 
 def _worker_trace(job):
-    version, dyn_v, dyn_f, pos, nrm, ids, s = job
-    _WORKER.update_dynamic(version, dyn_v, dyn_f)
+    version, dyn_v, dyn_f, poses, pos, nrm, ids, s = job
+    _WORKER.update_dynamic(version, dyn_v, dyn_f, poses)
     return _trace_chunk(_WORKER, pos, nrm, ids, s)
 
 
@@ -148,6 +192,8 @@ class EmbreeTracer(Tracer):
         self._static = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
         self._dynamic = (None, None)
         self._dynamic_version = 0
+        self._rigid: list = []
+        self._poses = None
         self._local: _Scenes | None = None
         self._pool = None
         self.account = CpuAccount()
@@ -159,14 +205,28 @@ class EmbreeTracer(Tracer):
     def set_static(self, vertices, faces) -> None:
         self.close()
         self._static = (self._recentre(vertices), np.asarray(faces, np.int32))
-        self._local = _Scenes(*self._static)
+        self._local = _Scenes(*self._static, self._rigid)
 
-    def set_dynamic(self, vertices, faces) -> None:
-        self._dynamic_version += 1
+    def set_rigid(self, meshes) -> None:
+        self.close()
+        self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in meshes]
+        self._local = _Scenes(*self._static, self._rigid)
+
+    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+        if rigid_transforms is None:
+            self._poses = None
+        else:
+            poses = np.asarray(rigid_transforms, np.float64).reshape(-1, 4, 4).copy()
+            poses[:, :3, 3] -= self.center  # into the re-centred frame the rays are traced in
+            self._poses = poses
+        # The deforming part is rebuilt (in every worker) only when it is really given anew.
         if vertices is None or len(faces) == 0:
+            if self._dynamic[0] is None:
+                return
             self._dynamic = (None, None)
         else:
             self._dynamic = (self._recentre(vertices), np.asarray(faces, np.int32))
+        self._dynamic_version += 1
         # The in-process scenes catch up lazily, when a small call traces here rather than in the workers.
 
     # tracing --------------------------------------------------------------
@@ -177,7 +237,8 @@ class EmbreeTracer(Tracer):
         # At least one chunk per worker, so small point sets are spread over every worker too.
         step = max(1, min(s.chunk_points, -(-len(pos) // self.workers)))
         for i in range(0, len(pos), step):
-            yield (self._dynamic_version, *self._dynamic, pos[i:i + step], nrm[i:i + step], ids[i:i + step], s)
+            yield (self._dynamic_version, *self._dynamic, self._poses, pos[i:i + step], nrm[i:i + step],
+                   ids[i:i + step], s)
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
@@ -188,7 +249,7 @@ class EmbreeTracer(Tracer):
             # (warm_up) before starting threads or event loops.
             # ProcessPoolExecutor rather than Pool: a dead worker raises BrokenProcessPool instead of hanging.
             self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
-                                             initializer=_worker_init, initargs=self._static)
+                                             initializer=_worker_init, initargs=(*self._static, self._rigid))
         return self._pool
 
     def warm_up(self) -> None:
@@ -203,11 +264,12 @@ class EmbreeTracer(Tracer):
         out = []
         if len(positions) == 0:
             return np.zeros(0, np.float32)
-        pool = self._ensure_pool() if len(positions) >= 2 * self.workers else None
+        big = len(positions) >= 2 * self.workers and len(positions) * settings.rays >= settings.local_rays
+        pool = self._ensure_pool() if big else None
         jobs = self._jobs(positions, normals, point_ids, settings)
         if pool is None:
-            self._local.update_dynamic(self._dynamic_version, *self._dynamic)
-        results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[3:]) for job in jobs)
+            self._local.update_dynamic(self._dynamic_version, *self._dynamic, self._poses)
+        results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[4:]) for job in jobs)
         try:
             for vis, cpu_query, cpu_total in results:
                 out.append(vis)

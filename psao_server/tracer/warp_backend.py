@@ -45,7 +45,8 @@ class WarpTracer(Tracer):
     def set_static(self, vertices, faces) -> None:
         self._static = self._mesh(vertices, faces)
 
-    def set_dynamic(self, vertices, faces) -> None:
+    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+        vertices, faces = self.merge_rigid(vertices, faces, rigid_transforms)
         self._dynamic = self._mesh(vertices, faces) if vertices is not None else None
 
     def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:

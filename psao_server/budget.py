@@ -1,0 +1,145 @@
+"""The time-budgeted part of the server tick: what to trace this tick, and how many points fit.
+
+`RefineQueue` keeps, per point id, the rays accumulated since the geometry around the point last
+changed (the history) and their unoccluded count. A point whose history holds fewer rays than the target
+waits in the queue; every trace adds one round of `round_rays` rays (a fresh ray set per round: the
+tracer's seed advances every tick, and directions are hashed from point id and seed), and the stored AO
+is the running mean. A change around a point resets its history (`reset`), so the point goes to the
+front of the queue. Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
+over the point ids, so it can never hold more entries than the scene has points.
+
+Priority (`pick`): points in some client's extended view before those outside it; among those, points
+whose history was reset (nothing traced since their neighbourhood changed) before points being refined;
+then the oldest waiting first.
+
+`TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
+both learnt from the ticks' own traces (exponential averages), so a busier machine gets smaller
+batches. A budget below one point's cost still traces `min_points` (progress is always made); the
+tick's statistics then show budget_used > 1.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol import pointword as pw
+
+
+@dataclass
+class BudgetSettings:
+    tick_hz: float = 60.0  # the service's tick rate: the automatic budget is a share of its period
+    budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
+    headroom: float = 0.6  # automatic budget: this share of the tick period, less the other stages
+    floor: float = 0.2  # automatic budget: never below this share of the tick period (tracing must go on)
+    round_rays: int = 8  # rays per point per trace round (the history accumulates rounds up to the target)
+    min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
+    smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
+
+
+class TraceBudget:
+    """Points per tick from measured tracing speed."""
+
+    def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 2e-3):
+        self.settings = settings
+        self.rays_per_second = max(float(rays_per_second), 1e3)
+        self.overhead_s = max(float(overhead_s), 0.0)
+        self.other_stages_s = 0.0  # animate + select + grid, averaged
+
+    def budget_s(self) -> float:
+        s = self.settings
+        if s.budget_ms > 0:
+            return s.budget_ms / 1e3
+        return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz)
+
+    def points(self, rays_per_point: int) -> int:
+        """How many points of `rays_per_point` rays fit in this tick's budget (at least min_points)."""
+        budget = self.budget_s()
+        # An overhead beyond the budget is paid whenever anything is traced: then trace half a budget's
+        # worth of rays on top of it, or the tick would crawl along at min_points.
+        room = max(budget - self.overhead_s, 0.5 * budget)
+        return max(int(room * self.rays_per_second / max(rays_per_point, 1)), self.settings.min_points)
+
+    def observe_trace(self, rays: int, seconds: float) -> None:
+        """Learn from one trace call: calls too small to say much about the rate only teach the overhead."""
+        a = self.settings.smoothing
+        if rays <= 0 or not math.isfinite(seconds):
+            return
+        work = seconds - self.overhead_s
+        if work > 0.5 * seconds and rays >= 1000:
+            self.rays_per_second = (1 - a) * self.rays_per_second + a * rays / work
+        else:
+            self.overhead_s = (1 - a) * self.overhead_s + a * max(seconds - rays / self.rays_per_second, 0.0)
+
+    def observe_other(self, seconds: float) -> None:
+        a = self.settings.smoothing
+        self.other_stages_s = (1 - a) * self.other_stages_s + a * max(seconds, 0.0)
+
+
+def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[float, float]:
+    """(rays per second, seconds of one small call): a warm-up trace of the given points and of a few
+    (as many as the tracer's workers take in one call, so the small call pays the same hand-over)."""
+    few = max(1, 2 * int(getattr(tracer, "workers", 1)))
+    tracer.visibility(positions[:few], normals[:few], ids[:few], trace_settings)  # first call: lazy set-up
+    t0 = time.perf_counter()
+    tracer.visibility(positions[:few], normals[:few], ids[:few], trace_settings)
+    small = time.perf_counter() - t0
+    if len(ids) <= few:
+        return 2e6, small
+    t0 = time.perf_counter()
+    tracer.visibility(positions, normals, ids, trace_settings)
+    big = time.perf_counter() - t0
+    return len(ids) * trace_settings.rays / max(big - small, 1e-6), small
+
+
+class RefineQueue:
+    """Per point: rays accumulated since the last reset, unoccluded rays among them, and since when the
+    point waits (perf_counter seconds)."""
+
+    def __init__(self, n: int, target_rays: int):
+        self.target = int(target_rays)
+        self.rays = np.zeros(n, np.int32)
+        self.unoccluded = np.zeros(n, np.float32)
+        self.waiting_since = np.full(n, time.perf_counter())
+
+    def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
+        """The bake's AO counts as `rays` rays of history (its quantised value stands for their mean)."""
+        self.rays[ids] = rays
+        self.unoccluded[ids] = codes.astype(np.float32) / 255.0 * rays
+
+    def reset(self, ids: np.ndarray, now: float) -> None:
+        """The geometry around `ids` changed: their history is void; they wait from now unless they waited already."""
+        fresh = ids[self.rays[ids] >= self.target]
+        self.waiting_since[fresh] = now
+        self.rays[ids] = 0
+        self.unoccluded[ids] = 0.0
+
+    def waiting(self, eligible: np.ndarray) -> np.ndarray:
+        """Ids (sorted) of eligible points whose history is short of the target."""
+        return np.flatnonzero(eligible & (self.rays < self.target))
+
+    def pick(self, ids: np.ndarray, visible: np.ndarray, k: int) -> np.ndarray:
+        """The first `k` of `ids` in priority order (visible, reset, oldest)."""
+        if len(ids) <= k:
+            order = np.lexsort((self.waiting_since[ids], self.rays[ids] > 0, ~visible))
+            return ids[order]
+        key = (~visible).astype(np.float64) * 4e9 + (self.rays[ids] > 0) * 2e9 + (self.waiting_since[ids] - self.waiting_since[ids].min())
+        first = np.argpartition(key, k - 1)[:k]
+        return ids[first[np.argsort(key[first], kind="stable")]]
+
+    def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float) -> np.ndarray:
+        """Accumulate one round; returns the AO codes of the running means. Points still short of the
+        target keep waiting (their wait restarts now, so others get their turn)."""
+        self.unoccluded[ids] += visibility.astype(np.float32) * rays
+        self.rays[ids] += rays
+        self.waiting_since[ids] = now
+        return pw.quantise_ao(self.unoccluded[ids] / self.rays[ids])
+
+    def length(self, eligible: np.ndarray) -> int:
+        return int(np.count_nonzero(eligible & (self.rays < self.target)))
+
+    def oldest_ms(self, eligible: np.ndarray, now: float) -> float:
+        w = eligible & (self.rays < self.target)
+        return float(1e3 * (now - self.waiting_since[w].min())) if w.any() else 0.0

@@ -1,0 +1,112 @@
+"""The time-budgeted tick: it always makes progress, converges and then sends nothing, resets history
+only where the geometry changed, keeps its queue bounded, and agrees with a full re-trace once settled.
+Nothing here depends on speed: budgets are set so small that every tick traces its minimum batch, or
+the test counts ticks until the queue is empty."""
+import math
+
+import numpy as np
+import pytest
+
+from protocol import pointword as pw
+from psao_scene import load_scene
+from psao_server.bake import BakeSettings, bake_scene
+from psao_server.budget import BudgetSettings, RefineQueue
+from psao_server.errors import ConfigError
+from psao_server.tick import ServerTick, TickSettings
+
+
+def make_tick(name, density, bake_rays, rays, round_rays, min_points, budget_ms=1e-3):
+    bake = bake_scene(load_scene(f"builtin:{name}"), BakeSettings(density=density, rays=bake_rays, workers=1),
+                      show_progress=False)
+    budget = BudgetSettings(budget_ms=budget_ms, round_rays=round_rays, min_points=min_points)
+    tick = ServerTick(bake, TickSettings(rays=rays, workers=1, budget=budget))
+    tick.grid.take_dirty()
+    return tick
+
+
+def test_progressive_refinement_converges_then_sends_nothing():
+    # a static scene baked with 2 rays refines to 8 in rounds of 2 while the budget allows only the
+    # minimum batch: each tick makes progress, and once every point holds 8 rays nothing moves
+    tick = make_tick("cornell", 24, bake_rays=2, rays=8, round_rays=2, min_points=100)
+    try:
+        n = int(tick.tracked.sum())
+        first = tick(tick.grid, 0.0)
+        assert first.traced == 100 and first.batch == 100 and first.budget_used > 1 and first.queue == n
+        ticks = 1
+        while (s := tick(tick.grid, 0.0)).queue > 0:
+            assert s.traced == 100
+            ticks += 1
+            assert ticks < 4 * n // 100 + 8, "the queue does not drain"
+        tick.grid.take_dirty()
+        assert (tick.queue.rays[tick.tracked] >= 8).all()
+        for t in (0.0, 1.0, 2.0):
+            s = tick(tick.grid, t)
+            assert s.traced == 0 and s.changed == 0 and s.queue == 0
+            b, c = tick.grid.take_dirty()
+            assert len(b) == 0 and len(c) == 0
+    finally:
+        tick.close()
+
+
+def test_refined_ao_agrees_with_a_full_trace():
+    # rounds with their own ray sets average towards the AO a full trace of as many rays gives
+    tick = make_tick("cornell", 24, bake_rays=4, rays=64, round_rays=4, min_points=100000)
+    try:
+        while tick(tick.grid, 0.0).queue > 0:
+            pass
+        ids = np.flatnonzero(tick.present())
+        pos, nrm = tick.world_points(tick.last_frame, ids)
+        full = pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
+        stored = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF).astype(np.int64)
+        # two independent 64-ray estimates: their difference has a spread of at most ~0.09 (45 codes at p=0.5)
+        assert np.abs(stored - full).mean() < 12
+    finally:
+        tick.close()
+
+
+def test_motion_resets_history_near_the_mover_only_and_queue_stays_bounded():
+    tick = make_tick("courtyard", 16, bake_rays=4, rays=4, round_rays=4, min_points=64)
+    try:
+        n = int(tick.tracked.sum())
+        assert tick.queue.length(tick.tracked) == 0  # the bake holds every point's target already
+        rays_before = tick.queue.rays.copy()
+        s = tick(tick.grid, 0.5)  # the movers jump half a second along their paths
+        reset = tick.queue.rays < rays_before
+        assert 0 < reset.sum() < n // 2  # a neighbourhood, not the scene
+        assert s.traced == 64 and s.queue == reset.sum()  # one round of 4 rays completes a traced point
+        lengths = []
+        for k in range(60):  # fast motion (a second of scene time per tick) with a tiny budget
+            s = tick(tick.grid, 1.0 + k)
+            lengths.append(s.queue)
+            assert s.queue <= n and s.traced == 64
+        assert len(tick.stats_history) <= tick.settings.history
+        assert tick.queue.rays.shape == (len(tick.tracked),)
+        # motion stops: the queue drains (nothing was dropped, it waited) and no point is left short
+        t_end = 60.0
+        ticks = 0
+        while tick(tick.grid, t_end).queue > 0:
+            ticks += 1
+            assert ticks < n // 64 + 10
+        assert (tick.queue.rays[tick.tracked] >= 4).all()
+        assert max(lengths) <= n
+    finally:
+        tick.close()
+
+
+def test_priority_visible_then_reset_then_oldest():
+    q = RefineQueue(6, target_rays=8)
+    q.rays[:] = [0, 4, 0, 4, 0, 8]
+    q.waiting_since[:] = [5.0, 1.0, 3.0, 2.0, 1.0, 0.0]
+    ids = q.waiting(np.ones(6, bool))
+    assert list(ids) == [0, 1, 2, 3, 4]
+    visible = np.array([True, True, True, True, False])
+    assert list(q.pick(ids, visible, 5)) == [2, 0, 1, 3, 4]
+    assert list(q.pick(ids, visible, 2)) == [2, 0]
+
+
+@pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("tick_hz", 0.0),
+                                         ("tick_hz", math.inf), ("round_rays", 0)])
+def test_bad_budget_settings_are_refused(field, value):
+    budget = BudgetSettings(**{field: value})
+    with pytest.raises(ConfigError):
+        TickSettings(budget=budget).check()
