@@ -21,7 +21,7 @@ from contextlib import redirect_stdout
 from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video")
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video", "realtime")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -33,6 +33,8 @@ QUICK_ARGS = {
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
     "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "1", "--spp", "32",
               "--clip", "8", "--bitrates", "0.25,1,4,20"],
+    "realtime": ["--parts", "tracer,grid", "--tracer-density", "32", "--bake-points", "20000", "--bake-rays", "16",
+                 "--tick-points", "4000", "--repeats", "2", "--skinned-points", "10000", "--grid-ticks", "5"],
 }
 
 

@@ -19,7 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default loopback only)")
     p.add_argument("--port", type=int, default=8765, help="TCP port (0 picks a free one; default 8765)")
     sampling.add_arguments(p)
-    p.add_argument("--rays", type=int, default=128, help="AO rays per point for the bake (default 128)")
+    p.add_argument("--rays", type=int, default=128,
+                   help="AO rays per point: the bake's, and what the server tick accumulates to (default 128)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grid", type=Path, default=None, help="serve this baked grid (.npz from psao bake) instead of baking")
     p.add_argument("--codec", choices=CODEC_CHOICES, default="zstd",
@@ -37,32 +38,79 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--animate", action="store_true",
                    help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
     p.add_argument("--tick-rays", type=int, default=None, metavar="R",
-                   help="with --animate: rays per re-traced point (default: the tick's default)")
+                   help="with --animate or --progressive: rays per point per tick round, accumulated over ticks up "
+                        "to --rays (default 8); --progressive also traces its first grid with them")
+    p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
+                   help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
+                        "(default: 60%% of the tick period less the other stages); waiting points queue")
+    p.add_argument("--progressive", action="store_true",
+                   help="stream a first grid traced with --tick-rays at once, then refine it to --rays in the "
+                        "ticks' spare budget, streaming the improvements")
     p.add_argument("--test-edits", type=int, default=0, metavar="K",
                    help="test hook: edit about K points per tick (AO, moves, frees and allocations)")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append a state digest (jsonl) after every message that left nothing pending (tests)")
 
 
-def _animated(args):
-    """(scene, grid, tick) with the server tick running on a fresh bake (it needs the bake's point sets)."""
+def _budget(args):
+    """The tick's time budget from --tick-hz, --tick-budget-ms and --tick-rays (ConfigError when out of range)."""
+    import math
+
+    from psao_server.budget import BudgetSettings
+
+    b = BudgetSettings(tick_hz=args.tick_hz)
+    if args.tick_budget_ms is not None:
+        period_ms = 1e3 / args.tick_hz
+        if not (math.isfinite(args.tick_budget_ms) and 0 < args.tick_budget_ms <= period_ms):
+            raise ConfigError(f"--tick-budget-ms must be within (0, {period_ms:g}] ms (the tick period at "
+                              f"--tick-hz {args.tick_hz:g}), got {args.tick_budget_ms}")
+        b.budget_ms = args.tick_budget_ms
+    if args.tick_rays is not None:
+        if not 1 <= args.tick_rays <= args.rays:
+            raise ConfigError(f"--tick-rays must be within 1..--rays ({args.rays}), got {args.tick_rays}")
+        b.round_rays = args.tick_rays
+    return b
+
+
+class AtRest:
+    """The server tick with the scene held at t = 0 (--progressive without --animate): only refinement."""
+
+    def __init__(self, tick):
+        self.tick = tick
+        self.grid = tick.grid
+        self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
+
+    def prepare(self, t: float):
+        return self.tick.prepare(0.0)
+
+
+def _ticking(args):
+    """(scene, grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point
+    sets): animating the scene with --animate, refining a first few-ray grid with --progressive."""
     from psao_scene import load_scene
     from psao_server.bake import BakeSettings, bake_scene
     from psao_server.tick import ServerTick, TickSettings
 
+    flag = "--animate" if args.animate else "--progressive"
     if args.grid is not None:
-        raise ConfigError("--animate bakes the scene itself: it cannot serve a --grid file")
+        raise ConfigError(f"{flag} bakes the scene itself: it cannot serve a --grid file")
     if args.test_edits:
-        raise ConfigError("--animate and --test-edits both edit the grid: choose one")
+        raise ConfigError(f"{flag} and --test-edits both edit the grid: choose one")
+    budget = _budget(args)
     scene = load_scene(args.scene)
-    bake = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed))
-    settings = TickSettings(seed=args.seed) if args.tick_rays is None else TickSettings(rays=args.tick_rays,
-                                                                                       seed=args.seed)
-    # The bake's AO is the tick's first sync even when it traced more rays than a tick does: otherwise the
-    # first tick would re-trace every visible point at once.
-    tick = ServerTick(bake, settings, trust_bake=True)  # closes the bake's tracer, starts its own
-    logging.getLogger("psao.serve").info("baked %s at N=%g: %d points; server tick on (%d rays per re-traced point)",
-                                         scene.name, bake.stats["density"], bake.stats["points_kept"], tick.settings.rays)
+    bake_rays = budget.round_rays if args.progressive else args.rays
+    bake = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=bake_rays, seed=args.seed))
+    # The bake's AO counts as that many rays of every point's history: with --rays it is converged, with
+    # --progressive the ticks' spare budget refines it.
+    settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True)
+    if not args.animate:
+        settings.fit_grid = False
+    tick = ServerTick(bake, settings)  # closes the bake's tracer, starts its own
+    if not args.animate:
+        tick = AtRest(tick)
+    logging.getLogger("psao.serve").info(
+        "baked %s at N=%g with %d rays: %d points; server tick on (%d rays per point per round, up to %d)",
+        scene.name, bake.stats["density"], bake_rays, bake.stats["points_kept"], budget.round_rays, args.rays)
     return scene, tick.grid, tick
 
 
@@ -130,8 +178,10 @@ def run(args: argparse.Namespace) -> int:
     setup_logging()
     settings = _settings(args)
     sampling.SamplingSettings(**sampling.bake_kwargs(args)).check()  # a bad number fails before the scene loads
-    if args.animate:
-        scene, grid, tick = _animated(args)
+    if not (args.animate or args.progressive) and (args.tick_budget_ms is not None or args.tick_rays is not None):
+        raise ConfigError("--tick-budget-ms and --tick-rays need --animate or --progressive (no tick runs otherwise)")
+    if args.animate or args.progressive:
+        scene, grid, tick = _ticking(args)
         transforms = tick.transforms
     else:
         scene, grid = _load(args)

@@ -242,6 +242,9 @@ class Service:
                     f"{s['cells_dirty']} cells | ms animate {1e3 * s['seconds_animate']:.1f} select "
                     f"{1e3 * s['seconds_select']:.1f} trace {1e3 * s['seconds_trace']:.1f} grid "
                     f"{1e3 * s['seconds_grid']:.1f} encode {1e3 * encode:.1f}")
+            if s.get("budget_ms"):  # the time-budgeted tick: its queue and how much of its budget it used
+                work += (f" | queue {s['queue']} (oldest {s['queue_oldest_ms']:.0f} ms), budget "
+                         f"{s['budget_ms']:.1f} ms, used {100 * s['budget_used']:.0f}%")
         log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients | out %.1f kB/s | most pending cells %d%s",
                  self.tick, ticks, 100 * busy, len(self.registry), rate / 1e3, pending, work)
         c.last = {"bytes": c.bytes_out, "ticks": c.ticks, "tick_s": c.tick_seconds, "encode_s": c.encode_seconds}

@@ -32,6 +32,12 @@ def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
     (["--density", "0"], "density must be a finite number > 0"),
     (["--test-edits", "-1"], "--test-edits must be >= 0"),
     (["--grid", "/nonexistent/grid.npz"], "not a PSAO grid file"),
+    (["--tick-hz", "nan"], "tick rate must be within 5..60"),
+    (["--animate", "--tick-budget-ms", "nan"], "--tick-budget-ms must be within (0, 16.6667]"),
+    (["--animate", "--tick-budget-ms", "0"], "--tick-budget-ms must be within (0, 16.6667]"),
+    (["--progressive", "--tick-budget-ms", "30"], "--tick-budget-ms must be within (0, 16.6667]"),
+    (["--animate", "--tick-rays", "0"], "--tick-rays must be within 1..--rays"),
+    (["--tick-budget-ms", "5"], "need --animate or --progressive"),
 ])
 def test_serve_bad_settings(args, text):
     one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)
@@ -42,20 +48,20 @@ def test_animate_needs_its_own_bake():
                    "cannot serve a --grid file")
 
 
-def test_animated_server_keeps_mirror_exact(tmp_path):
-    """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
-    err, slog, clog = tmp_path / "serve.err", tmp_path / "server.jsonl", tmp_path / "client.jsonl"
-    stats = tmp_path / "stats.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:courtyard", "--animate", "--density", "8",
-                             "--rays", "4", "--tick-rays", "4", "--port", "0", "--tick-hz", "20",
-                             "--digest-log", str(slog), "--stats-json", str(stats)], cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=open(err, "w"), text=True)
+def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tuple[str, str]], list[dict]]:
+    """Run `psao serve ... --port 0` with digest and stats logs, one `psao client` against it, stop the
+    server with SIGTERM. Returns the server's log, (server digest, client digest) pairs of the messages
+    both logged, and the per-tick stats records."""
+    err, slog, clog, stats = (tmp_path / n for n in ("serve.err", "server.jsonl", "client.jsonl", "stats.jsonl"))
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *serve_args, "--port", "0", "--digest-log", str(slog),
+                             "--stats-json", str(stats)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"),
+                            text=True)
     try:
         end = time.time() + 120
         while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
             assert time.time() < end and proc.poll() is None, err.read_text()
             time.sleep(0.1)
-        out = psao("client", m.group(1), "--frames", "30", "--json", "--digest-log", str(clog))
+        out = psao("client", m.group(1), *client_args, "--json", "--digest-log", str(clog))
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
@@ -65,17 +71,38 @@ def test_animated_server_keeps_mirror_exact(tmp_path):
             proc.wait()
     server = {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, slog.read_text().splitlines())}
     client = [json.loads(line) for line in clog.read_text().splitlines()]
-    both = [d for d in client if (d["conn"], d["seq"]) in server]
-    assert len(both) >= 25 and all(server[(d["conn"], d["seq"])] == d["digest"] for d in both)
-    assert "server tick on" in err.read_text()
+    pairs = [(server[(d["conn"], d["seq"])], d["digest"]) for d in client if (d["conn"], d["seq"]) in server]
+    return err.read_text(), pairs, [json.loads(line) for line in stats.read_text().splitlines()]
+
+
+def test_animated_server_keeps_mirror_exact(tmp_path):
+    """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
+    log, pairs, ticks = serve_with_client(tmp_path, ["builtin:courtyard", "--animate", "--density", "8", "--rays", "4",
+                                                     "--tick-rays", "4", "--tick-hz", "20"], ["--frames", "30"])
+    assert len(pairs) >= 25 and all(a == b for a, b in pairs)
+    assert "server tick on" in log
     # Per-tick statistics as JSON lines: stage times, and what was sent since the previous tick.
-    ticks = [json.loads(line) for line in stats.read_text().splitlines()]
     assert len(ticks) >= 10
     for key in ("considered", "traced", "changed", "cells_dirty", "cells_sent", "bytes_sent", "seconds_animate",
-                "seconds_trace", "seconds_grid", "seconds_encode"):
+                "seconds_trace", "seconds_grid", "seconds_encode", "queue", "queue_oldest_ms", "budget_ms", "budget_used"):
         assert all(key in t and t[key] >= 0 for t in ticks), key
     assert sum(t["bytes_sent"] for t in ticks) == ticks[-1]["bytes_out"] > 0
     assert sum(t["cells_sent"] for t in ticks) > 0
+
+
+def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
+    """--progressive: the first grid is traced with --tick-rays, the ticks refine it towards --rays
+    (writing the improvements into the grid the service streams); the client's mirror is exact and the queue
+    only shrinks (nothing moves). How far the refinement got when the client connects depends on the
+    machine: the snapshot is what is sure to come."""
+    log, pairs, ticks = serve_with_client(tmp_path, ["builtin:cornell", "--progressive", "--density", "32", "--rays", "16",
+                                                     "--tick-rays", "2", "--tick-budget-ms", "1", "--tick-hz", "20"],
+                                          ["--scene", "builtin:cornell", "--frames", "0"])
+    assert "with 2 rays" in log
+    assert len(pairs) >= 1 and all(a == b for a, b in pairs)
+    queue = [t["queue"] for t in ticks]
+    assert queue[0] > 0 and all(b <= a for a, b in zip(queue, queue[1:]))
+    assert all(t["traced"] > 0 for t in ticks if t["queue"] > 0) and sum(t["changed"] for t in ticks) > 0
 
 
 def test_serve_port_taken():

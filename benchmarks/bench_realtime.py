@@ -1,0 +1,454 @@
+"""The real-time server against its targets, each part measured against a real baseline in the same run.
+
+Parts (--parts, comma list; all by default):
+  tracer   the tracer against bare embreex on exactly the same rays with the same number of processes
+           (benchmarks.bare_embree): a bake-sized batch (target >= 0.9) and tick-sized batches of a moving
+           scene (target >= 0.8), medians of interleaved repeats (wall seconds, so both runs share the load)
+  grid     skinned points through the grid stage (the tick's apply: move_points and re-location) of a
+           skinned model at --skinned-points points: moved points per second (target >= 2 million)
+  rate     ticks per second of a real `psao serve --animate --tick-hz 60` process (its own statistics)
+           with a real `psao client` sending its camera (benchmarks.served): courtyard N=256, robots
+           N=256 and N=512, the skinned model (target >= 55); also the bytes per second it sends
+  start    `psao serve --progressive` on courtyard N=256: seconds from process start to the client's
+           complete snapshot (target < 3 s) beside a plain `psao serve` (whole bake first); the client's
+           mirror at 1, 5 and 30 s against the full --rays bake (PSNR of the points' AO), chart
+  quality  budgeted tick at 60 Hz (real time) against the unbudgeted tick (every selected point fully
+           re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
+           points in the camera's view against a --ref-rays reference trace, while moving and one second
+           after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart
+
+The Warp CUDA tracer is not measured here unless --tracer warp is given on a machine with a GPU.
+
+    .venv/bin/python -m benchmarks.bench_realtime [--parts tracer,grid,rate,start,quality] [--seconds 10]
+        [--skinned ../shared/scenes/cesiumman/CesiumMan.glb] [--out out/bench_realtime]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.verdicts import Verdicts
+
+PARTS = ("tracer", "grid", "rate", "start", "quality")
+TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
+           "first_snapshot_s": 3.0, "moving_loss_db": 1.0, "rest_loss_db": 0.5}
+SKINNED = "../shared/scenes/cesiumman/CesiumMan.glb"
+
+
+def density_for(scene, points: float) -> float:
+    """Density (points per unit^2) giving about `points` points on the scene's surface."""
+    from psao_server.bake import scene_world_geometry
+
+    v, f = scene_world_geometry(scene)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+    return float(points / max(area, 1e-12))
+
+
+def camera(scene, t: float):
+    from psao_client.connection import scene_camera_feed
+    return scene_camera_feed(scene)(t)
+
+
+# ------------------------------------------------------------------------------------------ tracer
+def part_tracer(args, v: Verdicts, out: dict) -> None:
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene, scene_center
+    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.tracer import TraceSettings
+
+    from benchmarks.bare_embree import BareEmbree
+
+    scene = load_scene("builtin:courtyard")
+    bake = bake_scene(scene, BakeSettings(density=args.tracer_density, rays=4, workers=args.workers), show_progress=False)
+    tick = ServerTick(bake, TickSettings(rays=32, workers=args.workers))
+    try:
+        workers = tick.tracer.workers
+        rng = np.random.default_rng(0)
+        rows = []
+        # bake-sized: static points, static scene only (as the bake traces)
+        ids = np.sort(rng.choice(tick.static_ids, min(args.bake_points, len(tick.static_ids)), replace=False))
+        frame = tick.animator.frame(0.0)
+        pos, nrm = tick.world_points(frame, ids)
+        s = TraceSettings(rays=args.bake_rays, ao_distance=scene.ao_distance, seed=0)
+        static_v, static_f = tick.animator.static_geometry()
+        tick.tracer.set_dynamic(None, np.zeros((0, 3), int), None)
+        rows.append(("bake", len(ids), s.rays) + _compare(tick.tracer, BareEmbree(static_v, static_f, None, None,
+                                                                          scene_center(scene), workers),
+                                                       pos, nrm, ids, s, args.repeats))
+        # tick-sized: the points a moving tick selects, with the moving part posed at t
+        for n_points in args.tick_points:
+            t = 1.0
+            frame = tick.animator.frame(t)
+            near = np.flatnonzero(tick.tracked)
+            ids = np.sort(rng.choice(near, min(n_points, len(near)), replace=False))
+            pos, nrm = tick.world_points(frame, ids)
+            s = TraceSettings(rays=args.tick_rays, ao_distance=scene.ao_distance, seed=1)
+            tick.pose_tracer(frame)
+            bare = BareEmbree(static_v, static_f, frame.dynamic_vertices, frame.dynamic_faces, scene_center(scene), workers)
+            rows.append(("tick", len(ids), s.rays) + _compare(tick.tracer, bare, pos, nrm, ids, s, args.repeats))
+    finally:
+        tick.close()
+    out["tracer"] = [dict(zip(("kind", "points", "rays", "tracer_s", "bare_s", "ratio"), r)) for r in rows]
+    print(f"tracer vs bare embreex, {workers} processes each, same rays (median of {args.repeats} interleaved runs):")
+    for kind, n, rays, ts, bs, ratio in rows:
+        print(f"  {kind:4s} {n:8,d} points x {rays:3d} rays: tracer {1e3 * ts:8.1f} ms, bare {1e3 * bs:8.1f} ms, "
+              f"{n * rays / ts / 1e6:6.2f} vs {n * rays / bs / 1e6:6.2f} Mrays/s")
+        v.check(f"tracer / bare embreex throughput, {kind} {n} points x {rays} rays, {workers} processes", ratio,
+                ">=", TARGETS[f"tracer_{kind}"])
+
+
+def _compare(tracer, bare, pos, nrm, ids, s, repeats: int) -> tuple[float, float, float]:
+    tracer.visibility(pos, nrm, ids, s)  # warm: pool and buffers
+    ts, bs = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        tracer.visibility(pos, nrm, ids, s)
+        ts.append(time.perf_counter() - t0)
+        bs.append(bare.time(pos, nrm, ids, s))
+    t, b = float(np.median(ts)), float(np.median(bs))
+    return t, b, b / t
+
+
+# -------------------------------------------------------------------------------------------- grid
+def part_grid(args, v: Verdicts, out: dict) -> None:
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.tick import ServerTick, TickSettings
+
+    scene = load_scene(args.skinned)
+    density = density_for(scene, args.skinned_points)
+    bake = bake_scene(scene, BakeSettings(density=density, rays=4, workers=args.workers), show_progress=False)
+    tick = ServerTick(bake, TickSettings(rays=4, workers=args.workers))
+    try:
+        tick.set_cameras([])
+        moved, seconds = 0, 0.0
+        for k in range(args.grid_ticks):
+            plan = tick.prepare((k + 1) / 30.0)
+            plan.ids, plan.codes = plan.ids[:0], plan.codes[:0]  # the grid stage alone: no AO writes
+            s = tick.apply(plan)
+            tick.grid.take_dirty()
+            moved += s.moved
+            seconds += s.seconds_grid
+    finally:
+        tick.close()
+    rate = moved / max(seconds, 1e-9)
+    out["grid"] = {"scene": args.skinned, "points": int(bake.stats["points_kept"]), "density": density,
+                   "moved": moved, "seconds": seconds, "points_per_s": rate}
+    print(f"grid stage, {args.skinned}: {bake.stats['points_kept']:,} points, {moved:,} moved in {args.grid_ticks} "
+          f"ticks, {1e3 * seconds / args.grid_ticks:.1f} ms per tick")
+    v.check(f"skinned points moved through the grid per second ({args.skinned})", rate, ">=",
+            TARGETS["grid_points_per_s"])
+
+
+# -------------------------------------------------------------------------------------------- rate
+def part_rate(args, v: Verdicts, out: dict) -> None:
+    from psao_scene import load_scene
+
+    from benchmarks.served import serve_and_watch
+
+    cases = [("builtin:courtyard", 256.0), ("builtin:robots", 256.0), ("builtin:robots", 512.0)]
+    if Path(args.skinned).exists():
+        cases.append((args.skinned, density_for(load_scene(args.skinned), args.skinned_points)))
+    else:
+        print(f"skinned model {args.skinned} not found: its row is skipped")
+    rows = []
+    for scene, density in cases:
+        run = serve_and_watch(scene, ["--animate", "--density", f"{density:g}", "--rays", str(args.serve_rays),
+                                      "--tick-hz", "60"], args.seconds)
+        row = {"scene": scene, "density": density, "ticks_per_s": run.ticks_per_second,
+               "bytes_per_s": run.bytes_per_second, "traced_mean": run.mean("traced"),
+               "queue_mean": run.mean("queue"), "budget_used_mean": run.mean("budget_used"),
+               "tick_ms_mean": 1e3 * run.mean("seconds_tick"), "first_snapshot_s": run.first_snapshot_s,
+               "points": run.client.get("mirror_cells")}
+        rows.append(row)
+        print(f"  {scene} N={density:g}: {row['ticks_per_s']:.1f} ticks/s, {8 * row['bytes_per_s'] / 1e6:.2f} Mbit/s "
+              f"({row['bytes_per_s'] / max(row['ticks_per_s'], 1e-9):,.0f} B/tick), traced/tick "
+              f"{row['traced_mean']:.0f}, queue {row['queue_mean']:.0f}, budget used {100 * row['budget_used_mean']:.0f}%, "
+              f"tick {row['tick_ms_mean']:.1f} ms", flush=True)
+        v.check(f"{scene} N={density:g} ticks per second of psao serve --animate --tick-hz 60 with a client",
+                row["ticks_per_s"], ">=", TARGETS["ticks_per_s"])
+    out["rate"] = rows
+
+
+# ------------------------------------------------------------------------------------------- start
+def part_start(args, v: Verdicts, out: dict) -> None:
+    import asyncio
+
+    from protocol import gridformat as gf
+    from protocol.session import scene_hash_bytes
+    from psao_client.connection import MirrorClient, scene_camera_feed
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene
+
+    from benchmarks.served import serve_and_watch
+
+    spec, density = "builtin:courtyard", args.start_density
+    scene = load_scene(spec)
+    t0 = time.perf_counter()
+    full = bake_scene(scene, BakeSettings(density=density, rays=args.start_rays, workers=args.workers), show_progress=False)
+    full.tracer.close()
+    full_bake_s = time.perf_counter() - t0
+    truth = (full.grid.cells[:, :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
+    held = full.grid.point_id[:, :gf.POINTS_PER_CELL] >= 0
+
+    import subprocess
+    import sys
+    import os
+    import re
+    import signal
+
+    marks = sorted(args.start_marks)
+    captured: dict[float, np.ndarray] = {}
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", spec, "--port", "0", "--progressive", "--density",
+                             f"{density:g}", "--rays", str(args.start_rays), "--tick-hz", "60"],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    started = time.perf_counter()
+    port = None
+    while port is None:
+        line = proc.stderr.readline()
+        if not line and proc.poll() is not None:
+            raise RuntimeError("psao serve --progressive exited")
+        m = re.search(r"listening on ws://[^:]+:(\d+)", line)
+        port = int(m.group(1)) if m else None
+    first_snapshot = {}
+
+    def on_snapshot(mirror):
+        first_snapshot.setdefault("s", time.perf_counter() - started)
+
+    def on_update(mirror, transforms, tick):
+        now = time.perf_counter() - started
+        for mark in marks:
+            if mark not in captured and now >= mark:
+                captured[mark] = (mirror.cells[:len(truth), :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
+
+    client = MirrorClient(f"ws://127.0.0.1:{port}", scene_hash_bytes(scene.content_hash()),
+                          camera=scene_camera_feed(scene), on_snapshot=on_snapshot, on_update=on_update)
+
+    async def watch():
+        task = asyncio.create_task(client.run())
+        while len(captured) < len(marks) and not task.done():
+            await asyncio.sleep(0.05)
+        client.stop()
+        await task
+
+    try:
+        asyncio.run(watch())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    psnr = {}
+    for mark, ao in captured.items():
+        mse = float(np.mean((ao[held] - truth[held]) ** 2))
+        psnr[mark] = 10 * np.log10(1.0 / max(mse, 1e-12))
+    plain = serve_and_watch(spec, ["--density", f"{density:g}", "--rays", str(args.start_rays)], 1.0)
+    out["start"] = {"density": density, "rays": args.start_rays, "first_snapshot_s": first_snapshot.get("s"),
+                    "plain_first_snapshot_s": plain.first_snapshot_s, "full_bake_s": full_bake_s,
+                    "psnr_db_at_s": psnr}
+    print(f"progressive start, courtyard N={density:g}: first snapshot {first_snapshot.get('s', float('nan')):.2f} s "
+          f"after start (plain serve, whole {args.start_rays}-ray bake first: {plain.first_snapshot_s:.1f} s)")
+    for mark in marks:
+        print(f"  {mark:5.1f} s after start: PSNR of the client's point AO vs the full {args.start_rays}-ray bake "
+              f"{psnr.get(mark, float('nan')):.2f} dB")
+    _chart_start(out["start"], args.out / "progressive_start.png")
+    v.check(f"courtyard N={density:g} psao serve --progressive: seconds to the client's first snapshot",
+            first_snapshot.get("s", float("nan")), "<", TARGETS["first_snapshot_s"])
+
+
+def _chart_start(r: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    marks = sorted(r["psnr_db_at_s"])
+    ax.plot(marks, [r["psnr_db_at_s"][m] for m in marks], "o-", label="--progressive (client's mirror)")
+    ax.axvline(r["first_snapshot_s"], color="g", ls=":", label=f"first snapshot {r['first_snapshot_s']:.1f} s")
+    ax.axvline(r["plain_first_snapshot_s"], color="r", ls="--",
+               label=f"plain serve: first snapshot {r['plain_first_snapshot_s']:.0f} s (full bake, error 0 by definition)")
+    ax.set(xlabel="seconds since psao serve started", ylabel=f"PSNR vs the full {r['rays']}-ray bake, dB (point AO)",
+           title=f"courtyard N={r['density']:g}: progressive start")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- quality
+def part_quality(args, v: Verdicts, out: dict) -> None:
+    rows = {}
+    for name in ("courtyard", "robots"):
+        rows[name] = quality_scene(name, args)
+        r = rows[name]
+        print(f"  {name} N={args.quality_density:g}: mean PSNR while moving budgeted {r['moving_budgeted_db']:.2f} dB, "
+              f"unbudgeted {r['moving_unbudgeted_db']:.2f} dB; 1 s after motion stops {r['rest_budgeted_db']:.2f} vs "
+              f"{r['rest_unbudgeted_db']:.2f} dB", flush=True)
+        v.check(f"{name} mean PSNR loss while moving, budgeted 60 Hz vs unbudgeted, dB",
+                r["moving_unbudgeted_db"] - r["moving_budgeted_db"], "<=", TARGETS["moving_loss_db"])
+        v.check(f"{name} PSNR loss 1 s after motion stops, dB", r["rest_unbudgeted_db"] - r["rest_budgeted_db"], "<=",
+                TARGETS["rest_loss_db"])
+    out["quality"] = rows
+    _chart_quality(rows, args.out / "quality_over_time.png", args)
+
+
+def quality_scene(name: str, args) -> dict:
+    """Run the budgeted tick in real time (scene time = wall time, as the service does) over --move-s of
+    motion then --rest-s with the scene held still, sampling the stored AO of a fixed random set of
+    points; then the unbudgeted tick at the same scene times; then the reference at every sample."""
+    import copy
+
+    from psao_scene import load_scene
+    from psao_server.bake import BakeResult, BakeSettings, bake_scene
+    from psao_server.budget import BudgetSettings
+    from psao_server.selection import camera_planes, in_any_view
+    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.tracer import TraceSettings
+
+    scene = load_scene(f"builtin:{name}")
+    bake = bake_scene(scene, BakeSettings(density=args.quality_density, rays=args.quality_rays, workers=args.workers),
+                      show_progress=False)
+    bake.tracer.close()
+    twin = BakeResult(scene, copy.deepcopy(bake.grid), bake.pointsets, bake.stats, None)
+    rng = np.random.default_rng(1)
+    n_all = sum(len(p) for p in bake.pointsets)
+    sample = np.sort(rng.choice(n_all, min(args.sample_points, n_all), replace=False))
+
+    def stored(tick):
+        ok = tick.present()[sample]
+        codes = np.full(len(sample), -1.0)
+        ids = sample[ok]
+        codes[ok] = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF) / 255.0
+        return codes
+
+    period = 1.0 / 60.0
+    budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
+                                             budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays)))
+    times, samples_b = [], []
+    try:
+        start = time.perf_counter()
+        k = 0
+        while (wall := time.perf_counter() - start) < args.move_s + args.rest_s:
+            t = min(wall, args.move_s)  # the scene stops moving at move_s
+            budgeted.set_cameras([camera(scene, t)])
+            budgeted(budgeted.grid, t)
+            budgeted.grid.take_dirty()
+            if k % args.sample_every == 0:
+                times.append((wall, t))
+                samples_b.append(stored(budgeted))
+            k += 1
+            time.sleep(max(0.0, start + k * period - time.perf_counter()))
+        ticks_per_s = k / (time.perf_counter() - start)
+    finally:
+        budgeted.close()
+    unbudgeted = ServerTick(twin, TickSettings(rays=args.quality_rays, workers=args.workers))
+    samples_u, refs, views = [], [], []
+    try:
+        for wall, t in times:
+            unbudgeted.set_cameras([camera(scene, t)])
+            unbudgeted(unbudgeted.grid, t)
+            unbudgeted.grid.take_dirty()
+            samples_u.append(stored(unbudgeted))
+        for wall, t in times:  # the reference: each sampled point in the camera's view, many rays, at t
+            frame = unbudgeted.animator.frame(t)
+            ids = sample[unbudgeted.present()[sample]]
+            pos, nrm = unbudgeted.world_points(frame, ids)
+            seen = np.zeros(len(sample), bool)
+            seen[unbudgeted.present()[sample]] = in_any_view(pos, [camera_planes(*camera(scene, t), 0.0)], 0.0)
+            unbudgeted.pose_tracer(frame)
+            ref = np.full(len(sample), -1.0)
+            sel = np.flatnonzero(seen)
+            p2, n2 = unbudgeted.world_points(frame, sample[sel])
+            ref[sel] = unbudgeted.tracer.visibility(p2, n2, sample[sel], TraceSettings(
+                rays=args.ref_rays, ao_distance=scene.ao_distance, seed=12345))
+            refs.append(ref)
+            views.append(seen)
+    finally:
+        unbudgeted.close()
+
+    def psnr(a, ref, seen):
+        ok = seen & (a >= 0)
+        mse = float(np.mean((a[ok] - ref[ok]) ** 2)) if ok.any() else float("nan")
+        return 10 * np.log10(1.0 / max(mse, 1e-12))
+
+    pb = [psnr(a, r, s) for a, r, s in zip(samples_b, refs, views)]
+    pu = [psnr(a, r, s) for a, r, s in zip(samples_u, refs, views)]
+    walls = np.array([w for w, _ in times])
+    moving = walls < args.move_s
+    rest = np.flatnonzero(walls >= args.move_s + 1.0)
+    at_rest = int(rest[0]) if len(rest) else len(walls) - 1
+    return {"ticks_per_s": ticks_per_s, "wall_s": walls.tolist(), "psnr_budgeted": pb, "psnr_unbudgeted": pu,
+            "moving_budgeted_db": float(np.nanmean(np.array(pb)[moving])),
+            "moving_unbudgeted_db": float(np.nanmean(np.array(pu)[moving])),
+            "rest_budgeted_db": pb[at_rest], "rest_unbudgeted_db": pu[at_rest]}
+
+
+def _chart_quality(rows: dict, path: Path, args) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(rows), figsize=(6 * len(rows), 4), squeeze=False)
+    for ax, (name, r) in zip(axes[0], rows.items()):
+        ax.plot(r["wall_s"], r["psnr_unbudgeted"], "-", label="unbudgeted (time not counted)")
+        ax.plot(r["wall_s"], r["psnr_budgeted"], "-", label=f"budgeted, 60 Hz asked ({r['ticks_per_s']:.0f} achieved)")
+        ax.axvline(args.move_s, color="k", ls="--", lw=1, label="motion stops")
+        ax.set(title=f"{name} N={args.quality_density:g}", xlabel="seconds", ylabel=f"PSNR vs {args.ref_rays}-ray "
+               "reference, dB (AO of sampled points in view)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--parts", default=",".join(PARTS))
+    ap.add_argument("--workers", type=int, default=0, help="tracer processes (0: all cores)")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--tracer-density", type=float, default=256.0)
+    ap.add_argument("--bake-points", type=int, default=200_000)
+    ap.add_argument("--bake-rays", type=int, default=64)
+    ap.add_argument("--tick-points", default="6000,20000")
+    ap.add_argument("--tick-rays", type=int, default=32)
+    ap.add_argument("--skinned", default=SKINNED)
+    ap.add_argument("--skinned-points", type=float, default=50_000)
+    ap.add_argument("--grid-ticks", type=int, default=30)
+    ap.add_argument("--seconds", type=float, default=10.0, help="measured window of each served run")
+    ap.add_argument("--serve-rays", type=int, default=32, help="--rays of the served runs (bake and tick target)")
+    ap.add_argument("--start-density", type=float, default=256.0)
+    ap.add_argument("--start-rays", type=int, default=128)
+    ap.add_argument("--start-marks", default="1,5,30")
+    ap.add_argument("--quality-density", type=float, default=64.0)
+    ap.add_argument("--quality-rays", type=int, default=32)
+    ap.add_argument("--round-rays", type=int, default=8)
+    ap.add_argument("--ref-rays", type=int, default=256)
+    ap.add_argument("--sample-points", type=int, default=20000)
+    ap.add_argument("--sample-every", type=int, default=6, help="ticks between samples")
+    ap.add_argument("--move-s", type=float, default=4.0)
+    ap.add_argument("--rest-s", type=float, default=2.0)
+    ap.add_argument("--out", type=Path, default=Path("out/bench_realtime"))
+    args = ap.parse_args(argv)
+    args.tick_points = [int(x) for x in args.tick_points.split(",") if x]
+    args.start_marks = [float(x) for x in args.start_marks.split(",") if x]
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    if any(p not in PARTS for p in parts):
+        ap.error(f"--parts: choose from {', '.join(PARTS)}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    import os
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; Warp CUDA tracer: not measured here")
+    v = Verdicts("bench_realtime")
+    out: dict = {}
+    for part in parts:
+        print(f"--- {part}", flush=True)
+        globals()[f"part_{part}"](args, v, out)
+        (args.out / "bench_realtime.json").write_text(json.dumps(out, indent=1, default=float))
+    print(f"wrote {args.out / 'bench_realtime.json'}")
+    return v.exit_code()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

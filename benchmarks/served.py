@@ -1,0 +1,119 @@
+"""A real `psao serve` process and a real `psao client` process on loopback, for the benchmarks that
+judge the server by its own statistics (ticks per second, bytes on the wire, time to first snapshot).
+
+    run = serve_and_watch("builtin:courtyard", ["--animate", "--density", "256"], seconds=10)
+    run.ticks_per_second, run.bytes_per_second, run.first_snapshot_s
+
+The server writes one JSON line per tick (--stats-json); the client sends its camera along the scene's
+camera path (as `psao client` always does) and reports its own statistics (--json). The window measured
+starts when the client's snapshot is complete and lasts `seconds`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+LISTENING = re.compile(r"listening on ws://[^:]+:(\d+)")
+
+
+@dataclass
+class ServedRun:
+    scene: str
+    serve_args: list[str]
+    start_to_listen_s: float  # serve process started -> listening
+    first_snapshot_s: float  # serve process started -> the client's snapshot complete
+    window_s: float  # the measured window (service time)
+    ticks: int  # ticks the server ran in the window
+    bytes_sent: int  # bytes the server sent in the window (all clients; here one)
+    client: dict  # the client's own --json report
+    records: list[dict] = field(repr=False, default_factory=list)  # the server's per-tick records in the window
+    log_tail: str = ""
+
+    @property
+    def ticks_per_second(self) -> float:
+        return self.ticks / self.window_s if self.window_s > 0 else 0.0
+
+    @property
+    def bytes_per_second(self) -> float:
+        return self.bytes_sent / self.window_s if self.window_s > 0 else 0.0
+
+    def mean(self, key: str) -> float:
+        vals = [r[key] for r in self.records if key in r]
+        return sum(vals) / len(vals) if vals else 0.0
+
+
+def _wait_for(proc: subprocess.Popen, pattern: re.Pattern, timeout: float, lines: list[str]) -> re.Match:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line:
+            if proc.poll() is not None:
+                raise RuntimeError(f"psao serve exited ({proc.returncode}):\n" + "".join(lines[-20:]))
+            continue
+        lines.append(line)
+        m = pattern.search(line)
+        if m:
+            return m
+    raise TimeoutError(f"psao serve did not say {pattern.pattern!r} within {timeout:g} s")
+
+
+def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_timeout: float = 900.0,
+                    client_args: list[str] | None = None) -> ServedRun:
+    """Start `psao serve SCENE --port 0 ... --stats-json`, connect one `psao client`, keep both running
+    `seconds` after the client's snapshot, stop both with SIGINT and read the statistics."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with tempfile.TemporaryDirectory() as tmp:
+        stats = Path(tmp) / "stats.jsonl"
+        digest = Path(tmp) / "client.jsonl"
+        t0 = time.perf_counter()
+        server = subprocess.Popen([sys.executable, "-m", "psao", "serve", scene, "--port", "0", "--stats-json",
+                                   str(stats), *serve_args], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                  text=True, env=env)
+        lines: list[str] = []
+        client = None
+        try:
+            port = int(_wait_for(server, LISTENING, start_timeout, lines).group(1))
+            listen_s = time.perf_counter() - t0
+            client = subprocess.Popen([sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{port}", "--scene", scene,
+                                       "--json", "--digest-log", str(digest), *(client_args or [])],
+                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+            while not digest.exists() or not digest.read_text().strip():  # the first line: snapshot applied
+                if client.poll() is not None:
+                    raise RuntimeError("psao client exited before its snapshot")
+                time.sleep(0.02)
+            snapshot_s = time.perf_counter() - t0
+            window_start = _last_time(stats)
+            time.sleep(seconds)
+            window_end = _last_time(stats)
+            client.send_signal(signal.SIGINT)
+            out, _ = client.communicate(timeout=60)
+            report = json.loads(out.strip().splitlines()[-1])
+        finally:
+            if client is not None and client.poll() is None:
+                client.kill()
+            server.send_signal(signal.SIGINT)
+            try:
+                _, err = server.communicate(timeout=60)
+                lines.append(err)
+            except subprocess.TimeoutExpired:
+                server.kill()
+        records = [json.loads(x) for x in stats.read_text().splitlines() if x.strip()]
+    window = [r for r in records if window_start < r["time"] <= window_end]
+    return ServedRun(scene, serve_args, listen_s, snapshot_s, window_end - window_start, len(window),
+                     sum(r.get("bytes_sent", 0) for r in window), report, window, "".join(lines)[-3000:])
+
+
+def _last_time(stats: Path) -> float:
+    """Service time of the last tick record written so far (0 before the first)."""
+    if not stats.exists():
+        return 0.0
+    lines = [x for x in stats.read_text().splitlines() if x.strip()]
+    return json.loads(lines[-1])["time"] if lines else 0.0
