@@ -243,19 +243,24 @@ class Grid:
         if len(over) == 0:
             return rank
         rank = rank.copy()
-        for j in over.tolist():  # one overflowing cell each; few, and each only a handful of points
-            members = np.flatnonzero(pslot == pslot[j])
+        # the points of one cell are contiguous (inserted in key order): find each cell's run once
+        starts = np.flatnonzero(np.r_[True, pslot[1:] != pslot[:-1]])
+        ends = np.r_[starts[1:], len(pslot)]
+        cell_of = np.searchsorted(starts, over, side="right") - 1
+        for j, c in zip(over.tolist(), cell_of.tolist()):  # one overflowing cell each, a handful of points
+            members = np.arange(starts[c], ends[c])
             feats = np.hstack([local_pos[pts[members]] / radius, normals[pts[members]].astype(np.float64) * 2.0])
             chosen = [0]
-            dist = np.linalg.norm(feats - feats[0], axis=1)
+            dist = ((feats - feats[0]) ** 2).sum(axis=1)
             dist[0] = -1.0
             for _ in range(min(len(members), gf.POINTS_PER_CELL - int(used[j])) - 1):
                 nxt = int(np.argmax(dist))
                 chosen.append(nxt)
-                dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
+                dist = np.minimum(dist, ((feats - feats[nxt]) ** 2).sum(axis=1))
                 dist[chosen] = -1.0
-            rest = np.setdiff1d(np.arange(len(members)), chosen)
-            rank[members[chosen + rest.tolist()]] = np.arange(len(members))
+            rest = np.ones(len(members), bool)
+            rest[chosen] = False
+            rank[members[chosen + np.flatnonzero(rest).tolist()]] = np.arange(len(members))
         return rank
 
     def set_ao(self, slots, idx, ao_code) -> np.ndarray:
