@@ -44,7 +44,7 @@ from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, grid_for_a
                                  to_world_points)
 from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
 from psao_server.budget import BudgetSettings, RefineQueue, TraceBudget, measure_tracer
-from psao_server.errors import ConfigError
+from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, camera_planes, in_any_view, reach_boxes,
                                    rigid_in_company, static_points_near)
@@ -242,6 +242,15 @@ class ServerTick:
         """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
         self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid])
 
+    def _trace(self, pos, nrm, ids, settings: TraceSettings) -> np.ndarray:
+        """The tracer's visibility; a worker process that died is logged and the call made once more (the
+        Embree back-end starts a fresh pool), so one lost worker does not stop the server."""
+        try:
+            return self.tracer.visibility(pos, nrm, ids, settings)
+        except TracerError as exc:
+            log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
+            return self.tracer.visibility(pos, nrm, ids, settings)
+
     def close(self) -> None:
         self.tracer.close()
 
@@ -311,7 +320,7 @@ class ServerTick:
         vis = np.zeros(0, np.float32)
         if len(ids):  # the moving scene is only (re)built when something is traced
             self.pose_tracer(frame)
-            vis = self.tracer.visibility(pos, nrm, ids, self.trace_settings)
+            vis = self._trace(pos, nrm, ids, self.trace_settings)
         t_trace = time.perf_counter()
         return TickPlan(frame, moved, ids, pw.quantise_ao(vis), (t_anim - t_start, t_sel - t_anim, t_trace - t_sel))
 
@@ -339,7 +348,7 @@ class ServerTick:
         if len(chosen):
             at = np.searchsorted(waiting, chosen)
             self.pose_tracer(frame)
-            vis = self.tracer.visibility(pos[at], nrm[at], chosen, round_settings)
+            vis = self._trace(pos[at], nrm[at], chosen, round_settings)
             codes = self.queue.add(chosen, vis, round_settings.rays, time.perf_counter())
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays, t_trace - t_sel)

@@ -110,3 +110,20 @@ def test_bad_budget_settings_are_refused(field, value):
     budget = BudgetSettings(**{field: value})
     with pytest.raises(ConfigError):
         TickSettings(budget=budget).check()
+
+
+def test_a_dead_tracer_worker_is_replaced_and_the_tick_goes_on(caplog):
+    import os
+    import signal
+
+    bake = bake_scene(load_scene("builtin:courtyard"), BakeSettings(density=8, rays=4, workers=2), show_progress=False)
+    tick = ServerTick(bake, TickSettings(rays=4, workers=2, selection=False))
+    try:
+        tick.tracer.warm_up()
+        victim = next(iter(tick.tracer._pool._processes))
+        os.kill(victim, signal.SIGKILL)
+        s = tick(tick.grid, 0.5)  # selection off: every point traced, through the pool
+        assert s.traced > 0 and "restarting its workers" in caplog.text
+        assert victim not in tick.tracer._pool._processes
+    finally:
+        tick.close()

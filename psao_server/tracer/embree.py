@@ -269,14 +269,15 @@ class EmbreeTracer(Tracer):
         jobs = self._jobs(positions, normals, point_ids, settings)
         if pool is None:
             self._local.update_dynamic(self._dynamic_version, *self._dynamic, self._poses)
-        results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[4:]) for job in jobs)
         try:
+            results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[4:]) for job in jobs)
             for vis, cpu_query, cpu_total in results:
                 out.append(vis)
                 self.account.add(len(vis) * settings.rays, cpu_query, cpu_total)
                 if progress is not None:
                     progress(len(vis))
         except BrokenProcessPool as exc:
+            self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
             raise TracerError(f"an Embree worker process died: {exc}") from None
         return np.concatenate(out).astype(np.float32)
