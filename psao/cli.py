@@ -16,7 +16,7 @@ SUBCOMMANDS = {
     "client": ("psao_client.cli", "connect to a server, mirror its grid, optionally render frames"),
     "render": ("psao_client.render_cli", "render frames offline from a baked grid, no server"),
     "bench": ("psao_eval.bench_cli", "quality, bandwidth and runtime benchmarks against an RTAO reference"),
-    "train": ("psao_eval.train_cli", "train a learned AO baseline (mlp, nnao) and write its weights"),
+    "train": ("psao_eval.train_cli", "train a learned AO baseline (mlp, nnao, aogan) and write its weights"),
     "demo": ("psao_eval.demo", "serve the animated courtyard, render it headless, report and chart"),
 }
 

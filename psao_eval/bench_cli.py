@@ -250,7 +250,30 @@ def learned_weights(scene, grids: dict, cfg: BenchConfig, log: Log) -> dict[str,
     out = {}
     if "mlp" in cfg.methods:
         out["mlp"] = mlp_cached(scene, grids[cfg.densities[0]][0], cfg, log)
+    for method in ("nnao", "aogan"):
+        if method in cfg.methods:
+            out[method] = shipped_weights(method, scene)
     return out
+
+
+def shipped_weights(method: str, scene) -> dict:
+    """The shipped weights of a learned screen-space method; refuses a scene they were trained on."""
+    from psao_client.errors import RenderError
+    from psao_client.render.aogan_net import DEFAULT_AOGAN_WEIGHTS
+    from psao_client.render.nnao_net import DEFAULT_NNAO_WEIGHTS
+    from psao_client.render.weights import load_weights, weight_bytes
+
+    path = {"nnao": DEFAULT_NNAO_WEIGHTS, "aogan": DEFAULT_AOGAN_WEIGHTS}[method]
+    try:
+        arrays, header = load_weights(path, method)
+    except RenderError as exc:
+        raise EvalError(str(exc)) from None
+    trained_on = list(header.get("trained_on", []))
+    if scene.name in trained_on:
+        raise EvalError(f"{method.upper()} weights {path.name} were trained on {scene.name}: the benchmark scores a "
+                        "learned method only on scenes it was not trained on")
+    return {"path": path, "bytes": weight_bytes(arrays), "train_s": header.get("train_s"),
+            "trained_on": "+".join(trained_on)}
 
 
 def mlp_cached(scene, grid_file: Path, cfg: BenchConfig, log: Log) -> dict:

@@ -110,7 +110,7 @@ class QualityRenderer:
             ms = dict(frame.gpu_ms)
             for _ in range(max(0, timing_repeats - 1)):
                 r.submit(pose.view, pose.proj)
-                for k, v in r.timer.collect().items():
+                for k, v in {**r.timer.collect(), **r.cpu_ms()}.items():
                     ms[k] = min(ms.get(k, v), v)
             gpu = {m: ms.get("gbuffer", 0.0) + sum(v for k, v in ms.items() if k == m or k.startswith(m + "_"))
                    for m in r.modes}

@@ -1,9 +1,10 @@
-"""`psao train mlp|nnao ...`: train a learned AO baseline and write its weights file.
+"""`psao train mlp|nnao|aogan ...`: train a learned AO baseline and write its weights file.
 
     psao train mlp SCENE --grid GRID.npz --out mlp.npz      # MLP baking: one network per object of SCENE
     psao train nnao SCENE... --out nnao.npz                 # NNAO: one network for every scene
+    psao train aogan SCENE... --out aogan.npz               # AOGAN (PyTorch): one generator for every scene
 
-Training is numpy on the CPU and seeded: the same command gives the same weights. With --json the last
+Training is numpy (AOGAN: PyTorch) on the CPU and seeded: the same command gives the same weights. With --json the last
 stdout line is a JSON summary (seconds, weight bytes, first and last loss).
 """
 from __future__ import annotations
@@ -42,6 +43,17 @@ def add_arguments(p) -> None:
     n.add_argument("--seed", type=int, default=1)
     n.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
 
+    g = sub.add_parser("aogan", help="AOGAN, scaled down for CPU (needs PyTorch): attention U-Net on G-buffers, "
+                                     "PatchGAN critic, dense RTAO")
+    g.add_argument("scenes", nargs="*", metavar="SCENE", help="training scenes (default: as for nnao)")
+    g.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
+    g.add_argument("--frames", type=int, default=12, help="frames per scene (default 12)")
+    g.add_argument("--size", default="320x180", metavar="WxH", help="training frame size (default 320x180)")
+    g.add_argument("--spp", type=int, default=128, help="RTAO rays per pixel (default 128)")
+    g.add_argument("--steps", type=int, default=600, help="generator updates (default 600)")
+    g.add_argument("--seed", type=int, default=1)
+    g.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+
 
 def _positive(name: str, value: int) -> None:
     if value < 1:
@@ -65,6 +77,8 @@ def run(args) -> int:
         return run_mlp(args)
     if args.method == "nnao":
         return run_nnao(args)
+    if args.method == "aogan":
+        return run_aogan(args)
     raise EvalError(f"unknown training method {args.method!r}")
 
 
@@ -133,4 +147,49 @@ def run_nnao(args) -> int:
         print(f"wrote {args.out}: {nbytes:,} bytes, {len(y):,} pixels of {', '.join(header['trained_on'])}, loss "
               f"{summary['loss_first']:.5f} -> {summary['loss_last']:.5f}, {data_s:.0f} s data + {result.seconds:.0f} s "
               "training", file=sys.stderr)
+    return 0
+
+
+def run_aogan(args) -> int:
+    from psao_client.errors import RenderError
+    from psao_client.render.aogan_net import require_torch
+    from psao_client.render.output import parse_size
+    from psao_client.render.weights import save_weights
+    from psao_eval.learn.aogan_train import AoganDataSettings, AoganTrainSettings, build_dataset, train_aogan
+    from psao_eval.learn.nnao_train import TRAINING_SCENES
+    from psao_scene import load_scene
+
+    for name in ("frames", "spp", "steps"):
+        _positive(name, getattr(args, name))
+    try:
+        require_torch()
+        size = parse_size(args.size)
+    except RenderError as exc:
+        raise EvalError(str(exc)) from None
+    if min(size) < 64:
+        raise EvalError(f"--size {args.size}: frames must be at least 64x64")
+    scenes = [load_scene(s) for s in (list(args.scenes) or list(TRAINING_SCENES))]
+    t0 = time.perf_counter()
+    quiet = args.json
+
+    def data_progress(n: int) -> None:
+        if not quiet:
+            print(f"[{time.perf_counter() - t0:6.1f} s] {n} training frame(s) traced", file=sys.stderr)
+
+    x, y = build_dataset(scenes, AoganDataSettings(frames=args.frames, size=size, spp=args.spp, seed=args.seed),
+                         progress=data_progress)
+    data_s = time.perf_counter() - t0
+    result = train_aogan(x, y, AoganTrainSettings(steps=args.steps, seed=args.seed), progress=_progress(quiet))
+    header = {"trained_on": [s.name for s in scenes], "frames": args.frames, "size": list(size), "spp": args.spp,
+              "steps": args.steps, "seed": args.seed, "data_s": round(data_s, 1), "train_s": round(result.seconds, 1)}
+    nbytes = save_weights(args.out, "aogan", result.arrays, header)
+    k = max(1, len(result.losses) // 20)
+    summary = {"method": "aogan", "out": str(args.out), "weight_bytes": nbytes, "trained_on": header["trained_on"],
+               "data_s": header["data_s"], "train_s": header["train_s"],
+               "dssim_first": float(np.mean(result.losses[:k])), "dssim_last": float(np.mean(result.losses[-k:]))}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.out}: {nbytes:,} bytes, DSSIM {summary['dssim_first']:.4f} -> {summary['dssim_last']:.4f}, "
+              f"{data_s:.0f} s data + {result.seconds:.0f} s training", file=sys.stderr)
     return 0

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from psao_client.errors import RenderError
+from psao_client.render.aogan_pass import AoganPass
 from psao_client.render.composite import CompositePass, read_channel
 from psao_client.render.context import check_frame_size, create_context, present, release_context
 from psao_client.render.gbuffer import GBuffer, GBufferArrays, GeometryPass, LightSettings
@@ -27,7 +28,7 @@ from psao_client.render.psao_pass import PsaoPass, PsaoSettings
 from psao_client.render.ssao_pass import SsaoPass, SsaoSettings
 from psao_client.render.timing import PassTimer
 
-AO_METHODS = ("psao", "ssao", "gtao", "nnao", "mlp")  # every AO method the renderer runs, in drawing order
+AO_METHODS = ("psao", "ssao", "gtao", "nnao", "mlp", "aogan")  # every AO method the renderer runs, in drawing order
 AO_ALIASES = {"both": ("psao", "ssao")}
 
 
@@ -57,6 +58,7 @@ class MethodOptions:
     mlp_weights: str | None = None  # weights file of `psao train mlp` for this scene
     nnao_weights: str | None = None  # weights file of `psao train nnao`; None = the shipped one
     nnao_samples: int = 64  # first-layer cells evaluated per pixel (of 961)
+    aogan_weights: str | None = None  # weights file of `psao train aogan`; None = the shipped one
 
     @classmethod
     def from_args(cls, args) -> "MethodOptions":
@@ -65,7 +67,8 @@ class MethodOptions:
         return cls(ssao_samples=int(getattr(args, "ssao_samples", d.ssao_samples)),
                    gtao_preset=str(getattr(args, "gtao_preset", d.gtao_preset)),
                    mlp_weights=getattr(args, "mlp_weights", None), nnao_weights=getattr(args, "nnao_weights", None),
-                   nnao_samples=int(getattr(args, "nnao_samples", d.nnao_samples)))
+                   nnao_samples=int(getattr(args, "nnao_samples", d.nnao_samples)),
+                   aogan_weights=getattr(args, "aogan_weights", None))
 
 
 @dataclass
@@ -125,6 +128,11 @@ class FrameRenderer:
                                                          options.nnao_samples))
             if "mlp" in self.modes:
                 self.passes["mlp"] = self._own(MlpPass(self.ctx, self.gbuffer, self._mlp_arrays(options)))
+            if "aogan" in self.modes:
+                from psao_client.render.aogan_net import load_generator  # PyTorch only when asked for
+
+                model = load_generator(options.aogan_weights)[0]
+                self.passes["aogan"] = self._own(AoganPass(self.ctx, self.gbuffer, model, float(scene.ao_distance)))
             self.composites = {m: self._own(CompositePass(self.ctx, self.gbuffer)) for m in self.modes}
             self.timer = PassTimer(self.ctx, enabled=timing)
         except BaseException:
@@ -180,7 +188,7 @@ class FrameRenderer:
         if view.shape != (4, 4) or proj.shape != (4, 4):
             raise RenderError("view and projection must be 4x4 matrices")
         self.submit(view, proj)
-        gpu_ms = self.timer.collect()
+        gpu_ms = {**self.timer.collect(), **self.cpu_ms()}
         ao = {}
         weight = None
         if self.psao is not None:
@@ -196,6 +204,10 @@ class FrameRenderer:
             gpu_ms=gpu_ms,
             psao_weight=weight,
         )
+
+    def cpu_ms(self) -> dict[str, float]:
+        """CPU milliseconds of the passes that run on the CPU (AOGAN), last frame, as "MODE_cpu"."""
+        return {f"{m}_cpu": p.cpu_ms for m, p in self.passes.items() if hasattr(p, "cpu_ms")}
 
     def submit(self, view: np.ndarray, proj: np.ndarray) -> None:
         """Issue every pass of one frame without reading anything back (benchmarks time this)."""

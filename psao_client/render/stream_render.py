@@ -114,11 +114,12 @@ def add_render_arguments(parser) -> None:
     parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path for --render")
     parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
     parser.add_argument("--ao", default="psao", metavar="METHODS",
-                        help="AO method(s) for --render: psao, ssao, gtao, nnao, mlp, comma-separated, or both (= psao,ssao); default psao")
+                        help="AO method(s) for --render: psao, ssao, gtao, nnao, mlp, aogan, comma-separated, or both (= psao,ssao); default psao")
     parser.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default) or ultra")
     parser.add_argument("--mlp-weights", default=None, metavar="FILE", help="MLP baking weights (psao train mlp) for --ao mlp")
     parser.add_argument("--nnao-weights", default=None, metavar="FILE", help="NNAO weights (psao train nnao; default: the shipped ones)")
     parser.add_argument("--nnao-samples", type=int, default=64, metavar="K", help="NNAO first-layer cells per pixel: 64 (default), 128, 256 or 961")
+    parser.add_argument("--aogan-weights", default=None, metavar="FILE", help="AOGAN weights (psao train aogan; default: the shipped ones)")
     parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
     parser.add_argument("--fps", type=float, default=30.0, metavar="F",
                         help="frames per second to render at, the client's own rate, whatever the server's tick rate "

@@ -1,0 +1,62 @@
+"""PSAO against the baselines users would pick instead (GTAO, NNAO, MLP baking, AOGAN), via `psao bench`.
+
+Targets: on every built-in scene GTAO has a higher PSNR than SSAO; on every scene PSAO at N = 512 has a
+higher PSNR and a lower FLIP than GTAO. Sponza (../shared/scenes/sponza) is scored too when present.
+The learned methods are rows of the table (NNAO and AOGAN were trained on scenes/pavilion.toml and
+scenes/playground.toml, kept out of this benchmark; MLP baking is trained per scene on its own grid).
+
+    python -m benchmarks.bench_baselines [--methods ssao,gtao,nnao,mlp,aogan,psao] [--frames 3] [--spp 512]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from benchmarks.verdicts import Verdicts
+
+BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots")
+SPONZA = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "sponza" / "sponza_s_lod4.glb"
+TARGET_N = 512.0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--methods", default="ssao,gtao,nnao,mlp,aogan,psao")
+    p.add_argument("--frames", type=int, default=3)
+    p.add_argument("--spp", type=int, default=512)
+    p.add_argument("--tick-hz", default="60")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench_baselines")
+    a = p.parse_args(argv)
+    from psao.cli import main as psao_main
+
+    scenes = list(BUILTINS) + ([str(SPONZA)] if SPONZA.is_file() else [])
+    if not SPONZA.is_file():
+        print(f"Sponza not found at {SPONZA}: built-in scenes only")
+    rc = psao_main(["bench", *scenes, "--densities", f"{TARGET_N:g}", "--tick-hz", a.tick_hz, "--frames",
+                    str(a.frames), "--spp", str(a.spp), "--methods", a.methods, "--out", str(a.out)])
+    if rc != 0:
+        return rc
+    return check_targets(json.loads((a.out / "results.json").read_text())).exit_code()
+
+
+def check_targets(rows: list[dict], density: float = TARGET_N) -> Verdicts:
+    v = Verdicts("bench_baselines")
+    builtin_names = {b.split(":", 1)[1] for b in BUILTINS}
+    for scene in sorted({r["scene"] for r in rows}):
+        by = {r["method"]: r for r in rows if r["scene"] == scene}
+        gtao, ssao, psao = by.get("GTAO"), by.get("SSAO"), by.get(f"PSAO-{density:g}")
+        if gtao and ssao and scene in builtin_names:
+            v.check(f"{scene} GTAO PSNR minus SSAO's ({gtao['psnr']:.2f} vs {ssao['psnr']:.2f} dB)",
+                    gtao["psnr"] - ssao["psnr"], ">", 0)
+        if gtao and psao:
+            v.check(f"{scene} PSAO-{density:g} PSNR minus GTAO's ({psao['psnr']:.2f} vs {gtao['psnr']:.2f} dB)",
+                    psao["psnr"] - gtao["psnr"], ">", 0)
+            v.check(f"{scene} PSAO-{density:g} FLIP minus GTAO's ({psao['flip']:.3f} vs {gtao['flip']:.3f})",
+                    psao["flip"] - gtao["flip"], "<", 0)
+    return v
+
+
+if __name__ == "__main__":
+    sys.exit(main())
