@@ -19,6 +19,7 @@ from psao_client.errors import RenderError
 
 AOGAN_CHANNELS = (12, 24, 48)  # per level (the paper's are wider; this trains on two CPU cores)
 AOGAN_INPUTS = 6
+AOGAN_THREADS = 1  # PyTorch CPU threads: OpenMP workers that spin on a shared, busy machine cost 10-50x
 DEFAULT_AOGAN_WEIGHTS = Path(__file__).resolve().parent / "aogan_weights.npz"
 
 
@@ -27,6 +28,8 @@ def require_torch():
         import torch
     except ImportError:
         raise RenderError("AOGAN needs PyTorch: pip install 'psao[learned]' (torch==2.13.0, CPU)") from None
+    if torch.get_num_threads() != AOGAN_THREADS:
+        torch.set_num_threads(AOGAN_THREADS)
     return torch
 
 
