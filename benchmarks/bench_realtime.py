@@ -163,12 +163,15 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
                "bytes_per_s": run.bytes_per_second, "traced_mean": run.mean("traced"),
                "queue_mean": run.mean("queue"), "budget_used_mean": run.mean("budget_used"),
                "tick_ms_mean": 1e3 * run.mean("seconds_tick"), "first_snapshot_s": run.first_snapshot_s,
-               "points": run.client.get("mirror_cells")}
+               "mirror_cells": run.client.get("mirror_cells"),
+               **{f"{st}_ms_mean": 1e3 * run.mean(f"seconds_{st}") for st in ("animate", "select", "trace", "grid", "encode")}}
         rows.append(row)
         print(f"  {scene} N={density:g}: {row['ticks_per_s']:.1f} ticks/s, {8 * row['bytes_per_s'] / 1e6:.2f} Mbit/s "
               f"({row['bytes_per_s'] / max(row['ticks_per_s'], 1e-9):,.0f} B/tick), traced/tick "
               f"{row['traced_mean']:.0f}, queue {row['queue_mean']:.0f}, budget used {100 * row['budget_used_mean']:.0f}%, "
-              f"tick {row['tick_ms_mean']:.1f} ms", flush=True)
+              f"tick {row['tick_ms_mean']:.1f} ms (animate {row['animate_ms_mean']:.1f}, select {row['select_ms_mean']:.1f}, "
+              f"trace {row['trace_ms_mean']:.1f}, grid {row['grid_ms_mean']:.1f}; encode {row['encode_ms_mean']:.1f})",
+              flush=True)
         v.check(f"{scene} N={density:g} ticks per second of psao serve --animate --tick-hz 60 with a client",
                 row["ticks_per_s"], ">=", TARGETS["ticks_per_s"])
     out["rate"] = rows
@@ -176,15 +179,9 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
 
 # ------------------------------------------------------------------------------------------- start
 def part_start(args, v: Verdicts, out: dict) -> None:
-    import asyncio
-
     from protocol import gridformat as gf
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient, scene_camera_feed
     from psao_scene import load_scene
     from psao_server.bake import BakeSettings, bake_scene
-
-    from benchmarks.served import serve_and_watch
 
     spec, density = "builtin:courtyard", args.start_density
     scene = load_scene(spec)
@@ -195,16 +192,45 @@ def part_start(args, v: Verdicts, out: dict) -> None:
     truth = (full.grid.cells[:, :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
     held = full.grid.point_id[:, :gf.POINTS_PER_CELL] >= 0
 
-    import subprocess
-    import sys
+    marks = sorted(args.start_marks)
+    progressive = watch_start(scene, spec, ["--progressive", "--density", f"{density:g}", "--rays", str(args.start_rays),
+                                            "--tick-hz", "60"], marks, len(truth))
+    captured = progressive["captured"]
+    first_snapshot = {"s": progressive["first_snapshot_s"]}
+    psnr = {}
+    for mark, ao in captured.items():
+        mse = float(np.mean((ao[held] - truth[held]) ** 2))
+        psnr[mark] = 10 * np.log10(1.0 / max(mse, 1e-12))
+    plain = watch_start(scene, spec, ["--density", f"{density:g}", "--rays", str(args.start_rays)], [], len(truth))
+    out["start"] = {"density": density, "rays": args.start_rays, "first_snapshot_s": first_snapshot.get("s"),
+                    "plain_first_snapshot_s": plain["first_snapshot_s"], "full_bake_s": full_bake_s,
+                    "psnr_db_at_s": psnr}
+    print(f"progressive start, courtyard N={density:g}: first snapshot {first_snapshot.get('s', float('nan')):.2f} s "
+          f"after start (plain serve, whole {args.start_rays}-ray bake first: {plain['first_snapshot_s']:.1f} s)")
+    for mark in marks:
+        print(f"  {mark:5.1f} s after start: PSNR of the client's point AO vs the full {args.start_rays}-ray bake "
+              f"{psnr.get(mark, float('nan')):.2f} dB")
+    _chart_start(out["start"], args.out / "progressive_start.png")
+    v.check(f"courtyard N={density:g} psao serve --progressive: seconds to the client's first snapshot",
+            first_snapshot.get("s", float("nan")), "<", TARGETS["first_snapshot_s"])
+
+
+def watch_start(scene, spec: str, serve_args: list[str], marks: list[float], cells: int) -> dict:
+    """Start `psao serve SPEC ... --port 0`, connect a client (in this process) as soon as it listens:
+    seconds from process start to the complete snapshot, and the mirror's AO (cells x points, 0..1) at
+    each mark (seconds since process start)."""
+    import asyncio
     import os
     import re
     import signal
+    import subprocess
+    import sys
 
-    marks = sorted(args.start_marks)
-    captured: dict[float, np.ndarray] = {}
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", spec, "--port", "0", "--progressive", "--density",
-                             f"{density:g}", "--rays", str(args.start_rays), "--tick-hz", "60"],
+    from protocol import gridformat as gf
+    from protocol.session import scene_hash_bytes
+    from psao_client.connection import MirrorClient, scene_camera_feed
+
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", spec, "--port", "0", *serve_args],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))
     started = time.perf_counter()
@@ -212,27 +238,36 @@ def part_start(args, v: Verdicts, out: dict) -> None:
     while port is None:
         line = proc.stderr.readline()
         if not line and proc.poll() is not None:
-            raise RuntimeError("psao serve --progressive exited")
+            raise RuntimeError(f"psao serve {' '.join(serve_args)} exited")
         m = re.search(r"listening on ws://[^:]+:(\d+)", line)
         port = int(m.group(1)) if m else None
-    first_snapshot = {}
+    result: dict = {"captured": {}}
+
+    def ao(mirror):
+        return (mirror.cells[:cells, :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
 
     def on_snapshot(mirror):
-        first_snapshot.setdefault("s", time.perf_counter() - started)
+        result.setdefault("first_snapshot_s", time.perf_counter() - started)
+        result.setdefault("snapshot_ao", ao(mirror))
 
     def on_update(mirror, transforms, tick):
         now = time.perf_counter() - started
         for mark in marks:
-            if mark not in captured and now >= mark:
-                captured[mark] = (mirror.cells[:len(truth), :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
+            if mark not in result["captured"] and now >= mark:
+                result["captured"][mark] = ao(mirror)
 
     client = MirrorClient(f"ws://127.0.0.1:{port}", scene_hash_bytes(scene.content_hash()),
                           camera=scene_camera_feed(scene), on_snapshot=on_snapshot, on_update=on_update)
 
     async def watch():
         task = asyncio.create_task(client.run())
-        while len(captured) < len(marks) and not task.done():
+        while not task.done() and ("first_snapshot_s" not in result or len(result["captured"]) < len(marks)):
             await asyncio.sleep(0.05)
+            now = time.perf_counter() - started
+            for mark in marks:  # no update since the mark (nothing changed): the mirror as it is
+                if mark not in result["captured"] and now >= mark + 1.0 and client.mirror is not None \
+                        and "first_snapshot_s" in result:
+                    result["captured"][mark] = ao(client.mirror)
         client.stop()
         await task
 
@@ -240,23 +275,8 @@ def part_start(args, v: Verdicts, out: dict) -> None:
         asyncio.run(watch())
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=60)
-    psnr = {}
-    for mark, ao in captured.items():
-        mse = float(np.mean((ao[held] - truth[held]) ** 2))
-        psnr[mark] = 10 * np.log10(1.0 / max(mse, 1e-12))
-    plain = serve_and_watch(spec, ["--density", f"{density:g}", "--rays", str(args.start_rays)], 1.0)
-    out["start"] = {"density": density, "rays": args.start_rays, "first_snapshot_s": first_snapshot.get("s"),
-                    "plain_first_snapshot_s": plain.first_snapshot_s, "full_bake_s": full_bake_s,
-                    "psnr_db_at_s": psnr}
-    print(f"progressive start, courtyard N={density:g}: first snapshot {first_snapshot.get('s', float('nan')):.2f} s "
-          f"after start (plain serve, whole {args.start_rays}-ray bake first: {plain.first_snapshot_s:.1f} s)")
-    for mark in marks:
-        print(f"  {mark:5.1f} s after start: PSNR of the client's point AO vs the full {args.start_rays}-ray bake "
-              f"{psnr.get(mark, float('nan')):.2f} dB")
-    _chart_start(out["start"], args.out / "progressive_start.png")
-    v.check(f"courtyard N={density:g} psao serve --progressive: seconds to the client's first snapshot",
-            first_snapshot.get("s", float("nan")), "<", TARGETS["first_snapshot_s"])
+        proc.communicate(timeout=120)
+    return result
 
 
 def _chart_start(r: dict, path: Path) -> None:
@@ -297,8 +317,8 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
 
 def quality_scene(name: str, args) -> dict:
     """Run the budgeted tick in real time (scene time = wall time, as the service does) over --move-s of
-    motion then --rest-s with the scene held still, sampling the stored AO of a fixed random set of
-    points; then the unbudgeted tick at the same scene times; then the reference at every sample."""
+    motion then --rest-s with the scene held still, sampling the stored AO of a fixed random set of the
+    points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted tick at the same scene times; then the reference at every sample."""
     import copy
 
     from psao_scene import load_scene
@@ -314,8 +334,8 @@ def quality_scene(name: str, args) -> dict:
     bake.tracer.close()
     twin = BakeResult(scene, copy.deepcopy(bake.grid), bake.pointsets, bake.stats, None)
     rng = np.random.default_rng(1)
-    n_all = sum(len(p) for p in bake.pointsets)
-    sample = np.sort(rng.choice(n_all, min(args.sample_points, n_all), replace=False))
+    sample = np.sort(rng.choice(near_motion(bake, args.move_s), args.sample_points, replace=True))
+    sample = np.unique(sample)
 
     def stored(tick):
         ok = tick.present()[sample]
@@ -327,7 +347,7 @@ def quality_scene(name: str, args) -> dict:
     period = 1.0 / 60.0
     budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
                                              budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays)))
-    times, samples_b = [], []
+    times, samples_b, tick_times, sampled_ticks = [], [], [], []
     try:
         start = time.perf_counter()
         k = 0
@@ -336,8 +356,10 @@ def quality_scene(name: str, args) -> dict:
             budgeted.set_cameras([camera(scene, t)])
             budgeted(budgeted.grid, t)
             budgeted.grid.take_dirty()
-            if k % args.sample_every == 0:
+            tick_times.append(t)
+            if wall >= len(times) * args.sample_s:  # sampled by wall time: a slow machine still gets its samples
                 times.append((wall, t))
+                sampled_ticks.append(k)
                 samples_b.append(stored(budgeted))
             k += 1
             time.sleep(max(0.0, start + k * period - time.perf_counter()))
@@ -347,11 +369,12 @@ def quality_scene(name: str, args) -> dict:
     unbudgeted = ServerTick(twin, TickSettings(rays=args.quality_rays, workers=args.workers))
     samples_u, refs, views = [], [], []
     try:
-        for wall, t in times:
+        for k, t in enumerate(tick_times):  # every tick the budgeted one ran, at the same scene times
             unbudgeted.set_cameras([camera(scene, t)])
             unbudgeted(unbudgeted.grid, t)
             unbudgeted.grid.take_dirty()
-            samples_u.append(stored(unbudgeted))
+            if k in sampled_ticks:
+                samples_u.append(stored(unbudgeted))
         for wall, t in times:  # the reference: each sampled point in the camera's view, many rays, at t
             frame = unbudgeted.animator.frame(t)
             ids = sample[unbudgeted.present()[sample]]
@@ -384,6 +407,32 @@ def quality_scene(name: str, args) -> dict:
             "moving_budgeted_db": float(np.nanmean(np.array(pb)[moving])),
             "moving_unbudgeted_db": float(np.nanmean(np.array(pu)[moving])),
             "rest_budgeted_db": pb[at_rest], "rest_unbudgeted_db": pu[at_rest]}
+
+
+def near_motion(bake, seconds: float) -> np.ndarray:
+    """Ids of the points the motion can reach in [0, seconds]: points of moving instances, and static
+    points within the AO distance of a moving instance's bounds at some time (every 1/30 s)."""
+    from psao_server.animate import SceneAnimator
+    from psao_server.bake import to_world
+    from psao_server.selection import expand
+
+    anim = SceneAnimator(bake.scene)
+    sizes = [len(p) for p in bake.pointsets]
+    first = np.concatenate([[0], np.cumsum(sizes)])
+    ids = [np.arange(first[i], first[i + 1]) for i in anim.kinds.moving]
+    boxes = [expand(b, bake.scene.ao_distance) for t in np.arange(0.0, seconds + 1e-9, 1 / 30)
+             for b in anim.frame(float(t)).bounds.values()]
+    lo = np.min([b[0] for b in boxes], axis=0)
+    hi = np.max([b[1] for b in boxes], axis=0)
+    for i in anim.kinds.static:
+        inst = bake.scene.instances[i]
+        pos, _ = to_world(inst.transform, bake.pointsets[i].positions, bake.pointsets[i].normals)
+        maybe = np.flatnonzero(np.all((pos >= lo) & (pos <= hi), axis=1))
+        hit = np.zeros(len(maybe), bool)
+        for b in boxes:
+            hit |= np.all((pos[maybe] >= b[0]) & (pos[maybe] <= b[1]), axis=1)
+        ids.append(first[i] + maybe[hit])
+    return np.concatenate(ids)
 
 
 def _chart_quality(rows: dict, path: Path, args) -> None:
@@ -427,7 +476,7 @@ def main(argv=None) -> int:
     ap.add_argument("--round-rays", type=int, default=8)
     ap.add_argument("--ref-rays", type=int, default=256)
     ap.add_argument("--sample-points", type=int, default=20000)
-    ap.add_argument("--sample-every", type=int, default=6, help="ticks between samples")
+    ap.add_argument("--sample-s", type=float, default=0.25, help="seconds between samples")
     ap.add_argument("--move-s", type=float, default=4.0)
     ap.add_argument("--rest-s", type=float, default=2.0)
     ap.add_argument("--out", type=Path, default=Path("out/bench_realtime"))

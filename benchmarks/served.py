@@ -6,7 +6,7 @@ judge the server by its own statistics (ticks per second, bytes on the wire, tim
 
 The server writes one JSON line per tick (--stats-json); the client sends its camera along the scene's
 camera path (as `psao client` always does) and reports its own statistics (--json). The window measured
-starts when the client's snapshot is complete and lasts `seconds`.
+starts when the client has its snapshot and a first Update, and lasts `seconds`.
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ class ServedRun:
     scene: str
     serve_args: list[str]
     start_to_listen_s: float  # serve process started -> listening
-    first_snapshot_s: float  # serve process started -> the client's snapshot complete
+    first_snapshot_s: float  # serve process started -> the client's first Update (its snapshot is complete)
     window_s: float  # the measured window (service time)
     ticks: int  # ticks the server ran in the window
     bytes_sent: int  # bytes the server sent in the window (all clients; here one)
@@ -68,7 +68,7 @@ def _wait_for(proc: subprocess.Popen, pattern: re.Pattern, timeout: float, lines
 def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_timeout: float = 900.0,
                     client_args: list[str] | None = None) -> ServedRun:
     """Start `psao serve SCENE --port 0 ... --stats-json`, connect one `psao client`, keep both running
-    `seconds` after the client's snapshot, stop both with SIGINT and read the statistics."""
+    `seconds` after the client's first Update, stop both with SIGINT and read the statistics."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     with tempfile.TemporaryDirectory() as tmp:
         stats = Path(tmp) / "stats.jsonl"
@@ -85,7 +85,7 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
             client = subprocess.Popen([sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{port}", "--scene", scene,
                                        "--json", "--digest-log", str(digest), *(client_args or [])],
                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
-            while not digest.exists() or not digest.read_text().strip():  # the first line: snapshot applied
+            while not _updated(digest):  # a line per snapshot chunk, then per update: wait for an update
                 if client.poll() is not None:
                     raise RuntimeError("psao client exited before its snapshot")
                 time.sleep(0.02)
@@ -109,6 +109,14 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
     window = [r for r in records if window_start < r["time"] <= window_end]
     return ServedRun(scene, serve_args, listen_s, snapshot_s, window_end - window_start, len(window),
                      sum(r.get("bytes_sent", 0) for r in window), report, window, "".join(lines)[-3000:])
+
+
+def _updated(digest: Path) -> bool:
+    """Whether the client's digest log shows an Update (its tick differs from the snapshot's lines')."""
+    if not digest.exists():
+        return False
+    lines = [json.loads(x) for x in digest.read_text().splitlines() if x.strip()]
+    return any(d["tick"] != lines[0]["tick"] for d in lines)
 
 
 def _last_time(stats: Path) -> float:

@@ -13,8 +13,8 @@ whose history was reset (nothing traced since their neighbourhood changed) befor
 then the oldest waiting first.
 
 `TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
-both learnt from the ticks' own traces (exponential averages), so a busier machine gets smaller
-batches. A budget below one point's cost still traces `min_points` (progress is always made); the
+both fitted to the ticks' own traces (exponentially weighted least squares), so a busier machine gets
+smaller batches. A budget below one point's cost still traces `min_points` (progress is always made); the
 tick's statistics then show budget_used > 1.
 """
 from __future__ import annotations
@@ -63,15 +63,22 @@ class TraceBudget:
         return max(int(room * self.rays_per_second / max(rays_per_point, 1)), self.settings.min_points)
 
     def observe_trace(self, rays: int, seconds: float) -> None:
-        """Learn from one trace call: calls too small to say much about the rate only teach the overhead."""
+        """Learn from one trace call: seconds = overhead + rays / rate, fitted by exponentially weighted
+        least squares over the recent calls; while their sizes are too alike to tell the two apart, the
+        rate is kept and the overhead follows the calls."""
         a = self.settings.smoothing
         if rays <= 0 or not math.isfinite(seconds):
             return
-        work = seconds - self.overhead_s
-        if work > 0.5 * seconds and rays >= 1000:
-            self.rays_per_second = (1 - a) * self.rays_per_second + a * rays / work
-        else:
-            self.overhead_s = (1 - a) * self.overhead_s + a * max(seconds - rays / self.rays_per_second, 0.0)
+        x, y = float(rays), float(seconds)
+        m = self._moments = [(1 - a) * v + a * w for v, w in zip(getattr(self, "_moments", [x, y, x * x, x * y]),
+                                                                  (x, y, x * x, x * y))]
+        mx, my, mxx, mxy = m
+        var = mxx - mx * mx
+        if var > (0.1 * mx) ** 2:
+            slope = (mxy - mx * my) / var
+            if slope > 0:
+                self.rays_per_second = max(1.0 / slope, 1e3)
+        self.overhead_s = max(my - mx / self.rays_per_second, 0.0)
 
     def observe_other(self, seconds: float) -> None:
         a = self.settings.smoothing
