@@ -5,7 +5,8 @@
     ├── LimitError                a length or decompressed size above its limit
     ├── PayloadError              a payload that does not parse as its message type says
     ├── CodecError                a codec not offered, or a compressed frame that does not decode
-    ├── RefusedError              a well-formed request the server will not serve (scene, token)
+    ├── RefusedError              a well-formed request the server will not serve (scene, token, full, edits)
+    ├── EditError                 a SceneEdit of an unknown instance or with a transform out of range
     ├── UnexpectedMessage         a valid message where the conversation does not allow it
     └── RemoteError               the peer sent an Error message
 
@@ -40,9 +41,17 @@ class RefusedError(ProtocolError):
 
     close_code = 1008
 
-    def __init__(self, text: str, code: int):
+    def __init__(self, text: str, code: int, close_code: int | None = None):
         super().__init__(text)
         self.code = code
+        if close_code is not None:
+            self.close_code = close_code
+
+
+class EditError(ProtocolError):
+    """A SceneEdit the server cannot apply: unknown instance, or a transform out of the allowed range."""
+
+    close_code = 1008
 
 
 class UnexpectedMessage(ProtocolError):

@@ -24,8 +24,12 @@ class Limits:
     error_text_bytes: int = 1024
     # Grid sizes a client accepts (memory it will allocate for the mirror).
     max_instances: int = 1 << 16
-    max_buckets: int = 1 << 24  # 512 MiB of buckets at most
-    max_cell_capacity: int = 1 << 24  # 512 MiB of cells at most
+    max_buckets: int = 1 << 24  # 64 B each (8 entries x 2 uint32): 1 GiB of buckets at most
+    max_cell_capacity: int = 1 << 24  # 32 B each (CELL_WORDS uint32): 512 MiB of cells at most
+    # SceneEdit transforms a server accepts: affine, each axis scaled within [1/max, max], the origin
+    # moved at most this far (world units) from the world origin.
+    edit_max_scale: float = 1e3
+    edit_max_translation: float = 1e6
     # What the server puts into one Update or Snapshot chunk; the rest stays pending for the next one.
     max_cells_per_message: int = 1 << 16
     max_buckets_per_message: int = 1 << 16

@@ -70,6 +70,9 @@ class ErrorCode(IntEnum):
     UNAUTHORIZED = 8
     SHUTTING_DOWN = 9
     TIMEOUT = 10
+    SERVER_FULL = 11  # the server has as many connections as it serves; try later
+    EDITS_NOT_ALLOWED = 12  # SceneEdit from a connection without the edit token (or edits off)
+    BAD_EDIT = 13  # SceneEdit of an unknown instance or with a transform out of the allowed range
 
 
 @dataclass(frozen=True)

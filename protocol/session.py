@@ -33,8 +33,8 @@ from .codecs import (
     codecs_from_mask,
     decompress_frame,
 )
-from .errors import (CodecError, HeaderError, LimitError, PayloadError, ProtocolError, RefusedError, RemoteError,
-                     UnexpectedMessage)
+from .errors import (CodecError, EditError, HeaderError, LimitError, PayloadError, ProtocolError, RefusedError,
+                     RemoteError, UnexpectedMessage)
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
 from .scenefile import SceneFile
 from .updates import GridDelta, Layout
@@ -44,6 +44,7 @@ def error_code_for(exc: ProtocolError) -> m.ErrorCode:
     if isinstance(exc, RefusedError):
         return exc.code
     for cls, code in (
+        (EditError, m.ErrorCode.BAD_EDIT),
         (LimitError, m.ErrorCode.TOO_LARGE),
         (HeaderError, m.ErrorCode.BAD_HEADER),
         (CodecError, m.ErrorCode.BAD_CODEC),
@@ -66,6 +67,21 @@ def scene_hash_bytes(content_hash_hex: str) -> bytes:
     if len(raw) != m.SCENE_HASH_BYTES:
         raise PayloadError(f"scene hash must be {m.SCENE_HASH_BYTES} bytes, got {len(raw)}")
     return raw
+
+
+def check_edit_transform(transform: np.ndarray, limits: Limits) -> None:
+    """A SceneEdit transform must be affine, scale each axis within [1/max, max] (no flattening, no
+    mirror-free blow-up to 3e38) and keep its origin within the allowed distance; else EditError."""
+    t = np.asarray(transform, dtype=np.float64)
+    if not np.array_equal(t[3], [0.0, 0.0, 0.0, 1.0]):
+        raise EditError(f"SceneEdit: last row must be 0 0 0 1 (an affine transform), got {t[3].tolist()}")
+    sv = np.linalg.svd(t[:3, :3], compute_uv=False)
+    lo, hi = 1.0 / limits.edit_max_scale, limits.edit_max_scale
+    if not (sv.min() >= lo and sv.max() <= hi):
+        raise EditError(f"SceneEdit: axis scales {sv.min():.3g}..{sv.max():.3g} outside {lo:g}..{hi:g}")
+    move = float(np.linalg.norm(t[:3, 3]))
+    if move > limits.edit_max_translation:
+        raise EditError(f"SceneEdit: translation {move:.3g} over the limit of {limits.edit_max_translation:g}")
 
 
 @dataclass
@@ -99,6 +115,7 @@ class ServerState(Enum):
 class ServerConfig:
     scene_hash: bytes  # 32 bytes
     token: str = ""  # "" accepts anyone
+    edit_token: str = ""  # "" refuses every SceneEdit; else a Hello with this token may edit (and view)
     codec: Codec = Codec.ZSTD_STREAM  # preferred payload codec for Snapshot and Update
     layout: Layout = Layout.PACKED
     zstd: ZstdSettings = PAPER_ZSTD
@@ -115,6 +132,7 @@ class ServerConfig:
 class HelloAccepted:
     hello: m.Hello
     codec: Codec
+    may_edit: bool = False
 
 
 @dataclass
@@ -145,6 +163,7 @@ class ServerSession:
         self.state = ServerState.AWAIT_HELLO
         self.codec: Codec | None = None
         self.traffic = Traffic()
+        self.may_edit = False
         self._compress = None
         self.scene_requests = 0
 
@@ -178,24 +197,35 @@ class ServerSession:
         if header.type == m.MessageType.CAMERA:
             return CameraReceived(m.Camera.parse(payload, limits))
         if header.type == m.MessageType.SCENE_EDIT:
-            return SceneEditReceived(m.SceneEdit.parse(payload, limits))
+            edit = m.SceneEdit.parse(payload, limits)
+            if not self.may_edit:
+                why = ("this server does not accept scene edits" if not self.config.edit_token
+                       else "scene edits need the edit token")
+                raise RefusedError(why, m.ErrorCode.EDITS_NOT_ALLOWED)
+            check_edit_transform(edit.transform, limits)
+            return SceneEditReceived(edit)
         if header.type == m.MessageType.BYE:
             m.Bye.parse(payload, limits)
             self.state = ServerState.CLOSED
             return ByeReceived()
         raise UnexpectedMessage(f"a client may not send {header.type.name} here")
 
-    def _check_token(self, token: str) -> None:
+    def _check_token(self, token: str) -> bool:
+        """Refuse a token that is neither the viewing token (when one is set) nor the edit token; True when
+        it is the edit token (this connection may edit)."""
         cfg = self.config
-        if cfg.token and not hmac.compare_digest(token.encode(), cfg.token.encode()):
+        given = token.encode()
+        may_edit = bool(cfg.edit_token) and hmac.compare_digest(given, cfg.edit_token.encode())
+        if cfg.token and not may_edit and not hmac.compare_digest(given, cfg.token.encode()):
             reason = "missing token" if not token else "wrong token"
             raise RefusedError(reason, m.ErrorCode.UNAUTHORIZED)
+        return may_edit
 
     def _accept(self, hello: m.Hello) -> HelloAccepted:
         cfg = self.config
         if hello.version != m.PROTOCOL_VERSION:
             raise HeaderError(f"Hello: unsupported protocol version {hello.version}")
-        self._check_token(hello.token)
+        may_edit = self._check_token(hello.token)
         if hello.scene_hash != cfg.scene_hash:
             raise RefusedError(
                 f"scene hash mismatch: client has {hello.scene_hash.hex()[:12]}, server serves "
@@ -209,11 +239,14 @@ class ServerSession:
         self.codec = codec
         self._compress = StreamCompressor(cfg.zstd) if codec == Codec.ZSTD_STREAM else FrameCodec(codec, cfg.zstd)
         self.state = ServerState.OPEN
-        return HelloAccepted(hello, codec)
+        self.may_edit = may_edit
+        return HelloAccepted(hello, codec, may_edit)
 
     # ----------------------------------------------------------------- outbound
     def _grid_message(self, msg: m.Snapshot | m.Update) -> bytes:
-        if self.state != ServerState.OPEN:
+        # Only the handshake gates sending: a Bye received meanwhile (on another thread) closes the inbound
+        # side, and an Update already being encoded may still go out; the peer ignores it.
+        if self._compress is None:
             raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the handshake")
         return self.traffic.sent(m.frame(msg.TYPE, self.codec, self._compress.compress(msg.serialize())))
 

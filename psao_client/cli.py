@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import time
 from pathlib import Path
 
@@ -23,10 +24,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the client's own copy of the scene, checked against the server's "
                         "(default: load the server's scene from the server)")
     p.add_argument("--frames", type=int, default=None,
-                   help="stop after the snapshot and N updates, or with --render N rendered frames "
+                   help="stop after the snapshot and N updates (a static server, sending no update after the "
+                        "snapshot: after N tick periods, at least 5 s), or with --render N rendered frames "
                         "(0: right after the snapshot; default: run until Ctrl-C)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
-    p.add_argument("--token", default="", help="token the server requires")
+    p.add_argument("--token", default="",
+                   help="token the server requires (visible in the process list: prefer PSAO_TOKEN or --token-file)")
+    p.add_argument("--token-file", type=Path, default=None, metavar="FILE",
+                   help="read the token from FILE (first line); the environment variable PSAO_TOKEN also works")
     p.add_argument("--codecs", default=",".join(CODEC_CHOICES),
                    help=f"codecs to accept, comma-separated (default {','.join(CODEC_CHOICES)})")
     p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
@@ -52,6 +57,19 @@ def _codecs(text: str):
     return frozenset(CODEC_NAMES[n] for n in names)
 
 
+def _token(args: argparse.Namespace) -> str:
+    """--token, else the first line of --token-file, else $PSAO_TOKEN."""
+    if args.token:
+        return args.token
+    path = getattr(args, "token_file", None)
+    if path is not None:
+        try:
+            return path.read_text(encoding="utf-8").splitlines()[0].strip()
+        except (OSError, UnicodeDecodeError, IndexError) as exc:
+            raise ConnectError(f"cannot read a token from {path}: {getattr(exc, 'strerror', None) or 'empty file'}") from None
+    return os.environ.get("PSAO_TOKEN", "").strip()
+
+
 def _aspect(size: str | None) -> float:
     """Width / height of a 'WxH' frame size; 16:9 without one (or a malformed one: the renderer reports it)."""
     try:
@@ -72,7 +90,7 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
     if args.read_delay < 0:
         raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
     return MirrorClient(
-        args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=args.token, codecs=_codecs(args.codecs),
+        args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=_token(args), codecs=_codecs(args.codecs),
         camera=scene_camera_feed(scene, _aspect(getattr(args, "size", None)), getattr(args, "camera_path", None)),
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
@@ -106,7 +124,7 @@ def client_scene(args: argparse.Namespace):
 
     if args.scene is not None:
         return load_scene(args.scene), None, 0
-    return asyncio.run(fetch_scene(args.url, args.token))
+    return asyncio.run(fetch_scene(args.url, _token(args)))
 
 
 def run(args: argparse.Namespace, on_update=None) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.exceptions import ConnectionClosed, ConnectionClosedOK, InvalidHandshake, InvalidURI
 from websockets.uri import parse_uri
 
 from protocol.codecs import Codec, codec_name
@@ -48,6 +48,7 @@ from .mirror import Mirror
 OnMirror = Callable[[Mirror], None]
 OnUpdate = Callable[[Mirror, np.ndarray, int], None]
 CameraFeed = Callable[[float], tuple[np.ndarray, np.ndarray]]  # seconds -> (view, projection)
+QUIET_END_S = 5.0  # run(frames): seconds without any Update after the snapshot that end it (a static server)
 
 
 @dataclass
@@ -61,6 +62,7 @@ class ClientStats:
     snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
     connection_id: int = 0
     codec: str = ""
+    quiet_end: bool = False  # run(frames) ended because no Update followed the snapshot (a static server)
 
 
 class _Lost(Exception):
@@ -102,8 +104,9 @@ class MirrorClient:
         self._stop.set()
 
     async def run(self, frames: int | None = None) -> ClientStats:
-        """Receive until the snapshot and then `frames` Updates have been applied, or with on_frame,
-        until `frames` frames were rendered (None: until stop())."""
+        """Receive until the snapshot and then `frames` Updates have been applied (a server that sends no
+        Update after the snapshot: see _quiet_limit), or with on_frame, until `frames` frames were rendered
+        (None: until stop())."""
         self._start = self._last_ok = time.perf_counter()
         pause = 0.1
         digests = open(self.digest_log, "a", buffering=1) if self.digest_log else None
@@ -141,8 +144,18 @@ class MirrorClient:
                            **extra) as ws:
             await ws.send(session.hello())
             seq = 0
+            updates_here = 0  # Updates on this connection
             try:
-                async for data in ws:
+                while True:
+                    try:
+                        data = await asyncio.wait_for(ws.recv(), self._quiet_limit(session, frames, updates_here))
+                    except ConnectionClosedOK:
+                        break
+                    except asyncio.TimeoutError:  # a server with nothing to change: its ticks passed anyway
+                        self.stats.quiet_end = True
+                        await ws.send(session.bye())
+                        await _discard_until_closed(ws, timeout=2.0)
+                        return
                     if isinstance(data, str):
                         raise ProtocolError("text message from the server")
                     if session.state == ClientState.CLOSED:  # the render task said Bye: drop what is in flight
@@ -152,6 +165,7 @@ class MirrorClient:
                     self.stats.messages += 1
                     self.stats.bytes_received += len(data)
                     self._apply(event, len(data), t0)
+                    updates_here += isinstance(event, UpdateReceived)
                     if isinstance(event, Welcomed) and self.camera is not None:
                         cameras = asyncio.create_task(self._send_cameras(ws, session))
                     if isinstance(event, SnapshotReceived) and event.complete and self.on_frame is not None:
@@ -204,6 +218,15 @@ class MirrorClient:
             sock.close()
             raise
         return sock
+
+    def _quiet_limit(self, session: ClientSession, frames: int | None, updates_here: int) -> float | None:
+        """Seconds to wait for the next message. A server sends an Update only when something changed, so
+        a static one sends nothing after the snapshot: run(frames) then ends after `frames` server tick
+        periods (at least QUIET_END_S) without an Update on this connection. Once Updates flow, no limit."""
+        if (frames is None or self.on_frame is not None or session.state != ClientState.STREAMING
+                or updates_here):
+            return None
+        return max(max(frames, 1) / session.welcome.tick_hz, QUIET_END_S)
 
     def _apply(self, event, nbytes: int, t0: float) -> None:
         """One received event into the mirror and the statistics; callbacks run here."""

@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ipaddress
 import logging
+import os
 import signal
+import socket
 import sys
 from pathlib import Path
 
@@ -32,7 +35,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stats-json", type=Path, default=None, metavar="FILE",
                    help="append one JSON line per tick: points considered/traced/changed, dirty rows, stage times, bytes")
     p.add_argument("--tick-hz", type=float, default=60.0, help="server ticks per second, 5..60 (default 60)")
-    p.add_argument("--token", default="", help="clients must present this token")
+    p.add_argument("--token", default="",
+                   help="clients must present this token (visible in the process list: prefer PSAO_TOKEN or --token-file)")
+    p.add_argument("--token-file", type=Path, default=None, metavar="FILE",
+                   help="read the clients' token from FILE (first line); the environment variable PSAO_TOKEN also works")
+    p.add_argument("--allow-edits", action="store_true",
+                   help="accept SceneEdit (move an instance for everyone) from clients presenting the edit token, "
+                        "read from PSAO_EDIT_TOKEN or --edit-token-file; edits are refused otherwise")
+    p.add_argument("--edit-token-file", type=Path, default=None, metavar="FILE",
+                   help="read the edit token from FILE (first line)")
+    p.add_argument("--max-clients", type=int, default=128, metavar="N",
+                   help="open connections at most; more are refused with SERVER_FULL (default 128)")
     p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
                    help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
     p.add_argument("--animate", action="store_true",
@@ -145,11 +158,56 @@ def _settings(args):
              "none": Codec.NONE}[args.codec]
     if args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
+    edit_token = secret("edit token", "", "PSAO_EDIT_TOKEN", args.edit_token_file) if args.allow_edits else ""
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
-                      layout=LAYOUT_NAMES[args.layout], token=args.token, digest_log=args.digest_log, stats_json=args.stats_json,
-                      send_buffer=args.send_buffer)
+                      layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
+                      allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
+                      digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer)
     s.check()
     return s
+
+
+def secret(what: str, given: str, env: str, path: Path | None) -> str:
+    """A token from the command line, else from FILE's first line, else from the environment."""
+    if given:
+        return given
+    if path is not None:
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"cannot read the {what} from {path}: {getattr(exc, 'strerror', None) or exc}") from None
+        if not lines or not lines[0].strip():
+            raise ConfigError(f"{path} holds no {what} (empty first line)")
+        return lines[0].strip()
+    return os.environ.get(env, "").strip()
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def bind_listener(host: str, port: int) -> socket.socket:
+    """The listening socket, bound now (before any bake) so a busy port fails in a second, not after it."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        family, kind, proto, _, addr = infos[0]
+        sock = socket.socket(family, kind, proto)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+            sock.listen(128)
+        except OSError:
+            sock.close()
+            raise
+    except OSError as exc:  # the port is taken, the address is not ours, ...
+        raise ConfigError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    sock.setblocking(False)
+    return sock
 
 
 def setup_logging() -> None:
@@ -180,6 +238,11 @@ def run(args: argparse.Namespace) -> int:
     sampling.SamplingSettings(**sampling.bake_kwargs(args)).check()  # a bad number fails before the scene loads
     if not (args.animate or args.progressive) and (args.tick_budget_ms is not None or args.tick_rays is not None):
         raise ConfigError("--tick-budget-ms and --tick-rays need --animate or --progressive (no tick runs otherwise)")
+    if not settings.token and not is_loopback(settings.host):
+        logging.getLogger("psao.serve").warning(
+            "listening on %s without a token: anyone who can reach this machine may connect "
+            "(set PSAO_TOKEN or --token-file)", settings.host)
+    listener = bind_listener(settings.host, settings.port)
     if args.animate or args.progressive:
         scene, grid, tick = _ticking(args)
         transforms = tick.transforms
@@ -190,23 +253,20 @@ def run(args: argparse.Namespace) -> int:
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
                       scene_blob=scene_blob(scene))
     try:
-        return asyncio.run(_serve(service))
+        return asyncio.run(_serve(service, listener))
     finally:
+        listener.close()
         if hasattr(tick, "close"):
             tick.close()
 
 
-async def _serve(service) -> int:
+async def _serve(service, listener: socket.socket) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     got: list[str] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (got.append(s.name), stop.set()))
-    try:
-        await service.run(stop)
-    except OSError as exc:  # the port is taken, the address is not ours, ...
-        s = service.settings
-        raise ConfigError(f"cannot listen on {s.host}:{s.port}: {exc.strerror or exc}") from None
+    await service.run(stop, sock=listener)
     c = service.counters
     logging.getLogger("psao.serve").info(
         "stopped on %s after %d ticks: %d connections, %d rejected, %.1f MB sent",

@@ -29,7 +29,7 @@ from websockets.http11 import Request, Response
 
 from protocol import messages as m
 from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings, codec_name
-from protocol.errors import HeaderError, PayloadError, ProtocolError
+from protocol.errors import EditError, HeaderError, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.session import (
     ByeReceived,
@@ -61,7 +61,10 @@ class ServeSettings:
     codec: Codec = Codec.ZSTD_STREAM
     layout: Layout = Layout.PACKED
     zstd: ZstdSettings = PAPER_ZSTD
-    token: str = ""
+    token: str = ""  # "" serves anyone
+    allow_edits: bool = False  # accept SceneEdit from clients that present edit_token
+    edit_token: str = ""  # required (non-empty) with allow_edits
+    max_clients: int = 128  # open connections at most (handshake included); more are refused
     limits: Limits = DEFAULT_LIMITS
     snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
     hello_timeout: float = 10.0  # seconds a new connection has to send Hello
@@ -80,6 +83,12 @@ class ServeSettings:
             raise ConfigError(f"send buffer must be >= 0 bytes (0: the system's default), got {self.send_buffer}")
         if not 0 <= self.port <= 65535:
             raise ConfigError(f"port must be within 0..65535, got {self.port}")
+        if not 1 <= self.max_clients <= 100_000:
+            raise ConfigError(f"max clients must be within 1..100000, got {self.max_clients}")
+        if self.allow_edits and not self.edit_token:
+            raise ConfigError("edits need an edit token (PSAO_EDIT_TOKEN or --edit-token-file)")
+        if self.allow_edits and self.edit_token == self.token:
+            raise ConfigError("the edit token must differ from the viewing token")
 
 
 class StaticTransforms:
@@ -93,7 +102,7 @@ class StaticTransforms:
 
     def edit(self, instance: int, transform: np.ndarray) -> None:
         if not 0 <= instance < len(self.array):
-            raise PayloadError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
+            raise EditError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
         self.array = self.array.copy()
         self.array[instance] = transform
 
@@ -105,6 +114,9 @@ class Counters:
     messages_out: int = 0
     connections: int = 0
     rejected: int = 0
+    cameras: int = 0  # Camera messages received
+    camera_merges: int = 0  # times the clients' cameras were handed to the tick (at most once per tick)
+    edits: int = 0  # SceneEdits applied
     tick_seconds: float = 0.0
     encode_seconds: float = 0.0
     cells_sent: int = 0  # cell rows in Updates, all clients
@@ -134,9 +146,13 @@ class Service:
             transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
         self.on_scene_edit = on_scene_edit or getattr(transforms, "edit", None)
+        if settings.allow_edits and self.on_scene_edit is None:
+            raise ConfigError("edits are allowed but nothing applies them")
         self.on_cameras = on_cameras or getattr(tick, "set_cameras", None)
-        self.config = ServerConfig(scene_hash, settings.token, settings.codec, settings.layout, settings.zstd,
-                                   settings.limits)
+        self.config = ServerConfig(scene_hash, settings.token, settings.edit_token if settings.allow_edits else "",
+                                   settings.codec, settings.layout, settings.zstd, settings.limits)
+        self._cameras_changed_since_tick = False
+        self._open = 0  # connections being served, handshake included
         self.registry = Registry()
         self.counters = Counters()
         self.tick = 0
@@ -148,13 +164,16 @@ class Service:
         self.last_tick_stats: dict = {}
 
     # ---------------------------------------------------------------- lifecycle
-    async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None) -> None:
+    async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None,
+                  sock: socket.socket | None = None) -> None:
+        """Serve until `stop` is set; on `sock` (already bound and listening) or on settings.host:port."""
         s = self.settings
         # The user-space write buffer is bounded like the kernel's: a slow reader blocks our send early.
         write_limit = min(32 * 1024, s.send_buffer) if s.send_buffer else 32 * 1024
-        async with serve(self._handler, s.host, s.port, compression=None, write_limit=write_limit,
+        where = {"sock": sock} if sock is not None else {"host": s.host, "port": s.port}
+        async with serve(self._handler, compression=None, write_limit=write_limit,
                          max_size=4 * s.limits.client_message_bytes, max_queue=16,
-                         process_request=self._http) as server:
+                         process_request=self._http, **where) as server:
             self.port = server.sockets[0].getsockname()[1]
             log.info("listening on ws://%s:%d, web client on http://%s:%d/ (codec %s, layout %s, %g Hz%s)",
                      s.host, self.port, s.host, self.port,
@@ -191,6 +210,7 @@ class Service:
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
+            self._merge_cameras()
             stats = None
             if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
                 plan = await asyncio.to_thread(self.tick_fn.prepare, self.time)
@@ -254,6 +274,18 @@ class Service:
         peer = "%s:%s" % tuple(ws.remote_address[:2]) if ws.remote_address else "?"
         session = ServerSession(self.config)
         self.counters.connections += 1
+        if self._open >= self.settings.max_clients:
+            full = RefusedError(f"server full: {self.settings.max_clients} connections", m.ErrorCode.SERVER_FULL,
+                                close_code=1013)  # 1013: try again later
+            await self._reject(ws, session, full, peer, None)
+            return
+        self._open += 1
+        try:
+            await self._handle(ws, session, peer)
+        finally:
+            self._open -= 1
+
+    async def _handle(self, ws: ServerConnection, session: ServerSession, peer: str) -> None:
         sock = ws.transport.get_extra_info("socket")
         if sock is not None and self.settings.send_buffer:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.settings.send_buffer)
@@ -281,6 +313,8 @@ class Service:
         self._connections.add(ws)
         try:
             await self._serve_client(ws, session, client, event.codec)
+        except ConnectionClosed:  # gone before or while the Welcome was sent
+            log.info("client %d from %s left during the handshake", client.id, peer)
         finally:
             self._connections.discard(ws)
             self.registry.remove(client)
@@ -365,17 +399,24 @@ class Service:
             event = session.receive(_binary(data))
             if isinstance(event, CameraReceived):
                 client.camera = (event.camera.view, event.camera.projection)
+                self.counters.cameras += 1
                 self._cameras_changed()
-            elif isinstance(event, SceneEditReceived):
-                if self.on_scene_edit is None:
-                    raise ProtocolError("this server does not accept scene edits")
+            elif isinstance(event, SceneEditReceived):  # the session let through only allowed, sane edits
                 self.on_scene_edit(event.edit.instance, event.edit.transform)
+                self.counters.edits += 1
+                log.info("client %d from %s moved instance %d", client.id, client.peer, event.edit.instance)
                 self.registry.wake_all()
             elif isinstance(event, ByeReceived):
                 return
 
     def _cameras_changed(self) -> None:
-        if self.on_cameras is not None:
+        """O(1) per Camera message: the tick hears the merged views once, before its next run."""
+        self._cameras_changed_since_tick = True
+
+    def _merge_cameras(self) -> None:
+        if self._cameras_changed_since_tick and self.on_cameras is not None:
+            self._cameras_changed_since_tick = False
+            self.counters.camera_merges += 1
             self.on_cameras([c.camera for c in self.registry if c.camera is not None])
 
     async def _send(self, ws, client: Client, data: bytes) -> None:

@@ -67,10 +67,10 @@ async def raw_exchange(url: str, messages: list, read_all=True) -> tuple[m.Error
         return error, ws.close_code
 
 
-async def with_server(body, token=""):
+async def with_server(body, token="", **more):
     """Run a server with random edits and one good client; `body(url)` runs meanwhile."""
     grid = make_grid()
-    settings = ServeSettings(port=0, tick_hz=30, token=token, stats_interval=1e9, hello_timeout=2.0)
+    settings = ServeSettings(port=0, tick_hz=30, token=token, stats_interval=1e9, hello_timeout=2.0, **more)
     service = Service(grid, HASH, settings, tick=RandomEdits(20, seed=1))
     stop, ready = asyncio.Event(), asyncio.Event()
     server = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
@@ -94,15 +94,15 @@ async def with_server(body, token=""):
     return result
 
 
-def run_case(caplog, messages, token="", after_welcome=False):
+def run_case(caplog, messages, token="", after_welcome=False, hello_token=None, **more):
     caplog.clear()
     caplog.set_level(logging.INFO, logger="psao.serve")
 
     async def body(url):
-        msgs = ([hello(token)] if after_welcome else []) + messages
+        msgs = ([hello(token if hello_token is None else hello_token)] if after_welcome else []) + messages
         return await raw_exchange(url, msgs)
 
-    error, code = asyncio.run(with_server(body, token=token))
+    error, code = asyncio.run(with_server(body, token=token, **more))
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1, warnings
     return error, code, warnings[0]
@@ -159,9 +159,59 @@ def test_camera_with_nan_after_handshake(caplog):
     assert "NaN" in line and "client" in line
 
 
-def test_scene_edit_of_unknown_instance(caplog):
-    error, code, line = run_case(caplog, [m.encode(m.SceneEdit(5, EYE))], after_welcome=True)
-    assert error.code == m.ErrorCode.BAD_PAYLOAD and code == 1002 and "no instance 5" in line
+EDITS = {"allow_edits": True, "edit_token": "edit-secret"}
+
+
+def test_scene_edits_refused_by_default(caplog):
+    error, code, line = run_case(caplog, [m.encode(m.SceneEdit(0, EYE))], after_welcome=True)
+    assert error.code == m.ErrorCode.EDITS_NOT_ALLOWED and code == 1008 and "does not accept scene edits" in line
+
+
+@pytest.mark.parametrize("token, hello_token", [("", ""), ("view", "view")])
+def test_scene_edits_need_the_edit_token(caplog, token, hello_token):
+    error, code, line = run_case(caplog, [m.encode(m.SceneEdit(0, EYE))], token=token, after_welcome=True,
+                                 hello_token=hello_token, **EDITS)
+    assert error.code == m.ErrorCode.EDITS_NOT_ALLOWED and code == 1008 and "need the edit token" in line
+
+
+def _matrix(scale=1.0, move=0.0, last=(0, 0, 0, 1)):
+    t = np.diag(np.float32([scale, scale, scale, 1.0]))
+    t[0, 3] = move
+    t[3] = last
+    return t
+
+
+@pytest.mark.parametrize("instance, transform, text", [
+    (5, EYE, "no instance 5"),
+    (0, _matrix(scale=3e38), "axis scales"),
+    (0, _matrix(scale=1e-9), "axis scales"),
+    (0, _matrix(move=1e9), "translation"),
+    (0, _matrix(last=(0, 0, 1, 1)), "last row"),
+])
+def test_bad_scene_edit(caplog, instance, transform, text):
+    error, code, line = run_case(caplog, [m.encode(m.SceneEdit(instance, transform))], after_welcome=True,
+                                 hello_token="edit-secret", **EDITS)
+    assert error.code == m.ErrorCode.BAD_EDIT and code == 1008 and text in line, line
+
+
+def test_scene_edit_with_the_edit_token_reaches_other_clients():
+    moved = _matrix(scale=2.0, move=0.25)
+
+    async def body(url):
+        watcher = MirrorClient(url, HASH, reconnect=False)
+        task = asyncio.create_task(watcher.run())
+        while watcher.stats.updates < 2:
+            await asyncio.sleep(0.05)
+        async with connect(url, compression=None, max_size=None) as ws:
+            await ws.send(hello("edit-secret"))
+            await ws.send(m.encode(m.SceneEdit(0, moved)))
+            while not np.array_equal(watcher.mirror.transforms[0], moved):
+                await asyncio.sleep(0.05)
+        watcher.stop()
+        await task
+        return True
+
+    assert asyncio.run(with_server(body, **EDITS))
 
 
 @pytest.mark.parametrize("token, reason", [("", "missing token"), ("guess", "wrong token")])

@@ -6,7 +6,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.codecs import Codec, codec_mask
-from protocol.errors import CodecError, HeaderError, PayloadError
+from protocol.errors import CodecError, EditError, HeaderError, PayloadError
 from protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
 from protocol.session import (
     ByeReceived,
@@ -72,8 +72,9 @@ class SyntheticGrid:
         return GridDelta(len(self.cells), tids, self.transforms[tids], b, self.buckets[b], c, self.cells[c])
 
 
-def handshake(codecs=frozenset(Codec), server_codec=Codec.ZSTD_STREAM, layout=Layout.PACKED, token="", client_token=""):
-    server = ServerSession(ServerConfig(HASH, token=token, codec=server_codec, layout=layout))
+def handshake(codecs=frozenset(Codec), server_codec=Codec.ZSTD_STREAM, layout=Layout.PACKED, token="", client_token="",
+              edit_token=""):
+    server = ServerSession(ServerConfig(HASH, token=token, edit_token=edit_token, codec=server_codec, layout=layout))
     client = ClientSession(ClientConfig(HASH, token=client_token, codecs=frozenset(codecs)))
     event = server.receive(client.hello())
     assert isinstance(event, HelloAccepted)
@@ -120,8 +121,35 @@ def test_camera_and_scene_edit_reach_the_server():
     view = np.arange(16, dtype=np.float32).reshape(4, 4)
     ev = server.receive(client.camera(view, np.eye(4)))
     assert isinstance(ev, CameraReceived) and np.array_equal(ev.camera.view, view)
-    ev = server.receive(client.scene_edit(2, np.eye(4) * 2))
+    with pytest.raises(RefusedError, match="does not accept scene edits") as exc:
+        server.receive(client.scene_edit(2, np.eye(4)))
+    assert exc.value.code == m.ErrorCode.EDITS_NOT_ALLOWED
+    server, client, event = handshake(edit_token="e", client_token="e")
+    assert event.may_edit
+    edit = np.diag([2.0, 2.0, 2.0, 1.0])
+    ev = server.receive(client.scene_edit(2, edit))
     assert isinstance(ev, SceneEditReceived) and ev.edit.instance == 2
+    with pytest.raises(EditError, match="axis scales"):
+        server.receive(client.scene_edit(2, np.diag([3e38, 1.0, 1.0, 1.0])))
+
+
+def test_edit_token_is_its_own():
+    """The viewing token does not allow edits; the edit token also lets a client view."""
+    server, client, event = handshake(token="view", client_token="view", edit_token="edit")
+    assert not event.may_edit
+    with pytest.raises(RefusedError, match="need the edit token"):
+        server.receive(client.scene_edit(0, np.eye(4)))
+    _, _, event = handshake(token="view", client_token="edit", edit_token="edit")
+    assert event.may_edit
+
+
+def test_an_update_encoded_after_bye_still_encodes():
+    """The sender may be encoding on another thread when the reader hears Bye."""
+    g = SyntheticGrid(np.random.default_rng(5))
+    server, client, _ = handshake()
+    assert isinstance(server.receive(client.bye()), ByeReceived)
+    data = server.update(1, 0.0, g.delta(np.zeros(0, np.uint32), np.zeros(0, np.uint32), []))
+    assert m.Header.parse(data, 1 << 20).type == m.MessageType.UPDATE
 
 
 def test_token_checked():

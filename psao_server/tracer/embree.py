@@ -12,6 +12,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -144,8 +145,22 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings):
 _WORKER: _Scenes | None = None
 
 
-def _worker_init(static_vertices, static_faces, rigid):
+def _die_with(parent: int) -> None:
+    """End this worker when `parent` dies, even by kill -9 (nothing else would: the pool's own shutdown
+    never runs). The kernel's PR_SET_PDEATHSIG fires when the thread that forked us ends, and the pool may
+    fork from a short-lived thread, so a daemon thread watches our parent pid instead."""
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.25)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _worker_init(parent, static_vertices, static_faces, rigid):
     global _WORKER
+    _die_with(parent)
     # Ctrl-C reaches the whole process group: the parent shuts the pool down, workers must not die first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _WORKER = _Scenes(static_vertices, static_faces, rigid)
@@ -249,7 +264,8 @@ class EmbreeTracer(Tracer):
             # (warm_up) before starting threads or event loops.
             # ProcessPoolExecutor rather than Pool: a dead worker raises BrokenProcessPool instead of hanging.
             self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
-                                             initializer=_worker_init, initargs=(*self._static, self._rigid))
+                                             initializer=_worker_init,
+                                             initargs=(os.getpid(), *self._static, self._rigid))
         return self._pool
 
     def warm_up(self) -> None:
