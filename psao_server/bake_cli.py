@@ -8,6 +8,7 @@ from pathlib import Path
 
 from psao_server import sampling
 from psao_server.errors import ConfigError
+from psao_server.outputs import check_output_path, write_atomically
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
                             spawn_ratio=args.spawn_ratio,
                             gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
     settings.check()  # a bad number fails before the scene loads
+    out = check_output_path(args.out, ".npz") if args.out is not None else None  # before the work, not after
     scene = load_scene(args.scene, ao_distance=args.ao_distance)
     result = bake_scene(scene, settings)
     stats = dict(result.stats)
@@ -50,9 +52,9 @@ def run(args: argparse.Namespace) -> int:
             stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=args.probe_rays))
     finally:
         result.tracer.close()
-    out = args.out or Path("out") / f"{scene.name}-N{stats['density']:.4g}.npz"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    result.grid.save(out, scene_hash=scene.content_hash(), meta={"scene": args.scene, **{k: v for k, v in stats.items() if isinstance(v, (int, float, str))}})
+    out = out or check_output_path(Path("out") / f"{scene.name}-N{stats['density']:.4g}.npz", ".npz")
+    meta = {"scene": args.scene, **{k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
+    write_atomically(out, lambda f: result.grid.save(f, scene_hash=scene.content_hash(), meta=meta))
     stats["out"] = str(out)
     _print_summary(stats)
     if args.json:
