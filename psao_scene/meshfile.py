@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import base64
 import logging
+import struct
+import urllib.parse
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -190,12 +192,40 @@ _COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uin
 _TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
+_GLB_MAGIC = 0x46546C67  # b"glTF"
+
+
+def check_glb_lengths(path: Path) -> None:
+    """A GLB's header length and every chunk's declared length must match the bytes the file holds (a
+    reader would otherwise trust a 2 GiB claim from a 60-byte file). Not a GLB: nothing to check."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(12)
+        if len(head) < 12 or struct.unpack_from("<I", head)[0] != _GLB_MAGIC:
+            return
+        _, _, total = struct.unpack("<III", head)
+        if total != size:
+            raise SceneFormatError(f"{path}: GLB header declares {total} bytes, the file holds {size}")
+        at = 12
+        while at < size:
+            chunk = f.read(8)
+            if len(chunk) < 8:
+                raise SceneFormatError(f"{path}: GLB chunk header cut short at byte {at}")
+            n, kind = struct.unpack("<II", chunk)
+            if at + 8 + n > size:
+                raise SceneFormatError(f"{path}: GLB chunk at byte {at} declares {n} bytes, the file holds "
+                                       f"{size - at - 8} after it")
+            f.seek(n, 1)
+            at += 8 + n
+
+
 class GltfFile:
     """A parsed glTF/GLB with its buffers in memory and typed accessor reads."""
 
     def __init__(self, path: Path):
         import pygltflib
         self.path = Path(path)
+        check_glb_lengths(self.path)
         try:
             with warnings.catch_warnings():  # pygltflib warns (two lines) about chunks it skips
                 warnings.simplefilter("ignore")
@@ -222,12 +252,32 @@ class GltfFile:
             elif uri.startswith("data:"):
                 self._buffers[i] = base64.b64decode(uri.split(",", 1)[1])
             else:
-                file = self.path.parent / uri
+                file = self._local_file(uri, f"buffer {i}")
                 if not file.is_file():
                     raise SceneNotFound(f"{self.path}: this glTF keeps its geometry in '{uri}', which is not next "
                                         f"to it: copy that file beside the .gltf (or use the .glb)")
-                self._buffers[i] = file.read_bytes()
+                declared = self.doc.buffers[i].byteLength or 0
+                if file.stat().st_size < declared:
+                    raise SceneFormatError(f"{self.path}: buffer {i} declares {declared} bytes, '{uri}' holds "
+                                           f"{file.stat().st_size}")
+                with open(file, "rb") as f:
+                    self._buffers[i] = f.read(declared) if declared else f.read()  # never more than declared
+            declared = self.doc.buffers[i].byteLength or 0
+            if len(self._buffers[i]) < declared:
+                raise SceneFormatError(f"{self.path}: buffer {i} declares {declared} bytes, holds {len(self._buffers[i])}")
         return self._buffers[i]
+
+    def _local_file(self, uri: str, what: str) -> Path:
+        """The file a relative URI names inside the scene's folder; anything else (a scheme, an absolute
+        path, a way out by '..' or a link) is refused: a scene file must not read the rest of the disk."""
+        path = urllib.parse.unquote(uri)
+        folder = self.path.parent.resolve()
+        if urllib.parse.urlsplit(uri).scheme or Path(path).is_absolute():
+            raise SceneFormatError(f"{self.path}: {what}: URI '{uri}' is not a relative path inside the scene's folder")
+        file = (folder / path).resolve()
+        if not file.is_relative_to(folder):
+            raise SceneFormatError(f"{self.path}: {what}: URI '{uri}' leads outside the scene's folder")
+        return file
 
     def accessor(self, i: int, what: str) -> np.ndarray:
         """Accessor i as an (count, width) array (normalized integers scaled to [0, 1] / [-1, 1])."""

@@ -1,6 +1,7 @@
 """Scene loading: built-ins, bare mesh files (glTF node transforms), cleaning, bad input."""
 from __future__ import annotations
 
+import json
 import logging
 import struct
 from pathlib import Path
@@ -299,3 +300,81 @@ def test_trimesh_formats_round_trip(tmp_path, ext):
     lo, hi = scene.world_bounds()
     np.testing.assert_allclose([lo, hi], box.bounds, atol=1e-6)
     assert scene.ao_distance == pytest.approx(0.1 * np.linalg.norm(hi - lo))
+
+
+def _gltf_with_buffer_uri(folder: Path, uri_for, byte_length=None) -> Path:
+    """x.gltf in `folder` whose buffer is a file named by uri_for(bin_path) (written where it says)."""
+    nodes = [pygltflib.Node(name="a", mesh=0)]
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_gltf(folder / "x.glb", nodes, [0])
+    g = pygltflib.GLTF2().load(str(folder / "x.glb"))
+    blob = g.binary_blob()
+    uri, where = uri_for(folder)
+    where.parent.mkdir(parents=True, exist_ok=True)
+    where.write_bytes(blob)
+    g.buffers[0].uri = uri
+    if byte_length is not None:
+        g.buffers[0].byteLength = byte_length
+    g.set_binary_blob(None)
+    g.save_json(str(folder / "x.gltf"))
+    return folder / "x.gltf"
+
+
+@pytest.mark.parametrize("uri_for, text", [
+    (lambda d: ("../outside.bin", d.parent / "outside.bin"), "leads outside the scene's folder"),
+    (lambda d: ("%2E%2E/outside.bin", d.parent / "outside.bin"), "leads outside the scene's folder"),
+    (lambda d: (str(d.parent / "abs.bin"), d.parent / "abs.bin"), "not a relative path"),
+    (lambda d: ((d.parent / "u.bin").as_uri(), d.parent / "u.bin"), "not a relative path"),
+    (lambda d: ("../../../../../../../../etc/passwd", d / "unused.bin"), "leads outside the scene's folder"),
+])
+def test_gltf_buffer_uris_stay_in_the_scene_folder(tmp_path, uri_for, text):
+    path = _gltf_with_buffer_uri(tmp_path / "scene", uri_for)
+    with pytest.raises(SceneFormatError, match=text):
+        load_scene(path)
+
+
+def test_gltf_buffer_through_a_link_out_of_the_folder_refused(tmp_path):
+    path = _gltf_with_buffer_uri(tmp_path / "scene", lambda d: ("link.bin", d.parent / "real.bin"))
+    (path.parent / "link.bin").symlink_to(tmp_path / "real.bin")
+    with pytest.raises(SceneFormatError, match="leads outside"):
+        load_scene(path)
+
+
+def test_gltf_buffer_in_a_subfolder_is_fine(tmp_path):
+    path = _gltf_with_buffer_uri(tmp_path / "scene", lambda d: ("data/x%20y.bin", d / "data" / "x y.bin"))
+    assert len(load_scene(path).instances) == 1
+
+
+def _glb_bytes(doc: dict, blob: bytes, bin_chunk_length: int | None = None) -> bytes:
+    """A GLB written by hand (pygltflib rewrites declared lengths on save)."""
+    import json
+
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    n_bin = len(blob) if bin_chunk_length is None else bin_chunk_length
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", n_bin, 0x004E4942) + blob
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
+
+
+@pytest.mark.parametrize("kind", ["file", "glb buffer", "glb chunk"])
+def test_declared_buffer_length_checked_against_real_size(tmp_path, kind):
+    if kind == "file":
+        path = _gltf_with_buffer_uri(tmp_path, lambda d: ("x.bin", d / "x.bin"), byte_length=1 << 31)
+    else:
+        _write_gltf(tmp_path / "x.glb", [pygltflib.Node(name="a", mesh=0)], [0])
+        g = pygltflib.GLTF2().load(str(tmp_path / "x.glb"))
+        blob = g.binary_blob()
+        doc = json.loads(g.to_json())
+        if kind == "glb buffer":
+            doc["buffers"][0]["byteLength"] = 1 << 31
+        else:
+            doc["buffers"][0]["byteLength"] = len(blob)
+        path = tmp_path / "big.glb"
+        path.write_bytes(_glb_bytes(doc, blob, bin_chunk_length=(1 << 31) if kind == "glb chunk" else None))
+    if kind == "glb chunk":  # a chunk claiming more than the file holds: refused, nothing that size allocated
+        with pytest.raises(SceneFormatError):
+            load_scene(path)
+        return
+    with pytest.raises(SceneFormatError, match=f"declares {1 << 31} bytes"):
+        load_scene(path)
