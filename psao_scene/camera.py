@@ -113,20 +113,33 @@ def perspective(fov_y_deg: float, aspect: float, near: float, far: float) -> np.
 _warned_orbit: set[str] = set()
 
 
+# The default orbit: field of view, and how far beyond the distance at which the scene's bounding sphere
+# just fits the vertical field of view the eye stays (room for the spline between keys to cut inwards).
+ORBIT_FOV_Y = 50.0  # degrees
+ORBIT_MARGIN = 1.1
+ORBIT_ELEVATION = np.arctan2(0.6, 1.6)  # radians above the horizon (about 20.6 degrees)
+
+
 def default_orbit(scene: Scene, period: float = 20.0, keys: int = 12) -> CameraPath:
-    """A closed orbit around the scene bounds, for scenes without a camera path (warns once per scene)."""
+    """A closed orbit around the scene bounds, for scenes without a camera path (warns once per scene).
+
+    The eye circles the centre of the bounding box at a distance where the box's bounding sphere fits
+    the vertical field of view (and so the horizontal one of any frame at least as wide as it is tall):
+    the whole scene stays in view from every angle, however tall or flat it is."""
     if scene.name not in _warned_orbit:
         _warned_orbit.add(scene.name)
         log.warning("scene '%s' has no camera path: using an orbit around its bounds", scene.name)
     lo, hi = scene.world_bounds()
     center = (lo + hi) / 2
     radius = 0.5 * float(np.linalg.norm(hi - lo))
+    distance = ORBIT_MARGIN * radius / np.sin(np.radians(ORBIT_FOV_Y) / 2)
     out = []
     for k in range(keys + 1):
         a = 2 * np.pi * (k % keys) / keys
-        eye = center + radius * np.array([1.6 * np.sin(a), 0.6, 1.6 * np.cos(a)])
-        out.append(CameraKey(period * k / keys, tuple(eye), tuple(center)))
-    return CameraPath(name="orbit", keys=out, fov_y=50.0, loop=True)
+        direction = np.array([np.cos(ORBIT_ELEVATION) * np.sin(a), np.sin(ORBIT_ELEVATION),
+                              np.cos(ORBIT_ELEVATION) * np.cos(a)])
+        out.append(CameraKey(period * k / keys, tuple(center + distance * direction), tuple(center)))
+    return CameraPath(name="orbit", keys=out, fov_y=ORBIT_FOV_Y, loop=True)
 
 
 def scene_camera(scene: Scene, name: str | None = None) -> CameraPath:

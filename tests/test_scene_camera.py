@@ -129,3 +129,26 @@ def test_default_orbit_warns_once(caplog):
         np.testing.assert_allclose(target, (lo + hi) / 2)
         assert not np.all((eye > lo) & (eye < hi))  # outside the bounds
     np.testing.assert_allclose(camera_at(a, 3.3)[0], camera_at(b, 3.3)[0])
+
+
+@pytest.mark.parametrize("extent", [(0.2, 3.0, 0.2), (40.0, 0.5, 25.0), (1.0, 1.0, 1.0)])
+@pytest.mark.parametrize("size", [(640, 360), (400, 400)])
+def test_default_orbit_keeps_every_corner_in_view(tmp_path, extent, size):
+    """Tall, flat and cubic models: every bounding-box corner projects inside the frustum at every
+    frame along the default orbit (frames at least as wide as tall)."""
+    from psao_client.render.views import path_matrices, path_times
+
+    ex = np.asarray(extent)
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * ex
+    obj = tmp_path / f"box{ex[0]:g}x{ex[1]:g}.obj"
+    faces = [(1, 2, 4), (1, 4, 3), (5, 7, 8), (5, 8, 6), (1, 5, 6), (1, 6, 2), (3, 4, 8), (3, 8, 7), (1, 3, 7),
+             (1, 7, 5), (2, 6, 8), (2, 8, 4)]
+    obj.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in corners) + "".join(f"f {a} {b} {c}\n" for a, b, c in faces))
+    scene = load_scene(obj)
+    path = default_orbit(scene)
+    for t in path_times(path, 60):
+        view, proj = path_matrices(scene, path, float(t), size)
+        clip = (proj @ view @ np.c_[corners, np.ones(8)].T).T
+        assert (clip[:, 3] > 0).all()
+        ndc = clip[:, :3] / clip[:, 3:]
+        assert np.abs(ndc).max() <= 1.0, (t, ndc)
