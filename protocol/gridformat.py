@@ -12,7 +12,10 @@ A free cell slot holds FREE_CELL (all points zero, key EMPTY). The key of a cell
 the back side in cells of their own, whose key has BACK_BIT set (same bucket as the front cell): both
 sides of a thin surface share space, and sharing cells would halve what a cell holds per side. The
 lookup at a fragment reads one key per cell: the back-side key where the G-buffer flags the fragment as
-the back side of a double-sided instance, else the front key. Points are stored in instance-local space:
+the back side of a double-sided instance, else the front key. Where more than 7 points fall in one cell
+(surfaces crossing, thin parts with two faces close together) the key takes further cells, up to KEY_CELLS:
+further entries of its bucket with the same key, and the lookup reads every one of them, where the paper
+drops what does not fit. Points are stored in instance-local space:
 a point word's 5-bit codes q give the local position `origin + (cell + (q + 0.5) / 32) * cell_size`.
 
 The lookup thresholds T_N and T_D (paper eq. 3) live here too: the oracle (reconstruct.py), the gap fill
@@ -30,6 +33,9 @@ CELL_WORDS = 8
 POINTS_PER_CELL = 7
 KEY_WORD = 7
 BUCKET_ENTRIES = 8
+# A cell key whose points do not fit one cell takes up to this many cells (entries of its bucket with the
+# same key); the lookup reads them all. Beyond it points are dropped.
+KEY_CELLS = 3
 EMPTY = np.uint32(0xFFFFFFFF)
 MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz <= 2^30 keeps keys below BACK_BIT
 BACK_BIT = np.uint32(1 << 30)  # key flag: the cell holds back-side points of a double-sided instance

@@ -2,7 +2,8 @@
 
 It reads exactly the arrays the client holds (instances, buckets, cells) and does exactly what
 `shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
-hash -> bucket -> linear scan for the key -> the cell's allocated points, weights
+hash -> bucket -> linear scan for the key -> the allocated points of every cell with that key (a key
+holding more than 7 points owns several entries of its bucket), weights
 max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,
 or 1 where all weights are 0. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
@@ -64,27 +65,29 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
         inside = np.concatenate([inside, inside & two_sided[:, None]], axis=1)
         keys = np.concatenate([key, back_key], axis=1)
         entries = np.concatenate([entries, entries], axis=1)
-    # Entries are used-first and keys are unique in a bucket, so "first match before EMPTY" == "any match".
-    match = (entries[..., 0] == keys[..., None]) & inside[..., None]
-    found = match.any(axis=2)
-    slot = np.take_along_axis(entries[..., 1], match.argmax(axis=2)[..., None], axis=2)[..., 0].astype(np.int64)
-    slot = np.where(found, slot, 0)
-    words = cells[slot][..., : gf.POINTS_PER_CELL]  # (M, 8 or 16, 7)
+    # Every entry of the bucket whose key matches contributes its cell: a key with more than 7 points owns
+    # several cells (the server gives it at most KEY_CELLS). Entries are used-first, so "before the first
+    # EMPTY" is the same as "anywhere".
+    match = (entries[..., 0] == keys[..., None]) & inside[..., None]  # (M, C, 8)
+    match &= np.cumsum(match, axis=2) <= gf.KEY_CELLS  # the lookup reads a key's first KEY_CELLS cells
+    mi, ci, ei = np.nonzero(match)
+    slot = entries[mi, ci, ei, 1].astype(np.int64)
+    words = cells[slot][:, : gf.POINTS_PER_CELL]  # (K, 7)
     allocated, qpos, ncode, aocode = pw.unpack_point(words)
-    # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
-    valid = allocated & found[..., None]
-    p = gf.decode_point_local(cell[:, :, None, :], qpos, origin[:, None, None, :], s[:, None, None, None])
+    p = gf.decode_point_local(cell[mi, ci][:, None, :], qpos, origin[mi][:, None, :], s[mi][:, None, None])
     n_p = pw.oct_decode(ncode)
-    d_vec = p - x[:, None, None, :]
+    d_vec = p - x[mi][:, None, :]
     dist = np.sqrt((d_vec * d_vec).sum(axis=-1))
-    w = np.maximum(np.float32(0.0), (r[:, None, None] - dist) / r[:, None, None])
-    ndot = (n_p * n_x[:, None, None, :]).sum(axis=-1)
+    rk = r[mi][:, None]
+    w = np.maximum(np.float32(0.0), (rk - dist) / rk)
+    ndot = (n_p * n_x[mi][:, None, :]).sum(axis=-1)
     safe = np.where(dist > 0, dist, np.float32(1.0))
     ddot = (n_p * d_vec).sum(axis=-1) / safe
     ddot = np.where(dist > 0, ddot, np.float32(0.0))
-    w = np.where((ndot <= t_n) | (ddot * ddot >= t_d) | ~valid, np.float32(0.0), w).astype(np.float32)
-    wsum = w.sum(axis=(1, 2), dtype=np.float32)
+    # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
+    w = np.where((ndot <= t_n) | (ddot * ddot >= t_d) | ~allocated, np.float32(0.0), w).astype(np.float32)
+    wsum = np.bincount(mi, weights=w.sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
     ao_vals = pw.dequantise_ao(aocode)
-    num = (w * ao_vals).sum(axis=(1, 2), dtype=np.float32)
+    num = np.bincount(mi, weights=(w * ao_vals).sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
     ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)
     return ao, wsum

@@ -6,8 +6,7 @@ lookup (paper eq. 2-4) then has no point with weight > 0 and the client shows AO
 Off by default (BakeSettings.gap_fill.passes = 0: the paper's points only); `psao bake --gap-fill 4`.
 
 Each pass draws fresh uniform candidates (`ratio` per kept point and side), keeps those the grid does
-not cover and whose cell still has room (a point added to a full cell only pushes another out: the grid
-keeps a spread 7), thins them to one per lookup radius and appends them to the instance's PointSet
+not cover and that lie inside the instance's grid (a full cell takes further cells of its key), thins them to one per lookup radius and appends them to the instance's PointSet
 (front-side additions before the back-side half of a double-sided instance, so the halves stay aligned
 as bake.back_side_mask expects). The caller rebuilds the grid after each pass.
 
@@ -29,7 +28,7 @@ from protocol import pointword as pw
 from protocol.gridformat import T_D, T_N
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
-from psao_server.grid import NO_POINT, Grid
+from psao_server.grid import Grid
 from psao_server.points import PointSet, spawn_uniform, triangle_areas
 
 # The k-d pre-test is stricter than the lookup (distance 0.8 r, margins on eq. 3's tests) because it sees
@@ -153,22 +152,6 @@ def append_points(ps: PointSet, cand: Candidates, front: np.ndarray, back: np.nd
                     poisson_radius=ps.poisson_radius, spawned=ps.spawned)
 
 
-def has_room(grid: Grid, i: int, local_pos: np.ndarray, back: bool) -> np.ndarray:
-    """Bool (C,): the cell each position falls in (its back-side cell when `back`) holds fewer than 7
-    points. A point added to a full cell would only push another out (Grid keeps a spread 7)."""
-    rec = grid.instances[i]
-    xyz, inside = grid.cell_of(i, local_pos)
-    keys = gf.cell_key(xyz[:, 0], xyz[:, 1], xyz[:, 2], rec["dims"]).astype(np.uint32)
-    if back:
-        keys = keys | gf.BACK_BIT
-    slots = np.flatnonzero(grid.cell_instance == i)
-    slot_keys = grid.cells[slots, gf.KEY_WORD]
-    full_keys = np.sort(slot_keys[(grid.point_id[slots] != NO_POINT).sum(axis=1) >= gf.POINTS_PER_CELL])
-    at = np.minimum(np.searchsorted(full_keys, keys), max(len(full_keys) - 1, 0))
-    is_full = (full_keys[at] == keys) if len(full_keys) else np.zeros(len(keys), bool)
-    return inside & ~is_full
-
-
 def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.random.Generator,
               ratio: float, spacing: float = 1.0) -> tuple[list[PointSet], int]:
     """One round over every instance; returns the new point sets and how many points were added."""
@@ -181,9 +164,9 @@ def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.rando
         radius = float(grid.instances[i]["radius"])
         sides = [(1.0, False)] + ([(-1.0, True)] if double else [])
         picked = []
-        for sign, back in sides:
+        for sign, _back in sides:
             holes = uncovered(grid, i, table, cand, sign)
-            holes = holes[has_room(grid, i, cand.local_pos[holes], back)]
+            holes = holes[grid.cell_of(i, cand.local_pos[holes])[1]]  # a full cell takes more cells of its key
             picked.append(holes[thin(cand.local_pos[holes], spacing * radius)])
         if sum(len(p) for p in picked) == 0:
             continue

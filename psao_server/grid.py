@@ -58,7 +58,7 @@ class PointTable:
 @dataclass
 class InsertStats:
     inserted: int = 0
-    dropped_cell_full: int = 0
+    dropped_cell_full: int = 0  # the key's KEY_CELLS cells are full
     dropped_bucket_full: int = 0
     dropped_outside: int = 0
 
@@ -191,8 +191,9 @@ class Grid:
 
     def insert_points(self, inst: int, local_pos, normals, ao_code, point_ids=None, back=None) -> np.ndarray:
         """Insert points into instance `inst` (`back`: bool mask of back-side points, which go to the
-        BACK_BIT cells). Returns a bool mask of the points kept; overflowing points (cell full, bucket
-        full, outside the grid) are dropped and counted in `stats`."""
+        BACK_BIT cells). A cell key with more than 7 points gets more cells of the same key in its bucket,
+        up to KEY_CELLS. Returns a bool mask of the points kept; points outside the grid, whose bucket has
+        no free entry or whose key's cells are all full are dropped and counted in `stats`."""
         local_pos = np.asarray(local_pos, np.float64).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         ao_code = np.broadcast_to(np.asarray(ao_code, np.uint32), (len(local_pos),))
@@ -208,60 +209,30 @@ class Grid:
             keys = np.where(np.asarray(back, bool), keys | gf.BACK_BIT, keys).astype(np.uint32)
         order = np.flatnonzero(inside)
         order = order[np.argsort(keys[order], kind="stable")]
-        if len(order) == 0:
-            return kept
-        ukeys, first, counts = np.unique(keys[order], return_index=True, return_counts=True)
-        slots = self._find_or_allocate_cells(inst, ukeys, cell[order[first]])
-        # Rank of each point inside its cell, after the points the cell already holds.
-        cell_of_point = np.repeat(np.arange(len(ukeys)), counts)
-        rank = np.arange(len(order)) - first[cell_of_point]
-        ok_cell = slots[cell_of_point] >= 0
-        self.stats.dropped_bucket_full += int((~ok_cell).sum())
-        pts, pslot, rank = order[ok_cell], slots[cell_of_point[ok_cell]], rank[ok_cell]
-        used = (self.point_id[pslot] != NO_POINT).sum(axis=1)
-        rank = self._spread_overflow(pts, pslot, rank, used, local_pos, normals, float(rec["radius"]))
-        idx = used + rank
-        fits = idx < gf.POINTS_PER_CELL
-        self.stats.dropped_cell_full += int((~fits).sum())
-        pts, pslot, idx = pts[fits], pslot[fits], idx[fits]
-        frac = gf.grid_coords(local_pos[pts], rec["origin"], rec["cell_size"]) - cell[pts]
-        self.cells[pslot, idx] = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals[pts]), ao_code[pts])
-        self.point_local[pslot, idx] = local_pos[pts]
-        self.point_normal[pslot, idx] = normals[pts]
-        self.point_id[pslot, idx] = point_ids[pts]
-        self.dirty_cells[pslot] = True
-        kept[pts] = True
-        self.stats.inserted += len(pts)
+        # Rounds: each key fills one cell with room (an existing one or a new entry of the same key in its
+        # bucket); what does not fit goes on to the next round. A point is dropped only when its bucket
+        # has no free entry left.
+        while len(order):
+            ukeys, first, counts = np.unique(keys[order], return_index=True, return_counts=True)
+            slots, used = self._cells_with_room(inst, ukeys, cell[order[first]])
+            cell_of_point = np.repeat(np.arange(len(ukeys)), counts)
+            rank = np.arange(len(order)) - first[cell_of_point]
+            ok_cell = slots[cell_of_point] >= 0
+            self.stats.dropped_bucket_full += int((slots[cell_of_point] == -1).sum())
+            self.stats.dropped_cell_full += int((slots[cell_of_point] == -2).sum())
+            idx = used[cell_of_point] + rank
+            fits = ok_cell & (idx < gf.POINTS_PER_CELL)
+            pts, pslot, idx = order[fits], slots[cell_of_point[fits]], idx[fits]
+            frac = gf.grid_coords(local_pos[pts], rec["origin"], rec["cell_size"]) - cell[pts]
+            self.cells[pslot, idx] = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals[pts]), ao_code[pts])
+            self.point_local[pslot, idx] = local_pos[pts]
+            self.point_normal[pslot, idx] = normals[pts]
+            self.point_id[pslot, idx] = point_ids[pts]
+            self.dirty_cells[pslot] = True
+            kept[pts] = True
+            self.stats.inserted += len(pts)
+            order = order[ok_cell & ~fits]
         return kept
-
-    @staticmethod
-    def _spread_overflow(pts, pslot, rank, used, local_pos, normals, radius) -> np.ndarray:
-        """Re-rank the points of overflowing cells so the ones kept are spread out (farthest-point order in
-        position and normal): a cell where several surfaces meet (a corner, a thin bar) keeps points on
-        each of them instead of whichever came first, which would leave holes on the others."""
-        over = np.flatnonzero((rank + used >= gf.POINTS_PER_CELL) & (rank == gf.POINTS_PER_CELL - used))
-        if len(over) == 0:
-            return rank
-        rank = rank.copy()
-        # the points of one cell are contiguous (inserted in key order): find each cell's run once
-        starts = np.flatnonzero(np.r_[True, pslot[1:] != pslot[:-1]])
-        ends = np.r_[starts[1:], len(pslot)]
-        cell_of = np.searchsorted(starts, over, side="right") - 1
-        for j, c in zip(over.tolist(), cell_of.tolist()):  # one overflowing cell each, a handful of points
-            members = np.arange(starts[c], ends[c])
-            feats = np.hstack([local_pos[pts[members]] / radius, normals[pts[members]].astype(np.float64) * 2.0])
-            chosen = [0]
-            dist = ((feats - feats[0]) ** 2).sum(axis=1)
-            dist[0] = -1.0
-            for _ in range(min(len(members), gf.POINTS_PER_CELL - int(used[j])) - 1):
-                nxt = int(np.argmax(dist))
-                chosen.append(nxt)
-                dist = np.minimum(dist, ((feats - feats[nxt]) ** 2).sum(axis=1))
-                dist[chosen] = -1.0
-            rest = np.ones(len(members), bool)
-            rest[chosen] = False
-            rank[members[chosen + np.flatnonzero(rest).tolist()]] = np.arange(len(members))
-        return rank
 
     def set_ao(self, slots, idx, ao_code) -> np.ndarray:
         """Set the AO byte of points; marks only cells whose words really change. Returns the changed mask."""
@@ -351,24 +322,35 @@ class Grid:
         c = np.asarray(cell_xyz).reshape(-1, 3)
         return gf.bucket_index(c[:, 0], c[:, 1], c[:, 2], rec["dims"], int(rec["bucket_offset"]), int(rec["bucket_count"])).astype(np.int64)
 
-    def _find_or_allocate_cells(self, inst: int, keys: np.ndarray, cell_xyz: np.ndarray) -> np.ndarray:
-        """Slots of the cells with these (unique) keys, allocating missing ones; -1 where the bucket is full."""
+    def _cells_with_room(self, inst: int, keys: np.ndarray, cell_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each (unique) key: the slot of its first cell with room and the points it holds, allocating
+        a new cell of that key in the bucket where all its cells are full; slot -1 where the bucket is full,
+        -2 where the key already owns KEY_CELLS full cells."""
         b = self._buckets_of(inst, cell_xyz)
         entries = self.buckets[b]  # (U, 8, 2) copy
-        match = entries[:, :, 0] == keys[:, None]
+        live = entries[:, :, 0] != gf.EMPTY
+        held = np.zeros(entries.shape[:2], np.int64)
+        held[live] = (self.point_id[entries[:, :, 1][live].astype(np.int64)] != NO_POINT).sum(axis=1)
+        match = (entries[:, :, 0] == keys[:, None]) & (held < gf.POINTS_PER_CELL)
         found = match.any(axis=1)
-        slots = np.where(found, entries[np.arange(len(b)), match.argmax(axis=1), 1].astype(np.int64), -1)
-        new = np.flatnonzero(~found)
+        e = match.argmax(axis=1)
+        rows = np.arange(len(b))
+        slots = np.where(found, entries[rows, e, 1].astype(np.int64), -1)
+        used = np.where(found, held[rows, e], 0)
+        # A key that already owns KEY_CELLS full cells takes no more: its bucket stays readable in one pass.
+        owned = (entries[:, :, 0] == keys[:, None]).sum(axis=1)
+        capped = ~found & (owned >= gf.KEY_CELLS)
+        new = np.flatnonzero(~found & ~capped)
+        slots[capped] = -2
         if len(new) == 0:
-            return slots
+            return slots, used
         # New cells sharing a bucket take consecutive free entries after the used ones.
         nb = b[new]
         order = np.argsort(nb, kind="stable")
         new, nb = new[order], nb[order]
         ub, ufirst, ucount = np.unique(nb, return_index=True, return_counts=True)
         rank = np.arange(len(new)) - np.repeat(ufirst, ucount)
-        used = (self.buckets[nb, :, 0] != gf.EMPTY).sum(axis=1)
-        entry = used + rank
+        entry = (self.buckets[nb, :, 0] != gf.EMPTY).sum(axis=1) + rank
         fits = entry < gf.BUCKET_ENTRIES
         new, nb, entry = new[fits], nb[fits], entry[fits]
         fresh = self._allocate_slots(len(new))
@@ -380,7 +362,7 @@ class Grid:
         self.dirty_buckets[nb] = True
         self.dirty_cells[fresh] = True
         slots[new] = fresh
-        return slots
+        return slots, used
 
     def _allocate_slots(self, k: int) -> np.ndarray:
         while len(self.free_slots) < k:
@@ -406,7 +388,8 @@ class Grid:
             sel = slots[self.cell_instance[slots] == inst]
             keys = self.cells[sel, gf.KEY_WORD]
             b = self._buckets_of(inst, gf.key_to_cell(keys, self.instances[inst]["dims"]))
-            hit = self.buckets[b, :, 0] == keys[:, None]
+            # a key may own several cells (overflow): clear the entry of this very slot
+            hit = (self.buckets[b, :, 0] == keys[:, None]) & (self.buckets[b, :, 1] == sel[:, None].astype(np.uint32))
             rows, cols = np.nonzero(hit)
             self.buckets[b[rows], cols] = gf.EMPTY
             ub = np.unique(b)
@@ -478,7 +461,8 @@ def _count_cells(pos: np.ndarray, rec: np.ndarray, back=None) -> int:
     keys = gf.cell_key(c[:, 0], c[:, 1], c[:, 2], rec["dims"]).astype(np.int64)
     if back is not None:
         keys = keys + np.asarray(back, bool) * (1 << 30)
-    return len(np.unique(keys))
+    _, counts = np.unique(keys, return_counts=True)
+    return int((-(-counts // gf.POINTS_PER_CELL)).sum())  # a key with more than 7 points takes more cells
 
 
 def settings_dict(settings: GridSettings) -> dict:

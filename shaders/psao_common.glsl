@@ -48,24 +48,6 @@ uint psao_cell_key(uvec3 c, uvec3 dims) {
     return c.x + dims.x * (c.y + dims.y * c.z);
 }
 
-// Slot of cell c of an instance, or PSAO_EMPTY: its front (or only) cell, or with `back` on a
-// double-sided instance its back-side cell (key | BACK_BIT, same bucket). Used entries come first, so
-// the scan stops at EMPTY; keys are unique in a bucket, so it stops at the match too.
-uint psao_find_cell(PsaoInstance inst, uvec3 c, bool back) {
-    uint bucket = inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u));
-    uint key = psao_cell_key(c, inst.dims);
-    if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
-    uint base = bucket * PSAO_BUCKET_TEXELS;
-    for (uint e = 0u; e < PSAO_BUCKET_TEXELS; ++e) {
-        uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
-        if (pair.x == PSAO_EMPTY) break;
-        if (pair.x == key) return pair.y;
-        if (pair.z == PSAO_EMPTY) break;
-        if (pair.z == key) return pair.w;
-    }
-    return PSAO_EMPTY;
-}
-
 // Normals: u_psao_normals[code] is pointword.oct_decode(code) (4+4-bit octahedral, levels 0..14,
 // level 15 clamped to 14), from gpu_grid.normal_table().
 vec3 psao_point_normal(uint word) {
@@ -110,6 +92,30 @@ void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, ino
     }
 }
 
+// Adds the points of cell c: every entry of its bucket with c's key (its back-side key, key | BACK_BIT,
+// with `back` on a double-sided instance); a key holding more than 7 points owns up to PSAO_KEY_CELLS
+// entries. The scan goes on past a match to the first EMPTY (used entries come first) and only collects
+// slots; the accumulation loop's trip count is data-dependent, so the compiler keeps one copy of
+// psao_accumulate (accumulating inside the unrolled scan made the pass 2-3x slower on llvmpipe). It holds
+// three slots (s0..s2): shader_constants.define_values checks that KEY_CELLS is three.
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+    uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
+    uint key = psao_cell_key(c, inst.dims);
+    if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
+    uint s0 = PSAO_EMPTY, s1 = PSAO_EMPTY, s2 = PSAO_EMPTY;
+    uint found = 0u;
+    for (uint e = 0u; e < PSAO_BUCKET_TEXELS; ++e) {
+        uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
+        if (pair.x == PSAO_EMPTY) break;
+        if (pair.x == key) { s2 = s1; s1 = s0; s0 = pair.y; ++found; }
+        if (pair.z == PSAO_EMPTY) break;
+        if (pair.z == key) { s2 = s1; s1 = s0; s0 = pair.w; ++found; }
+    }
+    for (uint k = 0u; k < min(found, uint(PSAO_KEY_CELLS)); ++k) {
+        psao_accumulate(inst, c, k == 0u ? s0 : (k == 1u ? s1 : s2), x, nx, wsum, aosum);
+    }
+}
+
 // Squared distance, in cells, from grid coordinate g to the unit box of cell c.
 float psao_cell_distance2(vec3 g, vec3 c) {
     vec3 d = max(max(c - g, g - (c + 1.0)), 0.0);
@@ -134,8 +140,7 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
         ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
         if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
         if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
-        uint slot = psao_find_cell(inst, uvec3(c), back);
-        if (slot != PSAO_EMPTY) psao_accumulate(inst, uvec3(c), slot, x, nx, wsum, aosum);
+        psao_accumulate_cell(inst, uvec3(c), back, x, nx, wsum, aosum);
     }
     return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
 }

@@ -96,18 +96,3 @@ def test_thin_keeps_points_apart():
     assert len(thin(pos[:1], 0.05)) == 1 and len(thin(pos[:0], 0.05)) == 0
 
 
-def test_no_point_is_offered_to_a_full_cell(scene):
-    build = builder(scene)
-    grid = build(generate_scene_points(scene, PointSettings(density=256.0)))
-    from psao_server.gapfill import has_room
-    from psao_server.grid import NO_POINT
-    counts = (grid.point_id != NO_POINT).sum(axis=1)
-    full = np.flatnonzero(counts >= gf.POINTS_PER_CELL)
-    roomy = np.flatnonzero((counts > 0) & (counts < gf.POINTS_PER_CELL))
-    assert len(full) and len(roomy)
-    for slots, expect in ((full, False), (roomy, True)):
-        for slot in slots[:20]:
-            i = int(grid.cell_instance[slot])
-            back = bool(grid.cells[slot, gf.KEY_WORD] & gf.BACK_BIT)
-            pos = grid.point_local[slot, :1]
-            assert has_room(grid, i, pos, back)[0] == expect
