@@ -230,9 +230,15 @@ def robots() -> Scene:
     return build()
 
 
+def tangle() -> Scene:
+    from .builtin_tangle import tangle as build
+    return build()
+
+
 BUILTINS: dict[str, Callable[[], Scene]] = {
     "cornell": cornell,
     "courtyard": courtyard,
     "space": space,
     "robots": robots,
+    "tangle": tangle,
 }

@@ -1,0 +1,172 @@
+"""Every model at its default settings, and at 4x the default density: one table, one chart.
+
+For each scene (every mesh file under ../shared/scenes and every built-in scene) and each density scale,
+a child process bakes at the scene's default (scale-aware) density times the scale and reports: points,
+bake seconds, points dropped to grid overflow, reconstruction MAE and hole fraction at random surface
+probes against AO traced there directly, PSNR of PSAO, SSAO and GTAO against an RTAO reference on the same
+frames, and the child's peak resident memory. Reference spp, probe rays, frame size and frame count are
+kept modest for a shared 2-core machine and printed with the table.
+
+Targets per scene and scale: recon_mae < 0.02, holes < 0.1 %, dropped < 0.5 %, PSNR PSAO > SSAO and
+> GTAO.
+
+    python -m benchmarks.bench_scenes [--scales 1,4] [--scenes builtin:cornell,...] [--out benchmarks/out]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from benchmarks.verdicts import Verdicts
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots", "builtin:tangle")
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
+TARGETS = {"recon_mae": 0.02, "holes_pct": 0.1, "dropped_pct": 0.5}
+
+
+def scene_specs() -> list[str]:
+    files = sorted(p for p in SHARED.glob("*/*") if p.suffix.lower() in MESH_SUFFIXES) if SHARED.is_dir() else []
+    return [str(p) for p in files] + list(BUILTINS)
+
+
+def measure_one(spec: str, scale: float, cfg: dict) -> dict:
+    """Runs in the child: bake, accuracy at probes, frames against the reference."""
+    from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
+    from psao_eval.reference import ReferenceSettings
+    from psao_scene import load_scene
+    from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
+    from psao_server.sampling import default_density
+
+    scene = load_scene(spec)
+    density = default_density(scene) * scale
+    t0 = time.perf_counter()
+    res = bake_scene(scene, BakeSettings(density=density, rays=cfg["rays"]), show_progress=False)
+    seconds = time.perf_counter() - t0
+    try:
+        err = reconstruction_error(res.grid, scene, res.tracer, sample_probes(scene, cfg["probes"]), rays=cfg["probe_rays"])
+    finally:
+        res.tracer.close()
+    methods = ("psao", "ssao", "gtao")
+    size = tuple(cfg["size"])
+    poses = frame_poses(scene, cfg["frames"], size)
+    with QualityRenderer(scene, size, methods=methods) as qr:
+        frames = qr.render(res.grid, poses, timing_repeats=1)
+    refs = reference_images(scene, frames, ReferenceSettings(spp=cfg["spp"]), show_progress=False)
+    rows = score_frames(frames, refs, methods)
+    s = res.stats
+    return {
+        "scene": scene.name, "spec": spec, "scale": scale, "density": density, "points": s["points_kept"],
+        "seconds": seconds, "dropped_pct": 100 * s["points_dropped_overflow"] / max(s["points_generated"], 1),
+        "recon_mae": err["recon_mae"], "holes_pct": 100 * err["hole_fraction"],
+        **{f"psnr_{m}": mean_scores(rows, m).psnr for m in methods},
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def run_child(spec: str, scale: float, cfg: dict) -> dict:
+    cmd = [sys.executable, "-m", "benchmarks.bench_scenes", "--child", json.dumps({"spec": spec, "scale": scale, **cfg})]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    last = proc.stdout.strip().splitlines()[-1:] or [""]
+    if proc.returncode != 0 or not last[0].startswith("{"):
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        return {"spec": spec, "scene": Path(spec).stem if "/" in spec else spec, "scale": scale, "error": tail}
+    return json.loads(last[0])
+
+
+def format_row(r: dict) -> str:
+    if "error" in r:
+        return f"{r['scene']:>18s} x{r['scale']:<3g} error: {r['error']}"
+    return (f"{r['scene']:>18s} x{r['scale']:<3g} {r['density']:>9.4g} {r['points']:>10,d} {r['seconds']:>7.1f} "
+            f"{r['dropped_pct']:>8.3f} {r['recon_mae']:>8.4f} {r['holes_pct']:>7.3f} {r['psnr_psao']:>6.2f} "
+            f"{r['psnr_ssao']:>6.2f} {r['psnr_gtao']:>6.2f} {r['peak_mb']:>8.0f}")
+
+
+HEADER = (f"{'scene':>18s} {'':4s} {'N/unit^2':>9s} {'points':>10s} {'bake s':>7s} {'drop %':>8s} {'MAE':>8s} "
+          f"{'holes %':>7s} {'PSAO':>6s} {'SSAO':>6s} {'GTAO':>6s} {'peak MB':>8s}")
+
+
+def chart(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    ok = [r for r in rows if "error" not in r and r["scale"] == 1]
+    if not ok:
+        return
+    x = np.arange(len(ok))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), dpi=100)
+    for k, (m, label) in enumerate((("psao", "PSAO"), ("ssao", "SSAO"), ("gtao", "GTAO"))):
+        axes[0].bar(x + (k - 1) * 0.27, [r[f"psnr_{m}"] for r in ok], 0.27, label=label)
+    axes[0].set_xticks(x, [r["scene"] for r in ok], rotation=45, ha="right")
+    axes[0].set_ylabel("PSNR vs RTAO (dB)")
+    axes[0].legend()
+    axes[1].bar(x - 0.2, [r["holes_pct"] for r in ok], 0.4, label="holes %")
+    axes[1].bar(x + 0.2, [r["dropped_pct"] for r in ok], 0.4, label="dropped %")
+    axes[1].axhline(TARGETS["holes_pct"], color="C0", ls="--", lw=0.8)
+    axes[1].axhline(TARGETS["dropped_pct"], color="C1", ls="--", lw=0.8)
+    axes[1].set_xticks(x, [r["scene"] for r in ok], rotation=45, ha="right")
+    axes[1].set_yscale("symlog", linthresh=0.1)
+    axes[1].legend()
+    fig.suptitle("Every model at its default density (scale-aware)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default=None, help="comma list (default: every shared mesh and built-in scene)")
+    ap.add_argument("--scales", default="1,4", help="density multiples of each scene's default")
+    ap.add_argument("--rays", type=int, default=64, help="bake rays per point")
+    ap.add_argument("--probes", type=int, default=20000)
+    ap.add_argument("--probe-rays", type=int, default=256)
+    ap.add_argument("--spp", type=int, default=64, help="RTAO reference samples per pixel")
+    ap.add_argument("--size", default="320x180")
+    ap.add_argument("--frames", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/out"))
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child is not None:
+        cfg = json.loads(args.child)
+        print(json.dumps(measure_one(cfg.pop("spec"), cfg.pop("scale"), cfg)))
+        return 0
+    w, h = (int(v) for v in args.size.split("x"))
+    cfg = {"rays": args.rays, "probes": args.probes, "probe_rays": args.probe_rays, "spp": args.spp,
+           "size": [w, h], "frames": args.frames}
+    print(f"bake {args.rays} rays/point; {args.probes} probes x {args.probe_rays} rays; RTAO {args.spp} spp, "
+          f"{args.frames} frames at {w}x{h} along each scene's camera path (default orbit where it has none)")
+    print(HEADER, flush=True)
+    specs = args.scenes.split(",") if args.scenes else scene_specs()
+    rows = []
+    for scale in (float(s) for s in args.scales.split(",")):
+        for spec in specs:
+            rows.append(run_child(spec, scale, cfg))
+            print(format_row(rows[-1]), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_scenes.json").write_text(json.dumps(rows, indent=1))
+    chart(rows, args.out / "bench_scenes.png")
+    v = Verdicts("bench_scenes")
+    for r in rows:
+        name = f"{r['scene']} x{r['scale']:g}"
+        if "error" in r:
+            v.check(f"{name} baked", 0.0, ">", 0.0)
+            continue
+        for key, target in TARGETS.items():
+            v.check(f"{name} {key}", r[key], "<", target)
+        v.check(f"{name} PSNR PSAO - SSAO dB", r["psnr_psao"] - r["psnr_ssao"], ">", 0.0)
+        v.check(f"{name} PSNR PSAO - GTAO dB", r["psnr_psao"] - r["psnr_gtao"], ">", 0.0)
+    print(f"wrote {args.out / 'bench_scenes.json'} and {args.out / 'bench_scenes.png'}")
+    return v.exit_code()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
