@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="token the server requires (visible in the process list: prefer PSAO_TOKEN or --token-file)")
     p.add_argument("--token-file", type=Path, default=None, metavar="FILE",
                    help="read the token from FILE (first line); the environment variable PSAO_TOKEN also works")
+    p.add_argument("--tls-ca", type=Path, default=None, metavar="PEM",
+                   help="with wss://, trust only these certificates (e.g. a server's self-signed one)")
     p.add_argument("--codecs", default=",".join(CODEC_CHOICES),
                    help=f"codecs to accept, comma-separated (default {','.join(CODEC_CHOICES)})")
     p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
@@ -70,6 +72,13 @@ def _token(args: argparse.Namespace) -> str:
     return os.environ.get("PSAO_TOKEN", "").strip()
 
 
+def _tls_ca(args: argparse.Namespace):
+    path = getattr(args, "tls_ca", None)
+    if path is not None and not Path(path).is_file():
+        raise ConnectError(f"--tls-ca: no file {path}")
+    return path
+
+
 def _aspect(size: str | None) -> float:
     """Width / height of a 'WxH' frame size; 16:9 without one (or a malformed one: the renderer reports it)."""
     try:
@@ -95,7 +104,7 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
         reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
-        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)),
+        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)), tls_ca=_tls_ca(args),
     )
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import ssl
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -75,7 +76,8 @@ class MirrorClient:
                  on_snapshot: OnMirror | None = None, on_update: OnUpdate | None = None,
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
-                 limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0):
+                 limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
+                 tls_ca: Path | None = None):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -90,6 +92,8 @@ class MirrorClient:
         self.reconnect_timeout = reconnect_timeout
         self.camera_period = 1.0 / camera_hz
         self.recv_buffer = recv_buffer  # small: the server feels a slow reader at once (tests, slow links)
+        # wss://: the system's trusted certificates, or only those in tls_ca (a self-signed server)
+        self.tls = ssl.create_default_context(cafile=str(tls_ca)) if tls_ca is not None else None
         self.mirror: Mirror | None = None
         self.stats = ClientStats()
         self._stop = asyncio.Event()
@@ -140,6 +144,8 @@ class MirrorClient:
         cameras: asyncio.Task | None = None
         renders: asyncio.Task | None = None
         extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
+        if self.tls is not None and self.url.startswith("wss:"):
+            extra["ssl"] = self.tls
         async with connect(self.url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0,
                            **extra) as ws:
             await ws.send(session.hello())

@@ -44,6 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "read from PSAO_EDIT_TOKEN or --edit-token-file; edits are refused otherwise")
     p.add_argument("--edit-token-file", type=Path, default=None, metavar="FILE",
                    help="read the edit token from FILE (first line)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                   help="a web page origin (e.g. https://example.org) allowed to open a websocket, besides this "
+                        "server's own page; repeatable. Clients without an Origin header are always allowed")
+    p.add_argument("--tls-cert", type=Path, default=None, metavar="PEM", help="serve wss:// with this certificate chain")
+    p.add_argument("--tls-key", type=Path, default=None, metavar="PEM", help="the private key of --tls-cert")
     p.add_argument("--max-clients", type=int, default=128, metavar="N",
                    help="open connections at most; more are refused with SERVER_FULL (default 128)")
     p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
@@ -162,6 +167,7 @@ def _settings(args):
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
                       layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
                       allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
+                      allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key,
                       digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer)
     s.check()
     return s
@@ -230,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
 
     from protocol.session import scene_hash_bytes
     from psao_server.scene_export import scene_blob
-    from psao_server.service import Service, StaticTransforms
+    from psao_server.service import Service, StaticTransforms, tls_context
     from psao_server.testhook import RandomEdits
 
     setup_logging()
@@ -242,6 +248,8 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("psao.serve").warning(
             "listening on %s without a token: anyone who can reach this machine may connect "
             "(set PSAO_TOKEN or --token-file)", settings.host)
+    if settings.tls_cert is not None:
+        tls_context(settings.tls_cert, settings.tls_key)  # a bad certificate fails before the bake
     listener = bind_listener(settings.host, settings.port)
     if args.animate or args.progressive:
         scene, grid, tick = _ticking(args)

@@ -16,6 +16,7 @@ import asyncio
 import json
 import logging
 import socket
+import ssl
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -65,6 +66,11 @@ class ServeSettings:
     allow_edits: bool = False  # accept SceneEdit from clients that present edit_token
     edit_token: str = ""  # required (non-empty) with allow_edits
     max_clients: int = 128  # open connections at most (handshake included); more are refused
+    # Browser pages allowed to open a websocket (their Origin header), besides this server's own page;
+    # connections without an Origin (non-browser clients) are always allowed.
+    allow_origins: tuple[str, ...] = ()
+    tls_cert: Path | None = None  # PEM certificate chain: serve wss:// (and https://) instead of ws://
+    tls_key: Path | None = None  # PEM private key of tls_cert
     limits: Limits = DEFAULT_LIMITS
     snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
     hello_timeout: float = 10.0  # seconds a new connection has to send Hello
@@ -87,6 +93,8 @@ class ServeSettings:
             raise ConfigError(f"max clients must be within 1..100000, got {self.max_clients}")
         if self.allow_edits and not self.edit_token:
             raise ConfigError("edits need an edit token (PSAO_EDIT_TOKEN or --edit-token-file)")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("TLS needs both a certificate and its key (--tls-cert and --tls-key)")
         if self.allow_edits and self.edit_token == self.token:
             raise ConfigError("the edit token must differ from the viewing token")
 
@@ -171,12 +179,15 @@ class Service:
         # The user-space write buffer is bounded like the kernel's: a slow reader blocks our send early.
         write_limit = min(32 * 1024, s.send_buffer) if s.send_buffer else 32 * 1024
         where = {"sock": sock} if sock is not None else {"host": s.host, "port": s.port}
+        if s.tls_cert is not None:
+            where["ssl"] = tls_context(s.tls_cert, s.tls_key)
         async with serve(self._handler, compression=None, write_limit=write_limit,
                          max_size=4 * s.limits.client_message_bytes, max_queue=16,
                          process_request=self._http, **where) as server:
             self.port = server.sockets[0].getsockname()[1]
-            log.info("listening on ws://%s:%d, web client on http://%s:%d/ (codec %s, layout %s, %g Hz%s)",
-                     s.host, self.port, s.host, self.port,
+            ws_scheme, http_scheme = ("wss", "https") if s.tls_cert else ("ws", "http")
+            log.info("listening on %s://%s:%d, web client on %s://%s:%d/ (codec %s, layout %s, %g Hz%s)",
+                     ws_scheme, s.host, self.port, http_scheme, s.host, self.port,
                      codec_name(s.codec), s.layout.name.lower(), s.tick_hz, ", token required" if s.token else "")
             if ready:
                 ready(self.port)
@@ -335,13 +346,29 @@ class Service:
     def _http(self, connection: ServerConnection, request: Request) -> Response | None:
         """Plain GETs get the web page's files (webpage.answer); websocket upgrades go on to _handler."""
         if "websocket" in request.headers.get("Upgrade", "").lower():
-            return None
+            return self._check_origin(request)
         a = webpage.answer(request.path)
         if a.status != 200:
             log.info("HTTP %d for %s", a.status, request.path[:200])
         headers = Headers([("Content-Type", a.content_type), ("Content-Length", str(len(a.body))),
                            ("Cache-Control", "no-cache"), ("X-Content-Type-Options", "nosniff")])
         return Response(a.status, a.reason, headers, a.body)
+
+    def _check_origin(self, request: Request) -> Response | None:
+        """A browser says which page opens a websocket (Origin): only this server's own page and the
+        allowed origins may; any web page could otherwise reach a loopback server. No Origin: not a browser."""
+        origin = request.headers.get("Origin")
+        if origin is None or origin in self.settings.allow_origins:
+            return None
+        scheme = "https" if self.settings.tls_cert else "http"
+        if origin == f"{scheme}://{request.headers.get('Host', '')}":
+            return None
+        self.counters.rejected += 1
+        log.warning("websocket from origin %s refused (allowed: this server's page%s)", origin[:200],
+                    "".join(f", {o}" for o in self.settings.allow_origins))
+        body = b"origin not allowed\n"
+        headers = Headers([("Content-Type", "text/plain"), ("Content-Length", str(len(body)))])
+        return Response(403, "Forbidden", headers, body)
 
     async def _serve_client(self, ws, session: ServerSession, client: Client, codec: Codec) -> None:
         grid = self.grid
@@ -481,6 +508,15 @@ class Service:
             self.counters.buckets_sent += len(b)
             await self._send(ws, client, data)
             client.updates_sent += 1
+
+
+def tls_context(cert: Path, key: Path) -> ssl.SSLContext:
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(f"cannot use TLS certificate {cert} with key {key}: {getattr(exc, 'strerror', None) or exc}") from None
+    return ctx
 
 
 def _binary(data) -> bytes:
