@@ -33,7 +33,7 @@ class BudgetSettings:
     tick_hz: float = 60.0  # the service's tick rate: the automatic budget is a share of its period
     budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
     headroom: float = 0.6  # automatic budget: this share of the tick period, less the other stages
-    floor: float = 0.2  # automatic budget: never below this share of the tick period (tracing must go on)
+    floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
     round_rays: int = 8  # rays per point per trace round (the history accumulates rounds up to the target)
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
@@ -52,7 +52,10 @@ class TraceBudget:
         s = self.settings
         if s.budget_ms > 0:
             return s.budget_ms / 1e3
-        return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz)
+        # Never below `floor` of the period, nor below `floor` of the tick as it really runs: when the
+        # other stages alone overrun the period, tracing keeps its share instead of starving.
+        return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz,
+                   s.floor / (1 - s.floor) * self.other_stages_s)
 
     def points(self, rays_per_point: int) -> int:
         """How many points of `rays_per_point` rays fit in this tick's budget (at least min_points)."""

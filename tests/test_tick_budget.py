@@ -127,3 +127,21 @@ def test_a_dead_tracer_worker_is_replaced_and_the_tick_goes_on(caplog):
         assert victim not in tick.tracer._pool._processes
     finally:
         tick.close()
+
+
+def test_trace_budget_learns_rate_and_overhead_and_keeps_a_share_when_late():
+    from psao_server.budget import TraceBudget
+
+    b = TraceBudget(BudgetSettings(tick_hz=60.0, round_rays=8), rays_per_second=1e5, overhead_s=0.0)
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # calls of varied size on a tracer with 30 ms overhead and 2 Mrays/s
+        rays = int(rng.integers(1000, 200000))
+        b.observe_trace(rays, 0.03 + rays / 2e6)
+    assert b.rays_per_second == pytest.approx(2e6, rel=0.01) and b.overhead_s == pytest.approx(0.03, rel=0.05)
+    # overhead above the budget: half a budget's worth of rays still goes on top of it
+    assert b.points(8) == int(0.5 * b.budget_s() * b.rays_per_second / 8)
+    for _ in range(100):
+        b.observe_other(0.8)  # the other stages alone take 0.8 s: the tick cannot hold 60 Hz
+    assert b.budget_s() == pytest.approx(0.2 / 0.8 * b.other_stages_s)
+    tiny = TraceBudget(BudgetSettings(budget_ms=1e-3, min_points=7), rays_per_second=1e3)
+    assert tiny.points(8) == 7
