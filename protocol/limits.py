@@ -30,6 +30,10 @@ class Limits:
     # moved at most this far (world units) from the world origin.
     edit_max_scale: float = 1e3
     edit_max_translation: float = 1e6
+    # A client's mirror grows as data arrives: at most base + per_byte x bytes received so far, whatever a
+    # Welcome or Snapshot claims (a legitimate snapshot carries roughly 1 byte per 8-30 bytes of table).
+    mirror_base_bytes: int = 64 * 1024 * 1024
+    mirror_bytes_per_received_byte: int = 256
     # What the server puts into one Update or Snapshot chunk; the rest stays pending for the next one.
     max_cells_per_message: int = 1 << 16
     max_buckets_per_message: int = 1 << 16

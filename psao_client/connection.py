@@ -238,10 +238,14 @@ class MirrorClient:
         """One received event into the mirror and the statistics; callbacks run here."""
         if isinstance(event, Welcomed):
             self._welcomed(event)
-        elif isinstance(event, SnapshotReceived):
+            return
+        if self.mirror is not None:
+            self.mirror.received(nbytes)
+        if isinstance(event, SnapshotReceived):
             self.mirror.apply(event.snapshot.delta)
             self.stats.snapshot_bytes += nbytes
             if event.complete:
+                self.mirror.complete()
                 self.stats.snapshot_seconds = time.perf_counter() - t0
                 if self.on_snapshot:
                     self.on_snapshot(self.mirror)
@@ -264,7 +268,7 @@ class MirrorClient:
 
     def _welcomed(self, event: Welcomed) -> None:
         w = event.welcome
-        self.mirror = Mirror.from_welcome(w)
+        self.mirror = Mirror.from_welcome(w, self.config.limits)
         self.stats.connection_id = w.connection_id
         self.stats.codec = codec_name(w.codec)
         if self.on_connect:

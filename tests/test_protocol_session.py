@@ -290,3 +290,42 @@ def test_fresh_mirror_reports_everything_dirty_once():
     mirror.apply(GridDelta(6, cell_slots=[2], cells=cells))
     b, c = mirror.take_dirty()
     assert b.tolist() == [] and c.tolist() == [2]
+
+
+def test_claims_of_a_tiny_message_allocate_nothing_big():
+    """A 68-byte Welcome claiming 2^24 buckets, and a Snapshot claiming 2^24 cells, meet a mirror that grows
+    with the data received: it refuses before allocating, and a real grid still fits."""
+    from protocol.limits import DEFAULT_LIMITS as limits
+
+    def rss_bytes():
+        import os
+        return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    big = np.zeros(1, INSTANCE_DTYPE)
+    big["bucket_count"] = limits.max_buckets
+    client = ClientSession(ClientConfig(HASH))
+    server, _, _ = handshake()
+    wire = server.welcome(1, 60.0, limits.max_buckets, limits.max_cell_capacity, big)
+    welcome = client.receive(wire).welcome
+    rss = rss_bytes()
+    mirror = Mirror.from_welcome(welcome, limits)
+    mirror.received(len(wire))
+    assert mirror.buckets.nbytes == 0 and mirror.cells.nbytes == 0  # nothing yet
+    one = np.tile(FREE_CELL, (1, 1))
+    with pytest.raises(MirrorError, match="out of proportion"):  # a cell at the far end of the claim
+        mirror.apply(GridDelta(limits.max_cell_capacity, cell_slots=[limits.max_cell_capacity - 1], cells=one))
+    with pytest.raises(MirrorError, match="out of proportion"):  # the snapshot "complete" after 49 bytes
+        mirror.complete()
+    assert rss_bytes() - rss < 256 * 2**20
+    # A real grid: its snapshot pays for its mirror.
+    g = SyntheticGrid(np.random.default_rng(9), n_buckets=4096, capacity=8192)
+    g.edit(3000)
+    b = np.flatnonzero(np.any(g.buckets != EMPTY, axis=(1, 2))).astype(np.uint32)
+    c = np.flatnonzero(np.any(g.cells != FREE_CELL, axis=1)).astype(np.uint32)
+    server, client, _ = handshake()
+    mirror = Mirror.from_welcome(client.receive(server.welcome(1, 60.0, 4096, 8192, g.instances)).welcome, limits)
+    data = server.snapshot(0, 1, g.delta(b, c, np.arange(len(g.transforms))))
+    mirror.received(len(data))
+    mirror.apply(client.receive(data).snapshot.delta)
+    mirror.complete()
+    assert_mirror_equals(mirror, g)
