@@ -30,7 +30,8 @@ def test_real_scene_bakes(rel, density):
         res.tracer.close()
     t = res.grid.point_table()
     assert len(t) > 1000
-    # Sponza (decimated, interpenetrating geometry) drops about 6% at N=16: many surfaces share coarse cells.
-    assert res.stats["points_dropped_overflow"] < 0.1 * res.stats["points_generated"]
+    # Sponza (decimated, interpenetrating geometry) puts many surfaces through one cell; a crowded cell key
+    # takes further cells, so what is dropped stays under the 0.5% target.
+    assert res.stats["points_dropped_overflow"] < 0.005 * res.stats["points_generated"]
     assert np.isfinite(err["recon_mae"]) and err["recon_mae"] < 0.2
     assert err["hole_fraction"] < 0.1
