@@ -86,4 +86,4 @@ def test_every_project_shader_compiles(ctx):
             vert = "gbuffer.vert.glsl" if path.name.startswith("gbuffer") else "fullscreen.vert.glsl"
             compile_program(ctx, vertex_shader=vert, fragment_shader=path.name).release()
         else:
-            assert stage in ("vert", "psao_common"), path.name  # vertex shaders compile with their pair
+            assert stage in ("vert", "psao_common", "psao_lookup"), path.name  # vertex shaders compile with their pair, includes with the passes

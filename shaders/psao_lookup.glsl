@@ -1,0 +1,131 @@
+// The PSAO grid lookup itself, one text for the desktop client (psao_common.glsl includes it, GLSL 4.10)
+// and the web client (web/shaders/psao.frag, GLSL ES 3.00, served from this folder). The includer first
+// defines the PSAO_* constants (protocol/shader_constants.define_block) and
+// `vec3 psao_point_normal(uint word)`: the desktop client reads the normals from a uniform array, WebGL2
+// (224 fragment uniform vectors guaranteed) from a 256 x 1 texture.
+
+struct PsaoInstance {
+    vec3 origin;        // local-space corner of cell (0, 0, 0)
+    float cell_size;    // local units
+    uvec3 dims;         // Dx, Dy, Dz
+    uint bucket_offset; // first bucket of this instance
+    uint bucket_count;  // B, a power of two
+    float radius;       // interpolation radius r, local units
+    uint flags;
+};
+
+uniform usampler2D u_psao_instances;  // INSTANCE_DTYPE records, PSAO_INSTANCE_TEXELS texels each
+uniform usampler2D u_psao_buckets;    // (key, slot) x PSAO_BUCKET_ENTRIES per bucket
+uniform usampler2D u_psao_cells;      // point words + key per cell
+
+uvec4 psao_fetch(usampler2D table, uint texel) {
+    return texelFetch(table, ivec2(texel & (PSAO_TABLE_WIDTH - 1u), texel >> PSAO_TABLE_SHIFT), 0);
+}
+
+PsaoInstance psao_instance(uint id) {
+    uint first = PSAO_INSTANCE_TEXELS * id;
+    uvec4 a = psao_fetch(u_psao_instances, first);
+    uvec4 b = psao_fetch(u_psao_instances, first + 1u);
+    uvec4 c = psao_fetch(u_psao_instances, first + 2u);
+    return PsaoInstance(uintBitsToFloat(a.xyz), uintBitsToFloat(a.w), b.xyz, b.w, c.x, uintBitsToFloat(c.y), c.z);
+}
+
+// Paper eq. 1 in wrapping uint arithmetic (gridformat.cell_hash).
+uint psao_cell_hash(uvec3 c, uvec3 dims) {
+    return c.x + c.y * (dims.x * PSAO_HASH_Y) + c.z * (dims.x * dims.y * PSAO_HASH_Z);
+}
+
+uint psao_cell_key(uvec3 c, uvec3 dims) {
+    return c.x + dims.x * (c.y + dims.y * c.z);
+}
+
+// Local position of a point word in cell c (gridformat.decode_point_local): centre of its 5-bit step.
+vec3 psao_point_position(PsaoInstance inst, uvec3 c, uint word) {
+    uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
+    vec3 f = (vec3(q) + 0.5) / PSAO_POSITION_LEVELS;
+    return inst.origin + (vec3(c) + f) * inst.cell_size;
+}
+
+float psao_point_ao(uint word) {
+    return float(word & PSAO_CODE_MASK) / PSAO_AO_LEVELS;
+}
+
+// Paper eq. 2-3: weight of point p (normal np) for the fragment at x with normal nx, radius r.
+float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
+    vec3 d = p - x;
+    float dist = length(d);
+    float w = max(0.0, (r - dist) / r);
+    if (w <= 0.0 || dot(np, nx) <= PSAO_T_N) return 0.0;
+    if (dist > 0.0) {
+        float c = dot(np, d) / dist;
+        if (c * c >= PSAO_T_D) return 0.0;
+    }
+    return w;
+}
+
+// Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c).
+void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+    uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
+    uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
+    uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
+    for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
+        uint word = words[k];
+        if ((word & PSAO_ALLOCATED) == 0u) break;
+        float w = psao_weight(psao_point_position(inst, c, word), psao_point_normal(word), x, nx, inst.radius);
+        wsum += w;
+        aosum += w * psao_point_ao(word);
+    }
+}
+
+// Adds the points of cell c: every entry of its bucket with c's key (its back-side key, key | BACK_BIT,
+// with `back` on a double-sided instance); a key holding more than 7 points owns up to PSAO_KEY_CELLS
+// entries. The scan goes on past a match to the first EMPTY (used entries come first) and only collects
+// slots; the accumulation loop's trip count is data-dependent, so the compiler keeps one copy of
+// psao_accumulate (accumulating inside the unrolled scan made the pass 2-3x slower on llvmpipe). It holds
+// three slots (s0..s2): shader_constants.define_values checks that KEY_CELLS is three.
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+    uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
+    uint key = psao_cell_key(c, inst.dims);
+    if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
+    uint s0 = PSAO_EMPTY, s1 = PSAO_EMPTY, s2 = PSAO_EMPTY;
+    uint found = 0u;
+    for (uint e = 0u; e < PSAO_BUCKET_TEXELS; ++e) {
+        uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
+        if (pair.x == PSAO_EMPTY) break;
+        if (pair.x == key) { s2 = s1; s1 = s0; s0 = pair.y; ++found; }
+        if (pair.z == PSAO_EMPTY) break;
+        if (pair.z == key) { s2 = s1; s1 = s0; s0 = pair.w; ++found; }
+    }
+    for (uint k = 0u; k < min(found, uint(PSAO_KEY_CELLS)); ++k) {
+        psao_accumulate(inst, c, k == 0u ? s0 : (k == 1u ? s1 : s2), x, nx, wsum, aosum);
+    }
+}
+
+// Squared distance, in cells, from grid coordinate g to the unit box of cell c.
+float psao_cell_distance2(vec3 g, vec3 c) {
+    vec3 d = max(max(c - g, g - (c + 1.0)), 0.0);
+    return dot(d, d);
+}
+
+// Paper eq. 4 over the 2x2x2 block floor(g - 0.5) + {0,1}^3 around local position x (normal nx) of
+// instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight. `back`: the fragment
+// shows the back side of a double-sided surface (the G-buffer flipped its normal), so only back-side
+// cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided instances.
+vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
+    PsaoInstance inst = psao_instance(inst_id);
+    vec3 g = (x - inst.origin) / inst.cell_size;
+    ivec3 base = ivec3(floor(g - 0.5));
+    ivec3 dims = ivec3(inst.dims);
+    // A cell whose box is farther than r cannot hold a point with weight > 0 (small slack for rounding).
+    float reach = inst.radius / inst.cell_size * 1.001;
+    float reach2 = reach * reach;
+    float wsum = 0.0;
+    float aosum = 0.0;
+    for (int i = 0; i < 8; ++i) {
+        ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
+        if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
+        if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
+        psao_accumulate_cell(inst, uvec3(c), back, x, nx, wsum, aosum);
+    }
+    return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
+}

@@ -1,0 +1,199 @@
+"""The web client in a real headless browser (Debian chromium driven by playwright) against real `psao
+serve` processes: the page's mirror equals the server's, its PSAO image equals the Python oracle, and it
+shows refusals and lost servers and resyncs after a restart. Screenshots go to out/web_client/ (and the
+test's tmp_path) for a person to look at. Skips when chromium or playwright is missing."""
+from __future__ import annotations
+
+import base64
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
+from protocol.reconstruct import reconstruct_ao
+from psao_scene import load_scene
+from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--headless",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+SHOTS = ROOT / "out" / "web_client"
+W, H = 200, 150
+
+sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
+pytestmark = [pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="chromium is not installed (make browser)"),
+              pytest.mark.skipif(not (ROOT / "web" / "node_modules" / "fzstd").exists(),
+                                 reason="web/node_modules missing (make installs it with npm ci)")]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """A `psao serve` process; waits until it listens."""
+
+    def __init__(self, tmp: Path, *args: str, port: int = 0, name: str = "serve"):
+        self.err = tmp / f"{name}.err"
+        self.digests = tmp / f"{name}.jsonl"
+        self.proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *args, "--port", str(port),
+                                      "--digest-log", str(self.digests)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                                     stderr=open(self.err, "w"))
+        end = time.time() + 300
+        while not (m := re.search(r"listening on ws://127\.0\.0\.1:(\d+)", self.err.read_text())):
+            assert self.proc.poll() is None and time.time() < end, self.err.read_text()
+            time.sleep(0.2)
+        self.port = int(m.group(1))
+
+    def server_digests(self) -> dict:
+        return {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, self.digests.read_text().splitlines())}
+
+    def stop(self, sig=signal.SIGTERM) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            self.proc.wait(30)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def wait_page(page, predicate: str, timeout: float = 120.0):
+    """Wait until the JS expression is truthy (an event, not a duration: the timeout only bounds a hang)."""
+    try:
+        page.wait_for_function(predicate, timeout=timeout * 1000, polling=250)
+    except Exception:
+        state = page.evaluate("window.psao && [window.psao.state, window.psao.message, window.psao.frames, "
+                              "window.psao.updates, window.psao.bytes]")
+        raise AssertionError(f"page never reached {predicate}: state {state}") from None
+
+
+def shot(page, tmp_path: Path, name: str, canvas_only: bool = False) -> None:
+    """The page as PNG; `canvas_only`: the WebGL canvas's last frame (a streaming page's main thread is
+    busy with updates, and a page screenshot waits for a compositor frame)."""
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    if canvas_only:
+        url = page.evaluate("document.getElementById('view').toDataURL('image/png')")
+        png = base64.b64decode(url.split(",", 1)[1])
+    else:
+        png = page.screenshot()
+    for d in (tmp_path, SHOTS):
+        (d / f"{name}.png").write_bytes(png)
+
+
+def fixed_camera(spec: str, t: float = 0.0):
+    scene = load_scene(spec)
+    eye, target = camera_at(scene_camera(scene), t)
+    lo, hi = scene.world_bounds()
+    far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
+    proj = perspective(scene_camera(scene).fov_y, W / H, far * 1e-4, far)
+    return look_at(eye, target).astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()
+
+
+def decode(b64: str, dtype) -> np.ndarray:
+    return np.frombuffer(base64.b64decode(b64), dtype=dtype)
+
+
+def page_vs_oracle(frame: dict) -> tuple[float, int]:
+    """Fraction of covered pixels where the page's PSAO equals protocol/reconstruct.py within 2/255."""
+    n = frame["width"] * frame["height"]
+    local = decode(frame["local"], np.float32).reshape(n, 4)
+    normal = decode(frame["normal"], np.float32).reshape(n, 4)
+    ao = decode(frame["ao"], np.float32).reshape(n, 4)[:, 0]
+    instances = decode(frame["instances"], np.uint8).view(INSTANCE_DTYPE)
+    buckets = decode(frame["buckets"], np.uint32).reshape(-1, BUCKET_ENTRIES, 2)
+    cells = decode(frame["cells"], np.uint32).reshape(-1, CELL_WORDS)
+    covered = local[:, 3] > 0.5
+    ids = np.rint(local[covered, 3]).astype(np.int64) - 1
+    expect, _ = reconstruct_ao(instances, buckets, cells, ids, local[covered, :3], normal[covered, :3],
+                               back=normal[covered, 3] > 0.5)
+    close = np.abs(ao[covered] - expect) <= 2.0 / 255.0
+    return float(close.mean()), int(covered.sum())
+
+
+def check_digests(log: list, server: Server, least: int) -> None:
+    """Every digest the page and the server both logged for the same message is equal."""
+    ref = server.server_digests()
+    both = [d for d in log if (d["conn"], d["seq"]) in ref]
+    assert len(both) >= least, (len(log), len(ref))
+    assert all(ref[(d["conn"], d["seq"])] == d["digest"] for d in both)
+
+
+@pytest.mark.parametrize("spec, serve_args, name", [
+    ("builtin:courtyard", ["--density", "4", "--rays", "8", "--test-edits", "20", "--tick-hz", "10"], "courtyard"),
+    ("builtin:robots", ["--density", "8", "--rays", "4", "--animate", "--tick-rays", "4", "--tick-hz", "5"], "robots"),
+])
+def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec, serve_args, name):
+    server = Server(tmp_path, spec, *serve_args)
+    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1")
+        wait_page(page, "!!(window.psao && window.psao.setCamera)")
+        page.evaluate("([v, p]) => window.psao.setCamera(v, p)", fixed_camera(spec))
+        wait_page(page, "window.psao.state === 'streaming' && window.psao.updates >= 3 && window.psao.frames >= 1")
+        frame = page.evaluate("() => { const a = window.psao; a.paused = true; a.renderOnce(); return a.readPsao(); }")
+        shot(page, tmp_path, f"{name}_psao", canvas_only=True)
+        page.evaluate("() => { window.psao.mode = 'ssao'; window.psao.renderOnce(); }")
+        shot(page, tmp_path, f"{name}_ssao", canvas_only=True)
+        log = page.evaluate("window.psao.digestLog")
+    finally:
+        page.close()
+        server.stop()
+    assert not errors
+    check_digests(log, server, least=3)  # the snapshot and at least two updates (edited or animated grid)
+    match, covered = page_vs_oracle(frame)
+    assert covered > 0.2 * W * H
+    assert match >= 0.995, match
+    if name == "robots":
+        assert frame["serverTime"] is not None  # skinned meshes were posed at an Update's server time
+
+
+def test_refused_token_lost_server_and_resync(browser, tmp_path):
+    port = free_port()
+    args = ("builtin:cornell", "--density", "16", "--rays", "8", "--token", "s3cret", "--tick-hz", "10")
+    server = Server(tmp_path, *args, port=port, name="first")
+    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
+    try:
+        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=guess")
+        wait_page(page, "window.psao && window.psao.state === 'refused'")
+        assert "wrong token" in page.inner_text("#message")
+        shot(page, tmp_path, "refused")
+        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=s3cret&digests=1")
+        wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
+        first = page.evaluate("window.psao.digestLog.at(-1)")
+        server.stop(signal.SIGKILL)
+        wait_page(page, "window.psao.state === 'server gone'")
+        assert "reconnecting" in page.inner_text("#message")
+        shot(page, tmp_path, "server_gone")
+        server = Server(tmp_path, *args, port=port, name="second")
+        wait_page(page, "window.psao.state === 'streaming' && window.psao.reconnects >= 1 && window.psao.frames >= 2")
+        shot(page, tmp_path, "resynced", canvas_only=True)
+        again = page.evaluate("window.psao.digestLog.at(-1)")
+        assert page.evaluate("window.psao.sceneBytes") > 0 and page.evaluate("window.psao.connection") >= 2
+        log = page.evaluate("window.psao.digestLog")
+    finally:
+        page.close()
+        server.stop()
+    # The snapshot of the restarted server (same scene, same bake) rebuilt the same mirror, and the
+    # page's digest equals what the new server logged for that message.
+    assert again["digest"] == first["digest"]
+    check_digests(log, server, least=1)
