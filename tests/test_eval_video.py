@@ -153,3 +153,24 @@ def test_bench_video_end_to_end(tmp_path):
     v1, v10 = costs[("Video-4M", 1)], costs[("Video-4M", 10)]
     assert v10["ms_total"] == pytest.approx(10 * v1["ms_total"]) and v1["ms_per_client"] > 0
     assert "Video-4M" in (out / "table.md").read_text()
+
+
+def _row(kind, method, L, rep=False, **kw):
+    return {"scene": "s", "kind": kind, "method": method, "latency_ms": L, "reprojected": rep, **kw}
+
+
+def test_bench_video_verdicts(capsys):
+    from benchmarks.bench_video import check
+
+    rows = []
+    for b, mbit, cp in ((0.5, 0.6, 30.0), (2.0, 2.2, 38.0), (20.0, 19.0, 45.0)):
+        rows.append(_row("video", f"Video-{b:g}M", 0.0, bitrate=b, mbit_s=mbit, codec_psnr=cp, psnr=30.0))
+        rows.append(_row("video", f"Video-{b:g}M", 100.0, bitrate=b, mbit_s=mbit, codec_psnr=cp, psnr=28.0))
+    rows += [_row("psao", "PSAO-64", 0.0, animated=True, mbit_s=1.0, psnr=29.0),
+             _row("psao", "PSAO-128", 0.0, animated=True, mbit_s=40.0, psnr=30.0)]
+    assert check(rows).exit_code() == 0
+    assert capsys.readouterr().out.count("VERDICT PASS") == 4
+    rows[-1]["mbit_s"] = rows[-2]["mbit_s"] = 50.0  # no PSAO density inside the video's Mbit/s range
+    rows[4]["codec_psnr"] = 35.0  # the highest bitrate's round trip is too lossy
+    assert check(rows).exit_code() != 0
+    assert capsys.readouterr().out.count("VERDICT FAIL") == 2
