@@ -42,6 +42,9 @@ def _known_errors() -> tuple[type[BaseException], ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="psao", description="Point-based split rendering of ray-traced AO.")
+    parser.add_argument("--scene-limit", action="append", default=[], metavar="NAME=VALUE",
+                        help="raise a size limit of scene loading and baking (psao_scene.limits.SceneLimits: "
+                             "max_instances, max_coordinate, max_rays, ...); repeatable")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in SUBCOMMANDS.items():
         try:
@@ -59,6 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.scene_limit:
+            from psao_scene import limits
+
+            limits.set_limits(limits.parse_overrides(args.scene_limit))
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         print("psao: interrupted", file=sys.stderr)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .builtin import BUILTINS
 from .errors import GeometryError, SceneFormatError, SceneNotFound
+from . import limits
 from .meshfile import MESH_EXTENSIONS, load_mesh_file
 from .model import Scene
 from .tomlscene import load_toml_scene
@@ -74,9 +75,18 @@ def validate_scene(scene: Scene) -> None:
                 check_transform(inst.animation.matrix(t), f"{scene.source}: instance '{inst.name}' at t={t:g} s")
         if not 0 <= inst.mesh < len(scene.meshes):
             raise GeometryError(f"{scene.source}: instance '{inst.name}' refers to missing mesh {inst.mesh}")
+    lim = limits.current()
+    if len(scene.instances) > lim.max_instances:
+        raise GeometryError(f"{scene.source}: {len(scene.instances)} instances, over the limit of {lim.max_instances} "
+                            f"(psao --scene-limit max_instances=N raises it)")
     lo, hi = scene.world_bounds()
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
         raise GeometryError(f"{scene.source}: scene bounds are not finite")
+    reach = float(max(np.abs(lo).max(), np.abs(hi).max()))
+    if reach > lim.max_coordinate:
+        raise GeometryError(f"{scene.source}: the placed scene reaches {reach:.3g} world units from the origin, over "
+                            f"the limit of {lim.max_coordinate:g} (a scale or translation out of range? "
+                            f"psao --scene-limit max_coordinate=X raises it)")
 
 
 def check_transform(t: np.ndarray, where: str) -> None:

@@ -63,6 +63,7 @@ import numpy as np
 from . import builtin_shapes
 from .builtin import rotation_axis_angle, rotation_xyz, trs
 from .errors import SceneError, SceneFormatError, SceneNotFound
+from . import limits
 from .meshfile import clean_geometry, load_mesh_file, merged_mesh
 from .model import CameraKey, CameraPath, Instance, Mesh, Scene
 
@@ -122,10 +123,16 @@ def load_toml_scene(path: Path) -> Scene:
     path = Path(path)
     if not path.is_file():
         raise SceneNotFound(f"{path}: scene file not found")
+    size, most = path.stat().st_size, limits.current().max_scene_file_bytes
+    if size > most:
+        raise SceneFormatError(f"{path}: {size} bytes, over the scene file limit of {most} "
+                               f"(psao --scene-limit max_scene_file_bytes=N raises it)")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
         raise SceneFormatError(f"{path}: malformed TOML: {e}") from None
+    except RecursionError:
+        raise SceneFormatError(f"{path}: tables or arrays nested too deeply to read") from None
     except UnicodeDecodeError as e:
         raise SceneFormatError(f"{path}: not UTF-8 text: {e}") from None
     root = Table(data, str(path), {"scene", "mesh", "instance", "camera_path"})
@@ -166,6 +173,7 @@ def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
             raise t.fail("give exactly one of 'generator' or 'path'")
         if t.has("generator"):
             kwargs = {p: raw[p] for p in params if p in raw}
+            check_resolution(t, gen_name, kwargs)
             try:
                 v, f = gen(**kwargs)
             except (TypeError, ValueError) as e:
@@ -177,6 +185,24 @@ def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
         ids[name] = len(meshes)
         meshes.append(mesh)
     return meshes, ids
+
+
+RESOLUTION_PARAMS = ("sections", "rings", "segments", "subdivisions")
+ICOSPHERE_GENERATORS = ("sphere", "boulder")  # subdivisions multiply triangles by 4 each
+
+
+def check_resolution(t: Table, gen_name: str, kwargs: dict) -> None:
+    """Resolution parameters must be whole numbers within the limits before a generator allocates."""
+    lim = limits.current()
+    for p in RESOLUTION_PARAMS:
+        if p not in kwargs:
+            continue
+        v = kwargs[p]
+        most = (lim.max_icosphere_subdivisions if gen_name in ICOSPHERE_GENERATORS and p == "subdivisions"
+                else lim.max_generator_resolution)
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= most:
+            raise t.fail(f"generator '{gen_name}': '{p}' must be a whole number within 0..{most}, got {v!r} "
+                         f"(psao --scene-limit raises the limit)")
 
 
 def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
@@ -209,6 +235,10 @@ def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
 
 
 def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Instance]:
+    most = limits.current().max_instances
+    if len(tables) > most:
+        raise SceneFormatError(f"{path}: {len(tables)} instances, over the limit of {most} "
+                               f"(psao --scene-limit max_instances=N raises it)")
     out: list[Instance] = []
     names: set[str] = set()
     for k, raw in enumerate(tables):

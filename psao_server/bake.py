@@ -14,6 +14,7 @@ import numpy as np
 from protocol import gridformat as gf
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
+from psao_scene import limits as scene_limits
 from psao_scene.model import Scene
 from psao_server.errors import ConfigError
 from psao_server.gapfill import GapFillSettings, fill_gaps
@@ -39,10 +40,13 @@ class BakeSettings:
 
     def check(self) -> None:
         self.sampling().check()
-        if not self.spawn_ratio >= 1.0:
-            raise ConfigError(f"spawn ratio must be >= 1, got {self.spawn_ratio}")
-        if self.rays < 1:
-            raise ConfigError(f"rays must be >= 1, got {self.rays}")
+        lim = scene_limits.current()
+        if not 1.0 <= self.spawn_ratio <= lim.max_spawn_ratio:
+            raise ConfigError(f"spawn ratio must be within 1..{lim.max_spawn_ratio:g}, got {self.spawn_ratio} "
+                              f"(psao --scene-limit max_spawn_ratio=X raises the limit)")
+        if not 1 <= self.rays <= lim.max_rays:
+            raise ConfigError(f"rays must be within 1..{lim.max_rays}, got {self.rays} "
+                              f"(psao --scene-limit max_rays=N raises the limit)")
         if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
             raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
 
