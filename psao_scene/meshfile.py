@@ -134,8 +134,17 @@ def check_not_a_stand_in(path: Path) -> None:
         raise SceneFormatError(f"{path}: the file is empty")
 
 
+TEXT_MESH_EXTENSIONS = (".obj", ".off")
+
+
 def _load_with_trimesh(path: Path) -> tuple[list[Mesh], list[Instance]]:
     import trimesh
+    if path.suffix.lower() in TEXT_MESH_EXTENSIONS:  # text formats: say so, rather than trimesh's guessing errors
+        try:
+            path.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise SceneFormatError(f"{path}: not a readable {path.suffix[1:].upper()} file (not UTF-8 text at byte "
+                                   f"{e.start})") from None
     try:
         scene = trimesh.load(str(path), force="scene", process=False)
     except Exception as e:  # trimesh raises many kinds on a corrupt file

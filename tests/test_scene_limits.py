@@ -49,3 +49,9 @@ def test_a_flag_raises_a_limit(tmp_path):
     ok = psao("--scene-limit", "max_instances=3", "bake", scene, *BAKE, "--out", str(tmp_path / "g.npz"))
     assert ok.returncode == 0, ok.stderr
     one_line_error(psao("--scene-limit", "max_nothing=3", "bake", scene, *BAKE), "expected NAME=VALUE")
+
+
+def test_garbage_obj_says_what_it_is(tmp_path):
+    path = tmp_path / "garbage.obj"
+    path.write_bytes(bytes(range(256)) * 8)
+    one_line_error(psao("bake", str(path), *BAKE), "not a readable OBJ file (not UTF-8 text at byte 128)")
