@@ -1,9 +1,10 @@
 """Bake accuracy and tracing throughput against the Core issue's targets, in one run.
 
 For each scene and density: points kept, dropped by overflow, hole fraction and reconstruction MAE at
-random surface probes against AO traced directly there with many rays, and the tracer's throughput
-against bare Embree occlusion on exactly the same rays and workers, in CPU seconds measured inside the
-workers during the bake itself (so other processes on a shared machine do not skew the ratio). Prints a table and writes a chart.
+random surface probes against AO traced directly there with many rays, and the share of the workers'
+time spent in the Embree query itself ("eff", seconds measured inside the workers during the bake; the
+tracer against a bare embreex run on the same rays is bench_realtime's tracer part). Prints a table and
+writes a chart.
 
 --gap-fills 0,4 adds rows with psao_server.gapfill on (4 rounds of adding points where the client's
 lookup finds none) beside the paper's points, to compare holes, drops and time.

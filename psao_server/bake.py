@@ -197,7 +197,7 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         rays_per_second_wall=n * settings.rays / max(stats["seconds_trace"], 1e-9),
         tracer=tracer.name,
     )
-    # CPU-time rates (immune to other processes on the machine); the wall rate above is what a user waits.
+    # rates from the seconds inside the workers (query alone and whole chunks); the wall rate above is what a user waits
     stats.update(tracer.throughput())
     stats.setdefault("rays_per_second", stats["rays_per_second_wall"])
     return BakeResult(scene=scene, grid=grid, pointsets=pointsets, stats=stats, tracer=tracer)

@@ -146,10 +146,3 @@ class RefineQueue:
         self.rays[ids] += rays
         self.waiting_since[ids] = now
         return pw.quantise_ao(self.unoccluded[ids] / self.rays[ids])
-
-    def length(self, eligible: np.ndarray) -> int:
-        return int(np.count_nonzero(eligible & (self.rays < self.target)))
-
-    def oldest_ms(self, eligible: np.ndarray, now: float) -> float:
-        w = eligible & (self.rays < self.target)
-        return float(1e3 * (now - self.waiting_since[w].min())) if w.any() else 0.0

@@ -335,7 +335,7 @@ class ServerTick:
         self.queue.reset(np.flatnonzero(changed), now)
         round_settings = self._round_settings(self.tick_count)
         k = self.budget.points(round_settings.rays)
-        waiting = self.queue.waiting(self.tracked)  # parked skinned points too: a trace re-inserts them
+        waiting = all_waiting = self.queue.waiting(self.tracked)  # parked skinned points too: a trace re-inserts them
         limit = max(16 * k, 20000)
         if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
             key = (self.queue.rays[waiting] > 0) * 2e9 + (self.queue.waiting_since[waiting] - now)
@@ -352,6 +352,9 @@ class ServerTick:
             codes = self.queue.add(chosen, vis, round_settings.rays, time.perf_counter())
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays, t_trace - t_sel)
+        # the queue after this round, from the waiting set alone (no pass over every point)
+        still = all_waiting[self.queue.rays[all_waiting] < self.queue.target]
+        self._queue_now = (len(still), 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s())
 
@@ -385,8 +388,7 @@ class ServerTick:
             return {"queue": int(np.count_nonzero(self.stale))}
         animate, select, _ = plan.seconds
         self.budget.observe_other(animate + select + self.stats_grid_s)
-        return {"queue": self.queue.length(self.tracked),
-                "queue_oldest_ms": self.queue.oldest_ms(self.tracked, time.perf_counter()),
+        return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
                 "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
                 "batch": plan.batch}
 

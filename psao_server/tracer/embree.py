@@ -129,16 +129,17 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings):
 
 
 def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings):
-    """Visibility of a chunk of points, with the CPU seconds of the bare Embree query and of the whole
-    chunk: their ratio is the tracer's overhead over bare Embree on exactly the same rays, and CPU time
-    (unlike wall time) does not count what other processes on a busy machine take."""
-    t0 = time.thread_time()
+    """Visibility of a chunk of points, with the seconds the Embree query and the whole chunk took in this
+    worker (perf_counter: a CPU-time clock is a system call, which on a loaded machine can cost more
+    than a small chunk's tracing). The tracer's throughput against bare Embree is measured as a run of
+    its own (benchmarks/bench_realtime.py), not from these."""
+    t0 = time.perf_counter()
     org, dirs = _chunk_rays(pos, nrm, ids, s)
-    t1 = time.thread_time()
+    t1 = time.perf_counter()
     hit = scenes.occluded(org, dirs, s.ao_distance)
-    t2 = time.thread_time()
+    t2 = time.perf_counter()
     vis = 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
-    return vis, t2 - t1, time.thread_time() - t0
+    return vis, t2 - t1, time.perf_counter() - t0
 
 
 # ---- worker-process side
@@ -177,7 +178,7 @@ def _worker_ping(_):
 
 
 class CpuAccount:
-    """Rays traced and the CPU seconds they took, in the bare Embree query and in total."""
+    """Rays traced and the seconds the workers spent on them, in the Embree query and in total."""
 
     def __init__(self):
         self.rays = 0
