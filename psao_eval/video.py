@@ -167,8 +167,9 @@ def decode_stream(stream: EncodedStream) -> list[np.ndarray]:
 
 # ------------------------------------------------------------------------------------ image filters
 def masked_gaussian(ao: np.ndarray, mask: np.ndarray, depth: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian of the AO over covered pixels only (normalised convolution), with neighbours across a
-    depth edge (relative depth step over 5%) kept out by splitting the image into depth layers."""
+    """Gaussian of the AO over covered pixels only (normalised convolution). Depth edges are kept: the
+    image is cut into layers 5% apart in depth, and a pixel blends only with pixels of its own layer and
+    the two next to it."""
     from scipy.ndimage import gaussian_filter
 
     ao = np.asarray(ao, np.float32)

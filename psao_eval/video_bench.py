@@ -1,8 +1,9 @@
 """`psao bench --video`: PSAO against per-client video of server-rendered AO, on the same frames.
 
 For every scene and every scored frame (the bench's frames, time t on the camera path):
-  * video: the server renders a clip of `clip` frames at `fps` ending at t (each frame for the pose, and
-    with --animate the scene, at its own time; traced, accumulated and denoised by video.VideoServer),
+  * video: the server renders a clip of `clip` frames plus the largest latency's frames at `fps`, ending
+    at t (each frame for the pose, and with --animate the scene, at its own time; the camera runs its
+    path `camera_speed` times faster before t; traced, accumulated and denoised by video.VideoServer),
     encodes it at each bitrate and decodes it. With latency L the client shows the newest frame
     rendered for a time <= t - L, as it is ("plain") and reprojected to the pose at t with the client's
     depth ("reprojected"). Mbit/s: the encoded bytes of every clip over their duration.

@@ -174,3 +174,20 @@ def test_bench_video_verdicts(capsys):
     rows[4]["codec_psnr"] = 35.0  # the highest bitrate's round trip is too lossy
     assert check(rows).exit_code() != 0
     assert capsys.readouterr().out.count("VERDICT FAIL") == 2
+
+
+def test_denoise_keeps_depth_edges_and_background():
+    from psao_eval.video import masked_gaussian
+
+    rng = np.random.default_rng(1)
+    h, w = 40, 60
+    depth = np.where(np.arange(w)[None, :] < 30, 2.0, 4.0) * np.ones((h, 1))  # a near and a far wall
+    truth = np.where(np.arange(w)[None, :] < 30, 0.3, 0.9) * np.ones((h, 1))
+    mask = np.ones((h, w), bool)
+    mask[:5] = False  # background rows are not blended in and stay as they were
+    noisy = np.where(mask, truth + rng.normal(0, 0.1, (h, w)), 1.0).astype(np.float32)
+    out = masked_gaussian(noisy, mask, depth, 1.5)
+    assert np.array_equal(out[~mask], noisy[~mask])
+    assert np.abs(out - truth)[mask].mean() < 0.5 * np.abs(noisy - truth)[mask].mean()
+    # the columns beside the edge keep their own wall's AO
+    assert abs(out[5:, 29].mean() - 0.3) < 0.03 and abs(out[5:, 30].mean() - 0.9) < 0.03
