@@ -128,8 +128,8 @@ class SceneAnimator:
         mesh_vertices = {}
         for i in self.kinds.skinned:
             m = self.scene.instances[i].mesh
-            if m not in mesh_vertices:
-                mesh_vertices[m] = self.skinner.vertices(m, t)
+            if m not in mesh_vertices:  # a copy: the deformer may hand out the same buffer every call
+                mesh_vertices[m] = np.array(self.skinner.vertices(m, t), np.float64)
         seconds_skinning = time.perf_counter() - t0
         bounds, spheres, verts, faces, base = {}, {}, [], [], 0
         skinned_v, skinned_f, skinned_base = [], [], 0

@@ -145,3 +145,15 @@ def test_trace_budget_learns_rate_and_overhead_and_keeps_a_share_when_late():
     assert b.budget_s() == pytest.approx(0.2 / 0.8 * b.other_stages_s)
     tiny = TraceBudget(BudgetSettings(budget_ms=1e-3, min_points=7), rays_per_second=1e3)
     assert tiny.points(8) == 7
+
+
+def test_skinned_instances_count_as_moved_between_frames():
+    """Frames keep their own copy of the skinned vertices, so a deforming mesh is seen to move (and its
+    points join the queue)."""
+    from psao_server.animate import SceneAnimator
+
+    scene = load_scene("builtin:robots")
+    anim = SceneAnimator(scene)
+    a, b = anim.frame(0.2), anim.frame(0.7)
+    m = scene.instances[anim.kinds.skinned[0]].mesh
+    assert not np.array_equal(a.mesh_vertices[m], b.mesh_vertices[m])
