@@ -163,6 +163,8 @@ def _settings(args):
              "none": Codec.NONE}[args.codec]
     if args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
+    if args.allow_edits and (args.animate or getattr(args, "progressive", False)):
+        raise ConfigError("--allow-edits needs a static server: the animated tick does not take scene edits")
     edit_token = secret("edit token", "", "PSAO_EDIT_TOKEN", args.edit_token_file) if args.allow_edits else ""
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
                       layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
