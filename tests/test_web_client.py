@@ -146,7 +146,7 @@ def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec,
     errors = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     try:
-        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1")
+        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1", wait_until="commit")
         wait_page(page, "!!(window.psao && window.psao.setCamera)")
         page.evaluate("([v, p]) => window.psao.setCamera(v, p)", fixed_camera(spec))
         wait_page(page, "window.psao.state === 'streaming' && window.psao.updates >= 3 && window.psao.frames >= 1")
@@ -173,11 +173,11 @@ def test_refused_token_lost_server_and_resync(browser, tmp_path):
     server = Server(tmp_path, *args, port=port, name="first")
     page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
     try:
-        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=guess")
+        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=guess", wait_until="commit")
         wait_page(page, "window.psao && window.psao.state === 'refused'")
         assert "wrong token" in page.inner_text("#message")
         shot(page, tmp_path, "refused")
-        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=s3cret&digests=1")
+        page.goto(f"http://127.0.0.1:{port}/?width={W}&height={H}&token=s3cret&digests=1", wait_until="commit")
         wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
         first = page.evaluate("window.psao.digestLog.at(-1)")
         server.stop(signal.SIGKILL)

@@ -21,7 +21,7 @@ const app = {
   state: "starting", message: "", connection: 0, reconnects: 0, refused: false,
   scene: null, sceneHash: null, mirror: null, session: null, ws: null,
   bytes: 0, updates: 0, snapshotBytes: 0, sceneBytes: 0, points: 0, frameMs: 0, decodeMs: [],
-  timings: {}, fixedCamera: null, mode: MODES[params.get("mode")] !== undefined ? params.get("mode") : "psao",
+  timings: {}, fixedCamera: window.__psaoCamera ? { view: new Float32Array(window.__psaoCamera[0]), proj: new Float32Array(window.__psaoCamera[1]) } : null, mode: MODES[params.get("mode")] !== undefined ? params.get("mode") : "psao",
   frames: 0, seq: 0, digestLog: [],
 };
 const KEEP_DIGESTS = params.get("digests") === "1";
@@ -183,6 +183,7 @@ function startCameras(ws, session) {
 window.addEventListener("beforeunload", () => { if (app.ws && app.ws.readyState === WebSocket.OPEN) app.ws.send(byeMessage()); });
 
 // --------------------------------------------------------------------------------------------- frames
+const onePixel = new Uint8Array(4);
 function drawFrame(dt) {
   const gl = renderer.gl;
   renderer.resize(...frameSize());
@@ -191,7 +192,7 @@ function drawFrame(dt) {
   renderer.setSkinTime(app.mirror.serverTime);
   const { view, proj } = cameraNow(dt);
   renderer.draw(app.mirror.transforms, view, proj, app.mode);
-  gl.finish();
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, onePixel);  // waits for the frame (finish() need not)
   app.frameMs = performance.now() - t0;
   app.frames++;
   if (app.timings.snapshot && !app.timings.firstDraw) app.timings.firstDraw = performance.now();
@@ -206,7 +207,7 @@ const b64 = (a) => { const b = new Uint8Array(a.buffer, a.byteOffset, a.byteLeng
 app.readPsao = () => ({ width: renderer.size[0], height: renderer.size[1], local: b64(renderer.read(renderer.g[0])),
                         normal: b64(renderer.read(renderer.g[1])), ao: b64(renderer.read(renderer.aoTex)),
                         instances: b64(app.mirror.instances), buckets: b64(app.mirror.buckets), cells: b64(app.mirror.cells),
-                        serverTime: app.mirror.serverTime, tick: app.mirror.tick });
+                        transforms: b64(app.mirror.transforms), serverTime: app.mirror.serverTime, tick: app.mirror.tick });
 
 let last = performance.now(), lastStats = last, bytesAtStats = 0, updatesAtStats = 0;
 function loop(now) {

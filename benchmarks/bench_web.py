@@ -1,0 +1,170 @@
+"""Web client: time from opening the URL to the first PSAO frame, JS decode per update, browser frame
+time against the moderngl client's on the same frame, scene bytes against snapshot bytes.
+
+A real `psao serve SCENE --density N --test-edits K` (edits keep Updates coming), Debian's chromium
+driven by playwright (WebGL2 on SwiftShader) opening the served page at a fixed camera (the scene's first
+camera path at t = 0), and the desktop client's FrameRenderer (moderngl, EGL/llvmpipe here) drawing the
+page's own mirror at the same camera and size. Both are software renderers on the same busy CPU: the
+frame figure is their ratio, measured in the same run.
+
+    .venv/bin/python -m benchmarks.bench_web [--scene builtin:courtyard] [--density 256] [--size 320x180]
+
+Splits of the first frame (ms after navigation start): page start (HTML, modules, WebGL2 context and
+shader compiles), scene load (SceneRequest to the scene decoded and uploaded), snapshot transfer and
+decode (Hello to the last chunk applied and uploaded), first draw (to the first frame drawn with PSAO,
+waited for with a one-pixel read).
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.verdicts import Verdicts
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--headless",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+def start_server(args) -> tuple[subprocess.Popen, int, Path]:
+    err = Path(args.out) / "serve.err"
+    err.parent.mkdir(parents=True, exist_ok=True)
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--density", str(args.density),
+                             "--rays", str(args.rays), "--test-edits", str(args.edits), "--tick-hz", str(args.tick_hz),
+                             "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"))
+    t0 = time.time()
+    while not (m := re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text())):
+        if proc.poll() is not None:
+            raise SystemExit(f"bench_web: psao serve exited: {err.read_text()[-500:]}")
+        if time.time() - t0 > 1800:
+            raise SystemExit("bench_web: the server did not start within 30 minutes")
+        time.sleep(0.5)
+    print(f"server up after {time.time() - t0:.0f} s (bake of {args.scene} at N={args.density})", flush=True)
+    return proc, int(m.group(1)), err
+
+
+def fixed_camera(scene, w: int, h: int):
+    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+
+    path = scene_camera(scene)
+    eye, target = camera_at(path, 0.0)
+    lo, hi = scene.world_bounds()
+    far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
+    return look_at(eye, target), perspective(path.fov_y, w / h, far * 1e-4, far)
+
+
+def browser_run(port: int, view, proj, w: int, h: int, updates: int, frames: int, shot: Path) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=shutil.which("chromium") or "/usr/bin/chromium", args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": w + 40, "height": h + 40})
+        cam = [view.astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()]
+        # The camera is fixed before the page's module runs, so the first frame is the measured view.
+        page.add_init_script(f"window.__psaoCamera = {json.dumps(cam)};")
+        page.goto(f"http://127.0.0.1:{port}/?width={w}&height={h}", wait_until="commit", timeout=600_000)
+        page.wait_for_function("!!(window.psao && window.psao.timings.firstDraw)", timeout=600_000, polling=50)
+        page.wait_for_function(f"window.psao.updates >= {updates}", timeout=600_000, polling=100)
+        out = page.evaluate("""(n) => {
+            const a = window.psao; a.paused = true;
+            const ms = []; for (let i = 0; i < n; i++) ms.push(a.renderOnce());
+            return { timings: a.timings, decode: a.decodeMs.slice(), frameMs: ms, sceneBytes: a.sceneBytes,
+                     snapshotBytes: a.snapshotBytes, frame: a.readPsao(), points: a.mirror.allocatedPoints(),
+                     tableWidth: 0 };
+        }""", frames)
+        url = page.evaluate("document.getElementById('view').toDataURL('image/png')")
+        shot.write_bytes(base64.b64decode(url.split(",", 1)[1]))
+        browser.close()
+    return out
+
+
+def moderngl_ms(scene, frame: dict, view, proj, w: int, h: int, frames: int) -> list[float]:
+    """Wall ms of the desktop client's PSAO frame (submit + finish) on the page's own mirror."""
+    from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
+    from psao_client.render.renderer import FrameRenderer
+
+    dec = lambda k, dt: np.frombuffer(base64.b64decode(frame[k]), dtype=dt)  # noqa: E731
+    with FrameRenderer(scene, size=(w, h), ao_mode="psao") as r:
+        r.upload_grid(dec("instances", np.uint8).view(INSTANCE_DTYPE), dec("buckets", np.uint32).reshape(-1, BUCKET_ENTRIES, 2),
+                      dec("cells", np.uint32).reshape(-1, CELL_WORDS))
+        r.set_transforms(dec("transforms", np.float32).reshape(-1, 4, 4))
+        r.set_skin_time(frame["serverTime"])
+        r.render(view, proj, read_gbuffer=False)  # warm-up: shader compile, first uploads
+        out = []
+        for _ in range(frames):
+            t0 = time.perf_counter()
+            r.submit(view, proj)
+            r.ctx.finish()
+            out.append(1e3 * (time.perf_counter() - t0))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="builtin:courtyard")
+    ap.add_argument("--density", type=float, default=256.0)
+    ap.add_argument("--rays", type=int, default=16, help="bake rays per point (the page's work does not depend on it)")
+    ap.add_argument("--edits", type=int, default=200, help="points edited per tick (keeps Updates coming)")
+    ap.add_argument("--tick-hz", type=float, default=30.0)
+    ap.add_argument("--size", default="320x180")
+    ap.add_argument("--updates", type=int, default=60, help="Updates to decode before measuring frames")
+    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--out", default=str(ROOT / "out" / "bench_web"))
+    args = ap.parse_args(argv)
+    if not shutil.which("chromium"):
+        print("bench_web: chromium is not installed (make browser)", file=sys.stderr)
+        return 2
+    from psao_scene import load_scene
+    from psao_server.scene_export import scene_blob, scene_file
+
+    w, h = (int(v) for v in args.size.split("x"))
+    scene = load_scene(args.scene)
+    view, proj = fixed_camera(scene, w, h)
+    proc, port, _ = start_server(args)
+    try:
+        res = browser_run(port, view, proj, w, h, args.updates, args.frames, Path(args.out) / "first_frame.png")
+    finally:
+        proc.terminate()
+        proc.wait(60)
+    desk = moderngl_ms(scene, res["frame"], view, proj, w, h, args.frames)
+    t = res["timings"]
+    start_ms, scene_ms = t["connect"], t["scene"] - t["connect"]
+    snap_ms, draw_ms = t["snapshot"] - t["scene"], t["firstDraw"] - t["snapshot"]
+    total = t["firstDraw"]
+    decode = float(np.mean(res["decode"])) if res["decode"] else float("nan")
+    web_ms, gl_ms = statistics.median(res["frameMs"]), statistics.median(desk)
+    raw_scene = len(scene_file(scene).serialize())
+    print(f"\n{args.scene} N={args.density:g}, {res['points']} points, {w}x{h}, tick {args.tick_hz:g} Hz, "
+          f"{args.edits} edits per tick")
+    print("| first PSAO frame after opening the URL | ms |\n|---|---|")
+    for k, v in (("page start (modules, WebGL2, shader compiles)", start_ms), ("scene load (SceneRequest, decode, upload)", scene_ms),
+                 ("snapshot transfer + decode + upload", snap_ms), ("first draw", draw_ms), ("total", total)):
+        print(f"| {k} | {v:.0f} |")
+    print(f"\nJS decode per Update (zstd stream + packed delta + mirror): {decode:.2f} ms mean over {len(res['decode'])}")
+    print(f"frame ms (median of {args.frames}): browser {web_ms:.1f}, moderngl {gl_ms:.1f}, ratio {web_ms / gl_ms:.2f}")
+    print("\n| bytes | once per client |\n|---|---|")
+    print(f"| scene (SceneData, zstd) | {res['sceneBytes']:,} |\n| scene uncompressed | {raw_scene:,} |")
+    print(f"| snapshot (Welcome + chunks, zstd stream) | {res['snapshotBytes']:,} |")
+    print(f"| scene / snapshot | {res['sceneBytes'] / res['snapshotBytes']:.3f} |\n", flush=True)
+    assert res["sceneBytes"] == len(scene_blob(scene))
+    v = Verdicts("bench_web")
+    # Targets (mine): decoding keeps up with the tick rate with room to draw; a browser frame within 4x
+    # of the desktop client's; the one-off scene smaller than the snapshot it comes with.
+    v.check("JS decode ms per update", decode, "<", 1e3 / args.tick_hz / 2)
+    v.check("browser / moderngl frame ms", web_ms / gl_ms, "<=", 4.0)
+    v.check("scene bytes / snapshot bytes", res["sceneBytes"] / res["snapshotBytes"], "<", 1.0)
+    return v.exit_code()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
