@@ -245,7 +245,7 @@ async def snapshot_to_client(grid, scene_spec: str, scene_hash: bytes, transform
     task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
     await ready.wait()
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{service.port}", "--scene", scene_spec,
+        sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{service.port}", scene_spec,
         "--frames", "0", "--json", stdout=asyncio.subprocess.PIPE)
     out, _ = await proc.communicate()
     stop.set()

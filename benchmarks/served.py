@@ -82,7 +82,7 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
         try:
             port = int(_wait_for(server, LISTENING, start_timeout, lines).group(1))
             listen_s = time.perf_counter() - t0
-            client = subprocess.Popen([sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{port}", "--scene", scene,
+            client = subprocess.Popen([sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{port}", scene,
                                        "--json", "--digest-log", str(digest), *(client_args or [])],
                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
             while not _updated(digest):  # a line per snapshot chunk, then per update: wait for an update

@@ -11,9 +11,30 @@
     └── RemoteError               the peer sent an Error message
 
 Each carries a websocket close code (RFC 6455: 1002 protocol error, 1003 unsupported data,
-1008 policy violation, 1009 message too big) so both sides map errors the same way.
+1008 policy violation, 1009 message too big) so both sides map errors the same way. ErrorCode is the
+code an Error message carries.
 """
 from __future__ import annotations
+
+from enum import IntEnum
+
+
+class ErrorCode(IntEnum):
+    """Error message codes; each names the reason a connection is closed."""
+
+    INTERNAL = 1
+    BAD_HEADER = 2
+    TOO_LARGE = 3
+    BAD_PAYLOAD = 4
+    BAD_CODEC = 5
+    UNEXPECTED_MESSAGE = 6
+    SCENE_MISMATCH = 7
+    UNAUTHORIZED = 8
+    SHUTTING_DOWN = 9
+    TIMEOUT = 10
+    SERVER_FULL = 11  # the server has as many connections as it serves; try later
+    EDITS_NOT_ALLOWED = 12  # SceneEdit from a connection without the edit token (or edits off)
+    BAD_EDIT = 13  # SceneEdit of an unknown instance or with a transform out of the allowed range
 
 
 class ProtocolError(Exception):
@@ -64,8 +85,6 @@ class RemoteError(ProtocolError):
     """The peer sent an Error message."""
 
     def __init__(self, code: int, text: str):
-        from protocol.messages import ErrorCode  # messages imports this module
-
         name = ErrorCode(code).name if code in ErrorCode._value2member_map_ else str(code)
         super().__init__(f"peer error {name}: {text}")
         self.code = code

@@ -32,7 +32,7 @@ from enum import IntEnum
 import numpy as np
 
 from .codecs import Codec
-from .errors import HeaderError, LimitError, PayloadError
+from .errors import ErrorCode, HeaderError, LimitError, PayloadError  # noqa: F401 (ErrorCode: the codes of Error)
 from .gridformat import INSTANCE_DTYPE
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
 from .updates import GridDelta, Layout, Reader, decode_delta, encode_delta
@@ -55,24 +55,6 @@ class MessageType(IntEnum):
     BYE = 8
     SCENE_REQUEST = 9
     SCENE_DATA = 10
-
-
-class ErrorCode(IntEnum):
-    """Error message codes; each names the reason a connection is closed."""
-
-    INTERNAL = 1
-    BAD_HEADER = 2
-    TOO_LARGE = 3
-    BAD_PAYLOAD = 4
-    BAD_CODEC = 5
-    UNEXPECTED_MESSAGE = 6
-    SCENE_MISMATCH = 7
-    UNAUTHORIZED = 8
-    SHUTTING_DOWN = 9
-    TIMEOUT = 10
-    SERVER_FULL = 11  # the server has as many connections as it serves; try later
-    EDITS_NOT_ALLOWED = 12  # SceneEdit from a connection without the edit token (or edits off)
-    BAD_EDIT = 13  # SceneEdit of an unknown instance or with a transform out of the allowed range
 
 
 @dataclass(frozen=True)

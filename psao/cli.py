@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from psao.options import DefaultsFormatter
+
 SUBCOMMANDS = {
     "bake": ("psao_server.bake_cli", "generate points, trace AO and write the grid"),
     "serve": ("psao_server.serve_cli", "bake a scene and stream its AO to clients over websockets"),
@@ -53,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name == module_name:  # sub-command not built yet
                 continue
             raise
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=DefaultsFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

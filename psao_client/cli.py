@@ -1,7 +1,7 @@
-"""`psao client URL`: connect to a PSAO server, keep an exact mirror of its grid, report.
+"""`psao client URL [SCENE]`: connect to a PSAO server, keep an exact mirror of its grid, report.
 
-Headless for now. The receive loop is `psao_client.connection.MirrorClient`; `build_client(args, scene,
-on_update=..., on_frame=...)` lets another sub-command reuse the same options and plug in a per-update
+Headless unless --render (frames to PNG) or --window. The receive loop is
+`psao_client.connection.MirrorClient`; `build_client(args, scene, on_update=..., on_frame=...)` lets another sub-command reuse the same options and plug in a per-update
 callback `on_update(mirror, transforms, tick)` or a per-frame one `on_frame(mirror)` (--render: at --fps).
 """
 from __future__ import annotations
@@ -13,16 +13,19 @@ import os
 import time
 from pathlib import Path
 
+from protocol.codecs import CODEC_NAMES
 from psao_client.errors import ConnectError
 
-CODEC_CHOICES = ("zstd-stream", "zstd", "lz4", "none")
+# Preference order: the first one the server also offers is used.
+CODEC_ORDER = ("zstd-stream", "zstd", "lz4", "none")
+assert set(CODEC_ORDER) == set(CODEC_NAMES)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("url", help="server URL, e.g. ws://127.0.0.1:8765")
-    p.add_argument("--scene", default=None,
-                   help="the client's own copy of the scene, checked against the server's "
-                        "(default: load the server's scene from the server)")
+    p.add_argument("scene", nargs="?", default=None, metavar="SCENE",
+                   help="the client's own copy of the scene (builtin:NAME, a .toml or a mesh file), checked against "
+                        "the server's by hash; without it the client loads the server's scene from the server")
     p.add_argument("--frames", type=int, default=None,
                    help="stop after the snapshot and N updates (a static server, sending no update after the "
                         "snapshot: after N tick periods, at least 5 s), or with --render N rendered frames "
@@ -34,8 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="read the token from FILE (first line); the environment variable PSAO_TOKEN also works")
     p.add_argument("--tls-ca", type=Path, default=None, metavar="PEM",
                    help="with wss://, trust only these certificates (e.g. a server's self-signed one)")
-    p.add_argument("--codecs", default=",".join(CODEC_CHOICES),
-                   help=f"codecs to accept, comma-separated (default {','.join(CODEC_CHOICES)})")
+    p.add_argument("--codecs", default=",".join(CODEC_ORDER),
+                   help="codecs to accept, comma-separated: the names psao serve --codec takes")
     p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
                    help="pause S seconds after every message (simulates a slow client)")
     p.add_argument("--recv-buffer", type=int, default=None, metavar="BYTES",
@@ -50,8 +53,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _codecs(text: str):
-    from protocol.codecs import CODEC_NAMES
-
     names = [t.strip() for t in text.split(",") if t.strip()]
     bad = [n for n in names if n not in CODEC_NAMES]
     if bad or not names:
@@ -127,7 +128,7 @@ def report(client, seconds: float) -> dict:
 
 
 def client_scene(args: argparse.Namespace):
-    """(scene, hash for Hello or None, scene bytes fetched): --scene from disk, else the server's."""
+    """(scene, hash for Hello or None, scene bytes fetched): SCENE from disk, else the server's."""
     from psao_client.connection import fetch_scene
     from psao_scene import load_scene
 

@@ -10,25 +10,16 @@ import sys
 import time
 from pathlib import Path
 
+from psao_client.render.stream_render import add_frame_arguments
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("scene", metavar="SCENE", help="builtin:NAME, a .toml scene or a mesh file")
     parser.add_argument("--grid", required=True, metavar="FILE", help="baked grid (.npz from psao bake)")
-    parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path of the scene (default: its first)")
-    parser.add_argument("--frames", type=int, default=1, metavar="N", help="frames spread over the path (default 1)")
-    parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
-    parser.add_argument("--ao", default="psao", metavar="METHODS",
-                        help="AO method(s) to render: psao, ssao, gtao, nnao, mlp, aogan, comma-separated, or both (= psao,ssao); default psao")
-    parser.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default) or ultra")
-    parser.add_argument("--mlp-weights", default=None, metavar="FILE", help="MLP baking weights (psao train mlp) for --ao mlp")
-    parser.add_argument("--nnao-weights", default=None, metavar="FILE", help="NNAO weights (psao train nnao; default: the shipped ones)")
-    parser.add_argument("--nnao-samples", type=int, default=64, metavar="K", help="NNAO first-layer cells per pixel: 64 (default), 128, 256 or 961")
-    parser.add_argument("--aogan-weights", default=None, metavar="FILE", help="AOGAN weights (psao train aogan; default: the shipped ones)")
-    parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size (default 16)")
-    parser.add_argument("--out", default="frames", metavar="DIR", help="output folder (default ./frames)")
+    parser.add_argument("--frames", type=int, default=1, metavar="N", help="frames spread over the path")
+    add_frame_arguments(parser)
+    parser.add_argument("--out", default="frames", metavar="DIR", help="output folder")
     parser.add_argument("--json", action="store_true", help="print per-frame pass times as JSON (last line)")
-    parser.add_argument("--window", action="store_true",
-                        help="also show the frames in a window (needs a display and the 'glfw' package: pip install glfw)")
 
 
 def run(args) -> int:

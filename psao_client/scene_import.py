@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.scenefile import SceneFile, SkinData, skin_pose
-from psao_scene.animation import Skin
 from psao_scene.model import CameraKey, CameraPath, Instance, Mesh, Scene
+from psao_scene.skin import Skin
 
 
 @dataclass

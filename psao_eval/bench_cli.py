@@ -14,44 +14,51 @@ every exit path.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from psao.options import default
+from psao_client.render.ssao_pass import SsaoSettings
 from psao_eval import video_bench
 from psao_eval.errors import EvalError
+from psao_eval.reference import ReferenceSettings
+from psao_server.bake_cli import add_bake_arguments, bake_arguments, bake_settings
+from psao_server.settings import BakeSettings, TickSettings
 
-TICK_RAYS = 32  # rays per re-traced point of an animating server (the tick's default)
+TICK_RAYS = default(TickSettings, "rays")  # rays per re-traced point of an animating server
 DEFAULT_METHODS = ("ssao", "gtao", "psao")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="builtin:NAME, a scene .toml, or a glTF/OBJ/... file")
-    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated (default 128,256,512,1024)")
-    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated (default 5,15,30,60)")
-    p.add_argument("--frames", type=int, default=4, help="frames along the camera path scored per scene (default 4)")
-    p.add_argument("--spp", type=int, default=512, help="RTAO reference rays per pixel (default 512)")
-    p.add_argument("--size", default="640x360", metavar="WxH", help="frame size (default 640x360)")
-    p.add_argument("--rays", type=int, default=128, help="AO rays per point in the bake (default 128)")
-    p.add_argument("--ssao-samples", type=int, default=16, help="SSAO kernel size (default 16)")
+    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated")
+    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated")
+    p.add_argument("--frames", type=int, default=4, help="frames along the camera path scored per scene")
+    p.add_argument("--spp", type=int, default=default(ReferenceSettings, "spp"), help="RTAO reference rays per pixel")
+    p.add_argument("--size", default="640x360", metavar="WxH", help="frame size")
+    p.add_argument("--ssao-samples", type=int, default=default(SsaoSettings, "samples"), help="SSAO kernel size")
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS), metavar="LIST",
-                   help=f"AO methods scored, comma-separated, psao among them (default {','.join(DEFAULT_METHODS)}; "
-                        "psao = one row per density)")
-    p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default), ultra")
+                   help="AO methods scored, comma-separated, psao among them (psao = one row per density)")
+    p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality, ultra")
     p.add_argument("--mlp-steps", type=int, default=1500,
-                   help="Adam steps of MLP baking, trained per scene on the first density's grid (default 1500)")
-    p.add_argument("--stream-seconds", type=float, default=3.0, help="client run after its snapshot, per config (default 3)")
-    p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (default: the scene's first)")
-    p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder (default out/bench)")
+                   help="Adam steps of MLP baking, trained per scene on the first density's grid")
+    p.add_argument("--stream-seconds", type=float, default=3.0, help="seconds the client runs after its snapshot, per config")
+    p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (the scene's first by default)")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder")
     p.add_argument("--cache", type=Path, default=Path("out") / ".cache", metavar="DIR",
-                   help="cache of grids and RTAO references (default out/.cache)")
+                   help="cache of grids and RTAO references")
     p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
     p.add_argument("--animate", action="store_true",
                    help="animated scenes: score each frame at its scene time (server tick in process) and stream "
                         "from `psao serve --animate` (static scenes are unaffected)")
-    p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs (default 1)")
+    p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs")
+    p.add_argument("--json", action="store_true", help="print the table's rows as one JSON array as the last line")
+    add_bake_arguments(p, density=False)
     video_bench.add_arguments(p)
 
 
@@ -63,7 +70,7 @@ class BenchConfig:
     frames: int
     spp: int
     size: tuple[int, int]
-    rays: int
+    bake: BakeSettings  # every bake's settings but its density (one of densities)
     ssao_samples: int
     stream_seconds: float
     camera_path: str | None
@@ -111,7 +118,7 @@ def config_from_args(args) -> BenchConfig:
         raise EvalError(str(exc)) from None
     if min(size) < 8:
         raise EvalError(f"--size {args.size}: frames must be at least 8x8 pixels")
-    for name, v in (("frames", args.frames), ("spp", args.spp), ("rays", args.rays), ("ssao-samples", args.ssao_samples),
+    for name, v in (("frames", args.frames), ("spp", args.spp), ("ssao-samples", args.ssao_samples),
                     ("mlp-steps", args.mlp_steps)):
         if v < 1:
             raise EvalError(f"--{name} must be >= 1, got {v}")
@@ -126,7 +133,7 @@ def config_from_args(args) -> BenchConfig:
         raise EvalError(f"--gtao-preset {args.gtao_preset!r}: expected one of {', '.join(GTAO_PRESETS)}")
     return BenchConfig(scenes=list(args.scenes), densities=parse_list(args.densities, "densities", 1e-3, 1e7),
                        tick_hz=parse_list(args.tick_hz, "tick-hz", 5, 60), frames=args.frames, spp=args.spp,
-                       size=size, rays=args.rays, ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
+                       size=size, bake=bake_settings(args), ssao_samples=args.ssao_samples, stream_seconds=args.stream_seconds,
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
                        image_scale=args.image_scale, animate=args.animate, methods=methods,
                        gtao_preset=args.gtao_preset, mlp_steps=args.mlp_steps,
@@ -172,15 +179,21 @@ class Log:
         self.console.print(f"[{time.perf_counter() - self.t0:6.1f} s] {text}", markup=False, soft_wrap=True)
 
 
-def grid_path(cache: Path, scene, density: float, rays: int) -> Path:
-    return cache / "grids" / f"{scene.name}-{scene.content_hash()[:12]}-N{density:g}-R{rays}.npz"
+def grid_path(cache: Path, scene, settings: BakeSettings) -> Path:
+    """Cache entry of a bake: named by scene, N and rays, and by a digest of the other bake options when
+    they are not the defaults."""
+    options = bake_arguments(dataclasses.replace(settings, density=BakeSettings.density, rays=BakeSettings.rays,
+                                                 workers=BakeSettings.workers))
+    extra = "" if options == bake_arguments(BakeSettings()) else "-" + hashlib.sha256(" ".join(options).encode()).hexdigest()[:8]
+    return cache / "grids" / f"{scene.name}-{scene.content_hash()[:12]}-N{settings.density:g}-R{settings.rays}{extra}.npz"
 
 
-def bake_cached(spec: str, scene, density: float, rays: int, cache: Path, log: Log) -> tuple[Path, dict]:
+def bake_cached(spec: str, scene, settings: BakeSettings, cache: Path, log: Log) -> tuple[Path, dict]:
     from psao_client.render.gridfile import load_grid_file
     from psao_eval.processes import bake_grid
 
-    path = grid_path(cache, scene, density, rays)
+    density, rays = settings.density, settings.rays
+    path = grid_path(cache, scene, settings)
     if path.is_file():
         try:
             return path, dict(load_grid_file(path).meta)
@@ -189,7 +202,7 @@ def bake_cached(spec: str, scene, density: float, rays: int, cache: Path, log: L
     log(f"{scene.name}: psao bake N={density:g}, {rays} rays")
     tmp = path.with_name(path.stem + ".partial.npz")
     tmp.parent.mkdir(parents=True, exist_ok=True)
-    stats = bake_grid(spec, density, rays, tmp)
+    stats = bake_grid(spec, settings, tmp)
     tmp.replace(path)
     log(f"{scene.name}: baked {stats.get('points_kept', 0):,} points in {stats.get('seconds_trace', 0):.1f} s of tracing")
     return path, stats
@@ -209,7 +222,7 @@ def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict
     if not scene.camera_paths and cfg.camera_path is None:
         log(f"warning: scene '{scene.name}' has no camera path: using an orbit around its bounds")
     poses = frame_poses(scene, cfg.frames, cfg.size, cfg.camera_path)
-    grids = {d: bake_cached(spec, scene, d, cfg.rays, cfg.cache, log) for d in cfg.densities}
+    grids = {d: bake_cached(spec, scene, dataclasses.replace(cfg.bake, density=d), cfg.cache, log) for d in cfg.densities}
     baseline_rows, quality, image = score_scene(scene, poses, grids, cfg, log)
     rows = list(baseline_rows)
     for d in cfg.densities:
@@ -303,7 +316,6 @@ def mlp_cached(scene, grid_file: Path, cfg: BenchConfig, log: Log) -> dict:
 def score_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict, dict]:
     """(baseline rows, PSAO quality per density, side-by-side image data) against the RTAO reference."""
     from psao_eval.quality import mean_scores, reference_images, score_frames
-    from psao_eval.reference import ReferenceSettings
 
     frames, tick_ms, gl_renderer, animate, weights = render_scene(scene, poses, grids, cfg, log)
     first = frames[cfg.densities[0]]  # every density draws the same G-buffers
@@ -341,8 +353,8 @@ def animated_frames(qr, scene, density: float, poses, cfg: BenchConfig, log: Log
 
     hz = max(cfg.tick_hz)
     log(f"{scene.name}: animated, N={density:g}: in-process bake and server ticks at {hz:g} Hz up to each frame")
-    with AnimatedServer(scene, AnimatedSettings(density=density, bake_rays=cfg.rays, tick_rays=TICK_RAYS,
-                                                tick_hz=hz)) as server:
+    with AnimatedServer(scene, AnimatedSettings(bake=dataclasses.replace(cfg.bake, density=density),
+                                                tick_rays=TICK_RAYS, tick_hz=hz)) as server:
         frames = qr.render(server.grid, poses, before_frame=server.frame_state)
         return frames, server.mean_tick_ms()
 
@@ -358,11 +370,12 @@ def stream_run(spec: str, scene, grid: Path, density: float, hz: float, cfg: Ben
     # a bake with other rays makes the first tick re-trace every visible point (seconds here), which
     # would be measured as the stream. A static server serves the benchmark's grid.
     if animate:
-        source = ["--animate", "--rays", str(TICK_RAYS), "--tick-rays", str(TICK_RAYS)]
+        source = ["--animate", *bake_arguments(dataclasses.replace(cfg.bake, density=density, rays=TICK_RAYS)),
+                  "--tick-rays", str(TICK_RAYS)]
         log(f"{name}: psao serve --animate N={density:g} @{hz:g} Hz, {TICK_RAYS} rays (the server bakes first)")
     else:
-        source = ["--grid", str(grid), "--rays", str(cfg.rays)]
-    with ServerProcess(spec, [*source, "--density", f"{density:g}", "--tick-hz", f"{hz:g}"],
+        source = ["--grid", str(grid), *bake_arguments(dataclasses.replace(cfg.bake, density=density))]
+    with ServerProcess(spec, [*source, "--tick-hz", f"{hz:g}"],
                        start_timeout=1800.0) as server:
         stats = run_client(server.url, spec, cfg.stream_seconds)
         rates = stream_rates(stats, welcome)
@@ -440,6 +453,8 @@ def _run(args) -> int:
     print(LPIPS_NOTE)
     for p in written:
         print(p)
+    if args.json:
+        print(json.dumps(rows, default=_json_default))
     log("done")
     return 0
 

@@ -101,13 +101,15 @@ def quality_demo(scene, out: Path, log) -> dict:
     from PIL import Image
 
     from psao_eval.dynamic import AnimatedServer, AnimatedSettings
+    from psao_server.settings import BakeSettings
     from psao_eval.quality import QualityRenderer, frame_poses, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
 
     poses = frame_poses(scene, FRAMES, SIZE)
     log(f"animating {SCENE} (server tick in this process, N={DENSITY:g}) and rendering {len(poses)} frames "
         f"of the camera path with PSAO and SSAO at {SIZE[0]}x{SIZE[1]}")
-    with AnimatedServer(scene, AnimatedSettings(density=DENSITY, bake_rays=RAYS, tick_rays=RAYS, tick_hz=30.0)) as server:
+    with AnimatedServer(scene, AnimatedSettings(BakeSettings(density=DENSITY, rays=RAYS), tick_rays=RAYS,
+                                                       tick_hz=TICK_HZ)) as server:
         with QualityRenderer(scene, SIZE) as qr:
             t0 = time.perf_counter()
             frames = qr.render(server.grid, poses, timing_repeats=1, before_frame=server.frame_state)

@@ -1,6 +1,6 @@
 """Quality of PSAO on an animated scene: the server's tick run in this process, frame by frame.
 
-    with AnimatedServer(scene, density=256, bake_rays=128, tick_rays=32, tick_hz=60) as server:
+    with AnimatedServer(scene, AnimatedSettings(BakeSettings(density=256, rays=128), tick_rays=32, tick_hz=60)) as server:
         frames = qr.render(server.grid, poses, before_frame=server.frame_state)
 
 For each frame at scene time t the server ticks at t - (k-1)/tick_hz ... t (`ticks_per_frame` ticks,
@@ -13,32 +13,33 @@ deformed triangles the server's points follow; the reference traces that same po
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from psao_eval.errors import EvalError
+from psao_server.service import ServeSettings
+from psao_server.settings import BakeSettings, TickSettings
 
 
 @dataclass
 class AnimatedSettings:
-    density: float = 256.0  # points per unit^2
-    bake_rays: int = 128  # rays per point in the bake
-    tick_rays: int = 32  # rays per re-traced point in a tick (the server's default)
-    tick_hz: float = 60.0  # spacing of the ticks before a frame
+    bake: BakeSettings = field(default_factory=BakeSettings)  # the server's bake before its first tick
+    tick_rays: int = TickSettings.rays  # rays per re-traced point in a tick
+    tick_hz: float = ServeSettings.tick_hz  # ticks per second: spacing of the ticks before a frame
     ticks_per_frame: int = 2  # ticks run up to each frame's time (the first one may cover a long jump)
 
 
 class AnimatedServer:
     def __init__(self, scene, settings: AnimatedSettings, show_progress: bool = False):
-        from psao_server.bake import BakeSettings, bake_scene
-        from psao_server.tick import ServerTick, TickSettings
+        from psao_server.bake import bake_scene
+        from psao_server.tick import ServerTick
 
         if settings.ticks_per_frame < 1 or not settings.tick_hz > 0:
             raise EvalError("animated evaluation needs >= 1 tick per frame and a tick rate > 0")
         self.scene = scene
         self.settings = settings
-        bake = bake_scene(scene, BakeSettings(density=settings.density, rays=settings.bake_rays),
+        bake = bake_scene(scene, settings.bake,
                           show_progress=show_progress)
         self.points = int(bake.stats.get("points_kept", 0))
         self.tick = ServerTick(bake, TickSettings(rays=settings.tick_rays))

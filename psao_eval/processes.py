@@ -106,10 +106,12 @@ def run_cli(args: list[str], what: str, timeout: float) -> dict:
     return last_json_line(out, what)
 
 
-def bake_grid(scene_spec: str, density: float, rays: int, out: Path, timeout: float = 1800.0) -> dict:
-    """`psao bake SCENE --density N --rays R --out FILE --json` (no accuracy probes); its statistics."""
-    return run_cli(["bake", scene_spec, "--density", f"{density:g}", "--rays", str(rays), "--probes", "0",
-                    "--out", str(out), "--json"], f"psao bake {scene_spec} at N={density:g}", timeout)
+def bake_grid(scene_spec: str, settings, out: Path, timeout: float = 1800.0) -> dict:
+    """`psao bake SCENE [bake options of settings] --out FILE --json` (no accuracy probes); its statistics."""
+    from psao_server.bake_cli import bake_arguments
+
+    return run_cli(["bake", scene_spec, *bake_arguments(settings), "--probes", "0", "--out", str(out), "--json"],
+                   f"psao bake {scene_spec} at N={settings.density:g}", timeout)
 
 
 @dataclass
@@ -187,7 +189,7 @@ def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (),
     fd, name = tempfile.mkstemp(prefix="psao-client-", suffix=".jsonl")
     os.close(fd)
     digests = Path(name)
-    proc = spawn(["client", url, "--scene", scene_spec, "--json", "--no-reconnect", "--reconnect-timeout", "20",
+    proc = spawn(["client", url, scene_spec, "--json", "--no-reconnect", "--reconnect-timeout", "20",
                   "--digest-log", str(digests), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         t_snapshot = _wait_for_snapshot(proc, digests, connect_timeout, what)

@@ -118,7 +118,8 @@ def trace_pixels(scene, world: np.ndarray, normal: np.ndarray, pixel_ids: np.nda
                  settings: ReferenceSettings, show_progress: bool = False, label: str = "RTAO") -> np.ndarray:
     """Visibility of world-space points (P, 3) with unit normals (P, 3) against the frame's geometry."""
     from psao_server.bake import scene_center
-    from psao_server.tracer import TraceSettings, make_tracer
+    from psao_server.settings import TraceSettings
+    from psao_server.tracer import make_tracer
 
     verts, faces = frame_geometry(scene, transforms, settings.skin_time)
     trace = TraceSettings(rays=settings.spp, ao_distance=float(scene.ao_distance), seed=settings.seed,

@@ -16,29 +16,30 @@ from pathlib import Path
 
 import numpy as np
 
+from psao.options import DefaultsFormatter
 from psao_eval.errors import EvalError
 
 
 def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="method", required=True, metavar="METHOD")
-    m = sub.add_parser("mlp", help="MLP AO baking (Erra et al.): per-object networks from a baked grid's AO points")
+    m = sub.add_parser("mlp", formatter_class=DefaultsFormatter, help="MLP AO baking (Erra et al.): per-object networks from a baked grid's AO points")
     m.add_argument("scene", metavar="SCENE")
     m.add_argument("--grid", required=True, metavar="FILE", help="baked grid of SCENE (psao bake)")
     m.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
-    m.add_argument("--steps", type=int, default=2000, help="Adam steps (default 2000)")
-    m.add_argument("--points", type=int, default=8192, help="training points per object (default 8192)")
+    m.add_argument("--steps", type=int, default=2000, help="Adam steps")
+    m.add_argument("--points", type=int, default=8192, help="training points per object")
     m.add_argument("--seed", type=int, default=1)
     m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
 
-    n = sub.add_parser("nnao", help="NNAO (Holden et al.): one network trained on G-buffers and RTAO at sampled pixels")
+    n = sub.add_parser("nnao", formatter_class=DefaultsFormatter, help="NNAO (Holden et al.): one network trained on G-buffers and RTAO at sampled pixels")
     n.add_argument("scenes", nargs="*", metavar="SCENE",
-                   help="training scenes (default: scenes/pavilion.toml and scenes/playground.toml, kept out of the "
-                        "benchmark)")
+                   help="training scenes (without any: scenes/pavilion.toml and scenes/playground.toml, kept out of "
+                        "the benchmark)")
     n.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
-    n.add_argument("--frames", type=int, default=16, help="frames per scene (default 16)")
-    n.add_argument("--pixels", type=int, default=768, help="sampled pixels per frame (default 768)")
-    n.add_argument("--spp", type=int, default=256, help="RTAO rays per sampled pixel (default 256)")
-    n.add_argument("--epochs", type=int, default=12, help="passes over the data (default 12)")
+    n.add_argument("--frames", type=int, default=16, help="frames per scene")
+    n.add_argument("--pixels", type=int, default=768, help="sampled pixels per frame")
+    n.add_argument("--spp", type=int, default=256, help="RTAO rays per sampled pixel")
+    n.add_argument("--epochs", type=int, default=12, help="passes over the data")
     n.add_argument("--steps", type=int, default=None, help="Adam steps instead of --epochs")
     n.add_argument("--seed", type=int, default=1)
     n.add_argument("--json", action="store_true", help="print a JSON summary as the last line")

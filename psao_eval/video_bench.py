@@ -25,6 +25,7 @@ import numpy as np
 
 from psao_eval.errors import EvalError
 from psao_eval.video import CODECS, VideoSettings, check_latency, decode_stream, encode_stream, reproject
+from psao_server.settings import BakeSettings, TickSettings
 
 
 @dataclass
@@ -44,20 +45,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also stream server-rendered AO as video per client and compare it with PSAO "
                         "(equal bandwidth, latency, many clients)")
     g.add_argument("--video-bitrates", default="0.25,0.5,1,2,4,8", metavar="MBITS",
-                   help="video bitrates in Mbit/s, comma-separated (default 0.25,0.5,1,2,4,8)")
-    g.add_argument("--video-codec", default=d.codec, help=f"video codec: {', '.join(CODECS)} (default {d.codec})")
-    g.add_argument("--video-fps", type=float, default=d.fps, help=f"video frames per second (default {d.fps:g})")
-    g.add_argument("--video-spp", type=int, default=d.spp, help=f"AO rays per pixel per video frame (default {d.spp})")
-    g.add_argument("--video-clip", type=int, default=30, help="frames streamed before each scored frame (default 30)")
+                   help="video bitrates in Mbit/s, comma-separated")
+    g.add_argument("--video-codec", default=d.codec, help=f"video codec: {', '.join(CODECS)}")
+    g.add_argument("--video-fps", type=float, default=d.fps, help=f"video frames per second")
+    g.add_argument("--video-spp", type=int, default=d.spp, help=f"AO rays per pixel per video frame")
+    g.add_argument("--video-clip", type=int, default=30, help="frames streamed before each scored frame")
     g.add_argument("--video-accumulate", type=float, default=d.accumulate,
-                   help="temporal accumulation: weight of the reprojected history, 0 = off (default 0)")
+                   help="temporal accumulation: weight of the reprojected history, 0 = off")
     g.add_argument("--video-denoise", type=float, default=d.denoise_px, metavar="SIGMA",
-                   help=f"depth-aware Gaussian over the traced AO, sigma in pixels, 0 = off (default {d.denoise_px:g})")
+                   help=f"depth-aware Gaussian over the traced AO, sigma in pixels, 0 = off")
     g.add_argument("--camera-speed", type=float, default=1.0,
                    help="before each scored frame the camera runs its path this many times faster (fast motion; "
-                        "the scored poses stay the bench's) (default 1)")
-    g.add_argument("--latency-ms", default="0,50,100", help="latencies in ms, comma-separated (default 0,50,100)")
-    g.add_argument("--clients", default="1,10,100", help="client counts of the server-cost table (default 1,10,100)")
+                        "the scored poses stay the bench's)")
+    g.add_argument("--latency-ms", default="0,50,100", help="latencies in ms, comma-separated")
+    g.add_argument("--clients", default="1,10,100", help="client counts of the server-cost table")
 
 
 def _numbers(text: str, what: str) -> list[float]:
@@ -95,7 +96,7 @@ def video_name(bitrate: float) -> str:
 
 # ------------------------------------------------------------------------------------ the experiment
 def _transforms_at(scene, t: float) -> np.ndarray:
-    from psao_scene.animation import instance_transform
+    from psao_scene.rigid import instance_transform
 
     return np.stack([instance_transform(scene, i, t) for i in range(len(scene.instances))]) \
         if scene.instances else np.zeros((0, 4, 4))
@@ -259,18 +260,16 @@ def psao_static(scene, qr, grid_file, poses) -> tuple[list, dict]:
                     "send_ms_tick": 0.0, "snapshot_encode_s": meter.snapshot_s}
 
 
-def psao_animated(scene, qr, density: float, poses, latencies_ms: list[float], bake_rays: int, tick_hz: float,
+def psao_animated(scene, qr, bake: BakeSettings, poses, latencies_ms: list[float], tick_hz: float,
                   log) -> tuple[dict, dict]:
     """Frames per latency: the grid of the tick at t - L - 1/tick_hz (ticked here), the scene drawn at t;
     Update bytes and server ms of the ticks that follow 1/tick_hz of motion."""
-    from psao_eval.bench_cli import TICK_RAYS
     from psao_eval.dynamic import AnimatedServer, AnimatedSettings
 
     frames = {L: [] for L in latencies_ms}
     sizes, tick_s, send_s = [], [], []
-    log(f"{scene.name}: PSAO-{density:g} animated: in-process bake, ticks at t - latency - 1/{tick_hz:g} s")
-    with AnimatedServer(scene, AnimatedSettings(density=density, bake_rays=bake_rays, tick_rays=TICK_RAYS,
-                                                tick_hz=tick_hz)) as server:
+    log(f"{scene.name}: PSAO-{bake.density:g} animated: in-process bake, ticks at t - latency - 1/{tick_hz:g} s")
+    with AnimatedServer(scene, AnimatedSettings(bake, tick_rays=TickSettings.rays, tick_hz=tick_hz)) as server:
         meter = UpdateMeter(scene, server.grid)
         for p in poses:
             for L in sorted(latencies_ms, reverse=True):  # ticks go forward in time
@@ -310,7 +309,7 @@ def compare_scene(spec: str, scene, poses, grids: dict, cfg, vcfg: VideoBenchCon
         psao_rows, psao_frames = [], {}
         for d, (path, meta) in grids.items():
             if animate:
-                fr, info = psao_animated(scene, qr, d, poses, vcfg.latencies_ms, cfg.rays, hz, log)
+                fr, info = psao_animated(scene, qr, replace(cfg.bake, density=d), poses, vcfg.latencies_ms, hz, log)
             else:
                 f0, info = psao_static(scene, qr, path, poses)
                 fr = {L: f0 for L in vcfg.latencies_ms}

@@ -1,9 +1,10 @@
 """Scene loading shared by the server and the client: `load_scene(spec)` returns a psao_scene.model.Scene."""
-from .animation import RigidAnimation, Skin, animation_hash, instance_transform, is_dynamic
 from .camera import camera_at, default_orbit, look_at, perspective, scene_camera
 from .errors import GeometryError, SceneError, SceneFormatError, SceneNotFound
 from .loader import load_scene
-from .model import CameraKey, CameraPath, Instance, Mesh, Scene
+from .model import CameraKey, CameraPath, Instance, Mesh, Scene, animation_hash
+from .rigid import RigidAnimation, instance_transform, is_dynamic
+from .skin import Skin
 
 __all__ = [
     "load_scene", "Scene", "Mesh", "Instance", "CameraPath", "CameraKey",

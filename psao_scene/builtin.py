@@ -10,79 +10,13 @@ from typing import Callable
 import numpy as np
 
 from . import builtin_shapes as shapes
-from .animation import Polyline, RollAnimation
-from .meshfile import clean_geometry
-from .model import CameraKey, CameraPath, Instance, Mesh, Scene
-
-
-def rotation_xyz(degrees) -> np.ndarray:
-    """3x3 rotation from Euler angles in degrees, applied about X, then Y, then Z (fixed axes)."""
-    rx, ry, rz = np.radians(np.asarray(degrees, dtype=np.float64))
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    mx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    my = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    mz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return mz @ my @ mx
-
-
-def rotation_axis_angle(axis, degrees: float) -> np.ndarray:
-    """3x3 rotation by `degrees` about `axis` (right-handed, Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    t = np.radians(degrees)
-    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
-
-
-def trs(translate=(0.0, 0.0, 0.0), rotate=None, scale=1.0) -> np.ndarray:
-    """4x4 local-to-world = T * R * S. rotate: Euler degrees (x, y, z) or a 3x3 matrix; scale: float or 3."""
-    m = np.eye(4)
-    r = np.eye(3) if rotate is None else np.asarray(rotate, dtype=np.float64)
-    if r.shape == (3,):
-        r = rotation_xyz(r)
-    m[:3, :3] = r * np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))[None, :]
-    m[:3, 3] = translate
-    return m
-
-
-class SceneBuilder:
-    """Collects cleaned meshes and named instances for a generated scene."""
-
-    def __init__(self, name: str):
-        self.name = name
-        self.meshes: list[Mesh] = []
-        self.instances: list[Instance] = []
-        self.camera_paths: dict[str, CameraPath] = {}
-
-    def mesh(self, name: str, geom: shapes.Geometry, color=(0.8, 0.8, 0.8), double_sided=False) -> int:
-        r = clean_geometry(geom[0], geom[1], f"builtin:{self.name}: mesh '{name}'")
-        self.meshes.append(Mesh(name=name, vertices=r.vertices, faces=r.faces, double_sided=double_sided,
-                                color=tuple(float(c) for c in color)))
-        return len(self.meshes) - 1
-
-    def instance(self, name: str, mesh: int, transform: np.ndarray | None = None, animation=None) -> int:
-        self.instances.append(Instance(name=name, mesh=mesh,
-                                       transform=np.eye(4) if transform is None else transform,
-                                       animation=animation))
-        return len(self.instances) - 1
-
-    def place(self, name: str, geom: shapes.Geometry, transform=None, **mesh_kw) -> int:
-        """A mesh used by exactly one instance of the same name."""
-        return self.instance(name, self.mesh(name, geom, **mesh_kw), transform)
-
-    def camera(self, name: str, keys: list[tuple[float, tuple, tuple]], fov_y=60.0, loop=True) -> None:
-        self.camera_paths[name] = CameraPath(
-            name=name, keys=[CameraKey(float(t), tuple(map(float, e)), tuple(map(float, g))) for t, e, g in keys],
-            fov_y=fov_y, loop=loop)
-
-    def build(self, ao_distance: float) -> Scene:
-        return Scene(name=self.name, meshes=self.meshes, instances=self.instances, ao_distance=ao_distance,
-                     camera_paths=self.camera_paths, source=f"builtin:{self.name}")
-
-
-def quad(p0, p1, p2, p3) -> shapes.Geometry:
-    """One quad, counter-clockwise seen from the side it faces."""
-    return np.array([p0, p1, p2, p3], dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+from .builtin_robots import robots
+from .builtin_space import space
+from .builtin_tangle import tangle
+from .model import Scene
+from .rigid import Polyline, RollAnimation
+from .scene_builder import SceneBuilder, quad
+from .transforms import trs
 
 
 # ------------------------------------------------------------------------------------------- cornell
@@ -218,21 +152,6 @@ def _rolling_boulders(b: SceneBuilder) -> None:
         base = trs(centre[0])
         anim = RollAnimation(base=base, path=Polyline(centre, closed=closed), speed=speed, radius=radius)
         b.instance(f"rolling_boulder{k}", mesh, anim.matrix(0.0), animation=anim)
-
-
-def space() -> Scene:
-    from .builtin_space import space as build  # its own module; it builds on SceneBuilder above
-    return build()
-
-
-def robots() -> Scene:
-    from .builtin_robots import robots as build
-    return build()
-
-
-def tangle() -> Scene:
-    from .builtin_tangle import tangle as build
-    return build()
 
 
 BUILTINS: dict[str, Callable[[], Scene]] = {

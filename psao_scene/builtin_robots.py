@@ -14,10 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import builtin_shapes as shapes
-from .animation import PathAnimation, Polyline, Skin, axis_angle_matrix, topological_order
-from .builtin import SceneBuilder, trs
 from .meshfile import clean_geometry
 from .model import Mesh, Scene
+from .rigid import PathAnimation, Polyline
+from .scene_builder import SceneBuilder
+from .skin import Skin, topological_order
+from .transforms import axis_angle_matrix, trs
 
 # (name, parent, rest position in model space)
 SKELETON = (

@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from . import builtin_shapes as shapes
-from .animation import KeyframeAnimation, RigidKey, axis_angle_matrix, matrix_to_quat
-from .builtin import SceneBuilder, trs
 from .model import Scene
+from .rigid import KeyframeAnimation, RigidKey
+from .scene_builder import SceneBuilder
+from .transforms import axis_angle_matrix, matrix_to_quat, trs
 
 RING_RADIUS, RING_TUBE = 12.0, 1.2
 HUB_RADIUS, HUB_LENGTH = 2.5, 10.0

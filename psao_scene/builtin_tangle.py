@@ -13,11 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 from . import builtin_shapes as shapes
-from .animation import Skin
-from .builtin import SceneBuilder, trs
 from .builtin_robots import JOINT, SKELETON, WalkCycle, _two_joint
 from .meshfile import clean_geometry
 from .model import Mesh, Scene
+from .scene_builder import SceneBuilder
+from .skin import Skin
+from .transforms import trs
 
 PLATE = 0.02  # thickness of the armour plates and the wall, metres
 

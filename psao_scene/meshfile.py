@@ -22,7 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import GeometryError, SceneFormatError, SceneNotFound
+from .gltf_skin import skin_from_gltf
 from .model import Instance, Mesh
+from .skin import rebase_to_rest_pose
+from .transforms import trs_matrix
 
 log = logging.getLogger("psao_scene")
 
@@ -351,29 +354,6 @@ class GltfFile:
         return self.doc.nodes[n].name or f"node{n}"
 
 
-def trs_matrix(translation=None, rotation=None, scale=None) -> np.ndarray:
-    """4x4 from glTF TRS: translation (3), rotation quaternion (x, y, z, w), scale (3)."""
-    m = np.eye(4)
-    if rotation is not None:
-        m[:3, :3] = quat_to_matrix(np.asarray(rotation, dtype=np.float64))
-    if scale is not None:
-        m[:3, :3] = m[:3, :3] * np.asarray(scale, dtype=np.float64)[None, :]
-    if translation is not None:
-        m[:3, 3] = translation
-    return m
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from unit quaternions (..., 4) in (x, y, z, w) order."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
 def _triangles(mode: int, idx: np.ndarray) -> np.ndarray | None:
     """Triangle list from a primitive's indices; None for points and lines."""
     if mode == 4:
@@ -516,7 +496,6 @@ def _load_gltf(path: Path, animation: int | str) -> tuple[list[Mesh], list[Insta
             if node.skin is not None and data.joints is not None:
                 if not 0 <= node.skin < len(g.doc.skins or []):
                     raise SceneFormatError(f"{path}: node '{g.node_name(n)}' refers to a missing skin {node.skin}")
-                from .animation import rebase_to_rest_pose, skin_from_gltf
                 mesh.skin = skin_from_gltf(g, node.skin, data.joints[r.source_vertex],
                                            data.weights[r.source_vertex], animation)
                 rebase_to_rest_pose(mesh)

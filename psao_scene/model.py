@@ -19,7 +19,7 @@ class Mesh:
     faces: np.ndarray  # (F, 3) int64
     double_sided: bool = False
     color: tuple[float, float, float] = (0.8, 0.8, 0.8)  # linear RGB albedo for the client's color pass
-    skin: object | None = None  # psao_scene.animation.Skin for skinned meshes (Dynamic issue)
+    skin: object | None = None  # psao_scene.skin.Skin for skinned meshes
 
     def face_normals(self) -> np.ndarray:
         a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
@@ -38,7 +38,7 @@ class Instance:
     name: str
     mesh: int  # index into Scene.meshes
     transform: np.ndarray  # (4, 4) float64 local-to-world at time 0
-    animation: object | None = None  # psao_scene.animation.RigidAnimation (Dynamic issue)
+    animation: object | None = None  # psao_scene.rigid.RigidAnimation
 
 
 @dataclass
@@ -87,7 +87,28 @@ class Scene:
             h.update(i.name.encode())
             h.update(np.int64(i.mesh).tobytes())
             h.update(np.ascontiguousarray(i.transform, dtype=np.float64).tobytes())
-        from psao_scene.animation import animation_hash  # deferred: animation imports this module
-
         h.update(animation_hash(self).encode())
         return h.hexdigest()
+
+
+def animation_hash(scene, times=tuple(np.linspace(0.0, 60.0, 17))) -> str:
+    """sha256 of every animated transform and skinning matrix sampled at `times`: equal on two machines
+    iff they animate the scene alike (Scene.content_hash covers only the geometry at rest)."""
+    def stable(m) -> bytes:
+        # Rounded (and -0.0 folded into 0.0) so last-ulp differences between math libraries do not count.
+        return (np.round(np.asarray(m, dtype=np.float64), 6) + 0.0).tobytes()
+
+    h = hashlib.sha256()
+    for i, inst in enumerate(scene.instances):
+        if inst.animation is not None:
+            h.update(inst.name.encode())
+            for t in times:
+                h.update(stable(inst.animation.matrix(t)))
+    for m in scene.meshes:
+        if m.skin is not None:
+            h.update(m.name.encode())
+            h.update(np.ascontiguousarray(m.skin.joints, dtype=np.int64).tobytes())
+            h.update(stable(m.skin.weights))
+            for t in times:
+                h.update(stable(m.skin.skinning_matrices(t)))
+    return h.hexdigest()

@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .animation import Skin
+from .rigid import instance_transform
+from .skin import Skin
 
 
 @wp.kernel
@@ -176,7 +177,6 @@ class SceneSkinner:
 
     def instance_bounds(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """World-space (lo, hi) of instance i at time t; conservative (a transformed box) when rigid."""
-        from .animation import instance_transform
         inst = self.scene.instances[i]
         m = instance_transform(self.scene, i, t)
         mesh = self.scene.meshes[inst.mesh]

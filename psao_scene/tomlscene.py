@@ -27,7 +27,7 @@ naming the file and the element):
     rotate = [0.0, 45.0, 0.0]    # degrees about X, then Y, then Z (fixed axes), or
                                  #   rotate = { axis = [0, 1, 0], angle = 45.0 } (degrees)
     scale = 1.0                  # > 0, a number or [sx, sy, sz] (negative mirrors, zero is an error)
-    [instance.animation]         # optional: a rigid motion (psao_scene/animation.py); the instance's
+    [instance.animation]         # optional: a rigid motion (psao_scene/rigid.py); the instance's
     kind = "roll"                #   translate/rotate/scale above is its rest pose. kind is one of:
     path = [[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]  # roll/path: centre waypoints (x, z) on the floor
     radius = 0.5                 # roll: rolling radius (the ball's centre height is `translate` y)
@@ -54,69 +54,20 @@ The transform of an instance is T * R * S (scale first, then rotate, then transl
 from __future__ import annotations
 
 import inspect
-import math
 import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from . import builtin_shapes
-from .builtin import rotation_axis_angle, rotation_xyz, trs
 from .errors import SceneError, SceneFormatError, SceneNotFound
 from . import limits
 from .meshfile import clean_geometry, load_mesh_file, merged_mesh
 from .model import CameraKey, CameraPath, Instance, Mesh, Scene
-
-
-class Table:
-    """One TOML table being read: typed getters that raise SceneFormatError naming `where`."""
-
-    def __init__(self, data, where: str, allowed: set[str]):
-        if not isinstance(data, dict):
-            raise SceneFormatError(f"{where}: expected a table")
-        unknown = sorted(set(data) - allowed)
-        if unknown:
-            raise SceneFormatError(f"{where}: unknown key '{unknown[0]}' (allowed: {', '.join(sorted(allowed))})")
-        self.data, self.where = data, where
-
-    def fail(self, msg: str) -> SceneFormatError:
-        return SceneFormatError(f"{self.where}: {msg}")
-
-    def has(self, key: str) -> bool:
-        return key in self.data
-
-    def text(self, key: str, default: str | None = None) -> str:
-        v = self.data.get(key, default)
-        if not isinstance(v, str) or not v:
-            raise self.fail(f"'{key}' must be a non-empty string")
-        return v
-
-    def flag(self, key: str, default: bool) -> bool:
-        v = self.data.get(key, default)
-        if not isinstance(v, bool):
-            raise self.fail(f"'{key}' must be true or false")
-        return v
-
-    def number(self, key: str, default: float | None = None, positive: bool = False) -> float:
-        v = self.data.get(key, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise self.fail(f"'{key}' must be a finite number, got {v!r}")
-        if positive and v <= 0:
-            raise self.fail(f"'{key}' must be > 0, got {v!r}")
-        return float(v)
-
-    def vec(self, key: str, n: int = 3, default=None) -> np.ndarray:
-        v = self.data.get(key, default)
-        if (not isinstance(v, list) or len(v) != n
-                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
-            raise self.fail(f"'{key}' must be a list of {n} finite numbers, got {v!r}")
-        return np.asarray(v, dtype=np.float64)
-
-    def tables(self, key: str) -> list:
-        v = self.data.get(key, [])
-        if not isinstance(v, list):
-            raise self.fail(f"'{key}' must be an array of tables ([[{key}]])")
-        return v
+from .skin import TimeShift
+from .toml_animation import parse_animation
+from .toml_fields import Table, rotation_of, scale_of
+from .transforms import trs
 
 
 def load_toml_scene(path: Path) -> Scene:
@@ -229,7 +180,6 @@ def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
     mesh = ms[0]
     mesh.name, mesh.double_sided, mesh.color = name, fields["double_sided"], fields["color"]
     if t.has("animation_offset"):
-        from .animation import TimeShift
         mesh.skin.animator = TimeShift(mesh.skin.animator, t.number("animation_offset"))
     return mesh
 
@@ -255,30 +205,10 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Insta
         transform = trs(t.vec("translate", 3, [0, 0, 0]), rotation_of(t), scale_of(t))
         animation = None
         if t.has("animation"):
-            from .animation import parse_animation
             animation = parse_animation(t.data["animation"], f"{t.where}: animation", transform)
             transform = animation.matrix(0.0)
         out.append(Instance(name=name, mesh=mesh_ids[mesh], transform=transform, animation=animation))
     return out
-
-
-def rotation_of(t: Table) -> np.ndarray:
-    r = t.data.get("rotate", [0, 0, 0])
-    if isinstance(r, dict):
-        rt = Table(r, f"{t.where}: rotate", {"axis", "angle"})
-        axis = rt.vec("axis")
-        if np.linalg.norm(axis) == 0:
-            raise rt.fail("'axis' must not be zero")
-        return rotation_axis_angle(axis, rt.number("angle"))
-    return rotation_xyz(t.vec("rotate", 3, [0, 0, 0]))
-
-
-def scale_of(t: Table) -> np.ndarray:
-    s = t.data.get("scale", 1.0)
-    v = np.full(3, t.number("scale", 1.0)) if not isinstance(s, list) else t.vec("scale")
-    if np.any(v == 0):
-        raise t.fail(f"'scale' must not be zero, got {s!r}")
-    return v
 
 
 def _camera_paths(path: Path, tables: list) -> dict[str, CameraPath]:
@@ -305,4 +235,3 @@ def _camera_paths(path: Path, tables: list) -> dict[str, CameraPath]:
             raise t.fail("needs at least one [[camera_path.key]]")
         out[name] = CameraPath(name=name, keys=keys, fov_y=fov, loop=t.flag("loop", True))
     return out
-

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol import gridformat as gf
-from psao_scene.animation import instance_transform
+from psao_scene.rigid import instance_transform
 from psao_scene.model import Scene
 from psao_scene.skinning import SceneSkinner, surface_points
 from psao_server.bake import scene_world_geometry

@@ -7,53 +7,20 @@ from __future__ import annotations
 import sys
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
-from psao_scene import limits as scene_limits
 from psao_scene.model import Scene
-from psao_server.errors import ConfigError
-from psao_server.gapfill import GapFillSettings, fill_gaps
-from psao_server.grid import Grid, GridSettings
-from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings, resolve_density
-from psao_server.points import PointSet, PointSettings, generate_scene_points, instance_seed, spawn_uniform, triangle_areas
-from psao_server.tracer import TraceSettings, Tracer, make_tracer
-
-
-@dataclass
-class BakeSettings:
-    density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
-    points: float | None = None  # total point budget instead of a density
-    max_points: float = DEFAULT_MAX_POINTS  # refuse a setting whose estimate exceeds this many points
-    rays: int = 128  # rays per point
-    seed: int = 0
-    tracer: str = "embree"  # back-end name, see psao_server.tracer
-    workers: int = 0  # tracer processes; 0 = all cores
-    min_points: int = 64  # per instance
-    spawn_ratio: float = 2.0  # spawned / kept before elimination; the paper's 2; 4 closes most holes (slower)
-    grid: GridSettings = field(default_factory=GridSettings)
-    gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
-
-    def check(self) -> None:
-        self.sampling().check()
-        lim = scene_limits.current()
-        if not 1.0 <= self.spawn_ratio <= lim.max_spawn_ratio:
-            raise ConfigError(f"spawn ratio must be within 1..{lim.max_spawn_ratio:g}, got {self.spawn_ratio} "
-                              f"(psao --scene-limit max_spawn_ratio=X raises the limit)")
-        if not 1 <= self.rays <= lim.max_rays:
-            raise ConfigError(f"rays must be within 1..{lim.max_rays}, got {self.rays} "
-                              f"(psao --scene-limit max_rays=N raises the limit)")
-        if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
-            raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
-
-
-    def sampling(self) -> SamplingSettings:
-        return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points)
-
+from psao_server.gapfill import fill_gaps
+from psao_server.grid import Grid
+from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
+from psao_server.sampling import resolve_density
+from psao_server.settings import BakeSettings, GridSettings, PointSettings, TraceSettings
+from psao_server.tracer import Tracer, make_tracer
 
 @dataclass
 class BakeResult:
@@ -84,19 +51,20 @@ def to_local(transform: np.ndarray, world_pos: np.ndarray, world_normal: np.ndar
     return pos, nrm.astype(np.float32)
 
 
-def back_side_mask(ps: PointSet, double_sided: bool) -> np.ndarray | None:
-    """Back-side points of a double-sided instance: generate_points appends them as the second half."""
-    if not double_sided:
-        return None
-    return np.arange(len(ps)) >= len(ps) // 2
+def scene_point_ids(pointsets: list[PointSet]) -> list[np.ndarray]:
+    """The stable id of every point, per instance: 0..P-1 over the scene's point sets in instance order.
+    The grid stores them (they seed each point's rays); the server tick indexes its arrays by them."""
+    sizes = [len(ps) for ps in pointsets]
+    first = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return [np.arange(first[i], first[i + 1], dtype=np.int64) for i in range(len(sizes))]
 
 
 def build_scene_grid(scene: Scene, pointsets: list[PointSet], settings: GridSettings | None = None) -> Grid:
     """The grid of a scene's point sets, one per instance: double-sided instances flagged, their
-    back-side points (the second half of their PointSet) in back-side cells."""
+    back-side points (PointSet.back) in back-side cells, every point under its scene_point_ids id."""
     flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
-    return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, back_side_mask(ps, bool(f)))
-                       for ps, f in zip(pointsets, flags)], settings)
+    return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, ps.back if f else None)
+                       for ps, f in zip(pointsets, flags)], settings, point_ids=scene_point_ids(pointsets))
 
 
 def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:

@@ -6,24 +6,62 @@ import json
 import sys
 from pathlib import Path
 
+from psao.options import default
 from psao_server import sampling
 from psao_server.errors import ConfigError
 from psao_server.outputs import check_output_path, write_atomically
+from psao_server.settings import BakeSettings, GapFillSettings
+from psao_server.tracer import BACKENDS
+
+
+def add_bake_arguments(p: argparse.ArgumentParser, density: bool = True) -> None:
+    """The bake's options, shared by every sub-command that bakes (bake, serve, bench: it has its own
+    --densities, so density=False leaves --density out)."""
+    if density:
+        sampling.add_arguments(p)  # --density, --points, --max-points
+    p.add_argument("--rays", type=int, default=default(BakeSettings, "rays"), help="AO rays per point in the bake")
+    p.add_argument("--seed", type=int, default=default(BakeSettings, "seed"), help="seed of the points and rays")
+    p.add_argument("--spawn-ratio", type=float, default=default(BakeSettings, "spawn_ratio"),
+                   help="points spawned per point kept before elimination (2 as the paper; 4 leaves fewer holes)")
+    p.add_argument("--gap-fill", type=int, default=default(BakeSettings, "gap_fill.passes"), metavar="PASSES",
+                   help="rounds of adding points where the client's lookup finds none (0: off)")
+    p.add_argument("--gap-fill-ratio", type=float, default=default(BakeSettings, "gap_fill.ratio"), metavar="R",
+                   help="random candidates per kept point and round for --gap-fill")
+    add_tracer_arguments(p)
+
+
+def add_tracer_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tracer", choices=BACKENDS, default=default(BakeSettings, "tracer"), help="tracer back-end")
+    p.add_argument("--workers", type=int, default=default(BakeSettings, "workers"),
+                   help="tracer worker processes (0: all cores)")
+
+
+def bake_settings(args: argparse.Namespace) -> BakeSettings:
+    """BakeSettings from the options of add_bake_arguments."""
+    if args.workers < 0:
+        raise ConfigError(f"--workers must be >= 0, got {args.workers}")
+    points = sampling.bake_kwargs(args) if hasattr(args, "points") else {}
+    settings = BakeSettings(**points, rays=args.rays, seed=args.seed, tracer=args.tracer, workers=args.workers,
+                            spawn_ratio=args.spawn_ratio,
+                            gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
+    settings.check()  # a bad number fails before the scene loads
+    return settings
+
+
+def bake_arguments(settings: BakeSettings) -> list[str]:
+    """The options of add_bake_arguments that give `settings` (for a `psao bake` or `psao serve` process)."""
+    points = (["--density", f"{settings.density:g}"] if settings.density is not None else
+              ["--points", f"{settings.points:g}"] if settings.points is not None else [])
+    return [*points, "--max-points", f"{settings.max_points:g}", "--rays", str(settings.rays), "--seed", str(settings.seed),
+            "--spawn-ratio", f"{settings.spawn_ratio:g}", "--gap-fill", str(settings.gap_fill.passes),
+            "--gap-fill-ratio", f"{settings.gap_fill.ratio:g}", "--tracer", settings.tracer,
+            "--workers", str(settings.workers)]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="builtin:NAME, a scene .toml, or a mesh file (glTF, GLB, OBJ, ...)")
-    sampling.add_arguments(p)
-    p.add_argument("--rays", type=int, default=128, help="AO rays per point (default 128)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--spawn-ratio", type=float, default=2.0,
-                   help="points spawned per point kept before elimination (default 2, as the paper; 4 leaves fewer holes)")
-    p.add_argument("--gap-fill", type=int, default=0, metavar="PASSES",
-                   help="rounds of adding points where the client's lookup finds none (default 0: off)")
-    p.add_argument("--gap-fill-ratio", type=float, default=4.0, metavar="R",
-                   help="random candidates per kept point and round for --gap-fill (default 4)")
+    add_bake_arguments(p)
     p.add_argument("--ao-distance", type=float, default=None, help="override the scene's AO distance (world units)")
-    p.add_argument("--tracer", default="embree", help="tracer back-end: embree (default) or warp")
     p.add_argument("--out", type=Path, default=None, help="grid file to write (.npz); default out/<scene>-N<density>.npz")
     p.add_argument("--probes", type=int, default=20000, help="random surface probes for recon_mae (0 = skip)")
     p.add_argument("--probe-rays", type=int, default=1024, help="rays per probe for the ground truth")
@@ -32,15 +70,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
-    from psao_server.gapfill import GapFillSettings
+    from psao_server.bake import bake_scene, reconstruction_error, sample_probes
 
     if args.probes < 0 or args.probe_rays < 1:
         raise ConfigError("--probes must be >= 0 and --probe-rays >= 1")
-    settings = BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed, tracer=args.tracer,
-                            spawn_ratio=args.spawn_ratio,
-                            gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
-    settings.check()  # a bad number fails before the scene loads
+    settings = bake_settings(args)
     out = check_output_path(args.out, ".npz") if args.out is not None else None  # before the work, not after
     scene = load_scene(args.scene, ao_distance=args.ao_distance)
     result = bake_scene(scene, settings)

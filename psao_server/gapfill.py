@@ -6,9 +6,9 @@ lookup (paper eq. 2-4) then has no point with weight > 0 and the client shows AO
 Off by default (BakeSettings.gap_fill.passes = 0: the paper's points only); `psao bake --gap-fill 4`.
 
 Each pass draws fresh uniform candidates (`ratio` per kept point and side), keeps those the grid does
-not cover and that lie inside the instance's grid (a full cell takes further cells of its key), thins them to one per lookup radius and appends them to the instance's PointSet
-(front-side additions before the back-side half of a double-sided instance, so the halves stay aligned
-as bake.back_side_mask expects). The caller rebuilds the grid after each pass.
+not cover and that lie inside the instance's grid (a full cell takes further cells of its key), thins them
+to one per lookup radius and appends them to the instance's PointSet (on a double-sided instance every
+addition on both sides, flagged in PointSet.back). The caller rebuilds the grid after each pass.
 
 "Covered" is decided as the client decides it: a k-d tree over the grid's stored points as the client
 decodes them (quantised positions, octahedral normals) answers most candidates (a neighbour well inside
@@ -29,6 +29,7 @@ from protocol.gridformat import T_D, T_N
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import Grid
+from psao_server.settings import GapFillSettings
 from psao_server.points import PointSet, spawn_uniform, triangle_areas
 
 # The k-d pre-test is stricter than the lookup (distance 0.8 r, margins on eq. 3's tests) because it sees
@@ -37,14 +38,6 @@ from psao_server.points import PointSet, spawn_uniform, triangle_areas
 _KD_RADIUS = 0.8
 _KD_NEIGHBOURS = 8
 _MARGIN = 0.05
-
-
-@dataclass
-class GapFillSettings:
-    passes: int = 0  # candidate rounds; 0 = off (the paper's points only), 4 gets cornell under 0.1% holes
-    ratio: float = 4.0  # candidates per kept point (per side) and pass
-    spacing: float = 1.0  # added points are at least this many lookup radii apart (within one pass)
-    seed: int = 0x6A9F11
 
 
 @dataclass
@@ -133,22 +126,22 @@ def thin(pos: np.ndarray, spacing: float) -> np.ndarray:
 
 def append_points(ps: PointSet, cand: Candidates, front: np.ndarray, back: np.ndarray | None) -> PointSet:
     """PointSet with the chosen candidates added: front side, and for a double-sided set the back side,
-    each after its own half."""
-    def rows(sel, sign):
+    each after the points of its own side (PointSet.back tells the sides apart)."""
+    def rows(sel, sign, on_back):
         return (cand.local_pos[sel], cand.local_normal[sel] * np.float32(sign), cand.faces[sel],
-                cand.bary[sel].astype(np.float32))
+                cand.bary[sel].astype(np.float32), np.full(len(sel), on_back))
+
+    def old(mask):
+        return ps.positions[mask], ps.normals[mask], ps.faces[mask], ps.barycentrics[mask], ps.back[mask]
 
     if back is None:
-        parts = [(ps.positions, ps.normals, ps.faces, ps.barycentrics), rows(front, 1.0)]
+        parts = [old(slice(None)), rows(front, 1.0, False)]
     else:
-        h = len(ps) // 2
-        old_front = (ps.positions[:h], ps.normals[:h], ps.faces[:h], ps.barycentrics[:h])
-        old_back = (ps.positions[h:], ps.normals[h:], ps.faces[h:], ps.barycentrics[h:])
-        # both halves get the union of both sides' additions, so the halves stay the same length
+        # both sides get the union of both sides' additions, so every point keeps its twin on the other side
         union = np.union1d(front, back)
-        parts = [old_front, rows(union, 1.0), old_back, rows(union, -1.0)]
-    pos, nrm, faces, bary = (np.concatenate([p[k] for p in parts]) for k in range(4))
-    return PointSet(positions=pos, normals=nrm.astype(np.float32), faces=faces, barycentrics=bary,
+        parts = [old(~ps.back), rows(union, 1.0, False), old(ps.back), rows(union, -1.0, True)]
+    pos, nrm, faces, bary, on_back = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    return PointSet(positions=pos, normals=nrm.astype(np.float32), faces=faces, barycentrics=bary, back=on_back,
                     poisson_radius=ps.poisson_radius, spawned=ps.spawned)
 
 
@@ -159,7 +152,7 @@ def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.rando
     out, added = list(pointsets), 0
     for i, ps in enumerate(pointsets):
         double = bool(grid.instances[i]["flags"] & gf.FLAG_DOUBLE_SIDED)
-        per_side = len(ps) // 2 if double else len(ps)
+        per_side = int(np.count_nonzero(~ps.back))
         cand = surface_candidates(scene, i, ratio, per_side, rng)
         radius = float(grid.instances[i]["radius"])
         sides = [(1.0, False)] + ([(-1.0, True)] if double else [])

@@ -1,7 +1,7 @@
 """Sparse hash grid of AO points, one virtual grid per mesh instance (paper section 3.2, DESIGN.md).
 
 The arrays `instances`, `buckets` and `cells` are exactly what goes on the wire and into the client's
-storage buffers (layout in protocol/gridformat.py). Beside them the server keeps, per cell slot and point
+lookup tables (layout in protocol/gridformat.py). Beside them the server keeps, per cell slot and point
 index, what the client never needs: the exact local position (tracing from the quantised one could start
 rays below the surface), the unquantised normal, a stable point id (it seeds the point's ray directions,
 so unchanged geometry gives unchanged AO) and the instance the cell belongs to.
@@ -21,22 +21,9 @@ import numpy as np
 from protocol import gridformat as gf
 from protocol import pointword as pw
 from psao_server.errors import GridError
+from psao_server.settings import GridSettings
 
 NO_POINT = -1
-
-
-@dataclass
-class GridSettings:
-    radius_factor: float = 2.0  # interpolation radius r = radius_factor * Poisson radius of the instance
-    cell_factor: float = 2.0  # cell size s = cell_factor * r; must be >= 2 (DESIGN invariant)
-    bucket_factor: float = 4.0  # buckets = next_pow2(bucket_factor * cells / 8), as in the paper
-    pool_headroom: float = 0.25  # spare cell slots beyond the initial allocation (fraction)
-
-    def __post_init__(self):
-        if self.cell_factor < 2.0:
-            raise GridError(f"cell_factor must be >= 2 so the 2x2x2 lookup sees every point within r, got {self.cell_factor}")
-        if self.radius_factor <= 0 or self.bucket_factor <= 0:
-            raise GridError("radius_factor and bucket_factor must be > 0")
 
 
 @dataclass

@@ -21,23 +21,9 @@ from scipy.spatial import cKDTree
 from psao_scene.model import Mesh, Scene
 from psao_server.errors import ConfigError
 from psao_server.points_elim import eliminate_csr
+from psao_server.settings import PointSettings
 
 _HEX = 2.0 * np.sqrt(3.0)  # area of the hexagonal cell per sample is _HEX * r^2 for Poisson radius r
-
-
-@dataclass
-class PointSettings:
-    density: float = 256.0  # N: final points per world unit^2 (after elimination); spawn_ratio * N spawned
-    min_points: int = 64  # final points per instance and side, so small objects are never empty
-    seed: int = 0
-    alpha: float = 8.0  # Yuksel's weight exponent
-    spawn_ratio: float = 2.0  # spawned / kept; the paper removes half
-    weight_limiting: bool = True  # Yuksel's weight limiting (beta, gamma below), as in his reference code
-    beta: float = 0.65  # weight limiting: d_min = 2 r_max * (1 - (kept / spawned)^gamma) * beta
-    gamma: float = 1.5
-    # Neighbours whose normals make a cosine <= this do not weigh on each other, so the two faces of a thin
-    # slab (cosine -1) keep their own density instead of sharing one. -1.0 or less turns the gate off.
-    normal_cos_min: float = -0.5
 
 
 @dataclass
@@ -46,23 +32,12 @@ class PointSet:
     normals: np.ndarray  # (P, 3) float32 unit, mesh-local, facing the side the point is on
     faces: np.ndarray  # (P,) int64, triangle of origin
     barycentrics: np.ndarray  # (P, 3) float32, weights of the triangle's vertices 0, 1, 2
+    back: np.ndarray  # (P,) bool: on the back side of a double-sided mesh (normal flipped, back-side cells)
     poisson_radius: float  # local units: sqrt(A_local / (2 sqrt(3) P_side)), P_side = points on one side
     spawned: int  # points spawned before elimination (both sides counted)
 
     def __len__(self) -> int:
         return len(self.positions)
-
-
-def check_settings(settings: PointSettings) -> None:
-    """ConfigError for a setting out of range, naming it."""
-    if not np.isfinite(settings.density) or settings.density <= 0:
-        raise ConfigError(f"density must be > 0, got {settings.density}")
-    if settings.min_points < 1:
-        raise ConfigError(f"min_points must be >= 1, got {settings.min_points}")
-    if not settings.spawn_ratio >= 1.0:
-        raise ConfigError(f"spawn_ratio must be >= 1, got {settings.spawn_ratio}")
-    if not settings.alpha > 0:
-        raise ConfigError(f"alpha must be > 0, got {settings.alpha}")
 
 
 def instance_seed(seed: int, instance_index: int) -> int:
@@ -149,7 +124,7 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
 
     `seed` overrides settings.seed; callers mix the instance index in (instance_seed) so instances differ.
     """
-    check_settings(settings)
+    settings.check()
     world_vertices = mesh.vertices @ _check_geometry(mesh, transform).T  # translation left out, see above
     world_areas = triangle_areas(world_vertices, mesh.faces)
     world_area = float(world_areas.sum())
@@ -171,16 +146,19 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
     positions = _on_triangles(mesh.vertices, mesh.faces, faces, bary)
     normals = normals_local[faces]
     sides = 2 if mesh.double_sided else 1
-    if mesh.double_sided:
+    back = np.zeros(len(positions), bool)
+    if mesh.double_sided:  # every point again on the back side, with the opposite normal
         positions = np.concatenate([positions, positions])
         normals = np.concatenate([normals, -normals])
         faces = np.concatenate([faces, faces])
         bary = np.concatenate([bary, bary])
+        back = np.concatenate([back, ~back])
     return PointSet(
         positions=positions,
         normals=normals.astype(np.float32),
         faces=faces,
         barycentrics=bary.astype(np.float32),
+        back=back,
         poisson_radius=float(np.sqrt(local_area / (_HEX * keep))),
         spawned=spawn * sides,
     )

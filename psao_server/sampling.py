@@ -54,13 +54,13 @@ def add_arguments(p) -> None:
     """--density / --points / --max-points on an argparse parser (bake and serve)."""
     group = p.add_mutually_exclusive_group()
     group.add_argument("--density", type=float, default=None,
-                       help=f"points per world unit^2 after elimination (default: {POINTS_PER_AO_AREA:g} / AO distance^2, "
-                            "the courtyard's 256 at its AO distance 1.5, so files in any units get the same sampling)")
+                       help=f"points per world unit^2 after elimination; without it {POINTS_PER_AO_AREA:g} / AO distance^2, "
+                            "the courtyard's 256 at its AO distance 1.5, so files in any units get the same sampling")
     group.add_argument("--points", type=float, default=None, metavar="COUNT",
                        help="total point budget instead of a density (e.g. 2e6)")
     p.add_argument("--max-points", type=float, default=DEFAULT_MAX_POINTS, metavar="COUNT",
                    help=f"refuse, before generating anything, a setting estimated above this many points "
-                        f"(default {DEFAULT_MAX_POINTS:,}, about {DEFAULT_MAX_POINTS * BYTES_PER_POINT / 2 ** 30:.0f} GiB)")
+                        f"({DEFAULT_MAX_POINTS:,} is about {DEFAULT_MAX_POINTS * BYTES_PER_POINT / 2 ** 30:.0f} GiB)")
 
 
 def bake_kwargs(args) -> dict:

@@ -21,11 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-@dataclass
-class ViewSettings:
-    fov_margin: float = 20.0  # degrees added to the horizontal and vertical field of view
-    distance_margin: float = 1.0  # world units the frustum's planes are pushed outwards
-
 
 # ---------------------------------------------------------------------------------------- views
 

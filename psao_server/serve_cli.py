@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import ipaddress
+import json
 import logging
 import os
 import signal
@@ -11,30 +13,30 @@ import socket
 import sys
 from pathlib import Path
 
-from psao_server import sampling
+from protocol.codecs import CODEC_NAMES, codec_name
+from protocol.updates import LAYOUT_NAMES
+from psao.options import default
+from psao_server.bake_cli import add_bake_arguments, bake_settings
 from psao_server.errors import ConfigError
-
-CODEC_CHOICES = ("zstd", "lz4", "none")
+from psao_server.service import ServeSettings
+from psao_server.settings import BakeSettings, TickSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="builtin:NAME, a scene .toml, or a mesh file")
-    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default loopback only)")
-    p.add_argument("--port", type=int, default=8765, help="TCP port (0 picks a free one; default 8765)")
-    sampling.add_arguments(p)
-    p.add_argument("--rays", type=int, default=128,
-                   help="AO rays per point: the bake's, and what the server tick accumulates to (default 128)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--host", default=default(ServeSettings, "host"), help="interface to listen on (loopback only by default)")
+    p.add_argument("--port", type=int, default=default(ServeSettings, "port"), help="TCP port (0 picks a free one)")
+    add_bake_arguments(p)
     p.add_argument("--grid", type=Path, default=None, help="serve this baked grid (.npz from psao bake) instead of baking")
-    p.add_argument("--codec", choices=CODEC_CHOICES, default="zstd",
-                   help="payload compression (default zstd: one stream per connection, level 15, lazy)")
-    p.add_argument("--zstd-frames", action="store_true",
-                   help="with zstd, compress every message on its own as the paper does (no stream)")
-    p.add_argument("--layout", choices=("packed", "plain"), default="packed",
-                   help="update layout: packed (default) or the paper's plain uint32 layout")
+    p.add_argument("--codec", choices=tuple(CODEC_NAMES), default=codec_name(default(ServeSettings, "codec")),
+                   help="payload compression: zstd-stream (one zstd stream per connection), zstd (every message "
+                        "on its own, as the paper), lz4 or none; the names psao client --codecs takes")
+    p.add_argument("--layout", choices=tuple(LAYOUT_NAMES), default="packed",
+                   help="update layout: packed or the paper's plain uint32 layout")
     p.add_argument("--stats-json", type=Path, default=None, metavar="FILE",
                    help="append one JSON line per tick: points considered/traced/changed, dirty rows, stage times, bytes")
-    p.add_argument("--tick-hz", type=float, default=60.0, help="server ticks per second, 5..60 (default 60)")
+    p.add_argument("--json", action="store_true", help="print one JSON object with the final statistics as the last line")
+    p.add_argument("--tick-hz", type=float, default=default(ServeSettings, "tick_hz"), help="server ticks per second, 5..60")
     p.add_argument("--token", default="",
                    help="clients must present this token (visible in the process list: prefer PSAO_TOKEN or --token-file)")
     p.add_argument("--token-file", type=Path, default=None, metavar="FILE",
@@ -49,18 +51,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "server's own page; repeatable. Clients without an Origin header are always allowed")
     p.add_argument("--tls-cert", type=Path, default=None, metavar="PEM", help="serve wss:// with this certificate chain")
     p.add_argument("--tls-key", type=Path, default=None, metavar="PEM", help="the private key of --tls-cert")
-    p.add_argument("--max-clients", type=int, default=128, metavar="N",
-                   help="open connections at most; more are refused with SERVER_FULL (default 128)")
-    p.add_argument("--send-buffer", type=int, default=128 * 1024, metavar="BYTES",
+    p.add_argument("--max-clients", type=int, default=default(ServeSettings, "max_clients"), metavar="N",
+                   help="open connections at most; more are refused with SERVER_FULL")
+    p.add_argument("--send-buffer", type=int, default=default(ServeSettings, "send_buffer"), metavar="BYTES",
                    help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
     p.add_argument("--animate", action="store_true",
                    help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
     p.add_argument("--tick-rays", type=int, default=None, metavar="R",
                    help="with --animate or --progressive: rays per point per tick round, accumulated over ticks up "
-                        "to --rays (default 8); --progressive also traces its first grid with them")
+                        "to --rays (8 without it); --progressive also traces its first grid with them")
     p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
-                        "(default: 60%% of the tick period less the other stages); waiting points queue")
+                        "(60%% of the tick period less the other stages without it); waiting points queue")
     p.add_argument("--progressive", action="store_true",
                    help="stream a first grid traced with --tick-rays at once, then refine it to --rays in the "
                         "ticks' spare budget, streaming the improvements")
@@ -102,12 +104,12 @@ class AtRest:
         return self.tick.prepare(0.0)
 
 
-def _ticking(args):
+def _ticking(args, bake_with: BakeSettings):
     """(scene, grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point
     sets): animating the scene with --animate, refining a first few-ray grid with --progressive."""
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
-    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.bake import bake_scene
+    from psao_server.tick import ServerTick
 
     flag = "--animate" if args.animate else "--progressive"
     if args.grid is not None:
@@ -117,10 +119,11 @@ def _ticking(args):
     budget = _budget(args)
     scene = load_scene(args.scene)
     bake_rays = budget.round_rays if args.progressive else args.rays
-    bake = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=bake_rays, seed=args.seed))
+    bake = bake_scene(scene, dataclasses.replace(bake_with, rays=bake_rays))
     # The bake's AO counts as that many rays of every point's history: with --rays it is converged, with
     # --progressive the ticks' spare budget refines it.
-    settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True)
+    settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True, tracer=args.tracer,
+                            workers=args.workers)
     if not args.animate:
         settings.fit_grid = False
     tick = ServerTick(bake, settings)  # closes the bake's tracer, starts its own
@@ -132,10 +135,10 @@ def _ticking(args):
     return scene, tick.grid, tick
 
 
-def _load(args):
+def _load(args, bake_with: BakeSettings):
     """(scene, grid) from a bake or a grid file."""
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.bake import bake_scene
     from psao_server.grid import Grid
 
     scene = load_scene(args.scene)
@@ -146,7 +149,7 @@ def _load(args):
         if len(grid.instances) != len(scene.instances):
             raise ConfigError(f"{args.grid} has {len(grid.instances)} instances, {args.scene} has {len(scene.instances)}")
         return scene, grid
-    result = bake_scene(scene, BakeSettings(**sampling.bake_kwargs(args), rays=args.rays, seed=args.seed))
+    result = bake_scene(scene, bake_with)
     result.tracer.close()
     logging.getLogger("psao.serve").info(
         "baked %s at N=%g: %d points in %d cells", scene.name, result.stats["density"], result.stats["points_kept"],
@@ -155,12 +158,7 @@ def _load(args):
 
 
 def _settings(args):
-    from protocol.codecs import Codec
-    from protocol.updates import LAYOUT_NAMES
-    from psao_server.service import ServeSettings
-
-    codec = {"zstd": Codec.ZSTD if args.zstd_frames else Codec.ZSTD_STREAM, "lz4": Codec.LZ4,
-             "none": Codec.NONE}[args.codec]
+    codec = CODEC_NAMES[args.codec]
     if args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
     if args.allow_edits and (args.animate or getattr(args, "progressive", False)):
@@ -243,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging()
     settings = _settings(args)
-    sampling.SamplingSettings(**sampling.bake_kwargs(args)).check()  # a bad number fails before the scene loads
+    bake = bake_settings(args)  # a bad number fails before the scene loads
     if not (args.animate or args.progressive) and (args.tick_budget_ms is not None or args.tick_rays is not None):
         raise ConfigError("--tick-budget-ms and --tick-rays need --animate or --progressive (no tick runs otherwise)")
     if not settings.token and not is_loopback(settings.host):
@@ -254,23 +252,23 @@ def run(args: argparse.Namespace) -> int:
         tls_context(settings.tls_cert, settings.tls_key)  # a bad certificate fails before the bake
     listener = bind_listener(settings.host, settings.port)
     if args.animate or args.progressive:
-        scene, grid, tick = _ticking(args)
+        scene, grid, tick = _ticking(args, bake)
         transforms = tick.transforms
     else:
-        scene, grid = _load(args)
+        scene, grid = _load(args, bake)
         transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
                       scene_blob=scene_blob(scene))
     try:
-        return asyncio.run(_serve(service, listener))
+        return asyncio.run(_serve(service, listener, args.json))
     finally:
         listener.close()
         if hasattr(tick, "close"):
             tick.close()
 
 
-async def _serve(service, listener: socket.socket) -> int:
+async def _serve(service, listener: socket.socket, as_json: bool = False) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     got: list[str] = []
@@ -281,4 +279,7 @@ async def _serve(service, listener: socket.socket) -> int:
     logging.getLogger("psao.serve").info(
         "stopped on %s after %d ticks: %d connections, %d rejected, %.1f MB sent",
         got[0] if got else "request", c.ticks, c.connections, c.rejected, c.bytes_out / 1e6)
+    if as_json:
+        totals = {k: v for k, v in dataclasses.asdict(c).items() if isinstance(v, (int, float))}
+        print(json.dumps({"stopped_by": got[0] if got else "request", **totals}), flush=True)
     return 0

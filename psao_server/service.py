@@ -2,7 +2,7 @@
 
 Thin by design: protocol decisions live in protocol.session (sans-I/O), streaming state in
 psao_server.clients. The service knows nothing about what a tick does: it calls `tick(grid, t)` at the
-tick rate (the test hook today, the real server tick of the Dynamic issue later), takes the grid's
+tick rate (psao_server.tick.ServerTick, or a test hook of psao_server.testhook), takes the grid's
 dirty sets and hands them to every client. Each client's sender sends the snapshot, then waits for work
 and sends one Update at a time: while a message is being written (a slow reader), ticks only accumulate
 in that client's pending sets, so its queue never holds more than one message.
@@ -100,7 +100,7 @@ class ServeSettings:
 
 
 class StaticTransforms:
-    """Instance transforms that change only by SceneEdit (until the Dynamic issue animates them)."""
+    """Instance transforms of a server without animation: they change only by SceneEdit."""
 
     def __init__(self, transforms: np.ndarray):
         self.array = np.ascontiguousarray(transforms, dtype=np.float32).reshape(-1, 4, 4)

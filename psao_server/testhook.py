@@ -1,4 +1,4 @@
-"""Edits that drive the grid until the real server tick (Dynamic issue) exists.
+"""Random grid edits for tests (`psao serve --test-edits K`): AO changes, moves, frees and allocations.
 
 Both are per-tick hooks with the service's tick signature `tick(grid, t) -> None` and edit the grid only
 through its public edit API, so everything the streaming layer sees (dirty cells and buckets, cells

@@ -7,9 +7,8 @@
     plan = tick.prepare(t); tick.apply(plan)           # the same in two halves: prepare writes no grid
     tick.transforms()                                  # (n, 4, 4) float32, for every Update
 
-Points are identified by their stable point id (Grid.build numbers them instance by instance in
-PointSet order, so id - first id of the instance is the point's index in its PointSet: that is how a
-skinned point finds its triangle). The tick keeps per id: instance, current grid location (slot, index),
+Points are identified by their stable point id (bake.scene_point_ids: ids_of[i][k] is the id of point
+k of instance i's PointSet, which is how a skinned point finds its triangle). The tick keeps per id: instance, current grid location (slot, index),
 local position and normal, world position (static points: computed once), and a stale flag (a point the
 selection wanted but no client could see).
 
@@ -32,56 +31,25 @@ Two ways to trace (TickSettings.budget):
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from protocol import pointword as pw
 from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds,
                                  to_world_points)
-from psao_server.bake import BakeResult, back_side_mask, scene_center, to_world
-from psao_server.budget import BudgetSettings, RefineQueue, TraceBudget, measure_tracer
+from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
+from psao_server.budget import RefineQueue, TraceBudget, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
-from psao_server.selection import (BlockIndex, MotionInput, ViewSettings, camera_planes, in_any_view, reach_boxes,
-                                   rigid_in_company, static_points_near)
-from psao_server.tracer import TraceSettings, make_tracer
+from psao_server.selection import (BlockIndex, MotionInput, camera_planes, in_any_view, reach_boxes, rigid_in_company,
+                                   static_points_near)
+from psao_server.settings import TickSettings, TraceSettings
+from psao_server.tracer import make_tracer
 
 log = logging.getLogger("psao.tick")
-
-
-@dataclass
-class TickSettings:
-    threshold: int = 2  # AO codes (of 255): a traced point is written only when |new - stored| > threshold
-    rays: int = 32  # rays per traced point
-    seed: int = 0  # ray seed; equal to the bake's so a synced bake needs no re-trace
-    selection: bool = True  # False: re-trace every visible point every tick (the baseline)
-    view: ViewSettings = field(default_factory=ViewSettings)
-    tracer: str = "embree"
-    workers: int = 0  # tracer processes, 0 = all cores
-    block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
-    fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
-    history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
-    budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)
-
-    def check(self) -> None:
-        if not 0 <= self.threshold <= 255:
-            raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")
-        if self.rays < 1:
-            raise ConfigError(f"tick rays must be >= 1, got {self.rays}")
-        b = self.budget
-        if b is not None:
-            if not (math.isfinite(b.tick_hz) and b.tick_hz > 0):
-                raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
-            if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
-                raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
-            if b.round_rays < 1 or b.min_points < 1:
-                raise ConfigError(f"round rays and min points must be >= 1, got {b.round_rays}, {b.min_points}")
-        if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
-            raise ConfigError(f"view margins out of range: {self.view}")
 
 
 @dataclass
@@ -166,14 +134,15 @@ class ServerTick:
 
     # ------------------------------------------------------------------ set-up
     def _init_points(self, bake: BakeResult) -> None:
-        sizes = [len(ps) for ps in bake.pointsets]
-        self.first_id = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        n = int(self.first_id[-1])
-        self.inst_of = np.repeat(np.arange(len(sizes)), sizes)
-        self.local_pos = np.concatenate([ps.positions for ps in bake.pointsets]).astype(np.float64) if n else np.zeros((0, 3))
-        self.local_nrm = np.concatenate([ps.normals for ps in bake.pointsets]).astype(np.float32) if n else np.zeros((0, 3), np.float32)
-        self.back = np.concatenate([np.zeros(len(ps), bool) if (b := back_side_mask(ps, self.scene.meshes[inst.mesh].double_sided)) is None
-                                    else b for ps, inst in zip(bake.pointsets, self.scene.instances)]) if n else np.zeros(0, bool)
+        self.ids_of = scene_point_ids(bake.pointsets)  # per instance: the id of each point of its PointSet
+        n = sum(len(ps) for ps in bake.pointsets)
+        self.inst_of = np.zeros(n, np.int64)
+        self.local_pos = np.zeros((n, 3))
+        self.local_nrm = np.zeros((n, 3), np.float32)
+        self.back = np.zeros(n, bool)
+        for i, (ps, ids) in enumerate(zip(bake.pointsets, self.ids_of)):
+            self.inst_of[ids] = i
+            self.local_pos[ids], self.local_nrm[ids], self.back[ids] = ps.positions, ps.normals, ps.back
         self.slot = np.full(n, -1, np.int64)
         self.index = np.full(n, -1, np.int64)
         self._relocate_all()
@@ -400,7 +369,7 @@ class ServerTick:
         for i, sp in self.skinned.items():
             mesh = self.scene.meshes[self.scene.instances[i].mesh]
             pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
-            ids = np.arange(self.first_id[i], self.first_id[i + 1])
+            ids = self.ids_of[i]
             change = np.any(pos != self.local_pos[ids], axis=1) | np.any(nrm != self.local_nrm[ids], axis=1)
             self.local_pos[ids], self.local_nrm[ids] = pos, nrm
             moved.append(ids[change & self.present()[ids]])
@@ -445,7 +414,7 @@ class ServerTick:
         out[self.static_ids[near]] = True
         standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
         for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
-            out[self.first_id[i]:self.first_id[i + 1]] = True
+            out[self.ids_of[i]] = True
         return out
 
     def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

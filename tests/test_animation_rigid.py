@@ -10,10 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from psao_scene import SceneFormatError, load_scene
-from psao_scene.animation import (KeyframeAnimation, PathAnimation, PlatformAnimation, Polyline, RigidKey,
-                                  RollAnimation, SwingAnimation, axis_angle_matrix, instance_transform,
-                                  is_dynamic, matrix_to_quat)
-from psao_scene.builtin import trs
+from psao_scene.model import animation_hash
+from psao_scene.rigid import (KeyframeAnimation, PathAnimation, PlatformAnimation, Polyline, RigidKey, RollAnimation,
+                              SwingAnimation, instance_transform, is_dynamic)
+from psao_scene.transforms import axis_angle_matrix, matrix_to_quat, trs
 
 RNG = np.random.default_rng(11)
 
@@ -312,7 +312,6 @@ def test_shipped_playground_uses_every_kind():
 
 
 def test_animation_hash_stable_and_sensitive():
-    from psao_scene.animation import animation_hash
     a, b = load_scene("builtin:courtyard"), load_scene("builtin:courtyard")
     assert animation_hash(a) == animation_hash(b)
     b.instances[[i.animation is not None for i in b.instances].index(True)].animation.speed *= 1.01

@@ -10,19 +10,13 @@ import pygltflib
 import pytest
 
 from psao_scene import SceneFormatError, load_scene
-from psao_scene.animation import MAX_JOINTS, axis_angle_matrix
+from psao_scene.rigid import instance_transform
+from psao_scene.skin import MAX_JOINTS
+from psao_scene.transforms import axis_angle_matrix
 from psao_scene.skinning import (SkinDeformer, point_skin_weights, skin_normals, skin_normals_reference,
                                  skin_points, skin_points_reference, skinned_vertices)
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 RNG = np.random.default_rng(5)
-
-
-def shared(rel: str) -> Path:
-    p = SHARED / rel
-    if not p.is_file():
-        pytest.skip(f"{p} not present")
-    return p
 
 
 def skinned_gltf(path: Path, joints: int = 2, channel_node: int = 2, times=(0.0, 1.0),
@@ -117,8 +111,8 @@ def test_bad_skins_fail_at_load(tmp_path, kwargs, pattern):
 
 @pytest.mark.parametrize("rel,height", [("cesiumman/CesiumMan.glb", 1.5), ("riggedsimple/RiggedSimple.glb", None),
                                         ("fox/Fox.glb", None)])
-def test_real_skins(rel, height):
-    scene = load_scene(shared(rel))
+def test_real_skins(rel, height, shared_scene):
+    scene = load_scene(shared_scene(rel))
     mesh = scene.meshes[0]
     skin = mesh.skin
     assert skin is not None and 0 < skin.joint_count <= MAX_JOINTS
@@ -252,7 +246,6 @@ def test_corrupted_skinned_gltf_never_crashes(tmp_path):
 
 
 def test_scene_skinner_bounds_contain_the_moving_geometry():
-    from psao_scene.animation import instance_transform
     from psao_scene.skinning import SceneSkinner
     scene = load_scene("builtin:robots")
     sk = SceneSkinner(scene)
@@ -313,8 +306,8 @@ def test_toml_skinned_file_meshes(tmp_path):
         load_scene(toml)
 
 
-def test_fox_animation_by_name(tmp_path):
-    fox = shared("fox/Fox.glb")
+def test_fox_animation_by_name(tmp_path, shared_scene):
+    fox = shared_scene("fox/Fox.glb")
     from psao_scene.meshfile import load_mesh_file
     survey = load_mesh_file(fox)[0][0].skin.animator.duration
     walk = load_mesh_file(fox, "Walk")[0][0].skin.animator.duration

@@ -8,7 +8,8 @@ import pytest
 
 from protocol import pointword as pw
 from psao_scene import load_scene
-from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes, to_local, to_world
+from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to_local, to_world
+from psao_server.settings import BakeSettings
 from psao_server.errors import ConfigError
 
 

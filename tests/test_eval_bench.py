@@ -73,7 +73,7 @@ def test_tiny_bench_end_to_end(tmp_path):
     with open(out / "table.csv") as fh:
         assert len(list(csv.DictReader(fh))) == 3
     md = (out / "table.md").read_text()
-    assert "| cornell | PSAO-128 |" in md and "Mbit/s @30 Hz" in md
+    assert "| cornell | PSAO-128 |" in md and "Mbit/s, --tick-hz 30" in md
     assert "LPIPS not computed" in r.stdout
     assert not wait_gone(str(tmp_path))
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_render_gridbuild import ctx  # noqa: F401 (fixture)
 
 from protocol.updates import GridDelta
 from psao_client.mirror import Mirror
@@ -13,7 +12,8 @@ from psao_eval.client_frames import load_client_frames, score_client_frames
 from psao_eval.errors import EvalError
 from psao_eval.reference import ReferenceSettings
 from psao_scene import load_scene
-from psao_server.bake import BakeSettings, bake_scene
+from psao_server.bake import bake_scene
+from psao_server.settings import BakeSettings
 
 
 def test_client_frames_are_scored_from_their_log(ctx, tmp_path):

@@ -7,6 +7,7 @@ from psao_eval.dynamic import AnimatedServer, AnimatedSettings, is_animated
 from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, rest_transforms, score_frames
 from psao_eval.reference import ReferenceSettings
 from psao_scene import is_dynamic, load_scene
+from psao_server.settings import BakeSettings
 
 
 def test_animated_frames_follow_the_server_tick():
@@ -15,7 +16,7 @@ def test_animated_frames_follow_the_server_tick():
     size = (160, 96)
     poses = frame_poses(scene, 2, size)
     assert poses[1].time > 0
-    with AnimatedServer(scene, AnimatedSettings(density=24, bake_rays=16, tick_rays=16)) as server:
+    with AnimatedServer(scene, AnimatedSettings(BakeSettings(density=24, rays=16), tick_rays=16)) as server:
         with QualityRenderer(scene, size) as qr:
             frames = qr.render(server.grid, poses, before_frame=server.frame_state, timing_repeats=1)
         assert len(server.stats) == 2 * AnimatedSettings.ticks_per_frame

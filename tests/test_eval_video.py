@@ -26,7 +26,8 @@ def cornell_frames():
     from psao_client.render.views import path_matrices
     from psao_eval.quality import FramePose, QualityRenderer
     from psao_scene import load_scene, scene_camera
-    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings
 
     scene = load_scene("builtin:cornell")
     path = scene_camera(scene)

@@ -11,8 +11,10 @@ from protocol import gridformat as gf
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_server.bake import build_scene_grid, sample_probes
-from psao_server.gapfill import GapFillSettings, decoded_points, fill_gaps, kd_covered, surface_candidates, thin
-from psao_server.points import PointSettings, generate_scene_points
+from psao_server.gapfill import decoded_points, fill_gaps, kd_covered, surface_candidates, thin
+from psao_server.settings import GapFillSettings
+from psao_server.points import generate_scene_points
+from psao_server.settings import PointSettings
 
 DENSITY = 64.0
 
@@ -52,11 +54,12 @@ def test_gap_fill_reduces_holes_and_keeps_points_on_the_surface(scene):
         on_tri = np.einsum("pk,pkj->pj", ps.barycentrics.astype(np.float64), tri)
         assert np.abs(on_tri - ps.positions).max() < 1e-6  # on the triangle the point names
         if mesh.double_sided:
-            h, h0_ = len(ps) // 2, len(ps0) // 2
-            assert len(ps) % 2 == 0
-            np.testing.assert_array_equal(ps.positions[:h], ps.positions[h:])
-            np.testing.assert_array_equal(ps.normals[:h], -ps.normals[h:])
-            np.testing.assert_array_equal(ps.positions[:h0_], ps0.positions[:h0_])  # old front half first
+            front, back = ~ps.back, ps.back
+            assert front.sum() == back.sum()  # every point has its twin on the other side
+            np.testing.assert_array_equal(ps.positions[front], ps.positions[back])
+            np.testing.assert_array_equal(ps.normals[front], -ps.normals[back])
+            old = ps.positions[front][: int((~ps0.back).sum())]
+            np.testing.assert_array_equal(old, ps0.positions[~ps0.back])  # old front points first
         else:
             np.testing.assert_array_equal(ps.positions[: len(ps0)], ps0.positions)
 

@@ -6,7 +6,8 @@ from protocol import gridformat as gf
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
 from psao_server.errors import GridError
-from psao_server.grid import Grid, GridSettings
+from psao_server.grid import Grid
+from psao_server.settings import GridSettings
 
 
 def plane_points(n, rng, size=1.0):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_render_gridbuild import ctx, server_grid  # noqa: F401 (ctx: fixture)
+from test_render_gridbuild import server_grid
 
 from psao_client.errors import RenderError
 from psao_client.render.mlp_pass import MLP_HIDDEN, mlp_numpy, mlp_shapes

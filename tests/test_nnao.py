@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_render_gtao import corner_scene
-from test_render_gridbuild import ctx  # noqa: F401 (ctx: fixture)
 
 from psao_client.errors import RenderError
 from psao_client.render.composite import read_channel

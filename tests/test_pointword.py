@@ -34,15 +34,15 @@ def test_six_axis_normals_round_trip_exactly():
 
 
 def test_random_normals_within_quantisation_bound():
-    rng = np.random.default_rng(2)
-    n = rng.normal(size=(200000, 3))
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(2_000_000, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     d = pw.oct_decode(pw.oct_encode(n))
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
     angle = np.degrees(np.arccos(np.clip((d * n).sum(axis=1), -1, 1)))
-    # 15 levels over [-1, 1] (step 1/7 in octahedral space): worst case measured 16.9 degrees near the
-    # octahedron edges, median 5.9; the eq. 3 normal test (cos > 0.1, 84 degrees) is far coarser.
-    assert angle.max() < 18.0
+    # 15 levels over [-1, 1] (step 1/7 in octahedral space): the worst case, near the octahedron edges,
+    # is 17.1 degrees (the README's figure); the eq. 3 normal test (cos > 0.1, 84 degrees) is far coarser.
+    assert 17.05 <= angle.max() < 17.15
     assert np.median(angle) < 7.0
     assert (pw.oct_encode(n) & 0xF).max() <= 14 and (pw.oct_encode(n) >> 4).max() <= 14
 

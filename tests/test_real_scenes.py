@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from psao_scene import load_scene
-from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
+from psao_server.bake import bake_scene, reconstruction_error, sample_probes
+from psao_server.settings import BakeSettings
 
 SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 REAL = {

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from test_render_gridbuild import ctx, server_grid  # noqa: F401 (ctx: fixture)
+from test_render_gridbuild import server_grid
 
 from protocol.updates import GridDelta
 from psao_client.errors import RenderError

@@ -7,25 +7,10 @@ run before and independently of the lead's bake. Its own tests check it against 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from psao_client.errors import RenderError
 from psao_scene.model import Instance, Mesh, Scene
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    """One headless GL context per test module (import this fixture by name); skips without EGL."""
-    from psao_client.render.context import create_context
-
-    try:
-        context = create_context()
-    except RenderError as exc:
-        pytest.skip(str(exc))
-    yield context
-    context.release()
 
 
 def box_mesh(name, lo, hi, color=(0.8, 0.8, 0.8), inward=False):
@@ -163,7 +148,8 @@ def server_grid(scene, density, seed=0, rays=16):
     bake (points, grid, traced AO) when it is there, else the server's point generation and Grid with a
     smooth synthetic AO field, enough to test that shader and oracle agree."""
     try:
-        from psao_server.bake import BakeSettings, bake_scene
+        from psao_server.bake import bake_scene
+        from psao_server.settings import BakeSettings
     except ImportError:
         return _synthetic_server_grid(scene, density, seed)
     result = bake_scene(scene, BakeSettings(density=density, rays=rays, seed=seed), show_progress=False)
@@ -174,7 +160,8 @@ def server_grid(scene, density, seed=0, rays=16):
 
 def _synthetic_server_grid(scene, density, seed):
     from psao_server.grid import Grid
-    from psao_server.points import PointSettings, generate_points, instance_seed
+    from psao_server.points import generate_points, instance_seed
+    from psao_server.settings import PointSettings
 
     settings = PointSettings(density=density, seed=seed)
     sets = [generate_points(scene.meshes[i.mesh], i.transform, settings, seed=instance_seed(seed, k))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_render_gridbuild import box_mesh, ctx, plane_mesh  # noqa: F401 (ctx: fixture)
+from test_render_gridbuild import box_mesh, plane_mesh
 
 from psao_client.errors import RenderError
 from psao_client.render.composite import read_channel

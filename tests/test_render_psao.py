@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_render_gridbuild import ctx, floor_and_box_scene, floor_box_grid, server_grid  # noqa: F401 (ctx: fixture)
+from test_render_gridbuild import floor_and_box_scene, floor_box_grid, server_grid
 
 from protocol.reconstruct import reconstruct_ao
 from psao_client.errors import RenderError
@@ -55,7 +55,8 @@ def test_back_side_of_a_double_sided_plane_reads_back_side_cells(ctx):
     from psao_client.render.views import look_at, perspective
     from psao_scene.model import Instance, Scene
     from psao_server.bake import build_scene_grid
-    from psao_server.points import PointSettings, generate_points
+    from psao_server.points import generate_points
+    from psao_server.settings import PointSettings
     from test_render_gridbuild import plane_mesh
 
     mesh = dataclasses.replace(plane_mesh("sheet"), double_sided=True)

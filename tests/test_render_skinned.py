@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from test_render_gridbuild import ctx  # noqa: F401 (fixture)
 
 from psao_client.errors import RenderError
 from psao_client.render.renderer import FrameRenderer
 from psao_scene import load_scene
-from psao_scene.animation import instance_transform
+from psao_scene.rigid import instance_transform
 from psao_scene.camera import look_at, perspective
 from psao_scene.skinning import skinned_vertices
 
@@ -75,7 +74,8 @@ def test_stream_renderer_poses_skins_at_the_update_time_and_rests_before(ctx, tm
     from psao_client.mirror import Mirror
     from psao_client.render.stream_render import StreamRenderer
     from psao_server.bake import build_scene_grid
-    from psao_server.points import PointSettings, generate_scene_points
+    from psao_server.points import generate_scene_points
+    from psao_server.settings import PointSettings
 
     scene = load_scene("builtin:robots")
     grid = build_scene_grid(scene, generate_scene_points(scene, PointSettings(density=4.0)))

@@ -15,14 +15,6 @@ from psao_scene import GeometryError, SceneFormatError, SceneNotFound, load_scen
 from psao_scene.builtin import BUILTINS
 from psao_scene.meshfile import clean_geometry
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
-
-
-def shared(rel: str) -> Path:
-    p = SHARED / rel
-    if not p.is_file():
-        pytest.skip(f"{p} not present")
-    return p
 
 
 def world_triangles(scene, inst) -> np.ndarray:
@@ -149,8 +141,8 @@ def test_gltf_with_bad_node_transform_is_rejected(tmp_path):
         load_scene(tmp_path / "z.glb")
 
 
-def test_cornellbox_glb_matches_trimesh_world_geometry():
-    path = shared("cornellbox/CornellBox-Original.glb")
+def test_cornellbox_glb_matches_trimesh_world_geometry(shared_scene):
+    path = shared_scene("cornellbox/CornellBox-Original.glb")
     scene = load_scene(path)
     ours = np.concatenate([world_triangles(scene, i).reshape(-1, 3) for i in scene.instances])
     ref = trimesh.load(str(path), force="scene").to_geometry()
@@ -159,17 +151,17 @@ def test_cornellbox_glb_matches_trimesh_world_geometry():
     assert len(scene.instances) == 7
 
 
-def test_sponza_and_fox_load():
-    sponza = load_scene(shared("sponza/sponza_s_lod4.glb"))
+def test_sponza_and_fox_load(shared_scene):
+    sponza = load_scene(shared_scene("sponza/sponza_s_lod4.glb"))
     lo, hi = sponza.world_bounds()
     assert 30 < (hi - lo).max() < 45
     assert sum(len(m.faces) for m in sponza.meshes) > 150_000
-    fox = load_scene(shared("fox/Fox.glb"))
+    fox = load_scene(shared_scene("fox/Fox.glb"))
     assert fox.meshes and np.isfinite(fox.meshes[0].vertices).all()
 
 
-def test_bare_mesh_default_ao_distance_and_override():
-    path = shared("bunny/stanford-bunny.obj")
+def test_bare_mesh_default_ao_distance_and_override(shared_scene):
+    path = shared_scene("bunny/stanford-bunny.obj")
     scene = load_scene(path)
     lo, hi = scene.world_bounds()
     assert scene.ao_distance == pytest.approx(0.1 * np.linalg.norm(hi - lo))

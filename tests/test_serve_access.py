@@ -37,7 +37,7 @@ def stop(proc):
 
 
 def client(url, *args, env=None):
-    return subprocess.run([sys.executable, "-m", "psao", "client", url, "--scene", "builtin:cornell", "--json",
+    return subprocess.run([sys.executable, "-m", "psao", "client", url, "builtin:cornell", "--json",
                            "--no-reconnect", *args], cwd=ROOT, capture_output=True, text=True, timeout=120,
                           env={**os.environ, **(env or {})})
 

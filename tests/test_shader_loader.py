@@ -6,7 +6,6 @@ import pytest
 
 from psao_client.errors import RenderError
 from psao_client.render.shaderlib import SHADER_DIR, compile_program, load_shader
-from test_render_gridbuild import ctx  # noqa: F401 (fixture)
 
 
 def write(tmp_path, name, text):

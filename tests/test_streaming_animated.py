@@ -23,10 +23,10 @@ def test_mirror_bit_exact_under_animation(tmp_path):
         port = int(wait_for(lambda: re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text()), 180,
                             "the server to listen").group(1))
         url = f"ws://127.0.0.1:{port}"
-        common = ["--scene", SCENE, "--json", "--reconnect-timeout", "30"]
+        common = ["--json", "--reconnect-timeout", "30"]
         logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow")}
-        plain = psao("client", url, "--frames", "40", "--digest-log", str(logs["plain"]), *common)
-        slow = psao("client", url, "--frames", "10", "--read-delay", "0.4", "--recv-buffer", "4096",
+        plain = psao("client", url, SCENE, "--frames", "40", "--digest-log", str(logs["plain"]), *common)
+        slow = psao("client", url, SCENE, "--frames", "10", "--read-delay", "0.4", "--recv-buffer", "4096",
                     "--digest-log", str(logs["slow"]), *common)
         procs += [plain, slow]
         reports = {}

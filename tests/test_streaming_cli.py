@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import subprocess
@@ -97,7 +96,7 @@ def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
     machine: the snapshot is what is sure to come."""
     log, pairs, ticks = serve_with_client(tmp_path, ["builtin:cornell", "--progressive", "--density", "32", "--rays", "16",
                                                      "--tick-rays", "2", "--tick-budget-ms", "1", "--tick-hz", "20"],
-                                          ["--scene", "builtin:cornell", "--frames", "0"])
+                                          ["builtin:cornell", "--frames", "0"])
     assert "with 2 rays" in log
     assert len(pairs) >= 1 and all(a == b for a, b in pairs)
     queue = [t["queue"] for t in ticks]
@@ -121,13 +120,13 @@ def test_serve_unknown_scene():
 
 
 def test_client_cannot_connect():
-    one_line_error(psao("client", "ws://127.0.0.1:9", "--scene", "builtin:cornell", "--reconnect-timeout", "0.5"),
+    one_line_error(psao("client", "ws://127.0.0.1:9", "builtin:cornell", "--reconnect-timeout", "0.5"),
                    "cannot connect")
 
 
 def test_client_bad_codecs_and_url():
-    one_line_error(psao("client", "ws://127.0.0.1:9", "--scene", "builtin:cornell", "--codecs", "gzip"), "gzip")
-    one_line_error(psao("client", "http:/nothing", "--scene", "builtin:cornell"), "bad server URL")
+    one_line_error(psao("client", "ws://127.0.0.1:9", "builtin:cornell", "--codecs", "gzip"), "gzip")
+    one_line_error(psao("client", "http:/nothing", "builtin:cornell"), "bad server URL")
 
 
 @pytest.fixture(scope="module")
@@ -148,13 +147,13 @@ def token_server(tmp_path_factory):
 
 def test_client_refused_without_token(token_server):
     url, _, err = token_server
-    one_line_error(psao("client", url, "--scene", "builtin:cornell", "--frames", "1"), "server refused: missing token")
+    one_line_error(psao("client", url, "builtin:cornell", "--frames", "1"), "server refused: missing token")
     assert "refused: missing token" in err.read_text()
 
 
 def test_client_refused_for_another_scene(token_server):
     url, _, _ = token_server
-    one_line_error(psao("client", url, "--scene", "builtin:courtyard", "--token", "s3cret", "--frames", "1"),
+    one_line_error(psao("client", url, "builtin:courtyard", "--token", "s3cret", "--frames", "1"),
                    "scene hash mismatch")
 
 
@@ -162,7 +161,7 @@ def test_client_renders_frames_while_streaming(token_server, tmp_path):
     url, proc, _ = token_server
     if proc.poll() is not None:
         pytest.skip("server already stopped by an earlier test")
-    out = psao("client", url, "--scene", "builtin:cornell", "--token", "s3cret", "--frames", "3", "--json",
+    out = psao("client", url, "builtin:cornell", "--token", "s3cret", "--frames", "3", "--json",
                "--render", str(tmp_path / "frames"), "--size", "64x48")
     if out.returncode != 0 and "EGL" in out.stderr:
         pytest.skip(f"no EGL here: {out.stderr.strip()}")
@@ -179,13 +178,13 @@ def test_client_renders_frames_while_streaming(token_server, tmp_path):
 
 def test_client_unknown_camera_path(token_server):
     url, _, _ = token_server
-    one_line_error(psao("client", url, "--scene", "builtin:cornell", "--camera-path", "nope", "--frames", "1"),
+    one_line_error(psao("client", url, "builtin:cornell", "--camera-path", "nope", "--frames", "1"),
                    "no camera path 'nope'")
 
 
 def test_client_with_token_then_server_stops_on_sigint(token_server):
     url, proc, err = token_server
-    out = psao("client", url, "--scene", "builtin:cornell", "--token", "s3cret", "--frames", "5", "--json")
+    out = psao("client", url, "builtin:cornell", "--token", "s3cret", "--frames", "5", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["updates"] == 5 and report["mirror_cells"] > 0 and report["codec"] == "zstd-stream"
@@ -206,7 +205,7 @@ def test_client_renders_at_its_own_rate_from_a_static_server(tmp_path):
         while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
             assert time.time() < end and proc.poll() is None, err.read_text()
             time.sleep(0.1)
-        out = psao("client", m.group(1), "--scene", "builtin:cornell", "--frames", "4", "--fps", "10", "--json",
+        out = psao("client", m.group(1), "builtin:cornell", "--frames", "4", "--fps", "10", "--json",
                    "--render", str(tmp_path / "frames"), "--size", "64x48")
         if out.returncode != 0 and "EGL" in out.stderr:
             pytest.skip(f"no EGL here: {out.stderr.strip()}")

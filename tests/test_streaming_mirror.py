@@ -162,19 +162,19 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
                             "the server to listen").group(1))
         url = f"ws://127.0.0.1:{port}"
         proxy = CuttingProxy(port, after=40, cuts=2)
-        common = ["--scene", SCENE, "--json", "--reconnect-timeout", "20"]
+        common = ["--json", "--reconnect-timeout", "20"]
         logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow", "cut", "killed")}
-        plain = psao("client", url, "--frames", "300", "--digest-log", str(logs["plain"]), *common)
-        slow = psao("client", url, "--frames", "40", "--read-delay", "0.25", "--recv-buffer", "4096",
+        plain = psao("client", url, SCENE, "--frames", "300", "--digest-log", str(logs["plain"]), *common)
+        slow = psao("client", url, SCENE, "--frames", "40", "--read-delay", "0.25", "--recv-buffer", "4096",
                     "--digest-log", str(logs["slow"]), *common)
-        cut = psao("client", f"ws://127.0.0.1:{proxy.port}", "--frames", "150", "--digest-log", str(logs["cut"]),
+        cut = psao("client", f"ws://127.0.0.1:{proxy.port}", SCENE, "--frames", "150", "--digest-log", str(logs["cut"]),
                    *common)
-        killed = psao("client", url, "--digest-log", str(logs["killed"]), *common)
+        killed = psao("client", url, SCENE, "--digest-log", str(logs["killed"]), *common)
         procs += [plain, slow, cut, killed]
         wait_for(lambda: len(read_jsonl(logs["killed"])) >= 30, 300, "the doomed client to get going")
         killed.send_signal(signal.SIGKILL)
         killed.wait(10)
-        restarted = psao("client", url, "--frames", "40", "--digest-log", str(logs["killed"]), *common)
+        restarted = psao("client", url, SCENE, "--frames", "40", "--digest-log", str(logs["killed"]), *common)
         procs.append(restarted)
 
         reports = {}

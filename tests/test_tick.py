@@ -8,9 +8,10 @@ from protocol import pointword as pw
 from psao_scene import load_scene
 from psao_scene.camera import look_at, perspective
 from psao_scene.skinning import skin_points_reference
-from psao_server.bake import BakeSettings, bake_scene
+from psao_server.bake import bake_scene
 from psao_server.selection import frustum_planes, in_frustum
-from psao_server.tick import ServerTick, TickSettings
+from psao_server.settings import BakeSettings, TickSettings
+from psao_server.tick import ServerTick
 
 RAYS = 8
 
@@ -130,7 +131,7 @@ def test_skinned_points_follow_their_triangles():
             verts = skin_points_reference(skin.skinning_matrices(t), mesh.vertices, skin.joints, skin.weights)
             tri = verts[mesh.faces[ps.faces]]
             want = np.einsum("pk,pkj->pj", ps.barycentrics.astype(np.float64), tri)
-            ids = np.arange(tick.first_id[i], tick.first_id[i + 1])
+            ids = tick.ids_of[i]
             np.testing.assert_allclose(tick.local_pos[ids], want, atol=1e-9)
             moved = np.linalg.norm(want - ps.positions, axis=1)
             assert moved.max() > 0.05  # the walk really deforms the mesh

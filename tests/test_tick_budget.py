@@ -9,10 +9,11 @@ import pytest
 
 from protocol import pointword as pw
 from psao_scene import load_scene
-from psao_server.bake import BakeSettings, bake_scene
+from psao_server.bake import bake_scene
 from psao_server.budget import BudgetSettings, RefineQueue
 from psao_server.errors import ConfigError
-from psao_server.tick import ServerTick, TickSettings
+from psao_server.settings import BakeSettings, TickSettings
+from psao_server.tick import ServerTick
 
 
 def make_tick(name, density, bake_rays, rays, round_rays, min_points, budget_ms=1e-3):

@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from psao_server.tracer import TraceSettings, available_backends, make_tracer
+from psao_server.settings import TraceSettings
+
+from psao_server.tracer import available_backends, make_tracer
 from psao_server.tracer.directions import cosine_directions, ray_origins
 
 BACKENDS = available_backends()

@@ -4,9 +4,9 @@ Each table is an RGBA32UI 2D texture read as a flat array of 16-byte texels, TAB
 row (shaders/psao_common.glsl, psao_fetch): an instance record is 3 texels, a bucket 4, a cell 2. The
 bytes are exactly protocol/gridformat.py's, so the mirror's arrays go up unchanged.
 
-Why textures and not shader storage buffers: the AO pass measured 3.4x the SSAO pass on llvmpipe with
-storage buffers (each SSBO load there is a per-lane scalar loop) and about 1x with texel fetches,
-which llvmpipe gathers with SIMD code (benchmarks/bench_render.py). On a discrete GPU both are fast.
+Textures rather than shader storage buffers: llvmpipe turns every storage-buffer load into a per-lane
+scalar loop but gathers texel fetches with SIMD code (benchmarks/bench_render.py compares the pass with
+SSAO's). TABLE_WIDTH comes from protocol/shader_constants.py, which also gives the shader its value.
 
 A CPU shadow of buckets and cells lets `update` coalesce scattered dirty rows into a few contiguous
 writes (rows between two nearby dirty runs are rewritten from the shadow: cheaper than one GL call per

@@ -53,7 +53,7 @@ def parse_ao_modes(text: str) -> tuple[str, ...]:
 class MethodOptions:
     """Settings of the baseline methods beside PSAO."""
 
-    ssao_samples: int = 16  # SSAO kernel size
+    ssao_samples: int = SsaoSettings.samples  # SSAO kernel size
     gtao_preset: str = "quality"  # a key of GTAO_PRESETS
     mlp_weights: str | None = None  # weights file of `psao train mlp` for this scene
     nnao_weights: str | None = None  # weights file of `psao train nnao`; None = the shipped one

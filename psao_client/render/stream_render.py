@@ -18,7 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from psao.options import default
 from psao_client.errors import RenderError
+from psao_client.render.gtao_pass import GTAO_PRESETS
+from psao_client.render.renderer import MethodOptions
+
+FRAME_SIZE = "640x360"  # pixels, width x height
+FPS = 30.0  # frames per second the streaming client renders at
 
 
 class StreamRenderer:
@@ -108,21 +114,31 @@ def make_render_callback(scene, args) -> StreamRenderer:
     )
 
 
-def add_render_arguments(parser) -> None:
-    """The options `psao client` needs for --render (H3 adds them to its parser with this)."""
-    parser.add_argument("--render", metavar="OUTDIR", default=None, help="render frames (PNG) into OUTDIR")
-    parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path for --render")
-    parser.add_argument("--size", default="640x360", metavar="WxH", help="frame size for --render")
+def add_frame_arguments(parser) -> None:
+    """The options of the frames themselves, the same on every sub-command that renders (client, render)."""
+    parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path of the scene (its first by default)")
+    parser.add_argument("--size", default=FRAME_SIZE, metavar="WxH", help="frame size in pixels")
     parser.add_argument("--ao", default="psao", metavar="METHODS",
-                        help="AO method(s) for --render: psao, ssao, gtao, nnao, mlp, aogan, comma-separated, or both (= psao,ssao); default psao")
-    parser.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality (default) or ultra")
+                        help="AO method(s) to render: psao, ssao, gtao, nnao, mlp, aogan, comma-separated, or both (= psao,ssao)")
+    parser.add_argument("--ssao-samples", type=int, default=default(MethodOptions, "ssao_samples"), metavar="K",
+                        help="SSAO kernel size")
+    parser.add_argument("--gtao-preset", default=default(MethodOptions, "gtao_preset"), metavar="NAME",
+                        help=f"GTAO slices x steps: {', '.join(GTAO_PRESETS)}")
     parser.add_argument("--mlp-weights", default=None, metavar="FILE", help="MLP baking weights (psao train mlp) for --ao mlp")
-    parser.add_argument("--nnao-weights", default=None, metavar="FILE", help="NNAO weights (psao train nnao; default: the shipped ones)")
-    parser.add_argument("--nnao-samples", type=int, default=64, metavar="K", help="NNAO first-layer cells per pixel: 64 (default), 128, 256 or 961")
-    parser.add_argument("--aogan-weights", default=None, metavar="FILE", help="AOGAN weights (psao train aogan; default: the shipped ones)")
-    parser.add_argument("--ssao-samples", type=int, default=16, metavar="K", help="SSAO kernel size")
-    parser.add_argument("--fps", type=float, default=30.0, metavar="F",
-                        help="frames per second to render at, the client's own rate, whatever the server's tick rate "
-                             "(default 30; a slow GPU renders as fast as it can)")
+    parser.add_argument("--nnao-weights", default=None, metavar="FILE",
+                        help="NNAO weights (psao train nnao; the shipped ones without it)")
+    parser.add_argument("--nnao-samples", type=int, default=default(MethodOptions, "nnao_samples"), metavar="K",
+                        help="NNAO first-layer cells per pixel: 64, 128, 256 or 961")
+    parser.add_argument("--aogan-weights", default=None, metavar="FILE",
+                        help="AOGAN weights (psao train aogan; the shipped ones without it)")
     parser.add_argument("--window", action="store_true",
                         help="also show the frames in a window (needs a display and the 'glfw' package: pip install glfw)")
+
+
+def add_render_arguments(parser) -> None:
+    """The options `psao client` needs for --render."""
+    parser.add_argument("--render", metavar="OUTDIR", default=None, help="render frames (PNG) into OUTDIR")
+    add_frame_arguments(parser)
+    parser.add_argument("--fps", type=float, default=FPS, metavar="F",
+                        help="frames per second to render at, the client's own rate, whatever the server's tick rate "
+                             "(a slow GPU renders as fast as it can)")

@@ -7,7 +7,8 @@ until a back-end is asked for, so a missing optional back-end never breaks the p
 from __future__ import annotations
 
 from psao_server.errors import TracerError
-from psao_server.tracer.base import TraceSettings, Tracer
+from psao_server.settings import TraceSettings
+from psao_server.tracer.base import Tracer
 
 BACKENDS = ("embree", "warp")
 

@@ -7,20 +7,10 @@ the point unoccluded within the AO distance.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 
-@dataclass
-class TraceSettings:
-    rays: int = 128  # rays per point
-    ao_distance: float = 1.0  # world units
-    seed: int = 0
-    workers: int = 0  # 0 = all cores
-    chunk_points: int = 2048  # points per work item (bounds memory: chunk * rays directions)
-    local_rays: int = 16384  # calls with fewer rays than this trace in the calling process (a hand-over to
-    # worker processes costs more than tracing them, the more so on a busy machine)
+from psao_server.settings import TraceSettings
 
 
 class Tracer:

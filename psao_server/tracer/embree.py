@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from psao_server.errors import TracerError
-from psao_server.tracer.base import TraceSettings, Tracer
+from psao_server.settings import TraceSettings
+from psao_server.tracer.base import Tracer
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package

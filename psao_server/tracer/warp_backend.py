@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from psao_server.errors import TracerError
-from psao_server.tracer.base import TraceSettings, Tracer
+from psao_server.settings import TraceSettings
+from psao_server.tracer.base import Tracer
 from psao_server.tracer.directions import OFFSET_AO, OFFSET_REL, rotation_of
 
 try:

@@ -1,0 +1,148 @@
+"""Every server-side setting and its default, in one place: points, grid, tracer, gap fill, bake, tick
+(the tick's time budget is psao_server/budget.py's BudgetSettings).
+
+Each default is written once: a setting that several stages share (rays, seed, tracer, workers, spawn
+ratio) takes its default from the dataclass that owns it (how many points a bake gets by default is
+psao_server/sampling.py's scale-aware density), and the command line (`psao bake`,
+`psao serve`, `psao bench`) reads its defaults from these dataclasses (psao/options.py). This module only
+imports numpy, so the CLI can read it without loading Embree, Warp or scipy.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from psao_server.budget import BudgetSettings
+from psao_server.errors import ConfigError, GridError
+from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings
+
+
+@dataclass
+class TraceSettings:
+    rays: int = 128  # rays per point
+    ao_distance: float = 1.0  # world units
+    seed: int = 0
+    workers: int = 0  # tracer processes; 0 = all cores
+    chunk_points: int = 2048  # points per work item (bounds memory: chunk * rays directions)
+    local_rays: int = 16384  # calls with fewer rays than this trace in the calling process (a hand-over to
+    # worker processes costs more than tracing them, the more so on a busy machine)
+
+
+@dataclass
+class PointSettings:
+    density: float = 256.0  # N: final points per world unit^2 (after elimination); spawn_ratio * N spawned
+    min_points: int = 64  # final points per instance and side, so small objects are never empty
+    seed: int = 0
+    alpha: float = 8.0  # Yuksel's weight exponent
+    spawn_ratio: float = 2.0  # spawned / kept; the paper removes half (4 leaves fewer holes, slower)
+    weight_limiting: bool = True  # Yuksel's weight limiting (beta, gamma below), as in his reference code
+    beta: float = 0.65  # weight limiting: d_min = 2 r_max * (1 - (kept / spawned)^gamma) * beta
+    gamma: float = 1.5
+    # Neighbours whose normals make a cosine <= this do not weigh on each other, so the two faces of a thin
+    # slab (cosine -1) keep their own density instead of sharing one. -1.0 or less turns the gate off.
+    normal_cos_min: float = -0.5
+
+    def check(self) -> None:
+        """ConfigError for a setting out of range, naming it."""
+        if not np.isfinite(self.density) or self.density <= 0:
+            raise ConfigError(f"density must be > 0, got {self.density}")
+        if self.min_points < 1:
+            raise ConfigError(f"min_points must be >= 1, got {self.min_points}")
+        if not self.spawn_ratio >= 1.0:
+            raise ConfigError(f"spawn_ratio must be >= 1, got {self.spawn_ratio}")
+        if not self.alpha > 0:
+            raise ConfigError(f"alpha must be > 0, got {self.alpha}")
+
+
+@dataclass
+class GridSettings:
+    radius_factor: float = 2.0  # interpolation radius r = radius_factor * Poisson radius of the instance
+    cell_factor: float = 2.0  # cell size s = cell_factor * r; must be >= 2 (DESIGN invariant)
+    bucket_factor: float = 4.0  # buckets = next_pow2(bucket_factor * cells / 8), as in the paper
+    pool_headroom: float = 0.25  # spare cell slots beyond the initial allocation (fraction)
+
+    def __post_init__(self):
+        if self.cell_factor < 2.0:
+            raise GridError(f"cell_factor must be >= 2 so the 2x2x2 lookup sees every point within r, got {self.cell_factor}")
+        if self.radius_factor <= 0 or self.bucket_factor <= 0:
+            raise GridError("radius_factor and bucket_factor must be > 0")
+
+
+@dataclass
+class GapFillSettings:
+    passes: int = 0  # candidate rounds; 0 = off (the paper's points only), 4 gets cornell under 0.1% holes
+    ratio: float = 4.0  # candidates per kept point (per side) and pass
+    spacing: float = 1.0  # added points are at least this many lookup radii apart (within one pass)
+    seed: int = 0x6A9F11
+
+
+@dataclass
+class BakeSettings:
+    density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
+    points: float | None = None  # total point budget instead of a density
+    max_points: float = DEFAULT_MAX_POINTS  # refuse a setting whose estimate exceeds this many points
+    rays: int = TraceSettings.rays  # rays per point
+    seed: int = 0  # points and rays
+    tracer: str = "embree"  # back-end name, see psao_server.tracer
+    workers: int = TraceSettings.workers  # tracer processes; 0 = all cores
+    min_points: int = PointSettings.min_points  # per instance and side
+    spawn_ratio: float = PointSettings.spawn_ratio  # spawned / kept before elimination
+    grid: GridSettings = field(default_factory=GridSettings)
+    gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
+
+    def check(self) -> None:
+        # The scene limits are read when checked: the command line reads these defaults without loading psao_scene.
+        from psao_scene import limits as scene_limits
+
+        self.sampling().check()
+        lim = scene_limits.current()
+        if not 1.0 <= self.spawn_ratio <= lim.max_spawn_ratio:
+            raise ConfigError(f"spawn ratio must be within 1..{lim.max_spawn_ratio:g}, got {self.spawn_ratio} "
+                              f"(psao --scene-limit max_spawn_ratio=X raises the limit)")
+        if not 1 <= self.rays <= lim.max_rays:
+            raise ConfigError(f"rays must be within 1..{lim.max_rays}, got {self.rays} "
+                              f"(psao --scene-limit max_rays=N raises the limit)")
+        if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
+            raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
+
+    def sampling(self) -> SamplingSettings:
+        return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points)
+
+
+@dataclass
+class ViewSettings:
+    fov_margin: float = 20.0  # degrees added to the horizontal and vertical field of view
+    distance_margin: float = 1.0  # world units the frustum's planes are pushed outwards
+
+
+@dataclass
+class TickSettings:
+    threshold: int = 2  # AO codes (of 255): a traced point is written only when |new - stored| > threshold
+    rays: int = 32  # rays per traced point
+    seed: int = BakeSettings.seed  # ray seed; equal to the bake's so a synced bake needs no re-trace
+    selection: bool = True  # False: re-trace every visible point every tick (the baseline)
+    view: ViewSettings = field(default_factory=ViewSettings)
+    tracer: str = BakeSettings.tracer  # back-end name
+    workers: int = BakeSettings.workers  # tracer processes, 0 = all cores
+    block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
+    fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
+    history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
+    budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)
+
+    def check(self) -> None:
+        if not 0 <= self.threshold <= 255:
+            raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")
+        if self.rays < 1:
+            raise ConfigError(f"tick rays must be >= 1, got {self.rays}")
+        b = self.budget
+        if b is not None:
+            if not (math.isfinite(b.tick_hz) and b.tick_hz > 0):
+                raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
+            if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
+                raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
+            if b.round_rays < 1 or b.min_points < 1:
+                raise ConfigError(f"round rays and min points must be >= 1, got {b.round_rays}, {b.min_points}")
+        if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
+            raise ConfigError(f"view margins out of range: {self.view}")
