@@ -9,7 +9,7 @@
 | 8-15       | normal, octahedral, 4 bits u (high) and 4 bits v (low)           |
 | 0-7        | AO as visibility: 255 unoccluded, 0 fully occluded               |
 
-Everything here is vectorised numpy and mirrors `shaders/psao_common.glsl` and the Warp kernels bit for
+Everything here is vectorised numpy and mirrors `psao_client/shaders/psao_common.glsl` and the Warp kernels bit for
 bit. The octahedral code uses the levels 0..14 (q = round(u * 7) + 7, decoded as (q - 7) / 7) so that
 0 and +-1 are exact: the six axis normals, which dominate architectural scenes, round-trip exactly.
 Level 15 is never written; the decoder clamps it to 14.

@@ -1,7 +1,7 @@
 """Python oracle of the client's per-fragment AO lookup (DESIGN.md "AO at a fragment", paper eq. 2-4).
 
 It reads exactly the arrays the client holds (instances, buckets, cells) and does exactly what
-`shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
+`psao_client/shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
 hash -> bucket -> linear scan for the key -> the allocated points of every cell with that key (a key
 holding more than 7 points owns several entries of its bucket), weights
 max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,

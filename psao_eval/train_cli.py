@@ -33,8 +33,8 @@ def add_arguments(p) -> None:
 
     n = sub.add_parser("nnao", formatter_class=DefaultsFormatter, help="NNAO (Holden et al.): one network trained on G-buffers and RTAO at sampled pixels")
     n.add_argument("scenes", nargs="*", metavar="SCENE",
-                   help="training scenes (without any: scenes/pavilion.toml and scenes/playground.toml, kept out of "
-                        "the benchmark)")
+                   help="training scenes (without any: builtin:pavilion and builtin:playground, the example TOML scenes "
+                        "kept out of the benchmark)")
     n.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
     n.add_argument("--frames", type=int, default=16, help="frames per scene")
     n.add_argument("--pixels", type=int, default=768, help="sampled pixels per frame")

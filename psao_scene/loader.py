@@ -1,11 +1,13 @@
 """load_scene: the one entry point both the server and the client use to get a Scene.
 
-spec is `builtin:NAME`, a `.toml` scene file or a bare mesh file (.gltf .glb .obj .ply .stl .off).
+spec is `builtin:NAME` (a scene generated in code, or one of the example TOML scenes shipped as package
+data in psao_scene/scenes), a `.toml` scene file or a bare mesh file (.gltf .glb .obj .ply .stl .off).
 The result is validated (finite, invertible instance transforms; at least one instance) so that a bad
 scene fails here, at load time, with a one-line SceneError naming the file and the element.
 """
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +35,16 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
     text = str(spec)
     if text.startswith(BUILTIN_PREFIX):
         name = text[len(BUILTIN_PREFIX):]
-        if name not in BUILTINS:
-            raise SceneNotFound(f"unknown scene '{text}' (known: {', '.join(BUILTIN_PREFIX + n for n in BUILTINS)})")
-        scene = BUILTINS[name]()
+        examples = example_scenes()
+        if name in BUILTINS:
+            scene = BUILTINS[name]()
+        elif name in examples:
+            with resources.as_file(examples[name]) as path:
+                scene = load_toml_scene(path)
+            scene.source = text
+        else:
+            known = ", ".join(BUILTIN_PREFIX + n for n in [*BUILTINS, *examples])
+            raise SceneNotFound(f"unknown scene '{text}' (known: {known})")
     else:
         scene = _load_file(Path(spec))
     if ao_distance is not None:
@@ -45,6 +54,12 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         scene.ao_distance = DEFAULT_AO_FRACTION * float(np.linalg.norm(hi - lo))
     validate_scene(scene)
     return scene
+
+
+def example_scenes() -> dict:
+    """NAME -> the example TOML scene shipped as package data (psao_scene/scenes/NAME.toml)."""
+    folder = resources.files("psao_scene").joinpath("scenes")
+    return {f.name[: -len(".toml")]: f for f in sorted(folder.iterdir(), key=lambda f: f.name) if f.name.endswith(".toml")}
 
 
 def _load_file(path: Path) -> Scene:

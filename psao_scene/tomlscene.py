@@ -1,4 +1,4 @@
-"""TOML scene files (`scenes/*.toml`).
+"""TOML scene files (examples in psao_scene/scenes/, loadable as `builtin:NAME`).
 
 Schema (every table is checked: an unknown key, a wrong type or a bad value is a SceneFormatError
 naming the file and the element):

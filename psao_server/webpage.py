@@ -24,7 +24,9 @@ from protocol.shader_constants import define_block
 from protocol.updates import RAW, Layout
 
 WEB_DIR = Path(__file__).resolve().parents[1] / "web"
-SHADER_DIR = Path(__file__).resolve().parents[1] / "shaders"  # the lookup shared with the desktop client
+# The lookup shared with the desktop client: psao_client's package data, by path (psao_server never
+# imports psao_client); the packages sit side by side in the source tree and in an install alike.
+SHADER_DIR = Path(__file__).resolve().parents[1] / "psao_client" / "shaders"
 
 _JS, _HTML, _GLSL, _CSS = ("text/javascript; charset=utf-8", "text/html; charset=utf-8", "text/plain; charset=utf-8",
                            "text/css; charset=utf-8")

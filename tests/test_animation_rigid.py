@@ -3,7 +3,6 @@ and its load-time validation; the built-in dynamic scenes."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -306,7 +305,7 @@ def test_robots_walk_in_the_room():
 
 
 def test_shipped_playground_uses_every_kind():
-    scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "playground.toml")
+    scene = load_scene("builtin:playground")
     kinds = {i.animation.kind for i in scene.instances if i.animation is not None}
     assert kinds == {"keyframes", "roll", "path", "swing", "platform"}
 

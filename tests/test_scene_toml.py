@@ -103,11 +103,14 @@ def test_mesh_path_relative_to_file(tmp_path):
 
 
 def test_shipped_scenes_load():
-    files = sorted((REPO / "scenes").glob("*.toml"))
-    assert files
-    for f in files:
-        scene = load_scene(f)
-        assert scene.instances and scene.camera_paths, f.name
+    from psao_scene.loader import example_scenes
+
+    names = sorted(example_scenes())
+    assert names == sorted(f.stem for f in (REPO / "psao_scene" / "scenes").glob("*.toml")) and names
+    for name in names:
+        scene = load_scene(f"builtin:{name}")
+        assert scene.instances and scene.camera_paths, name
+        assert scene.content_hash() == load_scene(REPO / "psao_scene" / "scenes" / f"{name}.toml").content_hash()
 
 
 BAD = [  # (replace this, with that, error class, regex the message must match)

@@ -1,4 +1,4 @@
-"""Pass 3: lit colour x AO into an sRGB RGBA8 image (shaders/composite.frag.glsl)."""
+"""Pass 3: lit colour x AO into an sRGB RGBA8 image (psao_client/shaders/composite.frag.glsl)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Pass 1: rasterise the scene's instances into a G-buffer (shaders/gbuffer.vert.glsl, gbuffer.frag.glsl).
+"""Pass 1: rasterise the scene's instances into a G-buffer (psao_client/shaders/gbuffer.vert.glsl, gbuffer.frag.glsl).
 
 Attachments (GL's bottom-up rows; `read()` flips them to top-down images):
     world        RGBA32F  world position, w = 1 where covered (the mask)

@@ -1,7 +1,7 @@
 """The streamed grid on the GPU: instance records, buckets and cells as integer lookup tables.
 
 Each table is an RGBA32UI 2D texture read as a flat array of 16-byte texels, TABLE_WIDTH texels per
-row (shaders/psao_common.glsl, psao_fetch): an instance record is 3 texels, a bucket 4, a cell 2. The
+row (psao_client/shaders/psao_common.glsl, psao_fetch): an instance record is 3 texels, a bucket 4, a cell 2. The
 bytes are exactly protocol/gridformat.py's, so the mirror's arrays go up unchanged.
 
 Textures rather than shader storage buffers: llvmpipe turns every storage-buffer load into a per-lane

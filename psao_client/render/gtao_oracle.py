@@ -1,4 +1,4 @@
-"""numpy evaluation of shaders/gtao.frag.glsl, step for step: the oracle the GTAO shader is tested against.
+"""numpy evaluation of psao_client/shaders/gtao.frag.glsl, step for step: the oracle the GTAO shader is tested against.
 
     raw = gtao_numpy(depth, normal, view, proj, GtaoSettings(...))   # (H, W) before the blur
 

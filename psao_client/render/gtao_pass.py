@@ -1,4 +1,4 @@
-"""GTAO baseline (shaders/gtao.frag.glsl, then the bilateral blur of ssao_blur.frag.glsl).
+"""GTAO baseline (psao_client/shaders/gtao.frag.glsl, then the bilateral blur of ssao_blur.frag.glsl).
 
 Ground-truth-based AO as Jimenez et al. (2016) describe it and XeGTAO implements it: horizon search in
 screen-space slices, the cosine-weighted visibility between the horizons in closed form, a thickness

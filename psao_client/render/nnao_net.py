@@ -1,5 +1,5 @@
 """NNAO (Holden et al., "Neural Network Ambient Occlusion"): its input features, its network in numpy,
-and the weights file. The shader (shaders/nnao.frag.glsl) computes the same thing on the GPU; this module
+and the weights file. The shader (psao_client/shaders/nnao.frag.glsl) computes the same thing on the GPU; this module
 is its oracle and the training's feature extractor.
 
 Features of a pixel: a NNAO_GRID x NNAO_GRID regular grid of view-space offsets in [-r, r]^2 (r = the AO

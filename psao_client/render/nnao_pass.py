@@ -1,4 +1,4 @@
-"""NNAO pass (shaders/nnao.frag.glsl, then the bilateral blur): see psao_client/render/nnao_net.py."""
+"""NNAO pass (psao_client/shaders/nnao.frag.glsl, then the bilateral blur): see psao_client/render/nnao_net.py."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Pass 2: PSAO reconstruction per pixel from the grid tables (shaders/psao_common.glsl, eq. 2-4).
+"""Pass 2: PSAO reconstruction per pixel from the grid tables (psao_client/shaders/psao_common.glsl, eq. 2-4).
 
 Output: an RG32F texture, r = AO in [0, 1] (1 on background and where no point has weight),
 g = the weight sum (0 marks a hole: no point within reach).

@@ -1,6 +1,7 @@
 """The one GLSL loader: `#version` on line 1, `#include "file.glsl"`, `#define` injection, readable errors.
 
-Every shader lives in `shaders/*.glsl`; Python never holds shader source. One include is generated
+Every shader lives in `psao_client/shaders/*.glsl` (package data, found through importlib.resources);
+Python never holds shader source. One include is generated
 rather than read: `psao_constants.glsl` is protocol/shader_constants.define_block(), the lookup's
 constants from protocol/ (so the shader holds no copy of them). The loader expands includes recursively (each file at most once per program, so an include needs no guard)
 and keeps, for every line of the expanded text, the file and line it came from. Drivers report errors
@@ -12,12 +13,13 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 from protocol import shader_constants
 from psao_client.errors import RenderError
 
-SHADER_DIR = Path(__file__).resolve().parents[2] / "shaders"
+SHADER_DIR = Path(str(resources.files("psao_client").joinpath("shaders")))
 
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$')
 _VERSION = re.compile(r"^\s*#\s*version\s+\d+")
@@ -57,7 +59,7 @@ def _define_lines(defines: dict[str, object] | None) -> list[str]:
 
 
 def load_shader(name: str, defines: dict[str, object] | None = None, shader_dir: Path | None = None) -> ShaderSource:
-    """Read `shaders/NAME`, inject defines right after its `#version` line and expand includes."""
+    """Read `NAME` from the shader folder, inject defines right after its `#version` line and expand includes."""
     root = Path(shader_dir) if shader_dir is not None else SHADER_DIR
     lines = _read(root, name)
     if not lines or not _VERSION.match(lines[0]):
@@ -104,7 +106,7 @@ def _expand(root: Path, name: str, lines: list[str], first_line: int, included: 
 def compile_program(ctx, defines: dict[str, object] | None = None, shader_dir: Path | None = None, **stages: str):
     """Build a moderngl Program (or ComputeShader with `compute=NAME`) from shader files.
 
-    stages: vertex_shader / fragment_shader / compute = file names under shaders/. A compile or link
+    stages: vertex_shader / fragment_shader / compute = file names under SHADER_DIR. A compile or link
     error becomes a RenderError naming the file and line the driver complained about.
     """
     import moderngl

@@ -1,4 +1,4 @@
-"""SSAO baseline (shaders/ssao.frag.glsl + ssao_blur.frag.glsl): what a user would pick instead of PSAO.
+"""SSAO baseline (psao_client/shaders/ssao.frag.glsl + ssao_blur.frag.glsl): what a user would pick instead of PSAO.
 
 Normal-oriented hemisphere SSAO as in Crytek / LearnOpenGL: a fixed kernel of SSAO_SAMPLES points in
 the unit hemisphere, denser near the centre, rotated per pixel by a 4x4 noise tile; the radius is the

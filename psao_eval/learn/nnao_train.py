@@ -12,15 +12,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from psao_client.render.nnao_net import NNAO_ACTIVATIONS, NNAO_CELLS, NNAO_HIDDEN, NNAO_INPUTS, features_gl
 from psao_eval.learn.nn import Adam, DenseNet
 
-REPO = Path(__file__).resolve().parents[2]
-TRAINING_SCENES = (str(REPO / "scenes" / "pavilion.toml"), str(REPO / "scenes" / "playground.toml"))
+TRAINING_SCENES = ("builtin:pavilion", "builtin:playground")  # example TOML scenes, kept out of the benchmark
 
 
 @dataclass

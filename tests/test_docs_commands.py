@@ -1,0 +1,88 @@
+"""The commands the README and docs/results.md name beside their figures still exist, with every option
+they pass: `psao SUB ...` is checked against the sub-command's parser, `python -m benchmarks.X ...`
+against the benchmark's --help, `python -m pytest FILE -k NAME` against the test file."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import io
+import re
+
+import pytest
+
+from conftest import REPO
+from psao.cli import build_parser
+
+DOCS = [REPO / "README.md", REPO / "docs" / "results.md"]
+_INLINE = re.compile(r"`((?:psao|python -m) [^`]+)`")
+
+
+def documented_commands() -> list[tuple[str, str]]:
+    """(where, command) for every command in backticks or at the start of a code-block line (with its
+    backslash continuations)."""
+    found = []
+    for doc in DOCS:
+        text = doc.read_text()
+        for m in _INLINE.finditer(text):
+            found.append((f"{doc.name}:{text[:m.start()].count(chr(10)) + 1}", m.group(1)))
+        for block in re.findall(r"```\n(.*?)```", text, flags=re.S):
+            joined = block.replace("\\\n", " ")
+            for line in joined.splitlines():
+                if line.startswith(("psao ", "python -m ")):
+                    found.append((f"{doc.name} (code block)", line))
+    return found
+
+
+def _flags(command: str) -> list[str]:
+    return [t.split("=")[0] for t in command.split() if t.startswith("--")]
+
+
+def _psao_options() -> dict[str, set[str]]:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {name: {s for a in p._actions for s in a.option_strings} for name, p in sub.choices.items()}
+
+
+def _benchmark_help(module: str) -> str:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
+        importlib.import_module(module).main(["--help"])
+    return out.getvalue()
+
+
+@pytest.mark.parametrize("where,command", documented_commands())
+def test_documented_command_exists(where, command):
+    words = command.split()
+    if words[0] == "psao":
+        options = _psao_options()
+        sub = words[1]
+        if sub in ("COMMAND", "SUB"):
+            return
+        assert sub in options, f"{where}: psao {sub} is not a sub-command"
+        unknown = [f for f in _flags(command) if f not in options[sub]]
+        assert not unknown, f"{where}: psao {sub} has no option {unknown}"
+    elif words[2].startswith("benchmarks."):
+        module = words[2]
+        assert importlib.util.find_spec(module) is not None, f"{where}: no module {module}"
+        text = _benchmark_help(module)
+        unknown = [f for f in _flags(command) if f not in text]
+        assert not unknown, f"{where}: {module} has no option {unknown}"
+    elif words[2] == "pytest":
+        path = REPO / words[3]
+        assert path.is_file(), f"{where}: no test file {words[3]}"
+        if "-k" in words:
+            name = words[words.index("-k") + 1]
+            assert re.search(rf"def test_\w*{re.escape(name)}", path.read_text()), f"{where}: no test matching {name}"
+    else:
+        pytest.fail(f"{where}: unknown command form {command!r}")
+
+
+def test_figures_name_their_command():
+    """Every results table and figure paragraph of the README sits under a command: the numbered
+    figures of 'Results' each name one in backticks."""
+    text = (REPO / "README.md").read_text()
+    results = text.split("## Results", 1)[1].split("\n## ", 1)[0]
+    for para in re.split(r"\n\s*\n", results):
+        if re.match(r"\*\*[^*]+\*\*", para.strip()) and re.search(r"\d", para):
+            assert _INLINE.search(para), f"README figure without its command: {para[:80]!r}"
