@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -162,10 +162,6 @@ class Grid:
         self.dirty_buckets[:] = False
         self.dirty_cells[:] = False
         return b, c
-
-    def mark_all_dirty(self) -> None:
-        self.dirty_buckets[:] = True
-        self.dirty_cells[:] = True
 
     # ------------------------------------------------------------------ edits
     def cell_of(self, inst: int, local_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -450,7 +446,3 @@ def _count_cells(pos: np.ndarray, rec: np.ndarray, back=None) -> int:
         keys = keys + np.asarray(back, bool) * (1 << 30)
     _, counts = np.unique(keys, return_counts=True)
     return int((-(-counts // gf.POINTS_PER_CELL)).sum())  # a key with more than 7 points takes more cells
-
-
-def settings_dict(settings: GridSettings) -> dict:
-    return asdict(settings)

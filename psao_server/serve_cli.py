@@ -17,6 +17,7 @@ from protocol.codecs import CODEC_NAMES, codec_name
 from protocol.updates import LAYOUT_NAMES
 from psao.options import default
 from psao_server.bake_cli import add_bake_arguments, bake_settings
+from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError
 from psao_server.service import ServeSettings
 from psao_server.settings import BakeSettings, TickSettings
@@ -59,7 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
     p.add_argument("--tick-rays", type=int, default=None, metavar="R",
                    help="with --animate or --progressive: rays per point per tick round, accumulated over ticks up "
-                        "to --rays (8 without it); --progressive also traces its first grid with them")
+                        f"to --rays ({default(BudgetSettings, 'round_rays')} without it); --progressive also traces its "
+                        "first grid with them")
     p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
                         "(60%% of the tick period less the other stages without it); waiting points queue")
@@ -75,8 +77,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _budget(args):
     """The tick's time budget from --tick-hz, --tick-budget-ms and --tick-rays (ConfigError when out of range)."""
     import math
-
-    from psao_server.budget import BudgetSettings
 
     b = BudgetSettings(tick_hz=args.tick_hz)
     if args.tick_budget_ms is not None:

@@ -9,7 +9,7 @@ from protocol.codecs import CODEC_NAMES, codec_name
 from psao.cli import build_parser
 from psao_eval.reference import ReferenceSettings
 from psao_server.service import ServeSettings
-from psao_server.settings import BakeSettings, PointSettings, TickSettings, TraceSettings
+from psao_server.settings import BakeSettings, PointSettings, TraceSettings
 
 BAKE_OPTIONS = {"--density", "--rays", "--seed", "--spawn-ratio", "--gap-fill", "--gap-fill-ratio", "--tracer", "--workers"}
 
@@ -38,7 +38,7 @@ def test_defaults_come_from_the_settings():
     assert BakeSettings.spawn_ratio == PointSettings.spawn_ratio and BakeSettings.rays == TraceSettings.rays
     assert bake.max_points == BakeSettings.max_points and bake.points is None
     serve = _parse("serve", "builtin:cornell")
-    assert serve.tick_hz == ServeSettings.tick_hz and serve.tick_rays == TickSettings.rays
+    assert serve.tick_hz == ServeSettings.tick_hz and serve.tick_rays is None  # None: BudgetSettings.round_rays
     assert serve.codec == codec_name(ServeSettings.codec) and serve.port == ServeSettings.port
     bench = _parse("bench", "builtin:cornell")
     assert bench.spp == ReferenceSettings.spp and bench.rays == BakeSettings.rays

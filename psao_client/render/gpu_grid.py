@@ -135,11 +135,6 @@ class GpuGrid:
         self._tables["buckets"].replace(self.buckets.reshape(-1, 2 * BUCKET_ENTRIES))
         self._tables["cells"].replace(self.cells)
 
-    def set_instances(self, instances: np.ndarray) -> None:
-        """Instance records changed (a re-bake of one instance): rewrite the small table."""
-        self.instances = _as_instances(instances)
-        self._tables["instances"].replace(_instance_words(self.instances))
-
     # -- incremental update --------------------------------------------------------------------------
     def update(self, bucket_idx, bucket_rows, cell_slots, cell_rows, cell_capacity: int | None = None) -> None:
         """Write only dirty buckets and cells. The cell table grows first when the capacity grew, and is
