@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_render_gtao import corner_scene
-from test_render_gridbuild import ctx  # noqa: F401 (ctx: fixture)
+
 
 torch = pytest.importorskip("torch")
 

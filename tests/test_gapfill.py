@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from protocol import gridformat as gf
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_server.bake import build_scene_grid, sample_probes
