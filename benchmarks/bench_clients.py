@@ -62,7 +62,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
         for k in range(len(clients), n):
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
             c = MirrorClient(url, scene_hash_bytes(scene.content_hash()), camera=lambda t, s=shift: feed(t + s),
-                             digest_log=digest_dir / f"c{k}.jsonl", reconnect=False)
+                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0)
             clients.append(c)
             joined.append(time.perf_counter())
             tasks.append(asyncio.create_task(c.run()))
@@ -138,7 +138,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for stage, n in enumerate(counts):
             control.write_text(str(stage))
-            ready = json.loads(host.stdout.readline())
+            line = host.stdout.readline()
+            if not line:  # the client host ended (its error is on stderr): judge what was measured
+                print(f"bench_clients: the client process ended during the {n}-client stage", flush=True)
+                rows.append({"clients": n, "ticks_per_s": 0.0, "updates_per_s_per_client": 0.0, "server_cpu": 0.0,
+                             "server_rss_mb": proc_stats(server.pid)[1] / 2**20, "snapshot_s_max": float("inf")})
+                break
+            ready = json.loads(line)
             t0 = time.time()
             recs0 = read_jsonl(stats)
             cpu0, _ = proc_stats(server.pid)
