@@ -5,7 +5,9 @@ changed (the history) and their unoccluded count. A point whose history holds fe
 waits in the queue; every trace adds one round of `round_rays` rays (a fresh ray set per round: the
 tracer's seed advances every tick, and directions are hashed from point id and seed), and the stored AO
 is the running mean. A change around a point resets its history (`reset`), so the point goes to the
-front of the queue. Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
+front of the queue; with `keep_rays` its estimate so far stands in for at most that many rays until as
+many fresh rays have come (a point in a moving neighbourhood blends a few rounds, like temporal
+anti-aliasing, instead of showing one round's noise; once still, it converges on fresh rays alone). Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
 over the point ids, so it can never hold more entries than the scene has points.
 
 Priority (`pick`): points in some client's extended view before those outside it; among those, points
@@ -35,6 +37,9 @@ class BudgetSettings:
     headroom: float = 0.6  # automatic budget: this share of the tick period, less the other stages
     floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
     round_rays: int = 8  # rays per point per trace round (the history accumulates rounds up to the target)
+    keep_rays: int = 24  # on a change around a point, its estimate so far stands in for this many rays (at
+    # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
+    # showing one round's noise; 0 = forget at once
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
 
@@ -108,10 +113,13 @@ class RefineQueue:
     """Per point: rays accumulated since the last reset, unoccluded rays among them, and since when the
     point waits (perf_counter seconds)."""
 
-    def __init__(self, n: int, target_rays: int):
+    def __init__(self, n: int, target_rays: int, keep_rays: int = 0):
         self.target = int(target_rays)
-        self.rays = np.zeros(n, np.int32)
+        self.keep = int(keep_rays)
+        self.rays = np.zeros(n, np.int32)  # fresh rays: traced since the last change around the point
         self.unoccluded = np.zeros(n, np.float32)
+        self.old_rays = np.zeros(n, np.float32)  # the estimate from before the change, as so many rays
+        self.old_unoccluded = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
 
     def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
@@ -123,6 +131,11 @@ class RefineQueue:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already."""
         fresh = ids[self.rays[ids] >= self.target]
         self.waiting_since[fresh] = now
+        if self.keep:
+            total, unocc = self._blend(ids)
+            kept = np.minimum(total, self.keep)
+            self.old_unoccluded[ids] = unocc / np.maximum(total, 1) * kept
+            self.old_rays[ids] = kept
         self.rays[ids] = 0
         self.unoccluded[ids] = 0.0
 
@@ -145,4 +158,14 @@ class RefineQueue:
         self.unoccluded[ids] += visibility.astype(np.float32) * rays
         self.rays[ids] += rays
         self.waiting_since[ids] = now
-        return pw.quantise_ao(self.unoccluded[ids] / self.rays[ids])
+        total, unocc = self._blend(ids)
+        return pw.quantise_ao(unocc / total)
+
+    def _blend(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rays, unoccluded rays) of the current estimate: the fresh rays, plus the kept estimate from
+        before the last change until as many fresh rays as it stands for have come."""
+        fresh_r, fresh_u = self.rays[ids].astype(np.float32), self.unoccluded[ids]
+        with_old = fresh_r < self.old_rays[ids]
+        total = fresh_r + np.where(with_old, self.old_rays[ids], 0.0)
+        unocc = fresh_u + np.where(with_old, self.old_unoccluded[ids], 0.0)
+        return total, unocc

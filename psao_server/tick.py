@@ -186,7 +186,7 @@ class ServerTick:
     def _init_budget(self, bake: BakeResult) -> None:
         """The refinement queue, with the bake's AO as each point's first rays of history when the bake
         belongs to a known time, and the tracer's speed measured once on a few points."""
-        self.queue = RefineQueue(len(self.tracked), self.settings.rays)
+        self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays)
         ids = np.flatnonzero(self.present())
         if self.last_frame is not None:
             codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)

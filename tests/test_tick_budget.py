@@ -158,3 +158,18 @@ def test_skinned_instances_count_as_moved_between_frames():
     a, b = anim.frame(0.2), anim.frame(0.7)
     m = scene.instances[anim.kinds.skinned[0]].mesh
     assert not np.array_equal(a.mesh_vertices[m], b.mesh_vertices[m])
+
+
+def test_kept_history_blends_until_as_many_fresh_rays_have_come():
+    q = RefineQueue(1, target_rays=32, keep_rays=24)
+    ids = np.array([0])
+    q.seed_from_codes(ids, np.array([255]), 32)  # converged at AO 1.0
+    q.reset(ids, 0.0)
+    assert list(q.waiting(np.ones(1, bool))) == [0]
+    code = q.add(ids, np.array([0.0]), 8, 1.0)  # one dark round: 24 kept rays of 1.0, 8 fresh of 0.0
+    assert code[0] == pw.quantise_ao(np.array([24 / 32]))[0]
+    q.add(ids, np.array([0.0]), 8, 2.0)
+    code = q.add(ids, np.array([0.0]), 8, 3.0)  # 24 fresh rays: the kept estimate is dropped
+    assert code[0] == 0
+    q.add(ids, np.array([0.0]), 8, 4.0)
+    assert len(q.waiting(np.ones(1, bool))) == 0
