@@ -203,9 +203,11 @@ class ServerTick:
 
     def _round_settings(self, tick: int) -> TraceSettings:
         """One accumulation round: a few rays, a ray set of its own (the seed advances every tick and differs
-        from the bake's)."""
+        from the bake's), or, when one round is the whole target, the bake's own rays."""
         rays = min(self.settings.budget.round_rays, self.settings.rays)
-        return TraceSettings(rays=rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed + 1 + tick)
+        # A round that is a whole trace uses the bake's rays: unchanged geometry then gives unchanged AO
+        seed = self.settings.seed if rays == self.settings.rays else self.settings.seed + 1 + tick
+        return TraceSettings(rays=rays, ao_distance=self.scene.ao_distance, seed=seed)
 
     def pose_tracer(self, frame: Frame) -> None:
         """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
