@@ -21,7 +21,7 @@ from contextlib import redirect_stdout
 from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video", "realtime")
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video", "realtime", "dask")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -35,6 +35,7 @@ QUICK_ARGS = {
               "--clip", "8", "--bitrates", "0.25,1,4,20"],
     "realtime": ["--parts", "tracer,grid", "--tracer-density", "32", "--bake-points", "20000", "--bake-rays", "16",
                  "--tick-points", "4000", "--repeats", "2", "--skinned-points", "10000", "--grid-ticks", "5"],
+    "dask": ["--density", "64", "--repeats", "1", "--large", "builtin:courtyard-3x3", "--rate-points", "30000"],
 }
 
 

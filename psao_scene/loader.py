@@ -17,6 +17,7 @@ from .errors import GeometryError, SceneFormatError, SceneNotFound
 from . import limits
 from .meshfile import MESH_EXTENSIONS, load_mesh_file
 from .model import Scene
+from .repeat import MAX_COPIES, parse_repeat, repeat_scene
 from .tomlscene import load_toml_scene
 
 BUILTIN_PREFIX = "builtin:"
@@ -42,9 +43,12 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
             with resources.as_file(examples[name]) as path:
                 scene = load_toml_scene(path)
             scene.source = text
+        elif (repeat := parse_repeat(name)) and repeat[0] in BUILTINS:
+            scene = _repeated(repeat, text)
         else:
             known = ", ".join(BUILTIN_PREFIX + n for n in [*BUILTINS, *examples])
-            raise SceneNotFound(f"unknown scene '{text}' (known: {known})")
+            raise SceneNotFound(f"unknown scene '{text}' (known: {known}; or {BUILTIN_PREFIX}NAME-NXxNZ for copies "
+                                f"on a grid)")
     else:
         scene = _load_file(Path(spec))
     if ao_distance is not None:
@@ -54,6 +58,14 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         scene.ao_distance = DEFAULT_AO_FRACTION * float(np.linalg.norm(hi - lo))
     validate_scene(scene)
     return scene
+
+
+def _repeated(repeat: tuple[str, int, int], text: str) -> Scene:
+    """A builtin copied on a grid (`NAME-NXxNZ`, psao_scene/repeat.py)."""
+    name, nx, nz = repeat
+    if not (1 <= nx * nz <= MAX_COPIES):
+        raise SceneFormatError(f"{text}: between 1 and {MAX_COPIES} copies, got {nx} x {nz}")
+    return repeat_scene(BUILTINS[name](), nx, nz)
 
 
 def example_scenes() -> dict:

@@ -96,14 +96,43 @@ def _progress(enabled: bool):
                     transient=True, console=None)
 
 
-def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None) -> np.ndarray:
-    """Trace every allocated point at its exact position and store the quantised AO. Returns visibility."""
+def make_bake_tracer(scene: Scene, settings: BakeSettings) -> Tracer:
+    """The tracer a bake uses: the dask back-end on settings.cluster, else the named local back-end."""
+    center = scene_center(scene)
+    if settings.cluster is not None:
+        return make_tracer("dask", center, cluster=settings.cluster, scene_spec=scene.source)
+    return make_tracer(settings.tracer, center, **({"workers": settings.workers} if settings.tracer == "embree" else {}))
+
+
+def trace_progress(bar, task, tracer: Tracer, rays: int):
+    """A progress callback for Tracer.visibility: advances the bar by the points traced and shows the
+    rays per second (across all of a cluster's workers) and whatever the tracer adds (tasks done)."""
+    start = time.perf_counter()
+    done = 0
+
+    def advance(k: int) -> None:
+        nonlocal done
+        done += k
+        rate = done * rays / max(time.perf_counter() - start, 1e-9)
+        note = tracer.progress_note()
+        bar.update(task, advance=k, description=f"trace {rate / 1e6:.1f} Mrays/s" + (f", {note}" if note else ""))
+    return advance
+
+
+def grid_world_points(grid: Grid, scene: Scene):
+    """(point table, world positions, world normals) of every allocated point of the grid."""
     t = grid.point_table()
     pos = np.empty((len(t), 3))
     nrm = np.empty((len(t), 3), np.float32)
     for i, inst in enumerate(scene.instances):
         sel = t.instance == i
         pos[sel], nrm[sel] = to_world(inst.transform, t.local_pos[sel], t.local_normal[sel])
+    return t, pos, nrm
+
+
+def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None) -> np.ndarray:
+    """Trace every allocated point at its exact position and store the quantised AO. Returns visibility."""
+    t, pos, nrm = grid_world_points(grid, scene)
     vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
     grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
     return vis
@@ -119,14 +148,22 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
     density, estimate = resolve_density(scene, settings.sampling(), settings.min_points)
     stats: dict = {"scene": scene.name, "density": density, "points_estimated": estimate, "rays": settings.rays,
                    "seed": settings.seed}
-    tracer = make_tracer(settings.tracer, scene_center(scene), **({"workers": settings.workers} if settings.tracer == "embree" else {}))
+    tracer = make_bake_tracer(scene, settings)
+    try:
+        return _bake_with(tracer, scene, settings, show_progress, stats)
+    except BaseException:
+        tracer.close()  # a cluster started for this bake goes with it
+        raise
+
+
+def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict) -> BakeResult:
     tracer.set_static(*scene_world_geometry(scene))
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
     with _progress(show_progress) as bar:
         t0 = time.perf_counter()
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
         pointsets = generate_scene_points(
-            scene, PointSettings(density=density, min_points=settings.min_points, seed=settings.seed,
+            scene, PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
                                  spawn_ratio=settings.spawn_ratio),
             progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
         stats["seconds_points"] = time.perf_counter() - t0
@@ -151,7 +188,8 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         n = grid.n_points()
         task = bar.add_task("trace", total=n) if bar else None
         t0 = time.perf_counter()
-        trace_grid_points(grid, scene, tracer, trace_settings, progress=(lambda k: bar.advance(task, k)) if bar else None)
+        trace_grid_points(grid, scene, tracer, trace_settings,
+                          progress=trace_progress(bar, task, tracer, settings.rays) if bar else None)
         stats["seconds_trace"] = time.perf_counter() - t0
     grid.take_dirty()
     stats.update(

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from psao.options import default
 from psao_server import sampling
+from psao_server.cluster_cli import add_cluster_arguments, cluster_settings
 from psao_server.errors import ConfigError
 from psao_server.outputs import check_output_path, write_atomically
 from psao_server.settings import BakeSettings, GapFillSettings
@@ -28,6 +29,7 @@ def add_bake_arguments(p: argparse.ArgumentParser, density: bool = True) -> None
     p.add_argument("--gap-fill-ratio", type=float, default=default(BakeSettings, "gap_fill.ratio"), metavar="R",
                    help="random candidates per kept point and round for --gap-fill")
     add_tracer_arguments(p)
+    add_cluster_arguments(p)  # --cluster: the bake's trace on a Dask cluster
 
 
 def add_tracer_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,7 +44,7 @@ def bake_settings(args: argparse.Namespace) -> BakeSettings:
         raise ConfigError(f"--workers must be >= 0, got {args.workers}")
     points = sampling.bake_kwargs(args) if hasattr(args, "points") else {}
     settings = BakeSettings(**points, rays=args.rays, seed=args.seed, tracer=args.tracer, workers=args.workers,
-                            spawn_ratio=args.spawn_ratio,
+                            spawn_ratio=args.spawn_ratio, cluster=cluster_settings(args),
                             gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
     settings.check()  # a bad number fails before the scene loads
     return settings
@@ -104,6 +106,10 @@ def _print_summary(stats: dict) -> None:
         f"({stats['rays_per_second'] / 1e6:.2f} Mrays/s per busy worker set, bare Embree "
         f"{stats.get('embree_rays_per_second', 0) / 1e6:.2f} Mrays/s on the same rays; wall {stats['rays_per_second_wall'] / 1e6:.2f} Mrays/s)",
     ]
+    if "cluster" in stats:
+        lines.append(f"cluster {stats['cluster']}: {stats['cluster_tasks']:,} tasks on {stats['cluster_threads']} worker "
+                     f"threads, {stats['cluster_workers_lost']} workers lost, peak worker memory "
+                     f"{stats['cluster_peak_rss_bytes'] / 2**20:,.0f} MiB")
     if "recon_mae" in stats:
         lines.append(f"reconstruction vs {stats['probe_rays']}-ray truth at {stats['probes']:,} probes: "
                      f"MAE {stats['recon_mae']:.4f}, p99 {stats['recon_p99']:.3f}, holes {100 * stats['hole_fraction']:.3f}%")

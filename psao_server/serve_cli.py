@@ -143,6 +143,8 @@ def _load(args, bake_with: BakeSettings):
 
     scene = load_scene(args.scene)
     if args.grid is not None:
+        if bake_with.cluster is not None:
+            raise ConfigError("--cluster traces a bake: it has nothing to do with a --grid file")
         grid, scene_hash, _meta = Grid.load(args.grid)
         if scene_hash and scene_hash != scene.content_hash():
             raise ConfigError(f"{args.grid} was baked from another scene than {args.scene}")

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from psao_server.budget import BudgetSettings
-from psao_server.errors import ConfigError, GridError
+from psao_server.errors import ConfigError, GridError, TracerError
 from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings
 
 
@@ -78,6 +78,39 @@ class GapFillSettings:
     seed: int = 0x6A9F11
 
 
+LOCAL_PREFIX = "local:"
+SCENE_SOURCES = ("auto", "spec", "bytes")
+
+
+@dataclass
+class ClusterSettings:
+    address: str  # tcp://HOST:PORT of a running scheduler, or local:N for N worker processes started here
+    timeout: float = 10.0  # seconds to reach the scheduler, and to wait for its first worker
+    scene_source: str = "auto"  # how workers get the scene: spec (load it), bytes (shipped); auto: spec for builtin:
+    chunk_points: int = 16384  # points per task (a task costs the scheduler about a millisecond)
+    tiles: bool = False  # shard by spatial tiles: each task carries its tile's triangles, workers hold no scene
+    tile_points: int = 65536  # most points per tile
+
+    def check(self) -> None:
+        if not self.address:
+            raise TracerError("the dask back-end needs a cluster address (tcp://HOST:PORT or local:N)")
+        if self.address.startswith(LOCAL_PREFIX):
+            local_workers(self.address)
+        if not (np.isfinite(self.timeout) and self.timeout > 0):
+            raise TracerError(f"cluster timeout must be > 0 seconds, got {self.timeout}")
+        if self.scene_source not in SCENE_SOURCES:
+            raise TracerError(f"unknown cluster scene source {self.scene_source!r} (known: {', '.join(SCENE_SOURCES)})")
+        if self.chunk_points < 1 or self.tile_points < 1:
+            raise TracerError(f"chunk and tile points must be >= 1, got {self.chunk_points}, {self.tile_points}")
+
+
+def local_workers(address: str) -> int:
+    text = address[len(LOCAL_PREFIX):]
+    if not text.isdigit() or int(text) < 1:
+        raise TracerError(f"bad cluster {address!r}: local:N needs a worker count N >= 1")
+    return int(text)
+
+
 @dataclass
 class BakeSettings:
     density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
@@ -91,6 +124,7 @@ class BakeSettings:
     spawn_ratio: float = PointSettings.spawn_ratio  # spawned / kept before elimination
     grid: GridSettings = field(default_factory=GridSettings)
     gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
+    cluster: ClusterSettings | None = None  # trace on a Dask cluster (the dask back-end) instead of `tracer`
 
     def check(self) -> None:
         # The scene limits are read when checked: the command line reads these defaults without loading psao_scene.

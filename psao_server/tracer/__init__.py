@@ -3,6 +3,8 @@ until a back-end is asked for, so a missing optional back-end never breaks the p
 
     make_tracer("embree", center)    Embree through embreex, worker processes (default)
     make_tracer("warp", center)      Warp kernel: CUDA when present, else Warp's CPU device
+    make_tracer("dask", center, cluster=ClusterSettings("tcp://host:8786"))
+                                     Embree on the workers of a Dask cluster (optional: psao[dask])
 """
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
 from psao_server.tracer.base import Tracer
 
-BACKENDS = ("embree", "warp")
+BACKENDS = ("embree", "warp", "dask")
 
 
 def make_tracer(name: str = "embree", center=(0.0, 0.0, 0.0), **kwargs) -> Tracer:
@@ -20,11 +22,14 @@ def make_tracer(name: str = "embree", center=(0.0, 0.0, 0.0), **kwargs) -> Trace
     if name == "warp":
         from psao_server.tracer.warp_backend import WarpTracer
         return WarpTracer(center, **kwargs)
+    if name == "dask":
+        from psao_server.tracer.dask_backend import DaskTracer
+        return DaskTracer(center, **kwargs)
     raise TracerError(f"unknown tracer back-end {name!r} (known: {', '.join(BACKENDS)})")
 
 
 def available_backends() -> list[str]:
-    """Back-ends that can be constructed on this machine."""
+    """Back-ends that can be constructed on this machine without further settings (dask needs a cluster)."""
     found = []
     for name in BACKENDS:
         try:

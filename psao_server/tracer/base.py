@@ -13,6 +13,11 @@ import numpy as np
 from psao_server.settings import TraceSettings
 
 
+def recentre(vertices: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """World -> the tracers' float32 frame centred on the scene."""
+    return (np.asarray(vertices, np.float64) - center).astype(np.float32)
+
+
 class Tracer:
     name = "base"
 
@@ -53,6 +58,10 @@ class Tracer:
         """Measured so far: rays_per_second, and where the back-end can tell, embree_rays_per_second (the
         bare occlusion query on the same rays and workers) and trace_efficiency (their ratio)."""
         return {}
+
+    def progress_note(self) -> str:
+        """A few words for the progress line beyond points and rays (e.g. a cluster's tasks done / total)."""
+        return ""
 
     def close(self) -> None:
         pass

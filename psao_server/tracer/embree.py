@@ -19,7 +19,7 @@ import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
-from psao_server.tracer.base import Tracer
+from psao_server.tracer.base import Tracer, recentre
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
@@ -217,7 +217,7 @@ class EmbreeTracer(Tracer):
 
     # geometry -------------------------------------------------------------
     def _recentre(self, vertices) -> np.ndarray:
-        return (np.asarray(vertices, np.float64) - self.center).astype(np.float32)
+        return recentre(vertices, self.center)
 
     def set_static(self, vertices, faces) -> None:
         self.close()

@@ -1,0 +1,221 @@
+"""The dask tracer back-end on a real LocalCluster: bit-identical to the local Embree tracer however the points
+are split (chunks, tiles, spec or bytes scene), a worker killed mid-trace, workers joining later, the CLI."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+distributed = pytest.importorskip("distributed")
+
+from protocol.updates import state_digest  # noqa: E402
+from psao_scene import load_scene  # noqa: E402
+from psao_server.bake import BakeSettings, bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
+from psao_server.errors import TracerError  # noqa: E402
+from psao_server.tracer import TraceSettings, make_tracer  # noqa: E402
+from psao_server.settings import ClusterSettings  # noqa: E402
+from psao_server.tracer.dask_backend import _plugin_error  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RAYS = 32
+SEED = 9
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
+    yield lc
+    lc.close()
+
+
+@pytest.fixture(scope="module")
+def courtyard():
+    """Courtyard geometry, 3000 surface probes and their visibility from the local Embree tracer."""
+    scene = load_scene("builtin:courtyard")
+    v, f = scene_world_geometry(scene)
+    probes = sample_probes(scene, 3000, seed=4)
+    s = TraceSettings(rays=RAYS, ao_distance=scene.ao_distance, seed=SEED)
+    ids = np.arange(len(probes.world_pos)) + 1000
+    with make_tracer("embree", scene_center(scene), workers=1) as local:
+        local.set_static(v, f)
+        ref = local.visibility(probes.world_pos, probes.world_normal, ids, s)
+    return scene, (v, f), probes, ids, s, ref
+
+
+def dask_tracer(scene, address, **kw):
+    return make_tracer("dask", scene_center(scene), cluster=ClusterSettings(address, **kw), scene_spec=scene.source)
+
+
+@pytest.mark.parametrize("kw", [
+    dict(chunk_points=97),  # many small tasks, scene loaded from its spec on the workers
+    dict(chunk_points=1000, scene_source="bytes"),  # the triangles shipped through the scheduler
+    dict(tiles=True, tile_points=300),  # no scene on the workers: each task carries its tile's triangles
+])
+def test_bit_identical_to_local_tracer(cluster, courtyard, kw):
+    scene, geometry, probes, ids, s, ref = courtyard
+    done = []
+    with dask_tracer(scene, cluster.scheduler_address, **kw) as tracer:
+        tracer.set_static(*geometry)
+        vis = tracer.visibility(probes.world_pos, probes.world_normal, ids, s, progress=done.append)
+        stats = tracer.throughput()
+    np.testing.assert_array_equal(vis, ref)
+    assert sum(done) == len(ids) and len(done) == stats["cluster_tasks"] >= 3
+    assert stats["rays_per_second"] > 0 and stats["cluster_peak_rss_bytes"] > 0
+
+
+@pytest.mark.parametrize("tiles", [False, True])
+def test_moving_geometry_occludes_and_is_replaced(cluster, tiles):
+    """A deforming lid and a rigid one (its own mesh, posed per call) cover the floor points, as locally."""
+    floor = trimesh.creation.box(extents=(20, 20, 1.0))
+    floor.apply_translation((0, 0, -0.5))
+    lid = trimesh.creation.box(extents=(10, 10, 0.1))
+    lid.apply_translation((0, 0, 0.5))
+    pose = np.eye(4)
+    pose[:3, 3] = (4.0, 0.0, 0.4)  # the rigid lid covers the points at x > -1
+    pos = np.column_stack([np.linspace(-3, 3, 40), np.zeros(40), np.zeros(40)])
+    nrm = np.tile([0, 0, 1.0], (40, 1))
+    s = TraceSettings(rays=64, ao_distance=2.0)
+    out = {}
+    for name in ("embree", "dask"):
+        kw = {"workers": 1} if name == "embree" else {
+            "cluster": ClusterSettings(cluster.scheduler_address, scene_source="bytes", chunk_points=7, tiles=tiles,
+                                       tile_points=9)}
+        with make_tracer(name, **kw) as tracer:
+            tracer.set_static(floor.vertices, floor.faces)
+            tracer.set_rigid([(lid.vertices - (0, 0, 0.5), lid.faces)])
+            tracer.set_dynamic(lid.vertices, lid.faces)
+            deformed = tracer.visibility(pos, nrm, np.arange(40), s)
+            tracer.set_dynamic(None, np.zeros((0, 3), int), [pose])
+            rigid = tracer.visibility(pos, nrm, np.arange(40), s)
+            tracer.set_dynamic(None, np.zeros((0, 3), int))
+            out[name] = (deformed, rigid, tracer.visibility(pos, nrm, np.arange(40), s))
+    deformed, rigid, bare = out["dask"]
+    assert deformed.max() < 0.3 and (bare == 1.0).all()
+    assert rigid[pos[:, 0] > 0].max() < 0.3 and rigid[pos[:, 0] < -2].min() > 0.9  # the lid spans x > -1
+    for a, b in zip(out["dask"], out["embree"]):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_worker_killed_mid_trace_and_workers_joining_later(cluster, courtyard):
+    """SIGKILL a worker that is running a task once two tasks are done: the scheduler re-runs its tasks and
+    the result is unchanged. The nanny restarts the worker, and a worker started later by hand (`dask
+    worker ADDRESS`, as on another machine) joins: the scheduler hands both the scene plugin."""
+    scene, geometry, probes, ids, s, ref = courtyard
+    with dask_tracer(scene, cluster.scheduler_address, chunk_points=150) as tracer:
+        tracer.set_static(*geometry)
+        client = tracer.client
+        pids = client.run(os.getpid)
+        killed = {}
+
+        def kill_a_busy_worker(_points):
+            if killed or tracer.tasks_done < 2:
+                return
+            busy = [w for w, keys in client.processing().items() if keys and w in pids]
+            if busy:
+                os.kill(pids[busy[0]], signal.SIGKILL)
+                killed[busy[0]] = pids[busy[0]]
+
+        vis = tracer.visibility(probes.world_pos, probes.world_normal, ids, s, progress=kill_a_busy_worker)
+        assert killed, "no worker was busy when tasks completed"
+        np.testing.assert_array_equal(vis, ref)
+        assert set(killed) <= tracer.workers_lost and tracer.throughput()["cluster_workers_lost"] >= 1
+
+        client.wait_for_workers(len(pids), timeout=300)  # the nanny's restart
+        extra = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address,
+                                  "--nthreads", "1", "--no-nanny", "--no-dashboard"], cwd=ROOT,
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            client.wait_for_workers(len(pids) + 1, timeout=300)
+            workers = client.nthreads()
+            assert set(workers).isdisjoint(killed)
+            assert set(client.run(_plugin_error, tracer.plugin_name).values()) == {None}
+            assert len(set(workers) - set(pids)) == 2  # the restarted worker and the one started by hand
+            # every worker, the joined ones too, traces with the scene it was handed
+            again = tracer.visibility(probes.world_pos, probes.world_normal, ids, s)
+            np.testing.assert_array_equal(again, ref)
+        finally:
+            extra.terminate()
+            extra.wait(60)
+
+
+def test_spec_that_loads_other_triangles_is_refused(cluster, courtyard):
+    scene, geometry, *_ = courtyard
+    tracer = make_tracer("dask", scene_center(scene), cluster=ClusterSettings(cluster.scheduler_address),
+                         scene_spec="builtin:cornell")
+    with pytest.raises(TracerError, match="built different triangles"):
+        tracer.set_static(*geometry)
+    tracer.close()
+
+
+def test_bake_on_the_cluster_gives_the_same_grid(cluster):
+    scene = load_scene("builtin:cornell")
+    grids = {}
+    for name, extra in (("local", {}), ("dask", {"cluster": ClusterSettings(cluster.scheduler_address, chunk_points=64)}),
+                        ("tiles", {"cluster": ClusterSettings(cluster.scheduler_address, tiles=True, tile_points=100)})):
+        result = bake_scene(scene, BakeSettings(density=64, rays=RAYS, seed=SEED, workers=1, **extra), show_progress=False)
+        result.tracer.close()
+        grids[name] = b"".join(a.tobytes() for a in (result.grid.instances, result.grid.buckets, result.grid.cells))
+    assert grids["dask"] == grids["local"] and grids["tiles"] == grids["local"]
+
+
+# ---------------------------------------------------------------- command line
+def psao(*args, timeout=300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psao", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def grid_arrays(path) -> bytes:
+    with np.load(path) as z:
+        return b"".join(z[k].tobytes() for k in ("instances", "buckets", "cells"))
+
+
+def test_cli_bake_local_cluster_and_remote_scheduler(cluster, tmp_path):
+    """--cluster local:N starts (and stops) its own workers; --cluster ADDRESS uses a running scheduler."""
+    local = bake_scene(load_scene("builtin:cornell"), BakeSettings(density=32, rays=RAYS, workers=1), show_progress=False)
+    local.tracer.close()
+    want = b"".join(a.tobytes() for a in (local.grid.instances, local.grid.buckets, local.grid.cells))
+    common = ["bake", "builtin:cornell", "--density", "32", "--rays", str(RAYS), "--probes", "0", "--json"]
+    started = psao(*common, "--out", str(tmp_path / "started.npz"), "--cluster", "local:1", "--tiles", "--tile-points", "60")
+    assert started.returncode == 0, started.stderr
+    remote = psao(*common, "--out", str(tmp_path / "remote.npz"), "--cluster", cluster.scheduler_address)
+    assert remote.returncode == 0, remote.stderr
+    stats = json.loads(started.stdout.splitlines()[-1])
+    assert stats["tracer"] == "dask" and stats["cluster"] == "local:1" and stats["cluster_tasks"] >= 2
+    assert json.loads(remote.stdout.splitlines()[-1])["cluster"] == cluster.scheduler_address
+    assert grid_arrays(tmp_path / "started.npz") == want
+    assert grid_arrays(tmp_path / "remote.npz") == want
+
+
+def test_cli_serve_bakes_on_the_cluster(cluster, tmp_path):
+    """psao serve --cluster: the client mirrors exactly the grid of a local bake."""
+    scene = load_scene("builtin:cornell")
+    local = bake_scene(scene, BakeSettings(density=32, rays=RAYS, workers=1), show_progress=False)
+    local.tracer.close()
+    transforms = np.array([i.transform for i in scene.instances], dtype=np.float32)
+    want = state_digest(local.grid.instances, local.grid.buckets, local.grid.cells, transforms)
+    err = tmp_path / "serve.err"
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "32", "--rays",
+                             str(RAYS), "--port", "0", "--cluster", cluster.scheduler_address], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
+    try:
+        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
+            assert proc.poll() is None, err.read_text()
+            time.sleep(0.1)
+        out = psao("client", m.group(1), "--scene", "builtin:cornell", "--frames", "0", "--json")
+        assert out.returncode == 0, out.stderr
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert json.loads(out.stdout.splitlines()[-1])["mirror_digest"] == want
