@@ -31,7 +31,7 @@ QUICK_ARGS = {
     "render": ["--densities", "64,256", "--frames", "2"],
     "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
-    "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "1", "--spp", "32",
+    "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "2", "--spp", "32",
               "--clip", "8", "--bitrates", "0.25,1,4,20"],
     "realtime": ["--parts", "tracer,grid", "--tracer-density", "32", "--bake-points", "20000", "--bake-rays", "16",
                  "--tick-points", "4000", "--repeats", "2", "--skinned-points", "10000", "--grid-ticks", "5"],

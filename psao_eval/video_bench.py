@@ -201,6 +201,10 @@ def score_video(scene_name: str, clips, frames, refs, vcfg: VideoBenchConfig, lo
     return rows, shown_images
 
 
+def _mean_or_nan(values) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
 def _mean(scores) -> dict:
     return {k: float(np.mean([getattr(x, k) for x in scores])) for k in ("psnr", "ssim", "flip", "bias")}
 
@@ -263,7 +267,8 @@ def psao_static(scene, qr, grid_file, poses) -> tuple[list, dict]:
 def psao_animated(scene, qr, bake: BakeSettings, poses, latencies_ms: list[float], tick_hz: float,
                   log) -> tuple[dict, dict]:
     """Frames per latency: the grid of the tick at t - L - 1/tick_hz (ticked here), the scene drawn at t;
-    Update bytes and server ms of the ticks that follow 1/tick_hz of motion."""
+    Update bytes and server ms of the ticks that follow 1/tick_hz of motion (ticks clamped to the scene's
+    start, t = 0, do not count: they cover less motion)."""
     from psao_eval.dynamic import AnimatedServer, AnimatedSettings
 
     frames = {L: [] for L in latencies_ms}
@@ -279,16 +284,20 @@ def psao_animated(scene, qr, bake: BakeSettings, poses, latencies_ms: list[float
                 meter.update(server.grid, np.asarray(server.tick.transforms(), np.float64), t_grid)
                 t0 = time.perf_counter()
                 server.tick(server.grid, max(0.0, t_grid))
-                tick_s.append(time.perf_counter() - t0)
+                tick_seconds = time.perf_counter() - t0
                 n, s = meter.update(server.grid, np.asarray(server.tick.transforms(), np.float64), t_grid)
-                sizes.append(n)
-                send_s.append(s)
+                if t_grid - 1.0 / tick_hz >= 0:  # both ticks after the scene's start: 1/tick_hz of motion
+                    sizes.append(n)
+                    send_s.append(s)
+                    tick_s.append(tick_seconds)
                 grid = server.grid
                 frames[L] += qr.render(grid, [p], timing_repeats=1,
                                        before_frame=lambda pose: (grid, _transforms_at(scene, pose.time)))
         points = server.points
-    return frames, {"mbit_s": 8e-6 * float(np.mean(sizes)) * tick_hz, "snapshot_mb": meter.snapshot_bytes / 1e6,
-                    "server_ms_tick": 1e3 * float(np.mean(tick_s)), "send_ms_tick": 1e3 * float(np.mean(send_s)),
+    if not sizes:
+        log(f"{scene.name}: PSAO-{bake.density:g}: no scored frame late enough for two ticks after t = 0: no Mbit/s")
+    return frames, {"mbit_s": 8e-6 * _mean_or_nan(sizes) * tick_hz, "snapshot_mb": meter.snapshot_bytes / 1e6,
+                    "server_ms_tick": 1e3 * _mean_or_nan(tick_s), "send_ms_tick": 1e3 * _mean_or_nan(send_s),
                     "snapshot_encode_s": meter.snapshot_s, "points": points}
 
 
