@@ -18,6 +18,15 @@ def recentre(vertices: np.ndarray, center: np.ndarray) -> np.ndarray:
     return (np.asarray(vertices, np.float64) - center).astype(np.float32)
 
 
+def recentre_poses(rigid_transforms, center: np.ndarray) -> np.ndarray | None:
+    """4x4 local-to-world poses -> local-to-re-centred-frame (None stays None: no rigid meshes)."""
+    if rigid_transforms is None:
+        return None
+    poses = np.asarray(rigid_transforms, np.float64).reshape(-1, 4, 4).copy()
+    poses[:, :3, 3] -= center
+    return poses
+
+
 class Tracer:
     name = "base"
 

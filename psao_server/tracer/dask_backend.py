@@ -30,7 +30,7 @@ import zstandard
 
 from psao_server.errors import TracerError
 from psao_server.settings import LOCAL_PREFIX, ClusterSettings, TraceSettings, local_workers
-from psao_server.tracer.base import Tracer, recentre
+from psao_server.tracer.base import Tracer, recentre, recentre_poses
 from psao_server.tracer.embree import CpuAccount, _Scenes, _trace_chunk
 from psao_server.tracer.tiles import cut_triangles, make_tiles, triangle_boxes
 
@@ -260,12 +260,7 @@ class DaskTracer(Tracer):
             raise TracerError(f"dask worker {worker}: {error}")
 
     def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
-        if rigid_transforms is None:
-            self._poses = None
-        else:
-            poses = np.asarray(rigid_transforms, np.float64).reshape(-1, 4, 4).copy()
-            poses[:, :3, 3] -= self.center  # into the re-centred frame the rays are traced in
-            self._poses = poses
+        self._poses = recentre_poses(rigid_transforms, self.center)
         if (vertices is None or len(faces) == 0) and self._dynamic[1] is None:
             return  # nothing deforms, as before: the workers keep what they built
         version = self._dynamic[0] + 1

@@ -19,7 +19,7 @@ import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
-from psao_server.tracer.base import Tracer, recentre
+from psao_server.tracer.base import Tracer, recentre, recentre_poses
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
@@ -230,12 +230,7 @@ class EmbreeTracer(Tracer):
         self._local = _Scenes(*self._static, self._rigid)
 
     def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
-        if rigid_transforms is None:
-            self._poses = None
-        else:
-            poses = np.asarray(rigid_transforms, np.float64).reshape(-1, 4, 4).copy()
-            poses[:, :3, 3] -= self.center  # into the re-centred frame the rays are traced in
-            self._poses = poses
+        self._poses = recentre_poses(rigid_transforms, self.center)
         # The deforming part is rebuilt (in every worker) only when it is really given anew.
         if vertices is None or len(faces) == 0:
             if self._dynamic[0] is None:
