@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     p.add_argument("--random-edits", type=int, default=2000, help="points per tick of the random-edit stream")
     p.add_argument("--random-ticks", type=int, default=30, help="ticks of the random-edit stream")
     p.add_argument("--grid", type=Path, default=None, help="a baked grid (.npz) instead of baking")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/out"))
+    p.add_argument("--out", type=Path, default=Path("out") / "bench_bandwidth")
     p.add_argument("--skip-snapshot", action="store_true")
     args = p.parse_args(argv)
 

@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     p.add_argument("--bake", action="store_true", help="trace real AO (slow) instead of a synthetic field")
     p.add_argument("--rays", type=int, default=64)
     p.add_argument("--images", default=None, metavar="DIR", help="also save the first frame's PNGs per N")
-    p.add_argument("--chart", default="benchmarks/out/bench_render.png")
+    p.add_argument("--chart", default="out/bench_render/bench_render.png")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 

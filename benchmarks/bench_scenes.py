@@ -10,7 +10,7 @@ kept modest for a shared 2-core machine and printed with the table.
 Targets per scene and scale: recon_mae < 0.02, holes < 0.1 %, dropped < 0.5 %, PSNR PSAO > SSAO and
 > GTAO.
 
-    python -m benchmarks.bench_scenes [--scales 1,4] [--scenes builtin:cornell,...] [--out benchmarks/out]
+    python -m benchmarks.bench_scenes [--scales 1,4] [--scenes builtin:cornell,...] [--out out/bench_scenes]
 """
 from __future__ import annotations
 
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=64, help="RTAO reference samples per pixel")
     ap.add_argument("--size", default="320x180")
     ap.add_argument("--frames", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path("benchmarks/out"))
+    ap.add_argument("--out", type=Path, default=Path("out") / "bench_scenes")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
