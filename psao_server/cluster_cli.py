@@ -15,17 +15,16 @@ def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
                    help="trace the bake on a Dask cluster: tcp://HOST:PORT of a running scheduler, or local:N "
                         "to start N worker processes here for this command")
     g.add_argument("--cluster-timeout", type=float, default=DEFAULTS.timeout, metavar="SECONDS",
-                   help=f"give up on an unreachable scheduler, or one without workers, after this long "
-                        f"(default {DEFAULTS.timeout:g})")
+                   help="give up on an unreachable scheduler, or one without workers, after this long")
     g.add_argument("--cluster-scene", choices=SCENE_SOURCES, default=DEFAULTS.scene_source,
                    help="how workers get the scene: spec (each loads it itself: builtin: scenes, or files at the "
-                        "same path on every machine), bytes (sent through the scheduler); auto (default): spec "
+                        "same path on every machine), bytes (sent through the scheduler); auto: spec "
                         "for builtin: scenes, else bytes")
     g.add_argument("--tiles", action="store_true",
                    help="shard the trace by spatial tiles: each task carries only the triangles its tile's rays "
                         "can reach, so a worker's memory follows the tile, not the scene")
     g.add_argument("--tile-points", type=int, default=DEFAULTS.tile_points, metavar="P",
-                   help=f"most points per tile with --tiles (default {DEFAULTS.tile_points})")
+                   help="most points per tile with --tiles")
 
 
 def cluster_settings(args: argparse.Namespace) -> ClusterSettings | None:
