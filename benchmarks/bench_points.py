@@ -275,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     summary: dict = {"scene": args.scene, "spawn_ratio": args.spawn_ratio}
 
-    v = Verdicts("bench_points")
+    verdicts = Verdicts("bench_points")
     summary["warp_warm_up_seconds"] = warm_up()
     print(f"warm-up (Warp init, kernel load): {summary['warp_warm_up_seconds']:.2f} s")
 
@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         ok = part["seconds"] < SCENE_TARGET_S
         print(f"\nscene {args.scene}: {part['instances']} instances, density {part['density']:.1f}/unit^2, "
               f"{part['spawned']} spawned -> {part['points']} points in {part['seconds']:.2f} s")
-        v.check(f"{args.scene} {part['points']} points, seconds", part["seconds"], "<", SCENE_TARGET_S)
+        verdicts.check(f"{args.scene} {part['points']} points, seconds", part["seconds"], "<", SCENE_TARGET_S)
         summary["scene_part"] = {k: v for k, v in part.items() if k != "sets"} | {"pass": ok}
 
     v, f = merged_mesh(scene)
@@ -317,14 +317,14 @@ def main(argv: list[str] | None = None) -> int:
         "min_spacing_all_pass": ours_sp.min_all >= pcu_sp.min_all,
         "min_spacing_same_side_pass": ours_sp.min_same_side >= pcu_sp.min_same_side,
     }
-    v.check("speed-up over pcu.sample_mesh_poisson_disk", speedup, ">=", SPEEDUP_TARGET)
-    v.check("min spacing all pairs, ours / pcu's", ours_sp.min_all / pcu_sp.min_all, ">=", 1.0)
-    v.check("min spacing same side, ours / pcu's", ours_sp.min_same_side / pcu_sp.min_same_side, ">=", 1.0)
+    verdicts.check("speed-up over pcu.sample_mesh_poisson_disk", speedup, ">=", SPEEDUP_TARGET)
+    verdicts.check("min spacing all pairs, ours / pcu's", ours_sp.min_all / pcu_sp.min_all, ">=", 1.0)
+    verdicts.check("min spacing same side, ours / pcu's", ours_sp.min_same_side / pcu_sp.min_same_side, ">=", 1.0)
     summary["merged"] = {n: {"seconds": m["seconds"]} | vars(m["spacing"]) for n, m in merged.items()} | checks
     chart = write_charts(args.out, merged, args.scene)
     (args.out / "bench_points.json").write_text(json.dumps(summary, indent=2))
     print(f"chart: {chart}\n{json.dumps(summary)}")
-    return v.exit_code()
+    return verdicts.exit_code()
 
 
 if __name__ == "__main__":
