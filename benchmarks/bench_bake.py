@@ -26,7 +26,7 @@ from psao_server.gapfill import GapFillSettings
 
 from benchmarks.verdicts import Verdicts
 
-TARGETS = {"builtin:courtyard": 0.03, "builtin:cornell": 0.02}  # recon_mae at N=256 (issue 2)
+TARGETS = {"builtin:courtyard": 0.03, "builtin:cornell": 0.02}  # recon_mae at N=256
 
 
 def measure(spec: str, density: float, rays: int, probes: int, probe_rays: int, spawn_ratio: float,

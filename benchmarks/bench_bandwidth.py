@@ -1,4 +1,4 @@
-"""Bandwidth of the update stream for every codec x layout, in one run (issue 3), and snapshot time.
+"""Bandwidth of the update stream for every codec x layout, in one run, and snapshot time.
 
 1. Bake the scene (default builtin:courtyard at N=256) or load a baked grid (--grid). When the scene is
    animated (and it was baked here), record --animated-ticks ticks of its own animation through the real

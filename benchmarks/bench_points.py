@@ -1,4 +1,4 @@
-"""Point generation against point-cloud-utils' Poisson disk sampler, one run (issue 2, item 3).
+"""Point generation against point-cloud-utils' Poisson disk sampler, one run.
 
 Part 1, scene: points for every instance of the scene (generate_points per instance, seeds mixed with
 the instance index) at the density that gives --points final points in total. Target: 1,000,000 points

@@ -1,4 +1,4 @@
-"""PSAO versus SSAO against the RTAO reference on every built-in scene (issue 6), via `psao bench`.
+"""PSAO versus SSAO against the RTAO reference on every built-in scene, via `psao bench`.
 
 Target: on every built-in scene PSAO at N = 512 has a higher PSNR and a lower FLIP than SSAO.
 Prints the table and two verdict lines per scene (PSNR, FLIP); exits 1 when a scene misses the target.

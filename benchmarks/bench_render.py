@@ -1,4 +1,4 @@
-"""PSAO AO pass against the SSAO baseline, same renderer, same frames, one run (issue 4).
+"""PSAO AO pass against the SSAO baseline, same renderer, same frames, one run.
 
 For each point density N the courtyard's grid is built with the server's own point generation and
 Grid; the AO values come from a bake when --bake is given, otherwise a synthetic field (the pass's

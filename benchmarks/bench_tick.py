@@ -1,4 +1,4 @@
-"""Server tick with the selection on and off, in one run, on the built-in dynamic scenes (issue 5).
+"""Server tick with the selection on and off, in one run, on the built-in dynamic scenes.
 
 For each scene: bake at density N with the tick's ray count (the bake is the first sync at t = 0), then
 tick at 60 Hz scene time with a camera following the scene's first camera path (one client), draining
