@@ -210,7 +210,7 @@ def test_cli_serve_bakes_on_the_cluster(cluster, tmp_path):
         while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
             assert proc.poll() is None, err.read_text()
             time.sleep(0.1)
-        out = psao("client", m.group(1), "--scene", "builtin:cornell", "--frames", "0", "--json")
+        out = psao("client", m.group(1), "builtin:cornell", "--frames", "0", "--json")
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0
