@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +16,7 @@ import trimesh
 distributed = pytest.importorskip("distributed")
 
 from protocol.updates import state_digest  # noqa: E402
+from serving import server_url  # noqa: E402
 from psao_scene import load_scene  # noqa: E402
 from psao_server.bake import BakeSettings, bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
 from psao_server.errors import TracerError  # noqa: E402
@@ -207,10 +206,7 @@ def test_cli_serve_bakes_on_the_cluster(cluster, tmp_path):
                              str(RAYS), "--port", "0", "--cluster", cluster.scheduler_address], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
     try:
-        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
-            assert proc.poll() is None, err.read_text()
-            time.sleep(0.1)
-        out = psao("client", m.group(1), "builtin:cornell", "--frames", "0", "--json")
+        out = psao("client", server_url(proc, err), "builtin:cornell", "--frames", "0", "--json")
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0

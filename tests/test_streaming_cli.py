@@ -2,14 +2,14 @@
 from __future__ import annotations
 
 import json
-import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from serving import server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,11 +56,8 @@ def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tupl
                              "--stats-json", str(stats)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"),
                             text=True)
     try:
-        end = time.time() + 120
-        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
-            assert time.time() < end and proc.poll() is None, err.read_text()
-            time.sleep(0.1)
-        out = psao("client", m.group(1), *client_args, "--json", "--digest-log", str(clog))
+        url = server_url(proc, err, 120)
+        out = psao("client", url, *client_args, "--json", "--digest-log", str(clog))
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
@@ -135,11 +132,8 @@ def token_server(tmp_path_factory):
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "16", "--rays",
                              "2", "--port", "0", "--token", "s3cret", "--tick-hz", "10", "--test-edits", "5"],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
-    end = time.time() + 90
-    while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
-        assert time.time() < end and proc.poll() is None, err.read_text()
-        time.sleep(0.1)
-    yield m.group(1), proc, err
+    url = server_url(proc, err, 90)
+    yield url, proc, err
     if proc.poll() is None:
         proc.kill()
         proc.wait()
@@ -201,11 +195,8 @@ def test_client_renders_at_its_own_rate_from_a_static_server(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "16", "--rays", "8",
                              "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
     try:
-        end = time.time() + 120
-        while not (m := re.search(r"listening on (ws://127\.0\.0\.1:\d+)", err.read_text())):
-            assert time.time() < end and proc.poll() is None, err.read_text()
-            time.sleep(0.1)
-        out = psao("client", m.group(1), "builtin:cornell", "--frames", "4", "--fps", "10", "--json",
+        url = server_url(proc, err, 120)
+        out = psao("client", url, "builtin:cornell", "--frames", "4", "--fps", "10", "--json",
                    "--render", str(tmp_path / "frames"), "--size", "64x48")
         if out.returncode != 0 and "EGL" in out.stderr:
             pytest.skip(f"no EGL here: {out.stderr.strip()}")
