@@ -31,7 +31,6 @@ class Codec(IntEnum):
 
 
 CODEC_NAMES = {"none": Codec.NONE, "zstd": Codec.ZSTD, "lz4": Codec.LZ4, "zstd-stream": Codec.ZSTD_STREAM}
-ALL_CODECS = frozenset(Codec)
 
 
 def codec_name(codec: Codec) -> str:

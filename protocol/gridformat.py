@@ -52,8 +52,6 @@ EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)
 
 # Instance flags.
 FLAG_DOUBLE_SIDED = 1 << 0
-FLAG_DEFORMING = 1 << 1  # skinned: points move inside the grid every tick
-FLAG_MOVING = 1 << 2  # rigid motion: transform changes, local points do not
 
 INSTANCE_DTYPE = np.dtype(
     [

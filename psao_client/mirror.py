@@ -88,7 +88,8 @@ class Mirror:
             self.buckets = grown
 
     def resize_cells(self, capacity: int) -> None:
-        """Grow with free cells or cut to the server's new capacity (after a compaction)."""
+        """Grow with free cells or cut to the capacity a message carries (the protocol allows a smaller one;
+        psao serve's pool only grows)."""
         n = len(self.cells)
         if capacity > n:
             self._afford(len(self.buckets), capacity)

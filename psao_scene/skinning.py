@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .rigid import instance_transform
 from .skin import Skin
 
 
@@ -128,37 +127,10 @@ def skin_normals_reference(matrices: np.ndarray, rest_nrm, joints, weights) -> n
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-# ------------------------------------------------------------------------------- weights of AO points
-
-def point_skin_weights(joints: np.ndarray, weights: np.ndarray, faces: np.ndarray, face_index: np.ndarray,
-                       bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Joints (P, 4) int64 and weights (P, 4) of points at barycentrics `bary` (P, 3) of faces
-    `face_index` (P,): the corners' weights blended barycentrically, summed per joint, the 4 largest
-    kept and renormalised (exact when the triangle uses at most 4 joints)."""
-    corners = faces[face_index]  # (P, 3)
-    cj = joints[corners].reshape(len(face_index), 12)
-    cw = (weights[corners] * bary[:, :, None]).reshape(len(face_index), 12)
-    # sum weights of equal joints: sort by joint, then add each run into its first entry
-    order = np.argsort(cj, axis=1, kind="stable")
-    cj = np.take_along_axis(cj, order, axis=1)
-    cw = np.take_along_axis(cw, order, axis=1)
-    for k in range(10, -1, -1):  # backwards so runs longer than 2 accumulate into their first entry
-        same = cj[:, k] == cj[:, k + 1]
-        cw[same, k] += cw[same, k + 1]
-        cw[same, k + 1] = 0.0
-    top = np.argsort(-cw, axis=1, kind="stable")[:, :4]
-    out_j = np.take_along_axis(cj, top, axis=1)
-    out_w = np.take_along_axis(cw, top, axis=1)
-    out_w /= out_w.sum(axis=1, keepdims=True)
-    out_j[out_w == 0] = 0
-    return out_j.astype(np.int64), out_w
-
-
 # ----------------------------------------------------------------------------- per-scene convenience
 
 class SceneSkinner:
-    """One SkinDeformer per skinned mesh of a scene, built on first use and reused every tick; world
-    bounds of instances at time t (rigid ones from their local box, skinned ones from their vertices)."""
+    """One SkinDeformer per skinned mesh of a scene, built on first use and reused every tick."""
 
     def __init__(self, scene, device: str | None = None):
         self.scene = scene
@@ -175,27 +147,12 @@ class SceneSkinner:
                                                        device=self.device)
         return self._deformers[mesh_index].deform(mesh.skin.skinning_matrices(t))[0]
 
-    def instance_bounds(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """World-space (lo, hi) of instance i at time t; conservative (a transformed box) when rigid."""
-        inst = self.scene.instances[i]
-        m = instance_transform(self.scene, i, t)
-        mesh = self.scene.meshes[inst.mesh]
-        if mesh.skin is None:
-            lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-            pts = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        else:
-            pts = self.vertices(inst.mesh, t)
-        w = pts @ m[:3, :3].T + m[:3, 3]
-        return w.min(axis=0), w.max(axis=0)
-
-
 def surface_points(vertices: np.ndarray, faces: np.ndarray, face_index: np.ndarray,
                    bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points at barycentrics `bary` of triangles `face_index` of a (skinned) vertex array, and the unit
-    normals of those triangles. Unlike skinning a point with its own blended weights (skin_points with
-    point_skin_weights), this keeps points exactly on the triangles the client rasterises from the
-    same skinned vertices; the two differ by the bilinear term of linear blend skinning (small for
-    smooth weights, zero when a triangle follows one joint)."""
+    normals of those triangles: points stay exactly on the triangles the client rasterises from the same
+    skinned vertices (skinning each point with its own blended weights would not, by the bilinear term of
+    linear blend skinning)."""
     tri = vertices[faces[face_index]]  # (P, 3, 3)
     pos = np.einsum("pk,pkj->pj", bary, tri)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])

@@ -41,16 +41,6 @@ def to_world(transform: np.ndarray, local_pos: np.ndarray, local_normal: np.ndar
     return pos, nrm.astype(np.float32)
 
 
-def to_local(transform: np.ndarray, world_pos: np.ndarray, world_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World -> instance-local, as the client does with the last received transform."""
-    m = np.asarray(transform, np.float64)
-    inv = np.linalg.inv(m)
-    pos = np.asarray(world_pos, np.float64) @ inv[:3, :3].T + inv[:3, 3]
-    nrm = np.asarray(world_normal, np.float64) @ m[:3, :3]
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-    return pos, nrm.astype(np.float32)
-
-
 def scene_point_ids(pointsets: list[PointSet]) -> list[np.ndarray]:
     """The stable id of every point, per instance: 0..P-1 over the scene's point sets in instance order.
     The grid stores them (they seed each point's rays); the server tick indexes its arrays by them."""

@@ -90,12 +90,10 @@ class Client:
         self.pending_cells = np.zeros(self.capacity, dtype=bool)
 
     def _fit(self, capacity: int) -> None:
-        """Follow the grid's capacity: grow with nothing pending, or cut (after a compaction)."""
+        """Follow the grid's capacity, which only grows: the new slots have nothing pending."""
         n = len(self.pending_cells)
         if capacity > n:
             self.pending_cells = np.concatenate([self.pending_cells, np.zeros(capacity - n, dtype=bool)])
-        elif capacity < n:
-            self.pending_cells = self.pending_cells[:capacity].copy()
 
     def mark(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
         self._fit(capacity)

@@ -279,26 +279,6 @@ class Grid:
                                                back=side[sel] != 0)
         return kept
 
-    def compact(self) -> None:
-        """Renumber allocated cells densely from slot 0 and shrink the pool to fit (plus headroom)."""
-        used = self.allocated_cells().astype(np.int64)
-        capacity = max(64, int(len(used) * 1.25))
-        remap = np.full(self.capacity, gf.EMPTY, dtype=np.uint32)
-        remap[used] = np.arange(len(used), dtype=np.uint32)
-        entries = self.buckets[:, :, 1]
-        live = self.buckets[:, :, 0] != gf.EMPTY
-        entries[live] = remap[entries[live]]
-        for name in ("cells", "point_local", "point_normal", "point_id", "cell_instance"):
-            old = getattr(self, name)
-            new = np.empty((capacity,) + old.shape[1:], old.dtype)
-            new[: len(used)] = old[used]
-            fill = gf.FREE_CELL if name == "cells" else (NO_POINT if name in ("point_id", "cell_instance") else 0)
-            new[len(used):] = fill
-            setattr(self, name, new)
-        self.free_slots = list(range(capacity - 1, len(used) - 1, -1))
-        self.dirty_cells = np.ones(capacity, dtype=bool)
-        self.dirty_buckets[:] = True
-
     # ------------------------------------------------------------------ internals
     def _buckets_of(self, inst: int, cell_xyz: np.ndarray) -> np.ndarray:
         rec = self.instances[inst]
@@ -348,6 +328,9 @@ class Grid:
         return slots, used
 
     def _allocate_slots(self, k: int) -> np.ndarray:
+        """k free slots, lowest first. Freed slots are taken before the pool doubles, so the pool stays
+        within twice the most cells ever allocated at once (plus the build's headroom). It never shrinks:
+        renumbering the slots would resend every cell to every client."""
         while len(self.free_slots) < k:
             self._grow(self.capacity * 2)
         taken = self.free_slots[len(self.free_slots) - k:][::-1]

@@ -10,10 +10,9 @@ import pygltflib
 import pytest
 
 from psao_scene import SceneFormatError, load_scene
-from psao_scene.rigid import instance_transform
 from psao_scene.skin import MAX_JOINTS
 from psao_scene.transforms import axis_angle_matrix
-from psao_scene.skinning import (SkinDeformer, point_skin_weights, skin_normals, skin_normals_reference,
+from psao_scene.skinning import (SkinDeformer, skin_normals, skin_normals_reference,
                                  skin_points, skin_points_reference, skinned_vertices)
 
 RNG = np.random.default_rng(5)
@@ -195,29 +194,6 @@ def test_normals_stay_perpendicular_to_skinned_surface():
     assert n @ np.cross(e1, e2) > 0  # same side as the skinned triangle's winding
 
 
-def test_point_skin_weights():
-    joints = np.array([[0, 1, 0, 0], [1, 2, 0, 0], [3, 0, 0, 0]])
-    weights = np.array([[0.7, 0.3, 0, 0], [0.6, 0.4, 0, 0], [1.0, 0, 0, 0]])
-    faces = np.array([[0, 1, 2]])
-    for c in range(3):  # at a corner: that vertex's weights
-        bary = np.zeros((1, 3))
-        bary[0, c] = 1
-        j, w = point_skin_weights(joints, weights, faces, np.array([0]), bary)
-        got = {int(a): float(b) for a, b in zip(j[0], w[0]) if b > 0}
-        want = {int(a): float(b) for a, b in zip(joints[c], weights[c]) if b > 0}
-        assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-12 for k in got)
-    bary = RNG.dirichlet(np.ones(3), size=50)
-    j, w = point_skin_weights(joints, weights, faces, np.zeros(50, dtype=int), bary)
-    np.testing.assert_allclose(w.sum(1), 1.0)
-    dense = np.zeros((50, 4))  # the triangle uses 4 joints: the blend is exact
-    np.add.at(dense, (np.arange(50)[:, None], j), w)
-    expect = np.zeros((50, 4))
-    for c in range(3):
-        for k in range(4):
-            expect[np.arange(50), joints[c, k]] += bary[:, c] * weights[c, k]
-    np.testing.assert_allclose(dense, expect, atol=1e-12)
-
-
 def test_corrupted_skinned_gltf_never_crashes(tmp_path):
     """Mutate one field of a valid skinned glTF at a time: loading either works or raises a SceneError,
     never another exception (no traceback reaches the user)."""
@@ -243,42 +219,6 @@ def test_corrupted_skinned_gltf_never_crashes(tmp_path):
             load_scene(tmp_path / "mutant.glb")
         except SceneError as e:
             assert "mutant.glb" in str(e) and "\n" not in str(e)
-
-
-def test_scene_skinner_bounds_contain_the_moving_geometry():
-    from psao_scene.skinning import SceneSkinner
-    scene = load_scene("builtin:robots")
-    sk = SceneSkinner(scene)
-    for t in (0.0, 1.7, 5.2):
-        for i, inst in enumerate(scene.instances):
-            lo, hi = sk.instance_bounds(i, t)
-            m = instance_transform(scene, i, t)
-            v = skinned_vertices(scene.meshes[inst.mesh], t) @ m[:3, :3].T + m[:3, 3]
-            assert (v >= lo - 1e-9).all() and (v <= hi + 1e-9).all()
-            if scene.meshes[inst.mesh].skin is not None:  # tight for skinned meshes
-                np.testing.assert_allclose([lo, hi], [v.min(0), v.max(0)], atol=1e-12)
-
-
-def test_point_skinning_stays_near_the_skinned_surface():
-    """AO points skinned with their own blended weights stay within a small distance of the skinned
-    triangles they came from, and exactly on them where the triangle follows one joint."""
-    from psao_scene.skinning import surface_points
-    scene = load_scene("builtin:robots")
-    mesh = next(m for m in scene.meshes if m.skin is not None)
-    skin = mesh.skin
-    faces = RNG.integers(0, len(mesh.faces), 3000)
-    bary = RNG.dirichlet(np.ones(3), size=3000)
-    rest, _ = surface_points(mesh.vertices, mesh.faces, faces, bary)
-    pj, pw = point_skin_weights(skin.joints, skin.weights, mesh.faces, faces, bary)
-    single = np.array([len({int(j) for c in mesh.faces[f] for j, w in zip(skin.joints[c], skin.weights[c]) if w > 0}) == 1
-                       for f in faces])
-    assert single.any() and (~single).any()
-    for t in (0.3, 1.1):
-        lbs = skin_points(skin, t, rest, pj, pw)
-        exact, _ = surface_points(skinned_vertices(mesh, t), mesh.faces, faces, bary)
-        gap = np.linalg.norm(lbs - exact, axis=1)
-        assert gap[single].max() < 1e-9
-        assert gap.max() < 0.01  # metres, on a 1.75 m robot
 
 
 def test_toml_skinned_file_meshes(tmp_path):

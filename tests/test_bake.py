@@ -8,7 +8,7 @@ import pytest
 
 from protocol import pointword as pw
 from psao_scene import load_scene
-from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to_local, to_world
+from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to_world
 from psao_server.settings import BakeSettings
 from psao_server.errors import ConfigError
 
@@ -50,9 +50,12 @@ def test_world_local_round_trip():
     n = rng.normal(size=(100, 3)).astype(np.float32)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     wp_, wn = to_world(m, p, n)
-    p2, n2 = to_local(m, wp_, wn)
-    np.testing.assert_allclose(p2, p, atol=1e-9)
-    np.testing.assert_allclose(n2, n, atol=1e-6)
+    inv = np.linalg.inv(m)
+    np.testing.assert_allclose(wp_ @ inv[:3, :3].T + inv[:3, 3], p, atol=1e-9)
+    # A world normal stays perpendicular to every transformed tangent, and has unit length.
+    tangent = np.cross(n, rng.normal(size=(100, 3)))
+    np.testing.assert_allclose(np.einsum("pi,pi->p", wn, tangent @ m[:3, :3].T), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(wn, axis=1), 1.0, atol=1e-6)
 
 
 def test_cornell_accuracy_targets():

@@ -137,23 +137,6 @@ def test_pool_grows_when_full():
     check_invariants(grid)
 
 
-def test_compact_renumbers_densely_and_preserves_lookup():
-    rng = np.random.default_rng(7)
-    p, n = plane_points(4000, rng)
-    grid = Grid.build([(p, n, 0.01, 0)])
-    t = grid.point_table()
-    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
-    grid.remove_points(t.slot[::3], t.index[::3])
-    probe = np.column_stack([rng.random(500), rng.random(500), np.zeros(500)])
-    nrm = np.tile([0, 0, 1.0], (500, 1))
-    before = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(500, int), probe, nrm)
-    grid.compact()
-    check_invariants(grid)
-    assert grid.allocated_cells().tolist() == list(range(len(grid.allocated_cells())))
-    after = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(500, int), probe, nrm)
-    np.testing.assert_array_equal(before[0], after[0])
-
-
 def test_save_load_round_trip(tmp_path):
     rng = np.random.default_rng(8)
     p, n = plane_points(1000, rng)

@@ -1,5 +1,5 @@
 """The service in-process with clients in-process, over real loopback sockets: every codec and layout,
-a snapshot in many small chunks while ticks keep editing, the cell pool growing and being compacted."""
+a snapshot in many small chunks while ticks keep editing and the cell pool grows."""
 from __future__ import annotations
 
 import asyncio
@@ -19,14 +19,14 @@ from protocol.limits import Limits
 from test_bad_input_server import HASH, make_grid
 
 
-class GrowAndCompact:
-    """Random edits every tick; now and then a burst of new points (the pool grows) or a compaction
-    (slots renumbered, the pool shrinks)."""
+class EditAndGrow:
+    """Random edits every tick (points set, moved, freed, allocated); now and then a burst of new points
+    (the pool grows)."""
 
     def __init__(self, seed=0):
         self.rng = np.random.default_rng(seed)
         self.k = 0
-        self.grew = self.compacted = 0
+        self.grew = 0
 
     def __call__(self, grid: Grid, t: float) -> None:
         self.k += 1
@@ -39,9 +39,6 @@ class GrowAndCompact:
             nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
             grid.insert_points(0, pos, nrm, self.rng.integers(0, 256, n).astype(np.uint32))
             self.grew += len(grid.cells) > before
-        if self.k % 25 == 20:
-            grid.compact()
-            self.compacted += 1
 
 
 def read_jsonl(path):
@@ -50,7 +47,7 @@ def read_jsonl(path):
 
 async def serve_and_mirror(tmp_path, codec, layout, frames=90):
     grid = make_grid(1500)
-    hook = GrowAndCompact()
+    hook = EditAndGrow()
     settings = ServeSettings(port=0, tick_hz=60, codec=codec, layout=layout, stats_interval=1e9,
                              snapshot_cells_per_chunk=64, digest_log=tmp_path / "server.jsonl")
     service = Service(grid, HASH, settings, tick=hook)
@@ -72,11 +69,11 @@ async def serve_and_mirror(tmp_path, codec, layout, frames=90):
 
 @pytest.mark.parametrize("codec, layout", [(Codec.ZSTD_STREAM, Layout.PACKED), (Codec.ZSTD, Layout.PLAIN),
                                            (Codec.LZ4, Layout.PACKED), (Codec.NONE, Layout.PLAIN)])
-def test_mirror_exact_through_growth_and_compaction(tmp_path, codec, layout):
+def test_mirror_exact_through_growth(tmp_path, codec, layout):
     hook, stats, seen, clients = asyncio.run(serve_and_mirror(tmp_path, codec, layout))
-    assert hook.grew >= 1 and hook.compacted >= 2
+    assert hook.grew >= 1
     capacities = {c for c, _ in seen}
-    assert len(capacities) >= 3  # the mirrors followed the pool up and down
+    assert len(capacities) >= 2  # the mirrors followed the pool as it grew
     server = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(tmp_path / "server.jsonl")}
     for i, s in enumerate(stats):
         assert s.updates == 90 and s.codec == {Codec.ZSTD_STREAM: "zstd-stream", Codec.ZSTD: "zstd",
@@ -100,8 +97,8 @@ def test_pending_sets_fold_ticks_and_follow_capacity():
     b, cells, drained = c.take_pending(limits, 16)
     assert b.tolist() == [] and cells.tolist() == [12] and drained
     c.mark(np.array([], np.uint32), np.array([3, 15]), 16)
-    b, cells, drained = c.take_pending(limits, 8)  # compacted down to 8 slots: 15 no longer exists
-    assert cells.tolist() == [3] and drained
+    b, cells, drained = c.take_pending(limits, 32)  # the pool grew again: nothing pending in the new slots
+    assert cells.tolist() == [3, 15] and drained and len(c.pending_cells) == 32
     t = np.tile(np.eye(4, dtype=np.float32), (3, 1, 1))
     assert c.read_transforms(t).tolist() == [0, 1, 2]
     t2 = t.copy()

@@ -4,6 +4,7 @@ points follow their triangles, the view restricts tracing, and the same time giv
 import numpy as np
 import pytest
 
+from protocol import gridformat as gf
 from protocol import pointword as pw
 from psao_scene import load_scene
 from psao_scene.camera import look_at, perspective
@@ -231,12 +232,25 @@ def test_prepare_writes_nothing_and_apply_writes_it():
         tick.close()
 
 
-def test_grid_compacted_behind_the_ticks_back():
-    """A compaction renumbers every slot: the tick notices and finds its points again."""
+def reinsert_every_point(grid):
+    """Take every point out of the grid and put it back, last ids first, so points change places."""
+    t = grid.point_table()
+    back = (grid.cells[t.slot, gf.KEY_WORD] & gf.BACK_BIT) != 0
+    grid.remove_points(t.slot, t.index)
+    order = np.argsort(-t.point_id)
+    for inst in np.unique(t.instance).tolist():
+        sel = order[t.instance[order] == inst]
+        grid.insert_points(inst, t.local_pos[sel], t.local_normal[sel], t.ao_code[sel], t.point_id[sel], back=back[sel])
+
+
+def test_grid_edited_behind_the_ticks_back():
+    """Points that changed places in the grid outside the tick: the tick notices and finds them again."""
     tick, bake = make_tick("courtyard")
     try:
         tick(tick.grid, 0.3)
-        tick.grid.compact()
+        ids = np.flatnonzero(tick.present())
+        reinsert_every_point(tick.grid)
+        assert (tick.grid.point_id[tick.slot[ids], tick.index[ids]] != ids).any()  # the tick's map is stale
         tick.grid.take_dirty()
         tick(tick.grid, 0.6)
         ids, full = full_retrace_codes(tick, 0.6)

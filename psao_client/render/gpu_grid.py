@@ -138,7 +138,7 @@ class GpuGrid:
     # -- incremental update --------------------------------------------------------------------------
     def update(self, bucket_idx, bucket_rows, cell_slots, cell_rows, cell_capacity: int | None = None) -> None:
         """Write only dirty buckets and cells. The cell table grows first when the capacity grew, and is
-        cut (rewritten whole) when it shrank, as the mirror does after a server compaction."""
+        cut (rewritten whole) when it shrank, following the mirror."""
         bucket_idx = np.asarray(bucket_idx, dtype=np.int64).reshape(-1)
         cell_slots = np.asarray(cell_slots, dtype=np.int64).reshape(-1)
         bucket_rows = _as_rows(bucket_rows, (BUCKET_ENTRIES, 2), "bucket rows")

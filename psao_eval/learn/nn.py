@@ -42,12 +42,6 @@ class DenseNet:
                 params[f"s{i}"] = np.ones((*lead, n_out))  # positive scale
         return cls(list(sizes), list(activations), params)
 
-    @classmethod
-    def from_params(cls, params: dict, activations: list[str]) -> "DenseNet":
-        n = len(activations)
-        sizes = [params["W0"].shape[-2]] + [params[f"W{i}"].shape[-1] for i in range(n)]
-        return cls(sizes, list(activations), {k: np.asarray(v, np.float64) for k, v in params.items()})
-
     def forward(self, x: np.ndarray, keep: bool = False, dropout_mask: np.ndarray | None = None):
         """(batch, sizes[0]) -> (batch, sizes[-1]); with keep=True also the values backward() needs."""
         h = np.asarray(x, np.float64)
