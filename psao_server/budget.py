@@ -2,9 +2,11 @@
 
 `RefineQueue` keeps, per point id, the rays accumulated since the geometry around the point last
 changed (the history) and their unoccluded count. A point whose history holds fewer rays than the target
-waits in the queue; every trace adds one round of `round_rays` rays (a fresh ray set per round: the
-tracer's seed advances every tick, and directions are hashed from point id and seed), and the stored AO
-is the running mean. A change around a point resets its history (`reset`), so the point goes to the
+waits in the queue; every trace adds one round: the next interleaved slice of the point's target ray set
+(`round_rays` rays of the `rays` the bake and the unbudgeted tick trace, same seed), and the stored AO is
+the running mean. So the rounds of a point that stands still add up to exactly its full trace: the
+budgeted tick converges to the unbudgeted tick's very AO (and a scene at rest to the bake's, sending
+nothing). A change around a point resets its history (`reset`), so the point goes to the
 front of the queue; with `keep_rays` its estimate so far stands in for at most that many rays until as
 many fresh rays have come (a point in a moving neighbourhood blends a few rounds, like temporal
 anti-aliasing, instead of showing one round's noise; once still, it converges on fresh rays alone). Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
@@ -36,7 +38,8 @@ class BudgetSettings:
     budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
     headroom: float = 0.6  # automatic budget: this share of the tick period, less the other stages
     floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
-    round_rays: int = 8  # rays per point per trace round (the history accumulates rounds up to the target)
+    round_rays: int = 8  # rays per point per trace round, a divisor of the target rays (the history accumulates
+    # rounds, one slice of the target ray set each, up to the target)
     keep_rays: int = 24  # on a change around a point, its estimate so far stands in for this many rays (at
     # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
     # showing one round's noise; 0 = forget at once
@@ -110,22 +113,31 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
 
 
 class RefineQueue:
-    """Per point: rays accumulated since the last reset, unoccluded rays among them, and since when the
-    point waits (perf_counter seconds)."""
+    """Per point: rays accumulated since the last reset, unoccluded rays among them, slices of the target
+    ray set traced, and since when the point waits (perf_counter seconds)."""
 
-    def __init__(self, n: int, target_rays: int, keep_rays: int = 0):
+    def __init__(self, n: int, target_rays: int, keep_rays: int = 0, slices: int = 1):
         self.target = int(target_rays)
         self.keep = int(keep_rays)
+        self.slices = int(slices)  # the target ray set is traced in this many rounds of target / slices rays
         self.rays = np.zeros(n, np.int32)  # fresh rays: traced since the last change around the point
+        self.done = np.zeros(n, np.int32)  # slices traced since then: the next round traces slice `done`
         self.unoccluded = np.zeros(n, np.float32)
         self.old_rays = np.zeros(n, np.float32)  # the estimate from before the change, as so many rays
         self.old_unoccluded = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
 
     def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
-        """The bake's AO counts as `rays` rays of history (its quantised value stands for their mean)."""
-        self.rays[ids] = rays
-        self.unoccluded[ids] = codes.astype(np.float32) / 255.0 * rays
+        """The bake's AO (its quantised value stands for the mean of its rays): with at least the target's
+        rays it is the converged history; with fewer (a few-ray first grid) it is an estimate of its own
+        ray set, standing in for `rays` rays until as many fresh slices have come."""
+        vis = codes.astype(np.float32) / 255.0
+        if rays >= self.target:
+            self.rays[ids], self.done[ids] = self.target, self.slices
+            self.unoccluded[ids] = vis * self.target
+        else:
+            self.rays[ids], self.done[ids], self.unoccluded[ids] = 0, 0, 0.0
+            self.old_rays[ids], self.old_unoccluded[ids] = rays, vis * rays
 
     def reset(self, ids: np.ndarray, now: float) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already."""
@@ -133,39 +145,44 @@ class RefineQueue:
         self.waiting_since[fresh] = now
         if self.keep:
             total, unocc = self._blend(ids)
-            kept = np.minimum(total, self.keep)
+            kept = np.minimum(total, min(self.keep, self.target))
             self.old_unoccluded[ids] = unocc / np.maximum(total, 1) * kept
             self.old_rays[ids] = kept
         self.rays[ids] = 0
+        self.done[ids] = 0
         self.unoccluded[ids] = 0.0
 
     def waiting(self, eligible: np.ndarray) -> np.ndarray:
         """Ids (sorted) of eligible points whose history is short of the target."""
-        return np.flatnonzero(eligible & (self.rays < self.target))
+        return np.flatnonzero(eligible & (self.done < self.slices))
 
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int) -> np.ndarray:
         """The first `k` of `ids` in priority order (visible, reset, oldest)."""
         if len(ids) <= k:
             order = np.lexsort((self.waiting_since[ids], self.rays[ids] > 0, ~visible))
             return ids[order]
-        key = (~visible).astype(np.float64) * 4e9 + (self.rays[ids] > 0) * 2e9 + (self.waiting_since[ids] - self.waiting_since[ids].min())
+        key = ((~visible).astype(np.float64) * 4e9 + (self.rays[ids] > 0) * 2e9
+               + (self.waiting_since[ids] - self.waiting_since[ids].min()))
         first = np.argpartition(key, k - 1)[:k]
         return ids[first[np.argsort(key[first], kind="stable")]]
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float) -> np.ndarray:
-        """Accumulate one round; returns the AO codes of the running means. Points still short of the
-        target keep waiting (their wait restarts now, so others get their turn)."""
-        self.unoccluded[ids] += visibility.astype(np.float32) * rays
+        """Accumulate one round (each point's slice `done`, of `rays` rays); returns the AO codes of the
+        running means. Points still short of the target keep waiting (their wait restarts now, so others
+        get their turn)."""
+        self.unoccluded[ids] += np.rint(visibility.astype(np.float32) * rays)  # a count: exact in float32
         self.rays[ids] += rays
+        self.done[ids] += 1
         self.waiting_since[ids] = now
         total, unocc = self._blend(ids)
         return pw.quantise_ao(unocc / total)
 
     def _blend(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rays, unoccluded rays) of the current estimate: the fresh rays, plus the kept estimate from
-        before the last change until as many fresh rays as it stands for have come."""
+        before the last change until as many fresh rays as it stands for have come, and never beyond the
+        target (a point with its whole ray set shows that set's AO alone)."""
         fresh_r, fresh_u = self.rays[ids].astype(np.float32), self.unoccluded[ids]
-        with_old = fresh_r < self.old_rays[ids]
+        with_old = (fresh_r < self.old_rays[ids]) & (self.done[ids] < self.slices)
         total = fresh_r + np.where(with_old, self.old_rays[ids], 0.0)
         unocc = fresh_u + np.where(with_old, self.old_unoccluded[ids], 0.0)
         return total, unocc

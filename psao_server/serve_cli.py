@@ -59,8 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--animate", action="store_true",
                    help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
     p.add_argument("--tick-rays", type=int, default=None, metavar="R",
-                   help="with --animate or --progressive: rays per point per tick round, accumulated over ticks up "
-                        f"to --rays ({default(BudgetSettings, 'round_rays')} without it); --progressive also traces its "
+                   help="with --animate or --progressive: rays per point per tick round (a divisor of --rays: one slice "
+                        f"of the point's ray set), accumulated over ticks up to --rays ({default(BudgetSettings, 'round_rays')} without it); --progressive also traces its "
                         "first grid with them")
     p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
@@ -86,8 +86,9 @@ def _budget(args):
                               f"--tick-hz {args.tick_hz:g}), got {args.tick_budget_ms}")
         b.budget_ms = args.tick_budget_ms
     if args.tick_rays is not None:
-        if not 1 <= args.tick_rays <= args.rays:
-            raise ConfigError(f"--tick-rays must be within 1..--rays ({args.rays}), got {args.tick_rays}")
+        if not 1 <= args.tick_rays <= args.rays or args.rays % args.tick_rays:
+            raise ConfigError(f"--tick-rays must divide --rays ({args.rays}): each round traces one slice of the "
+                              f"target ray set, got {args.tick_rays}")
         b.round_rays = args.tick_rays
     return b
 

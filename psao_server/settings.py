@@ -28,6 +28,13 @@ class TraceSettings:
     chunk_points: int = 2048  # points per work item (bounds memory: chunk * rays directions)
     local_rays: int = 16384  # calls with fewer rays than this trace in the calling process (a hand-over to
     # worker processes costs more than tracing them, the more so on a busy machine)
+    slices: int = 1  # the `rays`-ray set is dealt into this many interleaved slices (rays j = slice mod slices);
+    slice: int = 0  # only this one is traced: the slices of one set together are exactly its full trace
+
+    @property
+    def rays_traced(self) -> int:
+        """Rays per point this call traces: its slice of the `rays`-ray set."""
+        return len(range(self.slice, self.rays, self.slices))
 
 
 @dataclass
@@ -178,5 +185,8 @@ class TickSettings:
                 raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
             if b.round_rays < 1 or b.min_points < 1:
                 raise ConfigError(f"round rays and min points must be >= 1, got {b.round_rays}, {b.min_points}")
+            if self.rays % min(b.round_rays, self.rays):
+                raise ConfigError(f"round rays ({b.round_rays}) must divide the tick's rays ({self.rays}): each round "
+                                  "traces one equal slice of the target ray set")
         if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
             raise ConfigError(f"view margins out of range: {self.view}")

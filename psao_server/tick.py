@@ -23,8 +23,9 @@ Two ways to trace (TickSettings.budget):
     None      every selected point in a view is re-traced with `rays` rays in this very tick, however
               long that takes (the reference the budgeted tick is measured against)
     settings  the time-budgeted tick of psao_server.budget: selected points have their ray history reset
-              and wait in a priority queue; each tick traces as many as its time budget allows with a
-              few rays each (`round_rays`), accumulating up to `rays` per point. A scene at rest
+              and wait in a priority queue; each tick traces as many as its time budget allows with one
+              slice (`round_rays` rays) of each point's `rays`-ray set, accumulating up to `rays` per
+              point: a point's rounds together are exactly its unbudgeted trace. A scene at rest
               converges and then traces nothing; idle budget refines points the bake traced with
               fewer rays than `rays` (progressive start).
 """
@@ -186,7 +187,8 @@ class ServerTick:
     def _init_budget(self, bake: BakeResult) -> None:
         """The refinement queue, with the bake's AO as each point's first rays of history when the bake
         belongs to a known time, and the tracer's speed measured once on a few points."""
-        self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays)
+        self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays,
+                                 self._round_settings().slices)
         ids = np.flatnonzero(self.present())
         if self.last_frame is not None:
             codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)
@@ -195,32 +197,33 @@ class ServerTick:
         frame = self.animator.frame(0.0)
         pos, nrm = self.world_points(frame, sample)
         self.pose_tracer(frame)
-        rate, overhead = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings(0))
+        rate, overhead = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings())
         self.budget = TraceBudget(self.settings.budget, rate, overhead)
         log.info("tick budget: tracer measured at %.2f Mrays/s (%.1f ms per call); %s", rate / 1e6, 1e3 * overhead,
                  f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
                  f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
 
-    def _round_settings(self, tick: int) -> TraceSettings:
-        """One accumulation round: a few rays, a ray set of its own (the seed advances every tick and differs
-        from the bake's), or, when one round is the whole target, the bake's own rays."""
-        rays = min(self.settings.budget.round_rays, self.settings.rays)
-        # A round that is a whole trace uses the bake's rays: unchanged geometry then gives unchanged AO
-        seed = self.settings.seed if rays == self.settings.rays else self.settings.seed + 1 + tick
-        return TraceSettings(rays=rays, ao_distance=self.scene.ao_distance, seed=seed)
+    def _round_settings(self) -> TraceSettings:
+        """One accumulation round: the target ray set (the bake's rays and seed) dealt into slices of
+        `round_rays` rays; each point traces its next slice (RefineQueue.done)."""
+        slices = self.settings.rays // min(self.settings.budget.round_rays, self.settings.rays)
+        return TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed,
+                             slices=slices)
 
     def pose_tracer(self, frame: Frame) -> None:
         """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
         self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid])
 
-    def _trace(self, pos, nrm, ids, settings: TraceSettings) -> np.ndarray:
-        """The tracer's visibility; a worker process that died is logged and the call made once more (the
-        Embree back-end starts a fresh pool), so one lost worker does not stop the server."""
+    def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
+        """The tracer's visibility (with `slice_of`, the given slice of each point's ray set); a worker
+        process that died is logged and the call made once more (the Embree back-end starts a fresh
+        pool), so one lost worker does not stop the server."""
+        extra = {} if slice_of is None else {"slice_of": slice_of}
         try:
-            return self.tracer.visibility(pos, nrm, ids, settings)
+            return self.tracer.visibility(pos, nrm, ids, settings, **extra)
         except TracerError as exc:
             log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
-            return self.tracer.visibility(pos, nrm, ids, settings)
+            return self.tracer.visibility(pos, nrm, ids, settings, **extra)
 
     def close(self) -> None:
         self.tracer.close()
@@ -304,8 +307,8 @@ class ServerTick:
         else:
             changed = self._motion_candidates(frame) & self.tracked
         self.queue.reset(np.flatnonzero(changed), now)
-        round_settings = self._round_settings(self.tick_count)
-        k = self.budget.points(round_settings.rays)
+        round_settings = self._round_settings()
+        k = self.budget.points(round_settings.rays_traced)
         waiting = all_waiting = self.queue.waiting(self.tracked)  # parked skinned points too: a trace re-inserts them
         limit = max(16 * k, 20000)
         if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
@@ -319,12 +322,12 @@ class ServerTick:
         if len(chosen):
             at = np.searchsorted(waiting, chosen)
             self.pose_tracer(frame)
-            vis = self._trace(pos[at], nrm[at], chosen, round_settings)
-            codes = self.queue.add(chosen, vis, round_settings.rays, time.perf_counter())
+            vis = self._trace(pos[at], nrm[at], chosen, round_settings, self.queue.done[chosen])
+            codes = self.queue.add(chosen, vis, round_settings.rays_traced, time.perf_counter())
         t_trace = time.perf_counter()
-        self.budget.observe_trace(len(chosen) * round_settings.rays, t_trace - t_sel)
+        self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)
         # the queue after this round, from the waiting set alone (no pass over every point)
-        still = all_waiting[self.queue.rays[all_waiting] < self.queue.target]
+        still = all_waiting[self.queue.done[all_waiting] < self.queue.slices]
         self._queue_now = (len(still), 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s())

@@ -134,6 +134,54 @@ def test_warp_ray_kernel_matches_numpy_reference():
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("rays,slices", [(32, 4), (24, 5)])
+def test_slices_of_one_ray_set_add_up_to_its_full_trace(backend, rays, slices):
+    """Tracing the interleaved slices of a point's ray set one call each and adding their unoccluded rays
+    gives exactly the full trace's count (the same rays), also when the slices are of unequal sizes."""
+    rng = np.random.default_rng(4)
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.apply_translation((0.2, 0.1, 0.7))
+    m = trimesh.util.concatenate([box, trimesh.creation.box(extents=(8.0, 8.0, 0.2))])
+    tracer = make_tracer(backend)
+    tracer.set_static(m.vertices, m.faces)
+    n = 300
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.full(n, 0.1)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    ids = rng.integers(0, 2**40, n)
+    full = TraceSettings(rays=rays, ao_distance=2.0, seed=3)
+    whole = np.rint(tracer.visibility(pos, nrm, ids, full) * rays).astype(int)
+    total = np.zeros(n, int)
+    for k in range(slices):
+        s = TraceSettings(rays=rays, ao_distance=2.0, seed=3, slices=slices, slice=k)
+        total += np.rint(tracer.visibility(pos, nrm, ids, s) * s.rays_traced).astype(int)
+    if rays % slices == 0:  # one call, a slice per point (the budgeted tick's rounds): the same counts
+        per_point = rng.integers(0, slices, n)
+        s = TraceSettings(rays=rays, ao_distance=2.0, seed=3, slices=slices)
+        mixed = tracer.visibility(pos, nrm, ids, s, slice_of=per_point)
+        for k in range(slices):
+            alone = tracer.visibility(pos[per_point == k], nrm[per_point == k], ids[per_point == k],
+                                      TraceSettings(rays=rays, ao_distance=2.0, seed=3, slices=slices, slice=k))
+            np.testing.assert_array_equal(mixed[per_point == k], alone)
+    tracer.close()
+    assert 0 < whole.mean() < rays  # partly occluded: the comparison means something
+    np.testing.assert_array_equal(total, whole)
+
+
+def test_warp_ray_kernel_slice_matches_numpy_reference():
+    pytest.importorskip("warp")
+    from psao_server.tracer.directions import rotation_of
+    from psao_server.tracer.kernels import RayBuffers
+
+    rng = np.random.default_rng(5)
+    n = rng.normal(size=(100, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = rng.normal(size=(100, 3)).astype(np.float32)
+    ids = rng.integers(0, 2**40, 100)
+    _, d = RayBuffers().rays(p, n, *rotation_of(ids, 2), 32, 2.0, first=3, step=4)
+    np.testing.assert_allclose(d, cosine_directions(ids, n, 32, 2)[:, 3::4].reshape(-1, 3), atol=2e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("workers", [1, 2])
 def test_rigid_meshes_posed_by_transform_trace_like_their_world_triangles(backend, workers):
     """A mesh registered once with set_rigid and placed by a transform (rotation, non-uniform scale,

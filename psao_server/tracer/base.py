@@ -59,8 +59,10 @@ class Tracer:
         return np.concatenate(parts_v), np.concatenate(parts_f)
 
     def visibility(self, positions: np.ndarray, normals: np.ndarray, point_ids: np.ndarray,
-                   settings: TraceSettings) -> np.ndarray:
-        """(P,) float32 visibility in [0, 1] for world-space points and unit normals."""
+                   settings: TraceSettings, progress=None, slice_of: np.ndarray | None = None) -> np.ndarray:
+        """(P,) float32 visibility in [0, 1] for world-space points and unit normals, over the slice
+        `settings.slice` of each point's ray set, or with `slice_of` ((P,) ints) a slice per point (the
+        Embree and Warp back-ends; `settings.slices` must then divide `settings.rays`)."""
         raise NotImplementedError
 
     def throughput(self) -> dict:

@@ -4,6 +4,9 @@ A point's K directions are a stratified 2D set (u1 = (j + 0.5) / K, u2 = frac(j 
 Cranley-Patterson rotation drawn from a hash of the point's stable id and the seed. So the same point
 gets the same rays every tick (unchanged geometry gives unchanged AO, hence no spurious updates), and
 neighbouring points get decorrelated rays (their errors average out in the reconstruction).
+A slice (`first`, `step`: rays j = first, first + step, ...) of a point's K-ray set is a stratified subset of
+it, and the `step` slices of one set are together exactly that set: a trace spread over several rounds,
+one slice each, counts the same rays as one full trace.
 The Warp back-end implements the same arithmetic in its kernel.
 """
 from __future__ import annotations
@@ -42,15 +45,31 @@ def tangent_frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t, bt
 
 
-def cosine_directions(point_ids: np.ndarray, normals: np.ndarray, rays: int, seed: int = 0) -> np.ndarray:
-    """(P, K, 3) float32 world directions, cosine-distributed about each normal."""
+def slice_count(first, rays: int, step: int) -> int:
+    """Rays per point of the slice j = first, first + step, ... of a `rays`-ray set (`first` one int or
+    one per point, all below `step`; per-point slices need `step` to divide `rays`)."""
+    first = np.asarray(first)
+    if first.ndim and len(first) and rays % step:
+        raise ValueError(f"per-point slices need equal sizes: {step} slices do not divide {rays} rays")
+    return len(range(int(first.max(initial=0)), rays, step))
+
+
+def cosine_directions(point_ids: np.ndarray, normals: np.ndarray, rays: int, seed: int = 0, first=0,
+                      step: int = 1) -> np.ndarray:
+    """(P, K', 3) float32 world directions, cosine-distributed about each normal: rays j = first, first +
+    step, ... below `rays` of the K-ray set (all K of them by default). `first` may differ per point
+    ((P,) ints, all below `step`, and `step` dividing `rays` so every point gets K' = rays / step)."""
     n = np.asarray(normals, np.float32)
-    j = np.arange(rays, dtype=np.float32)
+    first = np.asarray(first, np.int64)
+    count = slice_count(first, rays, step)
+    j = (first[..., None] + step * np.arange(count)).astype(np.float32)
+    if j.ndim == 1:
+        j = j[None, :]
     u1 = (j + np.float32(0.5)) / np.float32(rays)
     u2 = np.mod(j * GOLDEN, np.float32(1.0))
     a, b = rotation_of(point_ids, seed)
-    u1 = np.mod(u1[None, :] + a[:, None], np.float32(1.0))
-    u2 = np.mod(u2[None, :] + b[:, None], np.float32(1.0))
+    u1 = np.mod(u1 + a[:, None], np.float32(1.0))
+    u2 = np.mod(u2 + b[:, None], np.float32(1.0))
     r = np.sqrt(u1)
     phi = np.float32(2.0 * np.pi) * u2
     lx, ly = r * np.cos(phi), r * np.sin(phi)

@@ -113,9 +113,10 @@ class _Scenes:
 _RAYS = None  # per process: Warp ray buffers, or False when Warp is unavailable
 
 
-def _chunk_rays(pos, nrm, ids, s: TraceSettings):
-    """Origins and directions of directions.py, (P * K, 3) each; through the compiled Warp kernel when
-    Warp is present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
+def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
+    """Origins and directions of directions.py, (P * K', 3) each, for the slice of each point's ray set
+    that starts at `first` (one int or one per point); through the compiled Warp kernel when Warp is
+    present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
     global _RAYS
     if _RAYS is None:
         try:
@@ -124,22 +125,22 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings):
         except ImportError:
             _RAYS = False
     if _RAYS is False:
-        dirs = cosine_directions(ids, nrm, s.rays, s.seed).reshape(-1, 3)
-        return np.repeat(ray_origins(pos, nrm, s.ao_distance), s.rays, axis=0), dirs
-    return _RAYS.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance)
+        dirs = cosine_directions(ids, nrm, s.rays, s.seed, first, s.slices).reshape(-1, 3)
+        return np.repeat(ray_origins(pos, nrm, s.ao_distance), len(dirs) // max(len(pos), 1), axis=0), dirs
+    return _RAYS.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance, first, s.slices)
 
 
-def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings):
+def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
     """Visibility of a chunk of points, with the seconds the Embree query and the whole chunk took in this
     worker (perf_counter: a CPU-time clock is a system call, which on a loaded machine can cost more
     than a small chunk's tracing). The tracer's throughput against bare Embree is measured as a run of
     its own (benchmarks/bench_realtime.py), not from these."""
     t0 = time.perf_counter()
-    org, dirs = _chunk_rays(pos, nrm, ids, s)
+    org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
     t1 = time.perf_counter()
     hit = scenes.occluded(org, dirs, s.ao_distance)
     t2 = time.perf_counter()
-    vis = 1.0 - hit.reshape(len(pos), s.rays).mean(axis=1, dtype=np.float32)
+    vis = 1.0 - hit.reshape(len(pos), -1).mean(axis=1, dtype=np.float32)
     return vis, t2 - t1, time.perf_counter() - t0
 
 
@@ -169,9 +170,9 @@ def _worker_init(parent, static_vertices, static_faces, rigid):
 
 
 def _worker_trace(job):
-    version, dyn_v, dyn_f, poses, pos, nrm, ids, s = job
+    version, dyn_v, dyn_f, poses, pos, nrm, ids, s, first = job
     _WORKER.update_dynamic(version, dyn_v, dyn_f, poses)
-    return _trace_chunk(_WORKER, pos, nrm, ids, s)
+    return _trace_chunk(_WORKER, pos, nrm, ids, s, first)
 
 
 def _worker_ping(_):
@@ -242,7 +243,7 @@ class EmbreeTracer(Tracer):
         # The in-process scenes catch up lazily, when a small call traces here rather than in the workers.
 
     # tracing --------------------------------------------------------------
-    def _jobs(self, positions, normals, point_ids, s: TraceSettings):
+    def _jobs(self, positions, normals, point_ids, s: TraceSettings, slice_of=None):
         pos = self._recentre(positions)
         nrm = np.asarray(normals, np.float32)
         ids = np.asarray(point_ids, np.int64)
@@ -250,12 +251,12 @@ class EmbreeTracer(Tracer):
         step = max(1, min(s.chunk_points, -(-len(pos) // self.workers)))
         for i in range(0, len(pos), step):
             yield (self._dynamic_version, *self._dynamic, self._poses, pos[i:i + step], nrm[i:i + step],
-                   ids[i:i + step], s)
+                   ids[i:i + step], s, None if slice_of is None else slice_of[i:i + step])
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
             # Load (and on first use compile) the Warp kernels once here, so forked workers inherit them.
-            _chunk_rays(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), np.zeros(1, np.int64), TraceSettings(rays=1))
+            _chunk_rays(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), np.zeros(1, np.int64), TraceSettings(rays=1), 0)
             # fork: workers need nothing but numpy and embreex, and unlike spawn it does not re-run the
             # caller's __main__ (scripts without a main guard would recurse). Callers create the pool
             # (warm_up) before starting threads or event loops.
@@ -271,22 +272,24 @@ class EmbreeTracer(Tracer):
         if pool is not None:
             list(pool.map(_worker_ping, range(self.workers)))
 
-    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
+    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None,
+                   slice_of=None) -> np.ndarray:
         if self._local is None:
             raise TracerError("set_static() must be called before tracing")
         out = []
         if len(positions) == 0:
             return np.zeros(0, np.float32)
-        big = len(positions) >= 2 * self.workers and len(positions) * settings.rays >= settings.local_rays
+        big = len(positions) >= 2 * self.workers and len(positions) * settings.rays_traced >= settings.local_rays
         pool = self._ensure_pool() if big else None
-        jobs = self._jobs(positions, normals, point_ids, settings)
+        jobs = self._jobs(positions, normals, point_ids, settings,
+                          None if slice_of is None else np.asarray(slice_of, np.int64))
         if pool is None:
             self._local.update_dynamic(self._dynamic_version, *self._dynamic, self._poses)
         try:
             results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[4:]) for job in jobs)
             for vis, cpu_query, cpu_total in results:
                 out.append(vis)
-                self.account.add(len(vis) * settings.rays, cpu_query, cpu_total)
+                self.account.add(len(vis) * settings.rays_traced, cpu_query, cpu_total)
                 if progress is not None:
                     progress(len(vis))
         except BrokenProcessPool as exc:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from psao_server.tracer.directions import slice_count
+
 wp.config.quiet = True
 
 GOLDEN = 0.6180339887498949
@@ -58,6 +60,9 @@ def rays_kernel(
     rot_b: wp.array(dtype=float),
     phase: wp.array(dtype=wp.vec2),
     rays: int,
+    first: wp.array(dtype=int),
+    step: int,
+    count: int,
     ao_distance: float,
     offset_rel: float,
     offset_ao: float,
@@ -66,7 +71,8 @@ def rays_kernel(
 ):
     # One thread per point looping over its rays: a thread per ray costs ~5x more on Warp's CPU device.
     # The azimuth 2 pi (frac(j * golden) + b) is the table's angle rotated by the point's 2 pi b, so the
-    # loop needs no trigonometry (same directions as ray_direction up to float rounding).
+    # loop needs no trigonometry (same directions as ray_direction up to float rounding). It writes the
+    # slice j = first[i] + k * step (k < count) of the point's `rays`-ray set.
     i = wp.tid()
     n = normals[i]
     o = ray_origin(positions[i], n, offset_rel, offset_ao, ao_distance)
@@ -74,15 +80,16 @@ def rays_kernel(
     bt = bitangent(n)
     cb = wp.cos(6.283185307179586 * rot_b[i])
     sb = wp.sin(6.283185307179586 * rot_b[i])
-    for j in range(rays):
+    for k in range(count):
+        j = first[i] + k * step
         u1 = (float(j) + 0.5) / float(rays) + rot_a[i]
         u1 = u1 - wp.floor(u1)
         r = wp.sqrt(u1)
         cs = phase[j]
         c = cs[0] * cb - cs[1] * sb
         sn = cs[1] * cb + cs[0] * sb
-        out_origins[i * rays + j] = o
-        out_dirs[i * rays + j] = t * (r * c) + bt * (r * sn) + n * wp.sqrt(wp.max(0.0, 1.0 - u1))
+        out_origins[i * count + k] = o
+        out_dirs[i * count + k] = t * (r * c) + bt * (r * sn) + n * wp.sqrt(wp.max(0.0, 1.0 - u1))
 
 
 @wp.func
@@ -104,21 +111,25 @@ def visibility_kernel(
     rot_a: wp.array(dtype=float),
     rot_b: wp.array(dtype=float),
     rays: int,
+    first: wp.array(dtype=int),
+    step: int,
+    count: int,
     ao_distance: float,
     offset_rel: float,
     offset_ao: float,
     out_visibility: wp.array(dtype=float),
 ):
+    # the slice j = first[i] + k * step (k < count) of the point's `rays`-ray set
     i = wp.tid()
     n = normals[i]
     o = ray_origin(positions[i], n, offset_rel, offset_ao, ao_distance)
     free = int(0)
-    for j in range(rays):
-        d = ray_direction(n, j, rays, rot_a[i], rot_b[i])
+    for k in range(count):
+        d = ray_direction(n, first[i] + k * step, rays, rot_a[i], rot_b[i])
         if occluded(static_mesh, o, d, ao_distance) == 0:
             if occluded(dynamic_mesh, o, d, ao_distance) == 0:
                 free += 1
-    out_visibility[i] = float(free) / float(rays)
+    out_visibility[i] = float(free) / float(count)
 
 
 class RayBuffers:
@@ -129,9 +140,9 @@ class RayBuffers:
         self.ray_capacity = 0
         self.point_capacity = 0
 
-    def _ensure(self, points: int, rays: int) -> None:
-        if points * rays > self.ray_capacity:
-            self.ray_capacity = points * rays
+    def _ensure(self, points: int, count: int, rays: int) -> None:
+        if points * count > self.ray_capacity:
+            self.ray_capacity = points * count
             self.origins = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
             self.dirs = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
         if getattr(self, "phase_rays", None) != rays:
@@ -146,21 +157,26 @@ class RayBuffers:
             self.normals = wp.empty(points, dtype=wp.vec3, device=self.device)
             self.rot_a = wp.empty(points, dtype=float, device=self.device)
             self.rot_b = wp.empty(points, dtype=float, device=self.device)
+            self.first = wp.empty(points, dtype=int, device=self.device)
 
-    def rays(self, positions, normals, rot_a, rot_b, rays: int, ao_distance: float):
-        """(origins, directions), each (P * K, 3) float32 numpy views valid until the next call."""
+    def rays(self, positions, normals, rot_a, rot_b, rays: int, ao_distance: float, first=0, step: int = 1):
+        """(origins, directions), each (P * K', 3) float32 numpy views valid until the next call: the slice
+        j = first, first + step, ... (K' rays) of each point's K-ray set (`first`: one int, or one per point
+        with `step` dividing `rays`)."""
         from psao_server.tracer.directions import OFFSET_AO, OFFSET_REL
 
         p = len(normals)
-        self._ensure(p, rays)
+        count = slice_count(first, rays, step)
+        self._ensure(p, count, rays)
         self.positions.numpy()[:p] = positions
         self.normals.numpy()[:p] = normals
         self.rot_a.numpy()[:p] = rot_a
         self.rot_b.numpy()[:p] = rot_b
+        self.first.numpy()[:p] = first
         wp.launch(rays_kernel, dim=p,
-                  inputs=[self.positions, self.normals, self.rot_a, self.rot_b, self.phase, rays, float(ao_distance),
-                          float(OFFSET_REL), float(OFFSET_AO)],
+                  inputs=[self.positions, self.normals, self.rot_a, self.rot_b, self.phase, rays, self.first, step, count,
+                          float(ao_distance), float(OFFSET_REL), float(OFFSET_AO)],
                   outputs=[self.origins, self.dirs], device=self.device)
-        n = p * rays
+        n = p * count
         return (self.origins.numpy()[:n].view(dtype="float32").reshape(-1, 3),
                 self.dirs.numpy()[:n].view(dtype="float32").reshape(-1, 3))

@@ -11,7 +11,7 @@ import numpy as np
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
 from psao_server.tracer.base import Tracer
-from psao_server.tracer.directions import OFFSET_AO, OFFSET_REL, rotation_of
+from psao_server.tracer.directions import OFFSET_AO, OFFSET_REL, rotation_of, slice_count
 
 try:
     import warp as wp
@@ -50,7 +50,8 @@ class WarpTracer(Tracer):
         vertices, faces = self.merge_rigid(vertices, faces, rigid_transforms)
         self._dynamic = self._mesh(vertices, faces) if vertices is not None else None
 
-    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
+    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None,
+                   slice_of=None) -> np.ndarray:
         n = len(positions)
         if n == 0:
             return np.zeros(0, np.float32)
@@ -63,7 +64,11 @@ class WarpTracer(Tracer):
             inputs=[self._static.id if self._static else wp.uint64(0), self._dynamic.id if self._dynamic else wp.uint64(0),
                     wp.array(pos, dtype=wp.vec3, device=dev), wp.array(np.asarray(normals, np.float32), dtype=wp.vec3, device=dev),
                     wp.array(ra, dtype=float, device=dev), wp.array(rb, dtype=float, device=dev),
-                    int(settings.rays), float(settings.ao_distance), float(OFFSET_REL), float(OFFSET_AO)],
+                    int(settings.rays), wp.array(np.broadcast_to(settings.slice if slice_of is None else slice_of, n)
+                                                 .astype(np.int32), dtype=int, device=dev),
+                    int(settings.slices), int(slice_count(settings.slice if slice_of is None else slice_of,
+                                                          settings.rays, settings.slices)),
+                    float(settings.ao_distance), float(OFFSET_REL), float(OFFSET_AO)],
             outputs=[out], device=dev,
         )
         vis = out.numpy()
