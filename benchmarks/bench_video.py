@@ -1,4 +1,4 @@
-"""PSAO against per-client video of server-rendered AO (H.264 through PyAV), via `psao bench --video`.
+"""PSAO against per-client video of server-rendered AO (H.264 through PyAV), via `psao bench --methods psao,video`.
 
 Runs the bench on an animated and a static built-in scene with PSAO at several densities and the video
 at several bitrates, 0 / 50 / 100 ms of latency, the camera run `--camera-speed` times faster before
@@ -13,11 +13,19 @@ each scored frame, and prints the video tables. Targets (VERDICT lines):
 No target says which method wins: the tables and charts show that, per scene.
 
     .venv/bin/python -m benchmarks.bench_video [--scenes builtin:robots,builtin:cornell] [--size 320x180] ...
+
+Quality and bytes do not depend on the machine's load, milliseconds do: `--report DIR... --costs DIR...`
+merges the results of several runs (quality runs, e.g. one scene each) with the server costs of short
+runs made under the benchmark lock (same scenes, densities and bitrates), and writes the tables, charts
+and verdicts of the whole to --out:
+
+    .venv/bin/python -m benchmarks.bench_video --report out/bv_a out/bv_b --costs out/bvc_a out/bvc_b --out out/bv_all
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -35,20 +43,54 @@ def main(argv=None) -> int:
     p.add_argument("--video-spp", type=int, default=8)
     p.add_argument("--clip", type=int, default=20, help="video frames streamed before each scored frame")
     p.add_argument("--camera-speed", type=float, default=4.0)
+    p.add_argument("--latency-ms", default="0,50,100", help="latencies in ms, comma-separated")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_video")
     p.add_argument("--cache", type=Path, default=Path("out") / ".cache")
+    p.add_argument("--report", type=Path, nargs="+", metavar="DIR",
+                   help="merge the results in these output folders instead of running")
+    p.add_argument("--costs", type=Path, nargs="+", metavar="DIR",
+                   help="with --report: take the server costs from these (locked) runs' results")
     a = p.parse_args(argv)
+    if a.report:
+        return report(a.report, a.costs or [], a.out)
+    if a.costs:
+        p.error("--costs needs --report")
     from psao.cli import main as psao_main
 
     rc = psao_main(["bench", *a.scenes.split(","), "--densities", a.densities, "--tick-hz", "60",
                     "--frames", str(a.frames), "--spp", str(a.spp), "--size", a.size, "--no-stream", "--animate",
-                    "--out", str(a.out), "--cache", str(a.cache), "--video", "--video-bitrates", a.bitrates,
+                    "--out", str(a.out), "--cache", str(a.cache), "--methods", "psao,video", "--video-bitrates", a.bitrates,
                     "--video-spp", str(a.video_spp), "--video-clip", str(a.clip), "--camera-speed",
-                    str(a.camera_speed), "--latency-ms", "0,50,100"])
+                    str(a.camera_speed), "--latency-ms", a.latency_ms])
     if rc != 0:
         return rc
     print((a.out / "video_table.md").read_text())
     return check(json.loads((a.out / "video_results.json").read_text())["rows"]).exit_code()
+
+
+def report(folders: list[Path], cost_folders: list[Path], out: Path) -> int:
+    """Tables, charts and verdicts of several runs' rows, with the costs of the cost runs when given;
+    the runs' side-by-side frames are copied along."""
+    from psao_eval import video_report
+    from psao_eval.errors import EvalError
+    from psao_eval.video_bench import client_costs
+
+    try:
+        rows = [r for f in folders for r in video_report.read_results(f)["rows"]]
+        if cost_folders:
+            cost_rows = [r for f in cost_folders for r in video_report.read_results(f)["rows"]]
+            rows = video_report.merge_costs(rows, cost_rows, " ".join(map(str, cost_folders)))
+    except EvalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    clients = sorted({c["clients"] for f in folders for c in video_report.read_results(f)["clients"]})
+    video_report.write_outputs(rows, [], client_costs(rows, clients), out)
+    for f in folders:
+        for png in Path(f).glob("frame_video_*.png"):
+            shutil.copy(png, out / png.name)
+    print((out / "video_table.md").read_text())
+    return check(rows).exit_code()
 
 
 def check(rows: list[dict]) -> Verdicts:

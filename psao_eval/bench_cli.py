@@ -1,4 +1,4 @@
-"""`psao bench SCENE...`: PSAO and the baselines (--methods) against an RTAO reference, and PSAO's stream.
+"""`psao bench SCENE...`: PSAO and the methods of --methods (alias --ao) against an RTAO reference, and PSAO's stream.
 
 For every scene:
   1. `psao bake` per density (a real process; grids cached under CACHE/grids by scene hash, N and rays);
@@ -7,6 +7,8 @@ For every scene:
   3. stream: per density and tick rate a real `psao serve --grid FILE --density N --tick-hz H` process on a
      free 127.0.0.1 port and a real headless `psao client` for --stream-seconds after its snapshot:
      snapshot size, Mbit/s after it, and the server's milliseconds per tick from its statistics.
+With `video` among the methods, PSAO is also compared with per-client video of server-rendered AO
+(video_bench: equal bandwidth, latency, many clients).
 Writes table.md, table.csv, results.json, runtime_error.png, bandwidth_quality.png and one side-by-side
 image per scene (frame_SCENE.png) to --out. Server processes are killed (their whole process group) on
 every exit path.
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from psao.options import default
+from psao_client.render.renderer import AO_METHODS
 from psao_client.render.ssao_pass import SsaoSettings
 from psao_eval import video_bench
 from psao_eval.errors import EvalError
@@ -32,6 +35,7 @@ from psao_server.settings import BakeSettings, TickSettings
 
 TICK_RAYS = default(TickSettings, "rays")  # rays per re-traced point of an animating server
 DEFAULT_METHODS = ("ssao", "gtao", "psao")
+VIDEO_METHOD = "video"  # server-rendered AO streamed per client as video (video_bench), not a client pass
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,8 +46,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, default=default(ReferenceSettings, "spp"), help="RTAO reference rays per pixel")
     p.add_argument("--size", default="640x360", metavar="WxH", help="frame size")
     p.add_argument("--ssao-samples", type=int, default=default(SsaoSettings, "samples"), help="SSAO kernel size")
-    p.add_argument("--methods", default=",".join(DEFAULT_METHODS), metavar="LIST",
-                   help="AO methods scored, comma-separated, psao among them (psao = one row per density)")
+    p.add_argument("--methods", "--ao", dest="methods", default=",".join(DEFAULT_METHODS), metavar="LIST",
+                   help=f"AO methods scored against RTAO, comma-separated: the renderer's --ao names "
+                        f"({', '.join(AO_METHODS)}) and {VIDEO_METHOD} (per-client video of server-rendered AO, "
+                        f"compared with PSAO at equal bandwidth, under latency and per client: see the video "
+                        f"options); psao is always scored, one row per density, and every row is compared with it")
     p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality, ultra")
     p.add_argument("--mlp-steps", type=int, default=1500,
                    help="Adam steps of MLP baking, trained per scene on the first density's grid")
@@ -82,12 +89,17 @@ class BenchConfig:
     methods: tuple[str, ...] = DEFAULT_METHODS
     gtao_preset: str = "quality"
     mlp_steps: int = 1500
-    video: video_bench.VideoBenchConfig | None = None  # --video: the video AO streaming competitor
+    video: video_bench.VideoBenchConfig | None = None  # set when VIDEO_METHOD is among the methods
+
+    @property
+    def render_methods(self) -> tuple[str, ...]:
+        """The methods the client's renderer draws (all but the video, which the server renders)."""
+        return tuple(m for m in self.methods if m != VIDEO_METHOD)
 
     @property
     def baselines(self) -> tuple[str, ...]:
-        """The methods scored beside PSAO, in the renderer's order."""
-        return tuple(m for m in self.methods if m != "psao")
+        """The renderer's methods scored beside PSAO, in the renderer's order."""
+        return tuple(m for m in self.render_methods if m != "psao")
 
     def method_options(self, **weights):
         from psao_client.render.renderer import MethodOptions
@@ -137,20 +149,21 @@ def config_from_args(args) -> BenchConfig:
                        camera_path=args.camera_path, out=args.out, cache=args.cache, stream=not args.no_stream,
                        image_scale=args.image_scale, animate=args.animate, methods=methods,
                        gtao_preset=args.gtao_preset, mlp_steps=args.mlp_steps,
-                       video=video_bench.config_from_args(args))
+                       video=video_bench.config_from_args(args, VIDEO_METHOD in methods))
 
 
 def parse_methods(text: str) -> tuple[str, ...]:
+    """The renderer's methods named (psao always among them), in its order, then VIDEO_METHOD if named."""
     from psao_client.errors import RenderError
     from psao_client.render.renderer import parse_ao_modes
 
+    names = [t.strip().lower() for t in str(text).split(",") if t.strip()]
+    client = ["psao", *(n for n in names if n != VIDEO_METHOD)]
     try:
-        methods = parse_ao_modes(text)
+        methods = parse_ao_modes(",".join(client))
     except RenderError as exc:
-        raise EvalError(f"--methods: {exc}") from None
-    if "psao" not in methods:
-        raise EvalError("--methods must include psao: every row of Table 1 is compared with it")
-    return methods
+        raise EvalError(f"--methods: {exc}, or {VIDEO_METHOD}") from None
+    return methods + ((VIDEO_METHOD,) if VIDEO_METHOD in names else ())
 
 
 def ensure_writable(folder: Path, what: str) -> Path:
@@ -213,7 +226,7 @@ def method_name(density: float) -> str:
 
 
 def bench_scene(spec: str, cfg: BenchConfig, log: Log) -> tuple[list[dict], dict, tuple | None]:
-    """All rows of one scene, the data of its side-by-side image and, with --video, the video
+    """All rows of one scene, the data of its side-by-side image and, with the video method, the video
     comparison's rows and image."""
     from psao_eval.quality import frame_poses
     from psao_scene import load_scene
@@ -248,7 +261,7 @@ def render_scene(scene, poses, grids: dict, cfg: BenchConfig, log: Log) -> tuple
     frames, tick_ms = {}, {}
     animate = cfg.animate and is_animated(scene)
     weights = learned_weights(scene, grids, cfg, log)
-    with QualityRenderer(scene, cfg.size, methods=cfg.methods,
+    with QualityRenderer(scene, cfg.size, methods=cfg.render_methods,
                          options=cfg.method_options(**{f"{m}_weights": str(w["path"]) for m, w in weights.items()})) as qr:
         for d, (path, _) in grids.items():
             if animate:

@@ -36,13 +36,45 @@ def _child_setup() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+class _Starting:
+    """Interrupt signals that arrive while a child is being started are held here (see spawn)."""
+    depth = 0  # spawns in progress
+    pending: int | None = None  # the first signal that arrived during them
+
+
+_LIVE: set[subprocess.Popen] = set()  # children spawned and not yet killed by kill_group
+
+
+@contextlib.contextmanager
+def _holding_interrupts():
+    """While inside, interrupt_on_sigterm's handler records a signal instead of raising; on the way out
+    the held signal is raised as KeyboardInterrupt (a child started meanwhile is in _LIVE by then)."""
+    _Starting.depth += 1
+    try:
+        yield
+    finally:
+        _Starting.depth -= 1
+        if _Starting.depth == 0 and _Starting.pending is not None:
+            signum, _Starting.pending = _Starting.pending, None
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def spawn(args: list[str], **kwargs) -> subprocess.Popen:
-    """A `psao` child in its own session (process group), so kill_group takes its workers too."""
-    return subprocess.Popen(psao_command(*args), start_new_session=True, preexec_fn=_child_setup, **kwargs)
+    """A `psao` child in its own session (process group), so kill_group takes its workers too.
+
+    An interrupt raised inside Popen (after the fork, while it waits for the exec) would lose the
+    child: Popen never returns it, and it runs on in its own session. So interrupts are held while the
+    child starts and is registered in _LIVE, and raised after; interrupt_on_sigterm kills the children
+    of _LIVE that their owner did not get to kill."""
+    with _holding_interrupts():
+        proc = subprocess.Popen(psao_command(*args), start_new_session=True, preexec_fn=_child_setup, **kwargs)
+        _LIVE.add(proc)
+    return proc
 
 
 def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
     """SIGTERM the child's process group, wait up to `grace` s, then SIGKILL whatever is left."""
+    _LIVE.discard(proc)
     if proc.poll() is None:
         try:
             os.killpg(proc.pid, signal.SIGTERM)
@@ -62,18 +94,31 @@ def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
 
 @contextlib.contextmanager
 def interrupt_on_sigterm():
-    """While inside: SIGTERM (and SIGHUP) raise KeyboardInterrupt in the main thread, so the `finally`
-    blocks that kill child servers run when a benchmark itself is terminated (the default action would
-    skip them). The previous handlers come back on exit."""
+    """While inside: SIGTERM and SIGHUP (and SIGINT, unless it is ignored or handled elsewhere) raise
+    KeyboardInterrupt in the main thread, so the `finally` blocks that kill child servers run when a
+    benchmark itself is terminated (the default action would skip them). A signal that arrives while
+    spawn starts a child is raised once the child is registered; on the way out, children spawned
+    inside and not killed yet are killed. The previous handlers come back on exit."""
     def handler(signum, _frame):
+        if _Starting.depth:
+            _Starting.pending = _Starting.pending or signum
+            return
         raise KeyboardInterrupt(signal.Signals(signum).name)
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    signals = [signal.SIGTERM, signal.SIGHUP]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signals.append(signal.SIGINT)
+    before = set(_LIVE)
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
         yield
     finally:
-        for sig, h in previous.items():
-            signal.signal(sig, h)
+        try:
+            for proc in _LIVE - before:
+                kill_group(proc)
+        finally:
+            for sig, h in previous.items():
+                signal.signal(sig, h)
 
 
 def last_json_line(text: str, what: str) -> dict:

@@ -37,6 +37,7 @@ REALTIME_OPTIONS = {"h264": {"preset": "veryfast", "tune": "zerolatency"},
                     "vp9": {"deadline": "realtime", "cpu-used": "8", "lag-in-frames": "0"},
                     "av1": {"preset": "10"}}
 HISTORY_LIMIT = 0.98  # the largest history weight of the temporal accumulation
+GAUSS_TRUNCATE = 4.0  # the denoise kernel reaches this many sigmas
 
 
 @dataclass
@@ -169,28 +170,45 @@ def decode_stream(stream: EncodedStream) -> list[np.ndarray]:
 def masked_gaussian(ao: np.ndarray, mask: np.ndarray, depth: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian of the AO over covered pixels only (normalised convolution). Depth edges are kept: the
     image is cut into layers 5% apart in depth, and a pixel blends only with pixels of its own layer and
-    the two next to it."""
-    from scipy.ndimage import gaussian_filter
+    the two next to it.
 
+    Computed as one sum over the kernel's offsets on whole images (a cross-bilateral filter whose range
+    weight is 1 for layers at most one apart, else 0), with scipy's Gaussian kernel (radius 4 sigma) and
+    its "nearest" edges (edge-padded images): the same values as a masked Gaussian per depth layer, in
+    (2 radius + 1)^2 vector operations instead of two image filters per layer."""
     ao = np.asarray(ao, np.float32)
     mask = np.asarray(mask, bool)
     if sigma <= 0 or not mask.any():
         return ao.copy()
     logd = np.log(np.maximum(np.asarray(depth, np.float32), 1e-6))
-    layer = np.floor(logd / 0.05)
+    radius = int(GAUSS_TRUNCATE * sigma + 0.5)  # scipy.ndimage.gaussian_filter's kernel radius
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    kernel = np.exp(-0.5 * (x / sigma) ** 2)
+    kernel = (kernel / kernel.sum()).astype(np.float32)
+    h, w = ao.shape
+    # Integer layers (int16: half the memory traffic of float32); uncovered pixels get a layer no
+    # covered pixel is within one of, so they never blend in.
+    layer = np.where(mask, np.clip(np.floor(logd / 0.05), -30000, 30000), -32000).astype(np.int16)
+    # Numerator and denominator in one array: [AO on covered pixels, 1], edge-padded like scipy's "nearest".
+    both = np.pad(np.stack([np.where(mask, ao, 0.0), np.ones_like(ao)]).astype(np.float32),
+                  ((0, 0), (radius, radius), (radius, radius)), mode="edge")
+    layer_pad = np.pad(layer, radius, mode="edge")
+    acc = np.zeros((2, h, w), np.float32)
+    diff = np.empty((h, w), np.int16)
+    near = np.empty((h, w), bool)
+    term = np.empty((2, h, w), np.float32)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            np.subtract(layer_pad[dy:dy + h, dx:dx + w], layer, out=diff)
+            np.abs(diff, out=diff)
+            np.less_equal(diff, 1, out=near)
+            np.multiply(both[:, dy:dy + h, dx:dx + w], near, out=term)
+            term *= kernel[dy] * kernel[dx]
+            acc += term
+    num, den = acc
     out = ao.copy()
-    acc = np.zeros_like(ao)
-    wsum = np.zeros_like(ao)
-    # Per depth layer: a pixel blends with covered pixels of its own and the two adjacent layers.
-    for lo in np.unique(layer[mask]):
-        sel = mask & (np.abs(layer - lo) <= 1)
-        num = gaussian_filter(np.where(sel, ao, 0.0), sigma, mode="nearest")
-        den = gaussian_filter(sel.astype(np.float32), sigma, mode="nearest")
-        here = mask & (layer == lo)
-        acc[here] = num[here]
-        wsum[here] = den[here]
-    ok = mask & (wsum > 1e-6)
-    out[ok] = acc[ok] / wsum[ok]
+    ok = mask & (den > 1e-6)
+    out[ok] = num[ok] / den[ok]
     return out
 
 

@@ -1,4 +1,4 @@
-"""`psao bench --video`: PSAO against per-client video of server-rendered AO, on the same frames.
+"""`psao bench --methods ...,video` (or `--ao video`): PSAO against per-client video of server-rendered AO, on the same frames.
 
 For every scene and every scored frame (the bench's frames, time t on the camera path):
   * video: the server renders a clip of `clip` frames plus the largest latency's frames at `fps`, ending
@@ -40,10 +40,7 @@ class VideoBenchConfig:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     d = VideoSettings()
-    g = p.add_argument_group("video AO streaming competitor (--video)")
-    g.add_argument("--video", action="store_true",
-                   help="also stream server-rendered AO as video per client and compare it with PSAO "
-                        "(equal bandwidth, latency, many clients)")
+    g = p.add_argument_group("video AO streaming competitor (the method video of --methods / --ao)")
     g.add_argument("--video-bitrates", default="0.25,0.5,1,2,4,8", metavar="MBITS",
                    help="video bitrates in Mbit/s, comma-separated")
     g.add_argument("--video-codec", default=d.codec, help=f"video codec: {', '.join(CODECS)}")
@@ -68,8 +65,9 @@ def _numbers(text: str, what: str) -> list[float]:
     return parse_list(text, what, -math.inf, math.inf)
 
 
-def config_from_args(args) -> VideoBenchConfig | None:
-    """The video comparison's settings, or None without --video (its options are still checked)."""
+def config_from_args(args, enabled: bool) -> VideoBenchConfig | None:
+    """The video comparison's settings, or None when the video is not among the bench's methods (its
+    options are still checked)."""
     settings = VideoSettings(codec=args.video_codec, fps=args.video_fps, spp=args.video_spp,
                              accumulate=args.video_accumulate, denoise_px=args.video_denoise)
     settings.check()
@@ -84,7 +82,7 @@ def config_from_args(args) -> VideoBenchConfig | None:
         raise EvalError(f"--video-clip must be >= 1, got {args.video_clip}")
     if not (math.isfinite(args.camera_speed) and 0 < args.camera_speed <= 100):
         raise EvalError(f"--camera-speed must be within 0..100, got {args.camera_speed:g}")
-    if not args.video:
+    if not enabled:
         return None
     return VideoBenchConfig(bitrates, latencies, [int(c) for c in clients], settings, args.video_clip,
                             args.camera_speed)

@@ -9,6 +9,7 @@ import json
 import math
 from pathlib import Path
 
+from psao_eval.errors import EvalError
 from psao_eval.report import _fmt, _scene_styles, side_by_side
 
 
@@ -225,3 +226,33 @@ def _json_default(v):
     if isinstance(v, float) and not math.isfinite(v):
         return None
     raise TypeError(f"not JSON serialisable: {type(v)}")
+
+
+# Per-client server costs of a row: measured by a short run under the benchmark lock, merged into the
+# quality runs' rows (quality and bytes do not depend on machine load; milliseconds do).
+VIDEO_COST_KEYS = ("rays_per_frame", "trace_ms_frame", "filter_ms_frame", "encode_ms_frame")
+PSAO_COST_KEYS = ("server_ms_tick", "send_ms_tick", "snapshot_encode_s")
+
+
+def merge_costs(rows: list[dict], cost_rows: list[dict], source: str) -> list[dict]:
+    """The rows with their server costs replaced by those of the same scene and method in cost_rows
+    (smallest latency, not reprojected), and `costs_from` naming where they came from; a row with no
+    match keeps none (NaN), so no figure measured under load is shown as if measured under the lock."""
+    L0 = _lat0(cost_rows)
+    source_of = {(r["scene"], r["method"]): r for r in cost_rows if r["latency_ms"] == L0 and not r["reprojected"]}
+    out = []
+    for r in rows:
+        keys = VIDEO_COST_KEYS if r["kind"] == "video" else PSAO_COST_KEYS
+        src = source_of.get((r["scene"], r["method"]))
+        out.append({**r, **{k: (src.get(k) if src else float("nan")) for k in keys},
+                    "costs_from": source if src else None})
+    return out
+
+
+def read_results(folder: Path) -> dict:
+    """video_results.json of a `psao bench` run with the video method: {"rows": [...], "clients": [...]}."""
+    path = Path(folder) / "video_results.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise EvalError(f"{path}: not a video benchmark result ({exc})") from None

@@ -1,6 +1,8 @@
 """`psao bench` end to end on real processes, its failures, and that no server outlives it."""
 from __future__ import annotations
 
+import argparse
+
 import csv
 import json
 import math
@@ -103,13 +105,30 @@ def test_unwritable_out_dir_is_one_line_and_leaves_nothing(tmp_path, capsys):
     (["--size", "12by4"], "frame size"),
     (["--frames", "0"], "--frames"),
     (["--methods", "ssao,hbao,psao"], "unknown AO method 'hbao'"),
-    (["--methods", "ssao,gtao"], "must include psao"),
+    (["--ao", "ssao,hbao"], "unknown AO method 'hbao'"),
     (["--gtao-preset", "fast"], "--gtao-preset"),
 ])
 def test_bad_arguments_are_one_line(tmp_path, capsys, args, msg):
     rc, err = run_in_process(bench(tmp_path, "builtin:cornell", *args), capsys)
     assert rc == 2 and msg in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("flag", ["--methods", "--ao"])
+@pytest.mark.parametrize("text,methods,video", [
+    ("ssao,gtao", ("psao", "ssao", "gtao"), False),  # psao is always scored
+    ("video", ("psao", "video"), True),
+    ("gtao,video,psao", ("psao", "gtao", "video"), True),
+    ("both", ("psao", "ssao"), False),
+])
+def test_methods_and_ao_are_one_vocabulary(flag, text, methods, video):
+    from psao_eval.bench_cli import add_arguments, config_from_args
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    cfg = config_from_args(p.parse_args(["builtin:cornell", flag, text]))
+    assert cfg.methods == methods and (cfg.video is not None) == video
+    assert "video" not in cfg.render_methods and "psao" not in cfg.baselines
 
 
 @pytest.mark.parametrize("victim", ["server", "bench"])
@@ -190,3 +209,36 @@ def _boxes_obj() -> str:
     for a, b, c, d in quads:
         f += [(base + a + 1, base + b + 1, base + c + 1), (base + a + 1, base + c + 1, base + d + 1)]
     return "".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a} {b} {c}\n" for a, b, c in f)
+
+
+def test_sigterm_while_a_child_starts_leaves_no_child(tmp_path, monkeypatch):
+    """SIGTERM that reaches the bench while it is inside Popen (the child forked, not yet exec'd: here
+    the child itself sends it from its pre-exec hook, so it always lands there) still interrupts the
+    bench, and the child it started is killed rather than left running unowned."""
+    from psao_eval import processes
+
+    marker = str(tmp_path / "child-marker")
+    monkeypatch.setattr(processes, "psao_command",
+                        lambda *args: [sys.executable, "-c", "import time; time.sleep(120)", marker])
+    setup = processes._child_setup
+
+    def setup_then_signal_parent():
+        setup()
+        os.kill(os.getppid(), signal.SIGTERM)
+
+    monkeypatch.setattr(processes, "_child_setup", setup_then_signal_parent)
+    got = None
+    try:
+        with processes.interrupt_on_sigterm():
+            got = processes.spawn(["serve"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(30)  # not reached when the signal interrupts the bench
+    except KeyboardInterrupt:
+        interrupted = True
+    else:
+        interrupted = False
+    left = wait_gone(marker)
+    for pid in left:  # clean up after a failure
+        os.kill(pid, signal.SIGKILL)
+    assert interrupted and got is None
+    assert not left, "the child started during SIGTERM was left running"
+    assert signal.getsignal(signal.SIGTERM) is not None

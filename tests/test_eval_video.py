@@ -1,5 +1,5 @@
 """The video AO streaming competitor: server render, H.264 round trip, reprojection, the bench's
---video end to end, and its bad input."""
+the video method of `psao bench` end to end, and its bad input."""
 from __future__ import annotations
 
 import json
@@ -125,14 +125,14 @@ def bench(tmp_path: Path, *extra: str) -> list[str]:
 def test_bad_video_arguments_are_one_line(tmp_path, capsys, args, msg):
     from psao.cli import main  # the CLI dispatcher in this process: argument errors need no subprocess
 
-    rc = main(bench(tmp_path, "--video", *args)[3:])
+    rc = main(bench(tmp_path, "--ao", "video", *args)[3:])
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1 and msg in lines[0], err
 
 
 def test_bench_video_end_to_end(tmp_path):
-    r = subprocess.run(bench(tmp_path, "--video", "--video-bitrates", "0.5,4", "--video-spp", "2",
+    r = subprocess.run(bench(tmp_path, "--ao", "video", "--video-bitrates", "0.5,4", "--video-spp", "2",
                              "--video-clip", "3", "--latency-ms", "0,50", "--clients", "1,10"),
                        cwd=ROOT, capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -192,3 +192,78 @@ def test_denoise_keeps_depth_edges_and_background():
     assert np.abs(out - truth)[mask].mean() < 0.5 * np.abs(noisy - truth)[mask].mean()
     # the columns beside the edge keep their own wall's AO
     assert abs(out[5:, 29].mean() - 0.3) < 0.03 and abs(out[5:, 30].mean() - 0.9) < 0.03
+
+
+def _layered_gaussian(ao, mask, depth, sigma):
+    """The denoise's definition, layer by layer with scipy's Gaussian: a pixel's value is the masked
+    Gaussian over covered pixels of its own depth layer (5% of depth) and the two next to it."""
+    from scipy.ndimage import gaussian_filter
+
+    layer = np.floor(np.log(np.maximum(depth, 1e-6)) / 0.05)
+    out = ao.astype(np.float32).copy()
+    for lo in np.unique(layer[mask]):
+        sel = mask & (np.abs(layer - lo) <= 1)
+        num = gaussian_filter(np.where(sel, ao, 0.0).astype(np.float32), sigma, mode="nearest")
+        den = gaussian_filter(sel.astype(np.float32), sigma, mode="nearest")
+        here = mask & (layer == lo)
+        out[here] = num[here] / den[here]
+    return out
+
+
+@pytest.mark.parametrize("sigma", [0.7, 1.0, 2.0])
+def test_denoise_equals_the_layered_gaussian(sigma):
+    """The offset-sum denoise gives the per-layer masked Gaussian's values: on a ramp of depths (many
+    layers, a floor-like slope), a step, holes in the coverage and the image's edges."""
+    from psao_eval.video import masked_gaussian
+
+    rng = np.random.default_rng(7)
+    h, w = 37, 52
+    yy, xx = np.mgrid[0:h, 0:w]
+    depth = np.where(xx < 20, 1.0 + 0.08 * yy, 6.0 - 0.03 * xx).astype(np.float32)  # ~40 layers
+    mask = rng.random((h, w)) > 0.15
+    ao = rng.random((h, w)).astype(np.float32)
+    got = masked_gaussian(np.where(mask, ao, 1.0), mask, depth, sigma)
+    want = _layered_gaussian(np.where(mask, ao, 1.0), mask, depth, sigma)
+    assert len(np.unique(np.floor(np.log(depth[mask]) / 0.05))) > 20
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    assert np.array_equal(got[~mask], np.ones((~mask).sum(), np.float32))
+
+
+def _result_rows(trace_ms: float, tick_ms: float, psnr: float) -> list[dict]:
+    common = {"psnr": psnr, "ssim": 0.9, "flip": 0.05, "bias": 0.0}
+    video = {"kind": "video", "method": "Video-2M", "bitrate": 2.0, "mbit_s": 1.9, "codec_psnr": 45.0,
+             "rays_per_frame": 1000.0, "trace_ms_frame": trace_ms, "filter_ms_frame": 1.0, "encode_ms_frame": 2.0,
+             "fps": 60.0, **common}
+    psao = {"kind": "psao", "method": "PSAO-64", "density": 64.0, "mbit_s": 1.5, "animated": True,
+            "server_ms_tick": tick_ms, "send_ms_tick": 0.5, "snapshot_encode_s": 0.1, "snapshot_mb": 0.2, **common}
+    return [_row(**video, L=L) for L in (0.0, 100.0)] + [_row(**psao, L=L) for L in (0.0, 100.0)]
+
+
+def test_report_merges_runs_with_locked_costs(tmp_path):
+    """`bench_video --report RUNS --costs LOCKED`: quality and Mbit/s from the runs, every server cost from
+    the locked run of the same scene and method, and the client table computed from those."""
+    from benchmarks.bench_video import main
+
+    for name, trace, tick, q in (("run", 900.0, 800.0, 31.0), ("locked", 90.0, 80.0, 12.0)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "video_results.json").write_text(
+            json.dumps({"rows": _result_rows(trace, tick, q), "clients": [{"clients": 1}, {"clients": 10}]}))
+    out = tmp_path / "all"
+    main(["--report", str(tmp_path / "run"), "--costs", str(tmp_path / "locked"), "--out", str(out)])
+    data = json.loads((out / "video_results.json").read_text())
+    by = {(r["method"], r["latency_ms"]): r for r in data["rows"]}
+    assert by[("Video-2M", 0.0)]["psnr"] == 31.0 and by[("Video-2M", 0.0)]["trace_ms_frame"] == 90.0
+    assert by[("PSAO-64", 100.0)]["server_ms_tick"] == 80.0 and by[("PSAO-64", 0.0)]["costs_from"]
+    costs = {(c["method"], c["clients"]): c["ms_per_client"] for c in data["clients"]}
+    assert costs[("Video-2M", 10)] == pytest.approx(90.0 + 1.0 + 2.0)
+    assert costs[("PSAO-64", 10)] == pytest.approx(80.0 / 10 + 0.5)
+    for name in ("video_table.md", "video_bandwidth_quality.png", "video_latency.png", "video_clients.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_report_of_a_folder_without_results_is_one_line(tmp_path, capsys):
+    from benchmarks.bench_video import main
+
+    assert main(["--report", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a video benchmark result" in err[0]
