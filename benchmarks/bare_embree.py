@@ -18,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from psao_server.tracer.base import TraceSettings
+from psao_server.settings import TraceSettings
 from psao_server.tracer.directions import cosine_directions, ray_origins
 
 _STATE: dict = {}

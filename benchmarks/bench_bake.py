@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from psao_scene import load_scene
-from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
-from psao_server.gapfill import GapFillSettings
+from psao_server.bake import bake_scene, reconstruction_error, sample_probes
+from psao_server.settings import BakeSettings, GapFillSettings, ProbeSettings
 
 from benchmarks.verdicts import Verdicts
 
@@ -57,8 +57,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rays", type=int, default=128)
     ap.add_argument("--spawn-ratios", default="2", help="comma list: points spawned per point kept")
     ap.add_argument("--gap-fills", default="0", help="comma list: gap-fill passes (0 = off), e.g. 0,4")
-    ap.add_argument("--probes", type=int, default=20000)
-    ap.add_argument("--probe-rays", type=int, default=1024)
+    ap.add_argument("--probes", type=int, default=ProbeSettings.probes)
+    ap.add_argument("--probe-rays", type=int, default=ProbeSettings.rays)
     ap.add_argument("--out", type=Path, default=Path("out/bench_bake"))
     args = ap.parse_args(argv)
     rows = [measure(spec, float(n), args.rays, args.probes, args.probe_rays, float(sr), int(gf))

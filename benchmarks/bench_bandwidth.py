@@ -122,7 +122,8 @@ def record_animated(bake, ticks: int, tick_hz: float, rays: int) -> tuple[Record
     the bake did, so the bake is its first sync (no one-off re-trace of everything at tick 0). Returns
     the grid it ran on."""
     from psao_client.connection import scene_camera_feed
-    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.tick import ServerTick
+    from psao_server.settings import TickSettings
 
     t0 = time.perf_counter()
     tick = ServerTick(bake, TickSettings(rays=rays))
@@ -237,7 +238,8 @@ def chart(results: dict[str, list[Row]], path: Path) -> None:
 async def snapshot_to_client(grid, scene_spec: str, scene_hash: bytes, transforms: np.ndarray) -> dict:
     """Serve the grid on a free loopback port; time a real `psao client` process until its snapshot is
     complete (its own measurement: connect -> last chunk applied)."""
-    from psao_server.service import ServeSettings, Service, StaticTransforms
+    from psao_server.service import Service, StaticTransforms
+    from psao_server.settings import ServeSettings
 
     service = Service(grid, scene_hash, ServeSettings(port=0, tick_hz=60, stats_interval=1e9),
                       transforms=StaticTransforms(transforms))
@@ -273,10 +275,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings, TickSettings
     from psao_server.grid import Grid
     from psao_server.testhook import MovingOccluder, RandomEdits
-    from psao_server.tick import TickSettings
 
     args.rays = args.rays or TickSettings().rays
     scene = load_scene(args.scene)

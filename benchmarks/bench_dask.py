@@ -33,9 +33,9 @@ import numpy as np
 from benchmarks.verdicts import Verdicts
 from psao_scene import load_scene
 from psao_server.bake import build_scene_grid, grid_world_points, scene_center, scene_world_geometry, to_world
-from psao_server.points import PointSettings, generate_scene_points
-from psao_server.tracer import TraceSettings, make_tracer
-from psao_server.settings import ClusterSettings
+from psao_server.points import generate_scene_points
+from psao_server.settings import ClusterSettings, PointSettings, TraceSettings
+from psao_server.tracer import make_tracer
 
 THROUGHPUT_TARGET = 0.85
 MODEL_TOLERANCE = 0.25

@@ -142,7 +142,8 @@ def merged_mesh(scene) -> tuple[np.ndarray, np.ndarray]:
 def warm_up() -> float:
     """Warp init and kernel load on a tiny mesh; returns seconds."""
     from psao_scene.model import Mesh
-    from psao_server.points import PointSettings, generate_points
+    from psao_server.points import generate_points
+    from psao_server.settings import PointSettings
 
     quad = Mesh("warm", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     start = time.perf_counter()
@@ -256,7 +257,7 @@ def write_charts(out: Path, merged: dict, scene_name: str) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     from psao_scene import load_scene
-    from psao_server.points import PointSettings
+    from psao_server.settings import PointSettings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene", nargs="?", default="builtin:courtyard")

@@ -56,9 +56,9 @@ def camera(scene, t: float):
 # ------------------------------------------------------------------------------------------ tracer
 def part_tracer(args, v: Verdicts, out: dict) -> None:
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene, scene_center
-    from psao_server.tick import ServerTick, TickSettings
-    from psao_server.tracer import TraceSettings
+    from psao_server.bake import bake_scene, scene_center
+    from psao_server.settings import BakeSettings, TickSettings, TraceSettings
+    from psao_server.tick import ServerTick
 
     from benchmarks.bare_embree import BareEmbree
 
@@ -116,8 +116,9 @@ def _compare(tracer, bare, pos, nrm, ids, s, repeats: int) -> tuple[float, float
 # -------------------------------------------------------------------------------------------- grid
 def part_grid(args, v: Verdicts, out: dict) -> None:
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
-    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings, TickSettings
+    from psao_server.tick import ServerTick
 
     scene = load_scene(args.skinned)
     density = density_for(scene, args.skinned_points)
@@ -181,7 +182,8 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
 def part_start(args, v: Verdicts, out: dict) -> None:
     from protocol import gridformat as gf
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings
 
     spec, density = "builtin:courtyard", args.start_density
     scene = load_scene(spec)
@@ -329,11 +331,11 @@ def quality_scene(name: str, args) -> dict:
     import copy
 
     from psao_scene import load_scene
-    from psao_server.bake import BakeResult, BakeSettings, bake_scene
+    from psao_server.bake import BakeResult, bake_scene
+    from psao_server.settings import BakeSettings, TickSettings, TraceSettings
     from psao_server.budget import BudgetSettings
     from psao_server.selection import camera_planes, in_any_view
-    from psao_server.tick import ServerTick, TickSettings
-    from psao_server.tracer import TraceSettings
+    from psao_server.tick import ServerTick
 
     scene = load_scene(f"builtin:{name}")
     bake = bake_scene(scene, BakeSettings(density=args.quality_density, rays=args.quality_rays, workers=args.workers),

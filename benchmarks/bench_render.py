@@ -25,10 +25,12 @@ TARGET_RATIO = 1.5
 def build_grid(scene, density: float, bake: bool, rays: int):
     from protocol import pointword as pw
     from psao_server.bake import build_scene_grid
-    from psao_server.points import PointSettings, generate_points, instance_seed
+    from psao_server.points import generate_points, instance_seed
+    from psao_server.settings import PointSettings
 
     if bake:
-        from psao_server.bake import BakeSettings, bake_scene
+        from psao_server.bake import bake_scene
+        from psao_server.settings import BakeSettings
 
         result = bake_scene(scene, BakeSettings(density=density, rays=rays), show_progress=False)
         result.tracer.close()

@@ -40,7 +40,8 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene, reconstruction_error, sample_probes
+    from psao_server.bake import bake_scene, reconstruction_error, sample_probes
+    from psao_server.settings import BakeSettings
     from psao_server.sampling import default_density
 
     scene = load_scene(spec)

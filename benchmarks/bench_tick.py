@@ -68,8 +68,9 @@ def summarise(rows: list[dict]) -> dict:
 
 def bench_scene(name: str, args) -> dict:
     from psao_scene import load_scene
-    from psao_server.bake import BakeSettings, bake_scene
-    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings, TickSettings
+    from psao_server.tick import ServerTick
 
     scene = load_scene(f"builtin:{name}")
     t0 = time.perf_counter()
@@ -100,8 +101,9 @@ def threshold_sweep(name: str, thresholds: list[int], args) -> list[dict]:
     import copy
     from protocol import pointword as pw
     from psao_scene import load_scene
-    from psao_server.bake import BakeResult, BakeSettings, bake_scene
-    from psao_server.tick import ServerTick, TickSettings
+    from psao_server.bake import BakeResult, bake_scene
+    from psao_server.settings import BakeSettings, TickSettings
+    from psao_server.tick import ServerTick
 
     scene = load_scene(f"builtin:{name}")
     bake = bake_scene(scene, BakeSettings(density=args.sweep_density, rays=args.rays, workers=args.workers),

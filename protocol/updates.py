@@ -40,6 +40,10 @@ class Layout(IntEnum):
 LAYOUT_NAMES = {"plain": Layout.PLAIN, "packed": Layout.PACKED}
 
 
+def layout_name(layout: Layout) -> str:
+    return next(name for name, value in LAYOUT_NAMES.items() if value == layout)
+
+
 def _empty_u32(*shape) -> np.ndarray:
     return np.zeros(shape, dtype=np.uint32)
 

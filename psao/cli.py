@@ -1,7 +1,8 @@
 """The `psao` command: one entry point, sub-commands owned by the packages that implement them.
 
-Each sub-command module exposes `add_arguments(parser)` and `run(args) -> int`; heavy imports (Embree,
-Warp, moderngl) stay inside `run` so `psao --help` is instant. Known errors become one line on stderr
+Each sub-command module exposes `add_arguments(parser)` and `run(args) -> int`. Only the module of the
+sub-command named on the command line is imported, its defaults come from light settings modules, and
+heavy imports (Embree, Warp, moderngl, websockets) stay inside `run`, so `psao COMMAND --help` is quick. Known errors become one line on stderr
 and exit status 2; anything else is a bug and keeps its traceback.
 """
 from __future__ import annotations
@@ -42,27 +43,37 @@ def _known_errors() -> tuple[type[BaseException], ...]:
     return tuple(found)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every sub-command, or with `command` of that one alone (the others are listed but
+    not imported)."""
     parser = argparse.ArgumentParser(prog="psao", description="Point-based split rendering of ray-traced AO.")
     parser.add_argument("--scene-limit", action="append", default=[], metavar="NAME=VALUE",
                         help="raise a size limit of scene loading and baking (psao_scene.limits.SceneLimits: "
                              "max_instances, max_coordinate, max_rays, ...); repeatable")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in SUBCOMMANDS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:  # sub-command not built yet
-                continue
-            raise
         p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=DefaultsFormatter)
-        module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        if command is None or name == command:
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            p.set_defaults(_run=module.run)
     return parser
 
 
+def named_command(argv: list[str]) -> str | None:
+    """The sub-command argv names (the first word after the global options), None when it names none."""
+    words = iter(argv)
+    for word in words:
+        if word == "--scene-limit":
+            next(words, None)
+        elif not word.startswith("-"):
+            return word if word in SUBCOMMANDS else None
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(named_command(argv)).parse_args(argv)
     try:
         if args.scene_limit:
             from psao_scene import limits

@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from psao_eval.errors import EvalError
-from psao_server.service import ServeSettings
-from psao_server.settings import BakeSettings, TickSettings
+from psao_server.settings import BakeSettings, ServeSettings, TickSettings
 
 
 @dataclass

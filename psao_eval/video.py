@@ -292,7 +292,7 @@ class VideoServer:
     def trace(self, frame) -> tuple[np.ndarray, int, float]:
         """(H, W) AO of one RenderedFrame's covered pixels (1 elsewhere), rays and trace seconds."""
         from psao_eval.quality import rest_transforms
-        from psao_server.tracer import TraceSettings
+        from psao_server.settings import TraceSettings
 
         transforms = rest_transforms(self.scene) if frame.transforms is None else frame.transforms
         self._set_geometry(transforms, frame.skin_time)

@@ -214,7 +214,7 @@ class UpdateMeter:
 
     def __init__(self, scene, grid):
         from protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession, scene_hash_bytes
-        from psao_server.service import ServeSettings
+        from psao_server.settings import ServeSettings
 
         st = ServeSettings()
         h = scene_hash_bytes(scene.content_hash())

@@ -19,7 +19,7 @@ from psao_server.gapfill import fill_gaps
 from psao_server.grid import Grid
 from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
 from psao_server.sampling import resolve_density
-from psao_server.settings import BakeSettings, GridSettings, PointSettings, TraceSettings
+from psao_server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
 from psao_server.tracer import Tracer, make_tracer
 
 @dataclass
@@ -240,7 +240,7 @@ def sample_probes(scene: Scene, count: int, seed: int = 12345) -> Probes:
     return Probes(**{k: np.concatenate(v) for k, v in out.items()})
 
 
-def reconstruction_error(grid: Grid, scene: Scene, tracer: Tracer, probes: Probes, rays: int = 1024,
+def reconstruction_error(grid: Grid, scene: Scene, tracer: Tracer, probes: Probes, rays: int = ProbeSettings.rays,
                          seed: int = 777) -> dict:
     """MAE between the reconstructed AO and AO traced directly at the probes (many rays), hole fraction."""
     truth = tracer.visibility(probes.world_pos, probes.world_normal, np.arange(len(probes.instance)) + (1 << 30),

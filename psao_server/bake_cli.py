@@ -11,7 +11,7 @@ from psao_server import sampling
 from psao_server.cluster_cli import add_cluster_arguments, cluster_settings
 from psao_server.errors import ConfigError
 from psao_server.outputs import check_output_path, write_atomically
-from psao_server.settings import BakeSettings, GapFillSettings
+from psao_server.settings import BakeSettings, GapFillSettings, ProbeSettings
 from psao_server.tracer import BACKENDS
 
 
@@ -65,8 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_bake_arguments(p)
     p.add_argument("--ao-distance", type=float, default=None, help="override the scene's AO distance (world units)")
     p.add_argument("--out", type=Path, default=None, help="grid file to write (.npz); default out/<scene>-N<density>.npz")
-    p.add_argument("--probes", type=int, default=20000, help="random surface probes for recon_mae (0 = skip)")
-    p.add_argument("--probe-rays", type=int, default=1024, help="rays per probe for the ground truth")
+    p.add_argument("--probes", type=int, default=default(ProbeSettings, "probes"),
+                   help="random surface probes for recon_mae (0 = skip)")
+    p.add_argument("--probe-rays", type=int, default=default(ProbeSettings, "rays"), help="rays per probe for the ground truth")
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
 
 

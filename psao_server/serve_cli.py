@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import ipaddress
 import json
@@ -14,13 +13,12 @@ import sys
 from pathlib import Path
 
 from protocol.codecs import CODEC_NAMES, codec_name
-from protocol.updates import LAYOUT_NAMES
+from protocol.updates import LAYOUT_NAMES, layout_name
 from psao.options import default
 from psao_server.bake_cli import add_bake_arguments, bake_settings
 from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError
-from psao_server.service import ServeSettings
-from psao_server.settings import BakeSettings, TickSettings
+from psao_server.settings import BakeSettings, ServeSettings, TickSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--codec", choices=tuple(CODEC_NAMES), default=codec_name(default(ServeSettings, "codec")),
                    help="payload compression: zstd-stream (one zstd stream per connection), zstd (every message "
                         "on its own, as the paper), lz4 or none; the names psao client --codecs takes")
-    p.add_argument("--layout", choices=tuple(LAYOUT_NAMES), default="packed",
+    p.add_argument("--layout", choices=tuple(LAYOUT_NAMES), default=layout_name(default(ServeSettings, "layout")),
                    help="update layout: packed or the paper's plain uint32 layout")
     p.add_argument("--stats-json", type=Path, default=None, metavar="FILE",
                    help="append one JSON line per tick: points considered/traced/changed, dirty rows, stage times, bytes")
@@ -68,8 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progressive", action="store_true",
                    help="stream a first grid traced with --tick-rays at once, then refine it to --rays in the "
                         "ticks' spare budget, streaming the improvements")
-    p.add_argument("--test-edits", type=int, default=0, metavar="K",
-                   help="test hook: edit about K points per tick (AO, moves, frees and allocations)")
+    p.add_argument("--test-edits", type=int, default=None, metavar="K",
+                   help="test hook: edit about K points per tick (AO, moves, frees and allocations; none without it)")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append a state digest (jsonl) after every message that left nothing pending (tests)")
 
@@ -162,7 +160,7 @@ def _load(args, bake_with: BakeSettings):
 
 def _settings(args):
     codec = CODEC_NAMES[args.codec]
-    if args.test_edits < 0:
+    if args.test_edits is not None and args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
     if args.allow_edits and (args.animate or getattr(args, "progressive", False)):
         raise ConfigError("--allow-edits needs a static server: the animated tick does not take scene edits")
@@ -235,6 +233,8 @@ def setup_logging() -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
+
     import numpy as np
 
     from protocol.session import scene_hash_bytes
@@ -272,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _serve(service, listener: socket.socket, as_json: bool = False) -> int:
+    import asyncio
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     got: list[str] = []

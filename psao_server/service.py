@@ -29,9 +29,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from protocol import messages as m
-from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings, codec_name
+from protocol.codecs import Codec, codec_name
 from protocol.errors import EditError, HeaderError, ProtocolError
-from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.session import (
     ByeReceived,
     CameraReceived,
@@ -43,60 +42,16 @@ from protocol.session import (
     ServerSession,
     error_reply,
 )
-from protocol.updates import Layout, state_digest
+from protocol.updates import state_digest
 
 from . import webpage
 from .clients import Client, Registry, SnapshotPlan, read_delta
 from .errors import ConfigError
+from .settings import ServeSettings
 
 log = logging.getLogger("psao.serve")
 
 TickFn = Callable[[object, float], None]
-
-
-@dataclass
-class ServeSettings:
-    host: str = "127.0.0.1"
-    port: int = 8765  # 0 picks a free port
-    tick_hz: float = 60.0  # ticks per second
-    codec: Codec = Codec.ZSTD_STREAM
-    layout: Layout = Layout.PACKED
-    zstd: ZstdSettings = PAPER_ZSTD
-    token: str = ""  # "" serves anyone
-    allow_edits: bool = False  # accept SceneEdit from clients that present edit_token
-    edit_token: str = ""  # required (non-empty) with allow_edits
-    max_clients: int = 128  # open connections at most (handshake included); more are refused
-    # Browser pages allowed to open a websocket (their Origin header), besides this server's own page;
-    # connections without an Origin (non-browser clients) are always allowed.
-    allow_origins: tuple[str, ...] = ()
-    tls_cert: Path | None = None  # PEM certificate chain: serve wss:// (and https://) instead of ws://
-    tls_key: Path | None = None  # PEM private key of tls_cert
-    limits: Limits = DEFAULT_LIMITS
-    snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
-    hello_timeout: float = 10.0  # seconds a new connection has to send Hello
-    # Kernel send buffer per connection (bytes; Linux doubles it). Small enough that a slow reader
-    # blocks our send soon and its ticks fold into pending sets instead of queueing stale updates,
-    # large enough for ~20 Mbit/s at 100 ms round trip.
-    send_buffer: int = 128 * 1024
-    stats_interval: float = 1.0  # seconds between live statistics lines
-    digest_log: Path | None = None  # jsonl of state digests after every message that drained everything
-    stats_json: Path | None = None  # jsonl: one record per tick (the tick's own statistics, dirty rows, bytes)
-
-    def check(self) -> None:
-        if not 5.0 <= self.tick_hz <= 60.0:
-            raise ConfigError(f"tick rate must be within 5..60 Hz, got {self.tick_hz}")
-        if self.send_buffer < 0:
-            raise ConfigError(f"send buffer must be >= 0 bytes (0: the system's default), got {self.send_buffer}")
-        if not 0 <= self.port <= 65535:
-            raise ConfigError(f"port must be within 0..65535, got {self.port}")
-        if not 1 <= self.max_clients <= 100_000:
-            raise ConfigError(f"max clients must be within 1..100000, got {self.max_clients}")
-        if self.allow_edits and not self.edit_token:
-            raise ConfigError("edits need an edit token (PSAO_EDIT_TOKEN or --edit-token-file)")
-        if (self.tls_cert is None) != (self.tls_key is None):
-            raise ConfigError("TLS needs both a certificate and its key (--tls-cert and --tls-key)")
-        if self.allow_edits and self.edit_token == self.token:
-            raise ConfigError("the edit token must differ from the viewing token")
 
 
 class StaticTransforms:

@@ -1,19 +1,24 @@
-"""Every server-side setting and its default, in one place: points, grid, tracer, gap fill, bake, tick
-(the tick's time budget is psao_server/budget.py's BudgetSettings).
+"""Every server-side setting and its default, in one place: points, grid, tracer, gap fill, bake, bake
+probes, tick, service (the tick's time budget is psao_server/budget.py's BudgetSettings).
 
 Each default is written once: a setting that several stages share (rays, seed, tracer, workers, spawn
 ratio) takes its default from the dataclass that owns it (how many points a bake gets by default is
 psao_server/sampling.py's scale-aware density), and the command line (`psao bake`,
-`psao serve`, `psao bench`) reads its defaults from these dataclasses (psao/options.py). This module only
-imports numpy, so the CLI can read it without loading Embree, Warp or scipy.
+`psao serve`, `psao bench`) reads its defaults from these dataclasses (psao/options.py). This module
+imports only numpy and protocol/ (codecs, layouts, limits), so `psao serve --help` reads it without
+loading Embree, Warp, scipy or websockets.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings
+from protocol.limits import DEFAULT_LIMITS, Limits
+from protocol.updates import Layout
 from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError, GridError, TracerError
 from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings
@@ -153,6 +158,14 @@ class BakeSettings:
 
 
 @dataclass
+class ProbeSettings:
+    """`psao bake`'s accuracy check: AO reconstructed at random surface probes against a fine trace."""
+
+    probes: int = 20000  # random surface probes for recon_mae (0 = skip)
+    rays: int = 1024  # rays per probe for the ground truth
+
+
+@dataclass
 class ViewSettings:
     fov_margin: float = 20.0  # degrees added to the horizontal and vertical field of view
     distance_margin: float = 1.0  # world units the frustum's planes are pushed outwards
@@ -190,3 +203,48 @@ class TickSettings:
                                   "traces one equal slice of the target ray set")
         if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
             raise ConfigError(f"view margins out of range: {self.view}")
+
+
+@dataclass
+class ServeSettings:
+    host: str = "127.0.0.1"
+    port: int = 8765  # 0 picks a free port
+    tick_hz: float = 60.0  # ticks per second
+    codec: Codec = Codec.ZSTD_STREAM
+    layout: Layout = Layout.PACKED
+    zstd: ZstdSettings = PAPER_ZSTD
+    token: str = ""  # "" serves anyone
+    allow_edits: bool = False  # accept SceneEdit from clients that present edit_token
+    edit_token: str = ""  # required (non-empty) with allow_edits
+    max_clients: int = 128  # open connections at most (handshake included); more are refused
+    # Browser pages allowed to open a websocket (their Origin header), besides this server's own page;
+    # connections without an Origin (non-browser clients) are always allowed.
+    allow_origins: tuple[str, ...] = ()
+    tls_cert: Path | None = None  # PEM certificate chain: serve wss:// (and https://) instead of ws://
+    tls_key: Path | None = None  # PEM private key of tls_cert
+    limits: Limits = DEFAULT_LIMITS
+    snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
+    hello_timeout: float = 10.0  # seconds a new connection has to send Hello
+    # Kernel send buffer per connection (bytes; Linux doubles it). Small enough that a slow reader
+    # blocks our send soon and its ticks fold into pending sets instead of queueing stale updates,
+    # large enough for ~20 Mbit/s at 100 ms round trip.
+    send_buffer: int = 128 * 1024
+    stats_interval: float = 1.0  # seconds between live statistics lines
+    digest_log: Path | None = None  # jsonl of state digests after every message that drained everything
+    stats_json: Path | None = None  # jsonl: one record per tick (the tick's own statistics, dirty rows, bytes)
+
+    def check(self) -> None:
+        if not 5.0 <= self.tick_hz <= 60.0:
+            raise ConfigError(f"tick rate must be within 5..60 Hz, got {self.tick_hz}")
+        if self.send_buffer < 0:
+            raise ConfigError(f"send buffer must be >= 0 bytes (0: the system's default), got {self.send_buffer}")
+        if not 0 <= self.port <= 65535:
+            raise ConfigError(f"port must be within 0..65535, got {self.port}")
+        if not 1 <= self.max_clients <= 100_000:
+            raise ConfigError(f"max clients must be within 1..100000, got {self.max_clients}")
+        if self.allow_edits and not self.edit_token:
+            raise ConfigError("edits need an edit token (PSAO_EDIT_TOKEN or --edit-token-file)")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("TLS needs both a certificate and its key (--tls-cert and --tls-key)")
+        if self.allow_edits and self.edit_token == self.token:
+            raise ConfigError("the edit token must differ from the viewing token")

@@ -20,7 +20,8 @@ from protocol.codecs import Codec, codec_mask
 from protocol.gridformat import poisson_radius
 from psao_client.connection import MirrorClient
 from psao_server.grid import Grid
-from psao_server.service import ServeSettings, Service
+from psao_server.service import Service
+from psao_server.settings import ServeSettings
 from psao_server.testhook import RandomEdits
 
 HASH = bytes(range(32))

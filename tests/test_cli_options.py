@@ -8,8 +8,7 @@ import pytest
 from protocol.codecs import CODEC_NAMES, codec_name
 from psao.cli import build_parser
 from psao_eval.reference import ReferenceSettings
-from psao_server.service import ServeSettings
-from psao_server.settings import BakeSettings, PointSettings, TraceSettings
+from psao_server.settings import BakeSettings, PointSettings, ServeSettings, TraceSettings
 
 BAKE_OPTIONS = {"--density", "--rays", "--seed", "--spawn-ratio", "--gap-fill", "--gap-fill-ratio", "--tracer", "--workers"}
 

@@ -18,10 +18,10 @@ distributed = pytest.importorskip("distributed")
 from protocol.updates import state_digest  # noqa: E402
 from serving import server_url  # noqa: E402
 from psao_scene import load_scene  # noqa: E402
-from psao_server.bake import BakeSettings, bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
+from psao_server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
+from psao_server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
 from psao_server.errors import TracerError  # noqa: E402
-from psao_server.tracer import TraceSettings, make_tracer  # noqa: E402
-from psao_server.settings import ClusterSettings  # noqa: E402
+from psao_server.tracer import make_tracer  # noqa: E402
 from psao_server.tracer.dask_backend import _plugin_error  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -20,7 +20,8 @@ from psao_client.connection import MirrorClient, fetch_scene
 from psao_scene import load_scene
 from psao_server.grid import Grid
 from psao_server.scene_export import scene_blob, scene_file
-from psao_server.service import ServeSettings, Service
+from psao_server.service import Service
+from psao_server.settings import ServeSettings
 from psao_server.webpage import ASSETS, answer
 
 HASH = bytes(range(32))

@@ -14,7 +14,7 @@ from websockets.exceptions import InvalidStatus
 from psao_client.connection import MirrorClient
 from psao_client.errors import ConnectError
 from psao_server.errors import ConfigError
-from psao_server.service import ServeSettings
+from psao_server.settings import ServeSettings
 from test_bad_input_server import HASH, hello
 from test_service_crowd import start
 

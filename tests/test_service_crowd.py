@@ -10,7 +10,8 @@ from websockets.asyncio.client import connect
 
 from protocol import messages as m
 from psao_client.connection import MirrorClient
-from psao_server.service import ServeSettings, Service
+from psao_server.service import Service
+from psao_server.settings import ServeSettings
 from psao_server.testhook import RandomEdits
 from test_bad_input_server import EYE, HASH, hello, make_grid
 

@@ -13,7 +13,8 @@ from protocol.updates import Layout
 from psao_client.connection import MirrorClient
 from psao_server.clients import Client, SnapshotPlan
 from psao_server.grid import Grid
-from psao_server.service import ServeSettings, Service
+from psao_server.service import Service
+from psao_server.settings import ServeSettings
 from psao_server.testhook import random_edits
 from protocol.limits import Limits
 from test_bad_input_server import HASH, make_grid

@@ -4,7 +4,8 @@ import pytest
 
 from psao_scene import load_scene
 from psao_server.bake import sample_probes, scene_center, scene_world_geometry
-from psao_server.tracer import TraceSettings, make_tracer
+from psao_server.tracer import make_tracer
+from psao_server.settings import TraceSettings
 from psao_server.tracer.base import recentre
 from psao_server.tracer.tiles import cut_triangles, make_tiles, split_points, triangle_boxes
 
