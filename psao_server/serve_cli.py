@@ -260,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         scene, grid = _load(args, bake)
         transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
-        tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits > 0 else None
+        tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
                       scene_blob=scene_blob(scene))
     try:
