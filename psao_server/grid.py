@@ -242,7 +242,9 @@ class Grid:
 
     def move_points(self, slots, idx, new_local_pos, new_normals) -> np.ndarray:
         """Re-quantise points at new positions/normals, keeping AO and id. Points that stay in their cell
-        are rewritten in place; points that leave it are removed and re-inserted. Returns kept mask."""
+        are rewritten in place; points that leave it are removed and re-inserted; an instance most of whose
+        moved points leave their cells (a deforming mesh in motion) is cleared and filled anew in one
+        insertion instead, which costs less than removing and compacting cell by cell. Returns kept mask."""
         slots = np.asarray(slots, np.int64)
         idx = np.asarray(idx, np.int64)
         new_local_pos = np.asarray(new_local_pos, np.float64).reshape(-1, 3)
@@ -261,6 +263,10 @@ class Grid:
             cell, inside = self.cell_of(inst, new_local_pos[sel])
             keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
             same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
+            if 2 * int(same.sum()) < len(sel):
+                kept[sel] = self._refill_instance(inst, slots[sel], idx[sel], new_local_pos[sel], new_normals[sel])
+                stay[sel] = True  # done
+                continue
             s_sel = sel[same]
             frac = gf.grid_coords(new_local_pos[s_sel], rec["origin"], rec["cell_size"]) - cell[same]
             words = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[s_sel]), ao[s_sel])
@@ -278,6 +284,32 @@ class Grid:
                 kept[sel] = self.insert_points(inst, new_local_pos[sel], new_normals[sel], ao[sel], ids[sel],
                                                back=side[sel] != 0)
         return kept
+
+    def _refill_instance(self, inst: int, slots, idx, new_local_pos, new_normals) -> np.ndarray:
+        """Move points of instance `inst` (at slots/idx) by clearing the instance's cells and buckets and
+        inserting all its points anew (the others where they are), ids, AO and sides kept. The freed slots
+        are taken again first, so the pool does not grow. Returns the kept mask of the moved points."""
+        mine = np.flatnonzero(self.cell_instance == inst)
+        s, k = np.nonzero(self.point_id[mine] != NO_POINT)
+        s = mine[s]
+        where = np.searchsorted(s * gf.POINTS_PER_CELL + k, slots * gf.POINTS_PER_CELL + idx)  # (s, k) row-major: sorted
+        pos, nrm = self.point_local[s, k], self.point_normal[s, k]
+        pos[where], nrm[where] = new_local_pos, new_normals
+        ids, ao = self.point_id[s, k], self.cells[s, k] & np.uint32(0xFF)
+        back = (self.cells[s, gf.KEY_WORD] & gf.BACK_BIT) != 0
+        rec = self.instances[inst]
+        rows = slice(int(rec["bucket_offset"]), int(rec["bucket_offset"] + rec["bucket_count"]))
+        before = self.buckets[rows].copy()
+        self.buckets[rows] = gf.EMPTY
+        self.cells[mine] = gf.FREE_CELL
+        self.point_id[mine] = NO_POINT
+        self.cell_instance[mine] = -1
+        self.dirty_cells[mine] = True
+        self.free_slots.extend(mine[::-1].tolist())  # lowest last: _allocate_slots takes them first
+        self.stats.inserted -= len(s)  # a move, not new points
+        kept = self.insert_points(inst, pos, nrm, ao, ids, back=back)
+        self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
+        return kept[where]
 
     # ------------------------------------------------------------------ internals
     def _buckets_of(self, inst: int, cell_xyz: np.ndarray) -> np.ndarray:

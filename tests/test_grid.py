@@ -126,6 +126,46 @@ def test_random_edits_keep_invariants_and_dirty_flags():
         assert set(changed_b) <= set(db.tolist())
 
 
+def test_moving_most_points_of_an_instance_refills_it_exactly():
+    """A deforming instance moving most of its points (the refill path): every point is held once at its
+    new position with its id, AO and side, the other instance is untouched, invariants and dirty flags
+    hold, and the pool does not grow."""
+    rng = np.random.default_rng(7)
+    p, n = plane_points(3000, rng)
+    p2, n2 = plane_points(500, rng, 2.0)
+    back = rng.random(3000) < 0.3
+    grid = Grid.build([(p, n, 0.01, gf.FLAG_DOUBLE_SIDED, back), (p2, n2, 0.02, 0)])
+    t = grid.point_table()
+    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
+    grid.take_dirty()
+    t = grid.point_table()
+    assert (cells_before_sides := (grid.cells[t.slot, gf.KEY_WORD] & gf.BACK_BIT)).any()
+    other = t.instance == 1
+    before_other = {int(i): int(w) for i, w in zip(t.point_id[other], grid.cells[t.slot[other], t.index[other]])}
+    mine = np.flatnonzero(t.instance == 0)
+    pick = mine[: int(0.9 * len(mine))]  # some points of the instance stay put
+    newpos = t.local_pos[rng.permutation(pick)]  # inside the box, cells no fuller than before
+    cells_before, buckets_before, capacity = grid.cells.copy(), grid.buckets.copy(), grid.capacity
+    kept = grid.move_points(t.slot[pick], t.index[pick], newpos, t.local_normal[pick])
+    assert kept.all() and grid.capacity == capacity
+    check_invariants(grid)
+    after = grid.point_table()
+    where = {int(i): k for k, i in enumerate(after.point_id)}
+    assert len(where) == len(t)
+    expect = t.local_pos.copy()
+    expect[pick] = newpos
+    at = np.array([where[int(i)] for i in t.point_id])
+    np.testing.assert_array_equal(after.local_pos[at], expect)
+    np.testing.assert_array_equal(after.ao_code[at], t.ao_code)
+    np.testing.assert_array_equal(cells_before[t.slot, gf.KEY_WORD] & gf.BACK_BIT,
+                                  grid.cells[after.slot[at], gf.KEY_WORD] & gf.BACK_BIT)
+    assert {int(i): int(grid.cells[after.slot[where[i]], after.index[where[i]]]) for i in before_other} == before_other
+    db, dc = grid.take_dirty()
+    changed_c = np.flatnonzero((grid.cells != cells_before).any(axis=1))
+    changed_b = np.flatnonzero((grid.buckets != buckets_before).any(axis=(1, 2)))
+    assert set(changed_c) <= set(dc.tolist()) and set(changed_b) <= set(db.tolist())
+
+
 def test_pool_grows_when_full():
     rng = np.random.default_rng(6)
     p, n = plane_points(200, rng)
