@@ -27,7 +27,7 @@ def table1_markdown(rows: list[dict]) -> str:
     L0 = _lat0(rows)
     head = ["scene", "method", "Mbit/s", "PSNR (dB) ↑", "SSIM ↑", "FLIP ↓", "decoded vs rendered dB",
             "server rays / client / frame",
-            "trace ms / client / frame", "encode ms / client / frame", "server ms / tick (shared)",
+            "trace ms / client / frame", "denoise ms / client / frame", "encode ms / client / frame", "server ms / tick (shared)",
             "send ms / client / tick", "snapshot MB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
@@ -37,7 +37,8 @@ def table1_markdown(rows: list[dict]) -> str:
         lines.append("| " + " | ".join([
             r["scene"], r["method"], _fmt(r.get("mbit_s"), 3), _fmt(r["psnr"], 2), _fmt(r["ssim"], 3),
             _fmt(r["flip"], 3), _fmt(r.get("codec_psnr"), 1), f"{r['rays_per_frame']:,.0f}" if v else "-",
-            _fmt(r.get("trace_ms_frame"), 1) if v else "-", _fmt(r.get("encode_ms_frame"), 2) if v else "-",
+            _fmt(r.get("trace_ms_frame"), 1) if v else "-", _fmt(r.get("filter_ms_frame"), 1) if v else "-",
+            _fmt(r.get("encode_ms_frame"), 2) if v else "-",
             "-" if v else _fmt(r.get("server_ms_tick"), 1), "-" if v else _fmt(r.get("send_ms_tick"), 2),
             "-" if v else _fmt(r.get("snapshot_mb"), 2)]) + " |")
     return "\n".join(lines) + "\n"
