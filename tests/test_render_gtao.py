@@ -52,6 +52,20 @@ def test_open_plane_is_unoccluded(ctx):
     assert np.percentile(ao, 1) > 0.99 and ao.mean() > 0.998
 
 
+def test_plane_seen_from_behind_is_unoccluded(ctx):
+    """A single-sided plane seen from below: its G-buffer normal faces away from the camera, and GTAO
+    turns it towards the camera (the side the depth buffer describes), as the oracle does."""
+    scene = Scene("plane", [plane_mesh("floor", size=40.0)], [Instance("floor", 0, np.eye(4))], ao_distance=0.6)
+    frame, raw, view, proj, settings = render(ctx, scene, (96, 64), [0.0, -3.0, 4.0], [0.0, 0.0, 0.0])
+    gb = frame.gbuffer
+    near = gb.mask & (gb.depth < 15.0)
+    facing_away = np.einsum("hwc,c->hw", gb.normal, np.asarray(view)[2, :3]) < 0  # view-space z < 0: away
+    assert near.sum() > 1000 and facing_away[near].all()
+    assert np.percentile(frame.ao["gtao"][near], 1) > 0.99
+    expected = gtao_numpy(gb.depth, gb.normal, view, proj, settings)
+    assert np.mean(np.abs(raw - expected)[near] < 1e-3) > 0.98
+
+
 def test_corner_is_darker_than_open_floor(ctx):
     frame, *_ = render(ctx, corner_scene(), (320, 180), [-2.0, 2.0, 4.0], [-2.0, 0.3, 0.0])
     gb = frame.gbuffer

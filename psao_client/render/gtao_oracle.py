@@ -36,11 +36,13 @@ def gtao_numpy(depth: np.ndarray, normal: np.ndarray, view: np.ndarray, proj: np
     V = -P / np.linalg.norm(P, axis=1, keepdims=True)
     N = n_img[ys, xs] @ np.asarray(view, np.float64)[:3, :3].T
     N /= np.linalg.norm(N, axis=1, keepdims=True)
+    N = np.where(np.sum(N * V, axis=1, keepdims=True) < 0, -N, N)
     noise = gtao_noise()[ys & 3, xs & 3]
-    radius_px = settings.radius * 0.5 * h * proj[1, 1] / d
+    radius = settings.search_radius
+    radius_px = radius * 0.5 * h * proj[1, 1] / d
     min_s = 1.0 / np.maximum(radius_px, 1.0)
-    falloff_range = max(settings.falloff, 1e-4) * settings.radius
-    falloff_mul, falloff_add = -1.0 / falloff_range, settings.radius / falloff_range
+    falloff_range = max(settings.falloff, 1e-4) * radius
+    falloff_mul, falloff_add = -1.0 / falloff_range, radius / falloff_range
 
     def tap_depth(px, py):
         inside = (px >= 0) & (py >= 0) & (px < w) & (py < h)
@@ -96,5 +98,6 @@ def gtao_numpy(depth: np.ndarray, normal: np.ndarray, view: np.ndarray, proj: np
         h1 = n + np.clip(np.arccos(np.clip(hc0, -1, 1)) - n, -np.pi / 2, np.pi / 2)
         visible += np.where(valid, pn_len * (arc(h0, n, cos_n, sin_n) + arc(h1, n, cos_n, sin_n)), 0.0)
         open_ += np.where(valid, pn_len * (cos_n + n * sin_n), 0.0)
-    out[ys, xs] = np.where(open_ > 0, np.clip(visible / np.where(open_ > 0, open_, 1.0), 0, 1), 1.0)
+    ratio = np.clip(visible / np.where(open_ > 0, open_, 1.0), 0, 1)
+    out[ys, xs] = np.where(open_ > 0, ratio ** settings.power, 1.0)
     return out[::-1].astype(np.float32)

@@ -2,9 +2,15 @@
 
 Ground-truth-based AO as Jimenez et al. (2016) describe it and XeGTAO implements it: horizon search in
 screen-space slices, the cosine-weighted visibility between the horizons in closed form, a thickness
-heuristic, radius = the scene's AO distance, then the depth- and normal-aware 4x4 blur that also
-denoises SSAO (the 4x4 noise tile spreads slice rotations and step offsets over the blur footprint).
-Presets trade slices x steps: "speed" 2x4, "quality" 4x8 (default), "ultra" 8x12.
+heuristic, then the depth- and normal-aware 4x4 blur that also denoises SSAO (the 4x4 noise tile spreads
+slice rotations and step offsets over the blur footprint). Presets trade slices x steps: "speed" 2x4,
+"quality" 4x8 (default), "ultra" 8x12.
+
+The screen-space heuristics take XeGTAO's published defaults (XeGTAO.h, XE_GTAO_DEFAULT_*), which
+compensate for what a depth buffer cannot show: the search radius is the scene's AO distance times 1.457,
+taps fade over the last 61.5% of it, and the visibility is raised to the power 2.2. A G-buffer normal that
+faces away from the camera (a single-sided surface seen from behind) is turned towards it, as XeGTAO's
+normals reconstructed from depth always are: the depth buffer only describes the camera's side.
 """
 from __future__ import annotations
 
@@ -24,8 +30,15 @@ class GtaoSettings:
     slices: int = 4  # screen-space slice directions per pixel
     steps: int = 8  # horizon taps per side of a slice
     radius: float = 0.6  # world units; the renderer sets it to the scene's AO distance
-    falloff: float = 0.2  # fraction of the radius over which taps fade (occluders stop at the AO distance)
+    radius_multiplier: float = 1.457  # search radius = radius x this (XeGTAO's default)
+    falloff: float = 0.615  # fraction of the search radius over which taps fade out (XeGTAO's default)
     thickness: float = 0.1  # horizon blend back towards lower taps (0 = plain max; thin occluders)
+    power: float = 2.2  # visibility is raised to this power (XeGTAO's FinalValuePower default)
+
+    @property
+    def search_radius(self) -> float:
+        """World units: how far the horizon search reaches (the shader's u_radius)."""
+        return self.radius * self.radius_multiplier
 
     @classmethod
     def preset(cls, name: str, radius: float) -> "GtaoSettings":
@@ -37,8 +50,10 @@ class GtaoSettings:
     def check(self) -> None:
         if not (1 <= self.slices <= 64 and 1 <= self.steps <= 64):
             raise RenderError(f"GTAO slices {self.slices} and steps {self.steps} must be within 1..64")
-        if not (self.radius > 0 and 0 < self.falloff <= 1 and 0 <= self.thickness <= 1):
-            raise RenderError("GTAO radius must be > 0, falloff within (0, 1], thickness within [0, 1]")
+        if not (self.radius > 0 and 0 < self.radius_multiplier <= 4 and 0 < self.falloff <= 1
+                and 0 <= self.thickness <= 1 and 0 < self.power <= 8):
+            raise RenderError("GTAO radius must be > 0, radius multiplier within (0, 4], falloff within (0, 1], "
+                              "thickness within [0, 1], power within (0, 8]")
 
 
 def gtao_noise() -> np.ndarray:
@@ -80,8 +95,8 @@ class GtaoPass(GLOwner):
             self.blur = self._keep(BilateralBlur(ctx, gbuffer.size, settings.radius))
             self._noise = self._keep(ctx.texture((4, 4), 4, gtao_noise().tobytes(), dtype="f4"))
             self._noise.filter = (ctx.NEAREST, ctx.NEAREST)
-            self.horizon.set(u_radius=float(settings.radius), u_falloff=float(settings.falloff),
-                             u_thickness=float(settings.thickness))
+            self.horizon.set(u_radius=float(settings.search_radius), u_falloff=float(settings.falloff),
+                             u_thickness=float(settings.thickness), u_power=float(settings.power))
         except BaseException:
             self.release()
             raise

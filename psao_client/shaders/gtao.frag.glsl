@@ -6,7 +6,8 @@
 // (falloff over the last u_falloff of the radius), and the thickness heuristic lets a horizon sink back
 // towards a lower tap behind a thin occluder. The cosine-weighted visibility between the two horizons
 // is integrated in closed form, weighted by the length of the normal projected into the slice, and
-// normalised by the same integral with no occluder (an open plane gives exactly 1 with few slices).
+// normalised by the same integral with no occluder (an open plane gives exactly 1 with few slices),
+// then raised to u_power. A normal facing away from the camera is turned towards it first.
 // Slice rotation and step offset come from a 4x4 noise tile that the 4x4 bilateral blur removes.
 // psao_client/render/gtao_oracle.py evaluates exactly this in numpy (the test compares them).
 #ifndef GTAO_SLICES
@@ -24,8 +25,9 @@ uniform sampler2D u_normal;     // world normal
 uniform sampler2D u_noise;      // 4x4 tile: x = slice rotation, y = step offset, both in [0, 1)
 uniform mat3 u_view_rot;        // world -> camera rotation
 uniform vec4 u_unproject;       // (1/P00, 1/P11, P02, P12): view position from NDC and view depth
-uniform float u_radius;         // world units: the scene's AO distance
+uniform float u_radius;         // world units: the search radius (the scene's AO distance x a multiplier)
 uniform float u_falloff;        // fraction of the radius over which taps fade out
+uniform float u_power;          // the visibility is raised to this power
 uniform float u_thickness;      // 0: plain max horizon; (0, 1]: blend back towards lower taps
 uniform float u_pixels_per_unit;  // 0.5 * height * P11: pixels covered by one world unit at view depth 1
 
@@ -81,6 +83,8 @@ void main() {
     vec3 P = view_position(vec2(p) + 0.5, depth, vec2(size));
     vec3 V = normalize(-P);
     vec3 N = normalize(u_view_rot * texelFetch(u_normal, p, 0).xyz);
+    // A single-sided surface seen from behind: the depth buffer only describes the camera's side.
+    if (dot(N, V) < 0.0) N = -N;
     vec2 noise = texelFetch(u_noise, p & 3, 0).xy;
     float radius_px = u_radius * u_pixels_per_unit / depth;
     float min_s = 1.0 / max(radius_px, 1.0);  // the first tap lands at least one pixel away
@@ -119,5 +123,5 @@ void main() {
         visible += pn_len * (arc(h0, n, cos_n, sin_n) + arc(h1, n, cos_n, sin_n));
         open += pn_len * (cos_n + n * sin_n);
     }
-    o_ao = open > 0.0 ? clamp(visible / open, 0.0, 1.0) : 1.0;
+    o_ao = open > 0.0 ? pow(clamp(visible / open, 0.0, 1.0), u_power) : 1.0;
 }
