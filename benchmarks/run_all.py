@@ -21,7 +21,7 @@ from contextlib import redirect_stdout
 from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "video", "realtime", "dask")
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "denoise", "video", "realtime", "dask")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -31,6 +31,7 @@ QUICK_ARGS = {
     "render": ["--densities", "64,256", "--frames", "2"],
     "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
+    "denoise": ["--scenes", "builtin:robots", "--frames", "1", "--repeats", "3"],
     "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "2", "--spp", "32",
               "--clip", "8", "--bitrates", "0.25,1,4,20"],
     "realtime": ["--parts", "tracer,grid", "--tracer-density", "32", "--bake-points", "20000", "--bake-rays", "16",

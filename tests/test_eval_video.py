@@ -194,26 +194,11 @@ def test_denoise_keeps_depth_edges_and_background():
     assert abs(out[5:, 29].mean() - 0.3) < 0.03 and abs(out[5:, 30].mean() - 0.9) < 0.03
 
 
-def _layered_gaussian(ao, mask, depth, sigma):
-    """The denoise's definition, layer by layer with scipy's Gaussian: a pixel's value is the masked
-    Gaussian over covered pixels of its own depth layer (5% of depth) and the two next to it."""
-    from scipy.ndimage import gaussian_filter
-
-    layer = np.floor(np.log(np.maximum(depth, 1e-6)) / 0.05)
-    out = ao.astype(np.float32).copy()
-    for lo in np.unique(layer[mask]):
-        sel = mask & (np.abs(layer - lo) <= 1)
-        num = gaussian_filter(np.where(sel, ao, 0.0).astype(np.float32), sigma, mode="nearest")
-        den = gaussian_filter(sel.astype(np.float32), sigma, mode="nearest")
-        here = mask & (layer == lo)
-        out[here] = num[here] / den[here]
-    return out
-
-
 @pytest.mark.parametrize("sigma", [0.7, 1.0, 2.0])
 def test_denoise_equals_the_layered_gaussian(sigma):
     """The offset-sum denoise gives the per-layer masked Gaussian's values: on a ramp of depths (many
     layers, a floor-like slope), a step, holes in the coverage and the image's edges."""
+    from benchmarks.bench_denoise import layered_gaussian
     from psao_eval.video import masked_gaussian
 
     rng = np.random.default_rng(7)
@@ -223,7 +208,7 @@ def test_denoise_equals_the_layered_gaussian(sigma):
     mask = rng.random((h, w)) > 0.15
     ao = rng.random((h, w)).astype(np.float32)
     got = masked_gaussian(np.where(mask, ao, 1.0), mask, depth, sigma)
-    want = _layered_gaussian(np.where(mask, ao, 1.0), mask, depth, sigma)
+    want = layered_gaussian(np.where(mask, ao, 1.0), mask, depth, sigma)
     assert len(np.unique(np.floor(np.log(depth[mask]) / 0.05))) > 20
     np.testing.assert_allclose(got, want, atol=2e-6)
     assert np.array_equal(got[~mask], np.ones((~mask).sum(), np.float32))
