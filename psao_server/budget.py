@@ -166,13 +166,13 @@ class RefineQueue:
         first = np.argpartition(key, k - 1)[:k]
         return ids[first[np.argsort(key[first], kind="stable")]]
 
-    def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float) -> np.ndarray:
-        """Accumulate one round (each point's slice `done`, of `rays` rays); returns the AO codes of the
-        running means. Points still short of the target keep waiting (their wait restarts now, so others
-        get their turn)."""
+    def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:
+        """Accumulate one round (each point's slice `done`, of `rays` rays; or `slices` slices at once, e.g.
+        the whole target set traced in one call); returns the AO codes of the running means. Points still
+        short of the target keep waiting (their wait restarts now, so others get their turn)."""
         self.unoccluded[ids] += np.rint(visibility.astype(np.float32) * rays)  # a count: exact in float32
         self.rays[ids] += rays
-        self.done[ids] += 1
+        self.done[ids] += slices
         self.waiting_since[ids] = now
         total, unocc = self._blend(ids)
         return pw.quantise_ao(unocc / total)

@@ -93,12 +93,13 @@ class TickPlan:
 
 class ServerTick:
     def __init__(self, bake: BakeResult, settings: TickSettings | None = None, baked_time: float | None = 0.0,
-                 close_bake_tracer: bool = True, trust_bake: bool = False):
+                 close_bake_tracer: bool = True, trust_bake: bool = False, refiner=None):
         """`baked_time`: the scene time at which the bake traced the grid (its AO then counts as the first
         sync when the bake used the same rays and seed, or always with `trust_bake`: e.g. a 128-ray bake
         kept for the static parts while ticks trace fewer rays; a point re-traced later then jumps to the
         tick's estimate once), or None to re-trace everything visible on the first tick. The bake's
-        tracer saw the moving instances as static: it is closed unless told not to."""
+        tracer saw the moving instances as static: it is closed unless told not to. `refiner` (budgeted tick
+        only): traces waiting static points elsewhere as well, e.g. psao_server.refine.ClusterRefiner."""
         self.settings = settings or TickSettings()
         self.settings.check()
         self.scene = bake.scene
@@ -131,6 +132,11 @@ class ServerTick:
         self.budget: TraceBudget | None = None
         if self.settings.budget is not None:
             self._init_budget(bake)
+        self.refiner = refiner
+        if refiner is not None:
+            if self.budget is None:
+                raise ConfigError("a refiner needs the budgeted tick (TickSettings.budget)")
+            refiner.attach(self)
         self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
 
     # ------------------------------------------------------------------ set-up
@@ -227,6 +233,8 @@ class ServerTick:
 
     def close(self) -> None:
         self.tracer.close()
+        if self.refiner is not None:
+            self.refiner.close()
 
     # ------------------------------------------------------------------ point locations
     def present(self) -> np.ndarray:
@@ -298,6 +306,14 @@ class ServerTick:
         t_trace = time.perf_counter()
         return TickPlan(frame, moved, ids, pw.quantise_ao(vis), (t_anim - t_start, t_sel - t_anim, t_trace - t_sel))
 
+    def _refine(self, changed: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """The refiner's part of a tick: forget the points whose history was just reset, take back the
+        batches that are done (ids, AO codes), send new ones (before the tick picks its own: no point twice)."""
+        if self.refiner is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.uint32)
+        self.refiner.forget(changed)
+        return self.refiner.step(self, frame)
+
     def _prepare_budgeted(self, frame: Frame, moved: np.ndarray, t_start: float, t_anim: float) -> "TickPlan":
         """Reset the history of the points the motion may have changed, pick as many waiting points as
         the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
@@ -309,7 +325,10 @@ class ServerTick:
         self.queue.reset(np.flatnonzero(changed), now)
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
-        waiting = all_waiting = self.queue.waiting(self.tracked)  # parked skinned points too: a trace re-inserts them
+        refined = self._refine(np.flatnonzero(changed), frame)
+        # parked skinned points too: a trace re-inserts them; not those the refiner has out
+        eligible = self.tracked if self.refiner is None else self.tracked & ~self.refiner.busy
+        waiting = all_waiting = self.queue.waiting(eligible)
         limit = max(16 * k, 20000)
         if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
             key = (self.queue.rays[waiting] > 0) * 2e9 + (self.queue.waiting_since[waiting] - now)
@@ -328,7 +347,10 @@ class ServerTick:
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)
         # the queue after this round, from the waiting set alone (no pass over every point)
         still = all_waiting[self.queue.done[all_waiting] < self.queue.slices]
-        self._queue_now = (len(still), 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
+        out = 0 if self.refiner is None else int(self.refiner.busy.sum())  # waiting too, on the refiner
+        self._queue_now = (len(still) + out, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
+        if len(refined[0]):  # stored with this tick's own
+            chosen, codes = np.concatenate([chosen, refined[0]]), np.concatenate([codes, refined[1]])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s())
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -16,13 +17,14 @@ import trimesh
 distributed = pytest.importorskip("distributed")
 
 from protocol.updates import state_digest  # noqa: E402
-from serving import server_url  # noqa: E402
+from serving import server_url, wait_for_log  # noqa: E402
 from psao_scene import load_scene  # noqa: E402
 from psao_server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
 from psao_server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
 from psao_server.errors import TracerError  # noqa: E402
 from psao_server.tracer import make_tracer  # noqa: E402
 from psao_server.tracer.dask_backend import _plugin_error  # noqa: E402
+from psao.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RAYS = 32
@@ -55,7 +57,7 @@ def dask_tracer(scene, address, **kw):
 
 
 @pytest.mark.parametrize("kw", [
-    dict(chunk_points=97),  # many small tasks, scene loaded from its spec on the workers
+    dict(chunk_points=397),  # many small tasks, scene loaded from its spec on the workers
     dict(chunk_points=1000, scene_source="bytes"),  # the triangles shipped through the scheduler
     dict(tiles=True, tile_points=300),  # no scene on the workers: each task carries its tile's triangles
 ])
@@ -113,6 +115,10 @@ def test_worker_killed_mid_trace_and_workers_joining_later(cluster, courtyard):
         tracer.set_static(*geometry)
         client = tracer.client
         pids = client.run(os.getpid)
+        # started now, so its start-up overlaps the trace below; it joins after the scene plugin was registered
+        extra = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address,
+                                  "--nthreads", "1", "--no-nanny", "--no-dashboard"], cwd=ROOT,
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         killed = {}
 
         def kill_a_busy_worker(_points):
@@ -123,17 +129,13 @@ def test_worker_killed_mid_trace_and_workers_joining_later(cluster, courtyard):
                 os.kill(pids[busy[0]], signal.SIGKILL)
                 killed[busy[0]] = pids[busy[0]]
 
-        vis = tracer.visibility(probes.world_pos, probes.world_normal, ids, s, progress=kill_a_busy_worker)
-        assert killed, "no worker was busy when tasks completed"
-        np.testing.assert_array_equal(vis, ref)
-        assert set(killed) <= tracer.workers_lost and tracer.throughput()["cluster_workers_lost"] >= 1
-
-        client.wait_for_workers(len(pids), timeout=300)  # the nanny's restart
-        extra = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address,
-                                  "--nthreads", "1", "--no-nanny", "--no-dashboard"], cwd=ROOT,
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            client.wait_for_workers(len(pids) + 1, timeout=300)
+            vis = tracer.visibility(probes.world_pos, probes.world_normal, ids, s, progress=kill_a_busy_worker)
+            assert killed, "no worker was busy when tasks completed"
+            np.testing.assert_array_equal(vis, ref)
+            assert set(killed) <= tracer.workers_lost and tracer.throughput()["cluster_workers_lost"] >= 1
+
+            client.wait_for_workers(len(pids) + 1, timeout=300)  # the nanny's restart and the one started by hand
             workers = client.nthreads()
             assert set(workers).isdisjoint(killed)
             assert set(client.run(_plugin_error, tracer.plugin_name).values()) == {None}
@@ -167,9 +169,15 @@ def test_bake_on_the_cluster_gives_the_same_grid(cluster):
 
 
 # ---------------------------------------------------------------- command line
-def psao(*args, timeout=300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "psao", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=timeout)
+def psao_together(*commands, timeout=300) -> list[subprocess.CompletedProcess]:
+    """psao commands run at once (their start-up, mostly imports, overlaps); each one's exit status and output."""
+    procs = [subprocess.Popen([sys.executable, "-m", "psao", *args], cwd=ROOT, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for args in commands]
+    done = []
+    for p in procs:
+        out, err = p.communicate(timeout=timeout)
+        done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    return done
 
 
 def grid_arrays(path) -> bytes:
@@ -183,9 +191,10 @@ def test_cli_bake_local_cluster_and_remote_scheduler(cluster, tmp_path):
     local.tracer.close()
     want = b"".join(a.tobytes() for a in (local.grid.instances, local.grid.buckets, local.grid.cells))
     common = ["bake", "builtin:cornell", "--density", "32", "--rays", str(RAYS), "--probes", "0", "--json"]
-    started = psao(*common, "--out", str(tmp_path / "started.npz"), "--cluster", "local:1", "--tiles", "--tile-points", "60")
+    started, remote = psao_together(
+        [*common, "--out", str(tmp_path / "started.npz"), "--cluster", "local:1", "--tiles", "--tile-points", "60"],
+        [*common, "--out", str(tmp_path / "remote.npz"), "--cluster", cluster.scheduler_address])
     assert started.returncode == 0, started.stderr
-    remote = psao(*common, "--out", str(tmp_path / "remote.npz"), "--cluster", cluster.scheduler_address)
     assert remote.returncode == 0, remote.stderr
     stats = json.loads(started.stdout.splitlines()[-1])
     assert stats["tracer"] == "dask" and stats["cluster"] == "local:1" and stats["cluster_tasks"] >= 2
@@ -194,24 +203,89 @@ def test_cli_bake_local_cluster_and_remote_scheduler(cluster, tmp_path):
     assert grid_arrays(tmp_path / "remote.npz") == want
 
 
-def test_cli_serve_bakes_on_the_cluster(cluster, tmp_path):
-    """psao serve --cluster: the client mirrors exactly the grid of a local bake."""
-    scene = load_scene("builtin:cornell")
-    local = bake_scene(scene, BakeSettings(density=32, rays=RAYS, workers=1), show_progress=False)
-    local.tracer.close()
-    transforms = np.array([i.transform for i in scene.instances], dtype=np.float32)
-    want = state_digest(local.grid.instances, local.grid.buckets, local.grid.cells, transforms)
-    err = tmp_path / "serve.err"
+def test_cli_serve_progressive_refines_on_the_cluster(cluster, tmp_path, capsys):
+    """psao serve --progressive --cluster: the few-ray bake and the refinement of its static points run on the
+    cluster; once every point has its rays the client mirrors exactly the server's grid."""
+    err, digests = tmp_path / "serve.err", tmp_path / "digests.jsonl"
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "32", "--rays",
-                             str(RAYS), "--port", "0", "--cluster", cluster.scheduler_address], cwd=ROOT,
+                             str(RAYS), "--tick-rays", "8", "--progressive", "--tick-hz", "20", "--workers", "1", "--port", "0",
+                             "--cluster", cluster.scheduler_address, "--digest-log", str(digests)], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
     try:
-        out = psao("client", server_url(proc, err), "builtin:cornell", "--frames", "0", "--json")
-        assert out.returncode == 0, out.stderr
+        url = server_url(proc, err)
+        wait_for_log(proc, err, re.compile(r"\| queue 0 "))  # every point refined to --rays
+        capsys.readouterr()
+        assert main(["client", url, "builtin:cornell", "--frames", "0", "--json"]) == 0  # the client in this process
+        client = json.loads(capsys.readouterr().out.splitlines()[-1])
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert json.loads(out.stdout.splitlines()[-1])["mirror_digest"] == want
+    refined = re.search(r"cluster refinement: (\d+) batches sent, (\d+) points refined", err.read_text())
+    assert refined and int(refined.group(2)) > 0, err.read_text()
+    server = [json.loads(line)["digest"] for line in digests.read_text().splitlines()]
+    assert client["mirror_digest"] == server[-1]
+
+
+# ---------------------------------------------------------------- refinement beside the tick
+def test_cluster_refines_static_points_as_a_local_trace_would(cluster):
+    """psao serve --progressive --cluster: waiting static points go to the cluster in batches while the ticks
+    run; a point a batch refined holds exactly the AO of a full local trace of its target ray set, the points a
+    batch has out are left out of the tick's picks, and an answer for a point whose neighbourhood changed
+    meanwhile is dropped."""
+    from psao_server.budget import BudgetSettings
+    from psao_server.refine import ClusterRefiner, RefineSettings
+    from psao_server.settings import TickSettings
+    from psao_server.tick import ServerTick
+    from protocol import pointword as pw
+
+    scene = load_scene("builtin:courtyard")  # static walls and floor, rigid movers (posed at t = 0 here)
+    bake = bake_scene(scene, BakeSettings(density=8, rays=8, seed=SEED, cluster=ClusterSettings(cluster.scheduler_address)),
+                      show_progress=False)
+    refiner = ClusterRefiner(bake.tracer, RefineSettings(batch_points=1500, batches_per_thread=2))
+    settings = TickSettings(rays=32, seed=SEED, budget=BudgetSettings(round_rays=8, budget_ms=0.1), selection=True,
+                            workers=1, fit_grid=False)
+    tick = ServerTick(bake, settings, close_bake_tracer=False, refiner=refiner)
+    try:
+        frame = tick.animator.frame(0.0)
+        plan = tick.prepare(0.0)  # the first batches go out, then the tick's own round
+        tick.apply(plan)
+        out = list(refiner.batches)
+        assert len(out) >= 2 and all(refiner.busy[b.ids].all() for b in out)
+        assert not np.isin(plan.ids, np.concatenate([b.ids for b in out])).any()
+        done_before = tick.queue.done.copy()
+        forgotten = out[1].ids[:50]
+        refiner.forget(forgotten)
+        assert refiner.wait(300)
+        plan = tick.prepare(0.0)  # takes them back (and sends the next)
+        tick.apply(plan)
+        merged = np.concatenate([out[0].ids, out[1].ids[50:], *[b.ids for b in out[2:]]])
+        assert np.isin(merged, plan.ids).all() and not np.isin(forgotten, plan.ids).any()
+        assert (tick.queue.done[forgotten] == done_before[forgotten]).all()
+        assert refiner.points_done == len(merged) and refiner.points_dropped == 50
+
+        # the same rays traced here: static scene, rigid movers at the frame's pose, the target ray set
+        local = make_tracer("embree", scene_center(scene), workers=1)
+        local.set_static(*tick.animator.static_geometry())
+        local.set_rigid([(scene.meshes[scene.instances[i].mesh].vertices, scene.meshes[scene.instances[i].mesh].faces)
+                         for i in tick.kinds.rigid])
+        local.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[tick.kinds.rigid])
+        pos, nrm = tick.world_points(frame, merged)
+        vis = local.visibility(pos, nrm, merged, TraceSettings(rays=32, ao_distance=scene.ao_distance, seed=SEED))
+        local.close()
+        got = tick.grid.cells[tick.slot[merged], tick.index[merged]] & np.uint32(0xFF)
+        np.testing.assert_array_equal(got, pw.quantise_ao(vis))
+        assert (tick.queue.done[merged] == tick.queue.slices).all()
+
+        # ticks and batches together refine every static point to the target
+        static = refiner.static
+        for _ in range(10_000):
+            if not len(tick.queue.waiting(static)):
+                break
+            assert refiner.wait(300)
+            tick.apply(tick.prepare(0.0))
+        assert not len(tick.queue.waiting(static)) and refiner.points_done > 6 * 1500
+    finally:
+        tick.close()

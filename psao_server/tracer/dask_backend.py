@@ -119,8 +119,17 @@ def _plugin_error(name: str, dask_worker=None) -> str | None:
 
 
 def worker_peak_rss() -> int:
-    """Peak resident bytes of this process so far (ru_maxrss is in KiB on Linux)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """Peak resident bytes of this process so far: VmHWM, the high-water mark of its own address space.
+    Not ru_maxrss where VmHWM exists: Linux carries ru_maxrss across fork and exec, so a worker spawned by a
+    big process would report its parent's size."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
 
 
 def _trace_points(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> dict:
@@ -215,6 +224,7 @@ class DaskTracer(Tracer):
         self.plugin_name: str | None = None
         self.threads = 1  # worker threads in the cluster at the last trace
         self._static: tuple[np.ndarray, np.ndarray] | None = None
+        self._spec_digest: str | None = None  # the triangles the workers built from scene_spec
         self._boxes = None
         self._rigid: list = []  # (local float32 vertices, int32 faces) of the rigidly moving meshes
         self._poses = None  # their 4x4 poses in the re-centred frame, or None: left out
@@ -234,14 +244,21 @@ class DaskTracer(Tracer):
 
     # geometry -------------------------------------------------------------
     def set_static(self, vertices, faces) -> None:
-        self._static = (recentre(vertices, self.center), np.asarray(faces, np.int32))
-        self._boxes = None
-        self._register()
+        self.set_geometry(vertices, faces, self._rigid)
 
     def set_rigid(self, meshes) -> None:
-        self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in meshes]
-        if self._static is not None:
-            self._register()
+        if self._static is None:
+            self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in meshes]
+        else:
+            self.set_geometry(None, None, meshes)
+
+    def set_geometry(self, vertices, faces, rigid) -> None:
+        """The static triangles (None: keep them) and the rigid meshes at once: one hand-over to the workers."""
+        if vertices is not None:
+            self._static = (recentre(vertices, self.center), np.asarray(faces, np.int32))
+            self._boxes = None
+        self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in rigid]
+        self._register()
 
     def _register(self) -> None:
         """Hand the static scene (and the rigid meshes) to every worker, now and joining later."""
@@ -250,7 +267,10 @@ class DaskTracer(Tracer):
             return  # tasks carry their tile's triangles
         v, f = self._static
         digest = geometry_digest(v, f)
-        source = {"spec": self.scene_spec} if self.scene_spec else {"packed": pack_geometry(v, f)}
+        # The spec builds one geometry (the whole scene): other triangles set later (the static part of an
+        # animated scene, for refinement) are shipped as bytes.
+        by_spec = self.scene_spec is not None and self._spec_digest in (None, digest)
+        source = {"spec": self.scene_spec} if by_spec else {"packed": pack_geometry(v, f)}
         plugin = SceneOnWorkers(digest, self.center, rigid=self._rigid, **source)
         self.plugin_name = f"psao-scene-{digest[:16]}-{len(self._rigid)}"
         self.client.register_plugin(plugin, name=self.plugin_name)
@@ -258,6 +278,8 @@ class DaskTracer(Tracer):
         if errors:
             worker, error = next(iter(errors.items()))
             raise TracerError(f"dask worker {worker}: {error}")
+        if by_spec:
+            self._spec_digest = digest
 
     def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
         self._poses = recentre_poses(rigid_transforms, self.center)
@@ -319,11 +341,10 @@ class DaskTracer(Tracer):
             idx = tile.points
             yield idx, trace_tile_task, (static, self._rigid, dynamic, self._poses, pos[idx], nrm[idx], ids[idx], s)
 
-    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
+    def _jobs(self, positions, normals, point_ids, settings: TraceSettings):
+        """(jobs, count, workers now): the tasks of one trace, as (index into the points, function, args)."""
         if self._static is None:
             raise TracerError("set_static() must be called before tracing")
-        if len(positions) == 0:
-            return np.zeros(0, np.float32)
         pos = recentre(positions, self.center)
         nrm = np.asarray(normals, np.float32)
         ids = np.asarray(point_ids, np.int64)
@@ -331,15 +352,33 @@ class DaskTracer(Tracer):
         threads = self.threads = max(1, sum(workers.values()))
         if self.settings.tiles:
             tiles = make_tiles(pos, settings.ao_distance, self.settings.tile_points)
-            self.tasks_total += len(tiles)
-            jobs = self._tile_jobs(tiles, pos, nrm, ids, settings)
+            jobs, count = self._tile_jobs(tiles, pos, nrm, ids, settings), len(tiles)
         else:
             jobs = list(self._scene_jobs(pos, nrm, ids, settings, threads))
-            self.tasks_total += len(jobs)
-        out = np.empty(len(pos), np.float32)
-        self._run(jobs, out, settings.rays, window=max(8, 4 * threads), progress=progress)
+            count = len(jobs)
+        self.tasks_total += count
+        return jobs, workers
+
+    def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None) -> np.ndarray:
+        if len(positions) == 0:
+            return np.zeros(0, np.float32)
+        jobs, workers = self._jobs(positions, normals, point_ids, settings)
+        out = np.empty(len(positions), np.float32)
+        self._run(jobs, out, settings.rays, window=max(8, 4 * self.threads), progress=progress)
         self.workers_lost |= set(workers) - set(self._workers())
         return out
+
+    def start(self, positions, normals, point_ids, settings: TraceSettings) -> "PendingTrace":
+        """Submit a trace and return at once; PendingTrace.done() tells when its visibility is ready.
+        Every task is submitted now: meant for batches of a few tasks (refinement), not a whole bake."""
+        jobs, _ = self._jobs(positions, normals, point_ids, settings)
+        parts = [(index, self.client.submit(fn, *args, pure=False)) for index, fn, args in jobs]
+        return PendingTrace(self, len(positions), settings.rays, parts)
+
+    def _account(self, r: dict, rays: int) -> None:
+        self.tasks_done += 1
+        self.account.add(len(r["vis"]) * rays, r["cpu_query"], r["cpu_total"])
+        self.peak_rss[r["pid"]] = max(self.peak_rss.get(r["pid"], 0), r["peak_rss"])
 
     def _run(self, jobs, out: np.ndarray, rays: int, window: int, progress) -> None:
         """Keep `window` tasks in flight (bounded client and scheduler memory on huge bakes), fill `out`."""
@@ -362,9 +401,7 @@ class DaskTracer(Tracer):
                 r = future.result()
                 out[pending.pop(future.key)] = r["vis"]
                 future.release()
-                self.tasks_done += 1
-                self.account.add(len(r["vis"]) * rays, r["cpu_query"], r["cpu_total"])
-                self.peak_rss[r["pid"]] = max(self.peak_rss.get(r["pid"], 0), r["peak_rss"])
+                self._account(r, rays)
                 if progress is not None:
                     progress(len(r["vis"]))
                 submit()
@@ -393,3 +430,33 @@ class DaskTracer(Tracer):
             if self.local_cluster is not None:
                 self.local_cluster.close()
             self.client = None
+
+
+class PendingTrace:
+    """A trace submitted by DaskTracer.start: poll done(), then take result()."""
+
+    def __init__(self, tracer: DaskTracer, n: int, rays: int, parts: list):
+        self.tracer, self.n, self.rays, self.parts = tracer, n, rays, parts
+
+    def done(self) -> bool:
+        return all(future.done() for _, future in self.parts)
+
+    def result(self) -> np.ndarray:
+        """The visibility of every point (waits for what is not done yet)."""
+        out = np.empty(self.n, np.float32)
+        try:
+            for index, future in self.parts:
+                r = future.result()
+                out[index] = r["vis"]
+                self.tracer._account(r, self.rays)
+        except Exception as exc:
+            self.cancel()
+            raise TracerError(f"the dask trace failed: {type(exc).__name__}: {_first_line(exc)}") from None
+        finally:
+            for _, future in self.parts:
+                future.release()
+        return out
+
+    def cancel(self) -> None:
+        for _, future in self.parts:
+            future.cancel()
