@@ -364,7 +364,7 @@ class DaskTracer(Tracer):
             return np.zeros(0, np.float32)
         jobs, workers = self._jobs(positions, normals, point_ids, settings)
         out = np.empty(len(positions), np.float32)
-        self._run(jobs, out, settings.rays, window=max(8, 4 * self.threads), progress=progress)
+        self._run(jobs, out, settings.rays_traced, window=max(8, 4 * self.threads), progress=progress)
         self.workers_lost |= set(workers) - set(self._workers())
         return out
 
@@ -373,7 +373,7 @@ class DaskTracer(Tracer):
         Every task is submitted now: meant for batches of a few tasks (refinement), not a whole bake."""
         jobs, _ = self._jobs(positions, normals, point_ids, settings)
         parts = [(index, self.client.submit(fn, *args, pure=False)) for index, fn, args in jobs]
-        return PendingTrace(self, len(positions), settings.rays, parts)
+        return PendingTrace(self, len(positions), settings.rays_traced, parts)
 
     def _account(self, r: dict, rays: int) -> None:
         self.tasks_done += 1
