@@ -91,6 +91,14 @@ def world_box(vertices_local: np.ndarray, transform: np.ndarray) -> tuple[np.nda
     return w.min(axis=0), w.max(axis=0)
 
 
+def bounds_of(world_vertices: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, float]]:
+    """World AABB (lo, hi) and bounding sphere (centre, radius) of world vertices."""
+    lo, hi = world_vertices.min(axis=0), world_vertices.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    d = world_vertices - centre
+    return (lo, hi), (centre, float(np.sqrt(np.einsum("pi,pi->p", d, d).max())))
+
+
 class SceneAnimator:
     """Evaluates a scene's animation at time t; built once, reused every tick."""
 
@@ -99,6 +107,18 @@ class SceneAnimator:
         self.kinds = classify_instances(scene)
         self.skinner = SceneSkinner(scene, device=device)
         self._rest_transforms = np.array([inst.transform for inst in scene.instances], dtype=np.float64).reshape(-1, 4, 4)
+        self.placed: dict[int, np.ndarray] = {}  # instance -> transform a scene edit gave it (replaces its animation)
+
+    def place(self, instance: int, transform: np.ndarray) -> bool:
+        """A scene edit: instance `instance` is at `transform` (local-to-world) from now on, whatever its
+        animation said. A static instance becomes a rigid mover (returns True: the caller moves its
+        geometry out of the static part); its bounds before the edit are in `static_bounds`."""
+        self.placed[instance] = np.asarray(transform, np.float64).reshape(4, 4)
+        if instance not in self.kinds.static:
+            return False
+        self.kinds.static.remove(instance)
+        self.kinds.rigid = sorted(self.kinds.rigid + [instance])
+        return True
 
     # ------------------------------------------------------------------ static part
     def static_geometry(self) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +138,7 @@ class SceneAnimator:
         """(n, 4, 4) float64 local-to-world transforms at time t."""
         out = self._rest_transforms.copy()
         for i in self.kinds.moving:
-            out[i] = instance_transform(self.scene, i, t)
+            out[i] = self.placed[i] if i in self.placed else instance_transform(self.scene, i, t)
         return out
 
     def frame(self, t: float) -> Frame:
@@ -137,13 +157,8 @@ class SceneAnimator:
             inst = self.scene.instances[i]
             mesh = self.scene.meshes[inst.mesh]
             local = mesh_vertices.get(inst.mesh, mesh.vertices)
-            m = transforms[i]
-            w = affine(local, m)  # the moving scene needs them anyway: exact bounds come for free
-            lo, hi = w.min(axis=0), w.max(axis=0)
-            bounds[i] = (lo, hi)
-            centre = 0.5 * (lo + hi)
-            d = w - centre
-            spheres[i] = (centre, float(np.sqrt(np.einsum("pi,pi->p", d, d).max())))
+            w = affine(local, transforms[i])  # the moving scene needs them anyway: exact bounds come for free
+            bounds[i], spheres[i] = bounds_of(w)
             verts.append(w)
             faces.append(mesh.faces + base)
             base += len(w)

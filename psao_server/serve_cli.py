@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="read the clients' token from FILE (first line); the environment variable PSAO_TOKEN also works")
     p.add_argument("--allow-edits", action="store_true",
                    help="accept SceneEdit (move an instance for everyone) from clients presenting the edit token, "
-                        "read from PSAO_EDIT_TOKEN or --edit-token-file; edits are refused otherwise")
+                        "read from PSAO_EDIT_TOKEN or --edit-token-file, and re-trace what an edit moves through the "
+                        "server tick (also with --animate); edits are refused otherwise")
     p.add_argument("--edit-token-file", type=Path, default=None, metavar="FILE",
                    help="read the edit token from FILE (first line)")
     p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
@@ -92,12 +93,14 @@ def _budget(args):
 
 
 class AtRest:
-    """The server tick with the scene held at t = 0 (--progressive without --animate): only refinement."""
+    """The server tick with the scene held at t = 0 (--progressive or --allow-edits without --animate):
+    refinement, and re-tracing what scene edits move."""
 
     def __init__(self, tick):
         self.tick = tick
         self.grid = tick.grid
         self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
+        self.edit = tick.edit
 
     def prepare(self, t: float):
         return self.tick.prepare(0.0)
@@ -105,12 +108,13 @@ class AtRest:
 
 def _ticking(args, bake_with: BakeSettings):
     """(scene, grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point
-    sets): animating the scene with --animate, refining a first few-ray grid with --progressive."""
+    sets): animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing
+    what scene edits move with --allow-edits."""
     from psao_scene import load_scene
     from psao_server.bake import bake_scene
     from psao_server.tick import ServerTick
 
-    flag = "--animate" if args.animate else "--progressive"
+    flag = "--animate" if args.animate else "--progressive" if args.progressive else "--allow-edits"
     if args.grid is not None:
         raise ConfigError(f"{flag} bakes the scene itself: it cannot serve a --grid file")
     if args.test_edits:
@@ -169,8 +173,6 @@ def _settings(args):
     codec = CODEC_NAMES[args.codec]
     if args.test_edits is not None and args.test_edits < 0:
         raise ConfigError(f"--test-edits must be >= 0, got {args.test_edits}")
-    if args.allow_edits and (args.animate or getattr(args, "progressive", False)):
-        raise ConfigError("--allow-edits needs a static server: the animated tick does not take scene edits")
     edit_token = secret("edit token", "", "PSAO_EDIT_TOKEN", args.edit_token_file) if args.allow_edits else ""
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
                       layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
@@ -252,8 +254,10 @@ def run(args: argparse.Namespace) -> int:
     setup_logging()
     settings = _settings(args)
     bake = bake_settings(args)  # a bad number fails before the scene loads
-    if not (args.animate or args.progressive) and (args.tick_budget_ms is not None or args.tick_rays is not None):
-        raise ConfigError("--tick-budget-ms and --tick-rays need --animate or --progressive (no tick runs otherwise)")
+    if not (args.animate or args.progressive or args.allow_edits) and (args.tick_budget_ms is not None
+                                                                        or args.tick_rays is not None):
+        raise ConfigError("--tick-budget-ms and --tick-rays need --animate, --progressive or --allow-edits (no tick "
+                          "runs otherwise)")
     if not settings.token and not is_loopback(settings.host):
         logging.getLogger("psao.serve").warning(
             "listening on %s without a token: anyone who can reach this machine may connect "
@@ -261,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
     if settings.tls_cert is not None:
         tls_context(settings.tls_cert, settings.tls_key)  # a bad certificate fails before the bake
     listener = bind_listener(settings.host, settings.port)
-    if args.animate or args.progressive:
+    if args.animate or args.progressive or args.allow_edits:  # scene edits are re-traced by the server tick
         scene, grid, tick = _ticking(args, bake)
         transforms = tick.transforms
     else:
@@ -269,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
         transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
-                      scene_blob=scene_blob(scene))
+                      on_scene_edit=getattr(tick, "edit", None), scene_blob=scene_blob(scene))
     try:
         return asyncio.run(_serve(service, listener, args.json))
     finally:

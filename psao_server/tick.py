@@ -6,6 +6,12 @@
     tick(grid, t)                                      # one tick at scene time t (the service's TickFn)
     plan = tick.prepare(t); tick.apply(plan)           # the same in two halves: prepare writes no grid
     tick.transforms()                                  # (n, 4, 4) float32, for every Update
+    tick.edit(instance, transform)                     # a scene edit: applied by the next prepare
+
+A scene edit places an instance at a transform from then on (SceneAnimator.place); the next tick sees
+it as motion, so what it touches is selected and re-traced like any other motion (budgeted: its points'
+histories reset and queue). An edited static instance becomes a rigid mover: its triangles leave the
+tracer's static scene and its points the static index (a tracer rebuild, once per instance).
 
 Points are identified by their stable point id (bake.scene_point_ids: ids_of[i][k] is the id of point
 k of instance i's PointSet, which is how a skinned point finds its triangle). The tick keeps per id: instance, current grid location (slot, index),
@@ -32,6 +38,7 @@ Two ways to trace (TickSettings.budget):
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -39,8 +46,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from protocol import pointword as pw
-from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, grid_for_animation, skinned_point_bounds,
-                                 to_world_points)
+from protocol.errors import EditError
+from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, bounds_of, grid_for_animation, skinned_point_bounds,
+                                 to_world_points, affine)
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, measure_tracer
 from psao_server.errors import ConfigError, TracerError
@@ -114,6 +122,8 @@ class ServerTick:
         self._init_tracer()
         self.static_boxes = self.animator.static_bounds()
         self.cameras: list[np.ndarray] = []
+        self._edits: dict[int, np.ndarray] = {}  # instance -> transform, from the event loop, until the next prepare
+        self._edits_lock = threading.Lock()
         self.stats_history: deque[TickStats] = deque(maxlen=max(1, self.settings.history))
         self.tick_count = 0
         # the bake's AO is this tick's first sync only if it traced the same rays (count and seed)
@@ -167,14 +177,17 @@ class ServerTick:
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
         # static points: world positions and normals once, and a block index for box queries
-        static = np.isin(self.inst_of, self.kinds.static) & self.tracked
-        self.static_ids = np.flatnonzero(static)
         self.world_pos = np.zeros((n, 3))
         self.world_nrm = np.zeros((n, 3), np.float32)
         for i in self.kinds.static:
-            ids = self.static_ids[self.inst_of[self.static_ids] == i]
+            ids = np.flatnonzero((self.inst_of == i) & self.tracked)
             self.world_pos[ids], self.world_nrm[ids] = to_world(self.scene.instances[i].transform, self.local_pos[ids],
                                                                 self.local_nrm[ids])
+        self._index_static()
+
+    def _index_static(self) -> None:
+        """The static points' ids, their block index for box queries and their normals."""
+        self.static_ids = np.flatnonzero(np.isin(self.inst_of, self.kinds.static) & self.tracked)
         block = self.settings.block or self.scene.ao_distance
         self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
         self.static_normals = self.world_nrm[self.static_ids].astype(np.float64)
@@ -183,12 +196,16 @@ class ServerTick:
         s = self.settings
         kwargs = {"workers": s.workers} if s.tracer == "embree" else {}
         self.tracer = make_tracer(s.tracer, scene_center(self.scene), **kwargs)
-        self.tracer.set_static(*self.animator.static_geometry())
-        # rigid movers are built once and posed per tick; only deforming meshes are rebuilt
-        self.tracer.set_rigid([(self.scene.meshes[self.scene.instances[i].mesh].vertices,
-                                self.scene.meshes[self.scene.instances[i].mesh].faces) for i in self.kinds.rigid])
+        self._load_tracer()
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()  # forks the workers: before any thread or event loop starts
+
+    def _load_tracer(self) -> None:
+        """The tracer's static scene and its rigid movers (built once and posed per tick; only deforming
+        meshes are rebuilt)."""
+        self.tracer.set_static(*self.animator.static_geometry())
+        self.tracer.set_rigid([(self.scene.meshes[self.scene.instances[i].mesh].vertices,
+                                self.scene.meshes[self.scene.instances[i].mesh].faces) for i in self.kinds.rigid])
 
     def _init_budget(self, bake: BakeResult) -> None:
         """The refinement queue, with the bake's AO as each point's first rays of history when the bake
@@ -275,6 +292,34 @@ class ServerTick:
         and so does a camera whose matrices make no frustum (NaN, singular)."""
         self.cameras = [camera_planes(v, p, self.settings.view.fov_margin) for v, p in cameras]
 
+    def edit(self, instance: int, transform: np.ndarray) -> None:
+        """A scene edit (already authorised and range-checked by the session): instance `instance` is at
+        `transform` from the next tick on. Safe to call while a prepare runs in another thread."""
+        if not 0 <= instance < len(self.scene.instances):
+            raise EditError(f"SceneEdit: no instance {instance} (the scene has {len(self.scene.instances)})")
+        with self._edits_lock:
+            self._edits[int(instance)] = np.asarray(transform, np.float64).reshape(4, 4)
+
+    def _take_edits(self) -> None:
+        """Apply the scene edits received since the last tick (at the start of prepare: the tick's own
+        thread). Edited static instances become rigid movers: the tracer and the static index lose them."""
+        with self._edits_lock:
+            edits, self._edits = self._edits, {}
+        became_rigid = [i for i, m in edits.items() if self.animator.place(i, m)]
+        if not became_rigid:
+            return
+        log.info("scene edit: instance(s) %s now move; tracer rebuilt without them in its static scene", became_rigid)
+        for i in became_rigid:
+            self.static_boxes.pop(i, None)
+            if self.last_frame is not None:  # where it was: the first motion resets what it leaves too
+                mesh = self.scene.meshes[self.scene.instances[i].mesh]
+                self.last_frame.bounds[i], self.last_frame.spheres[i] = bounds_of(
+                    affine(mesh.vertices, self.last_frame.transforms[i]))
+        self._index_static()
+        self._load_tracer()
+        if hasattr(self.tracer, "warm_up"):
+            self.tracer.warm_up()
+
     def transforms(self) -> np.ndarray:
         """(n_instances, 4, 4) float32 transforms of the last tick."""
         return self._transforms
@@ -292,6 +337,7 @@ class ServerTick:
         """Animate, select and trace at scene time t without writing the grid: it may run in a worker
         thread while the event loop reads the grid for sending. `apply` must follow before the next one."""
         t_start = time.perf_counter()
+        self._take_edits()
         frame = self.animator.frame(t)
         moved = self._deform(frame)
         t_anim = time.perf_counter()

@@ -72,7 +72,7 @@ def test_static_server_client_with_frames_ends(tmp_path):
     (["--allow-edits"], {"PSAO_EDIT_TOKEN": ""}, "edits need an edit token"),
     (["--allow-edits", "--token", "same"], {"PSAO_EDIT_TOKEN": "same"}, "edit token must differ"),
     (["--max-clients", "0"], {}, "max clients must be within 1..100000"),
-    (["--allow-edits", "--animate"], {"PSAO_EDIT_TOKEN": "e"}, "--allow-edits needs a static server"),
+    (["--allow-edits", "--grid", "g.npz"], {"PSAO_EDIT_TOKEN": "e"}, "--allow-edits bakes the scene itself"),
     (["--token-file", "/nonexistent/token"], {}, "cannot read the token from /nonexistent/token"),
 ])
 def test_bad_access_settings(args, env, text):

@@ -36,7 +36,7 @@ def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
     (["--animate", "--tick-budget-ms", "0"], "--tick-budget-ms must be within (0, 16.6667]"),
     (["--progressive", "--tick-budget-ms", "30"], "--tick-budget-ms must be within (0, 16.6667]"),
     (["--animate", "--tick-rays", "0"], "--tick-rays must divide --rays"),
-    (["--tick-budget-ms", "5"], "need --animate or --progressive"),
+    (["--tick-budget-ms", "5"], "need --animate, --progressive or --allow-edits"),
 ])
 def test_serve_bad_settings(args, text):
     one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)
