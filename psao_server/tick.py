@@ -166,6 +166,7 @@ class ServerTick:
         if self.grid.n_points() != int((self.slot >= 0).sum()):
             raise ConfigError("the grid's point ids do not match the bake's point sets (not built by Grid.build?)")
         self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
+        self.n_tracked = int(self.tracked.sum())
         if self.kinds.skinned and self.settings.fit_grid:
             bounds = skinned_point_bounds(self.scene, bake.pointsets, self.kinds.skinned, self.animator.skinner)
             grown = grid_for_animation(self.grid, bounds)
@@ -277,6 +278,15 @@ class ServerTick:
         self.slot[mine] = -1
         self.index[mine] = -1
         self._relocate_cells(np.flatnonzero(np.isin(self.grid.cell_instance, instances)))
+
+    def _parked(self) -> int:
+        """Tracked points the grid does not hold now (only skinned ones can be: per-tick work stays off
+        the static points)."""
+        ids = [self.ids_of[i] for i in self.kinds.skinned]
+        if not ids:
+            return 0
+        ids = np.concatenate(ids)
+        return int((self.tracked[ids] & (self.slot[ids] < 0)).sum())
 
     def _check_locations(self, ids: np.ndarray) -> None:
         """Someone else (a compaction, a scene edit) may have moved points: find them again (ids: points
@@ -406,18 +416,18 @@ class ServerTick:
         g0 = time.perf_counter()
         if len(plan.moved):
             self._check_locations(plan.moved)
-            go = plan.moved[self.present()[plan.moved]]
+            go = plan.moved[self.slot[plan.moved] >= 0]
             self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
             self._relocate_instances(self.kinds.skinned)
         changed = self._store(plan.ids, plan.codes)
         seconds_grid = self.stats_grid_s = time.perf_counter() - g0
         self.last_frame = plan.frame
         self._transforms = plan.frame.transforms.astype(np.float32)
-        n = int(self.tracked.sum())
+        n = self.n_tracked
         animate, select, trace = plan.seconds
         stats = TickStats(
             tick=self.tick_count, t=plan.frame.t, considered=n, skipped=n - len(plan.ids), traced=int(len(plan.ids)),
-            changed=changed, moved=int(len(plan.moved)), parked=int((self.tracked & ~self.present()).sum()),
+            changed=changed, moved=int(len(plan.moved)), parked=self._parked(),
             cells_dirty=int(np.count_nonzero(self.grid.dirty_cells)),
             seconds_animate=animate, seconds_select=select, seconds_trace=trace, seconds_grid=seconds_grid,
             seconds_total=animate + select + trace + seconds_grid, **self._queue_stats(plan, trace))
@@ -445,7 +455,7 @@ class ServerTick:
             ids = self.ids_of[i]
             change = np.any(pos != self.local_pos[ids], axis=1) | np.any(nrm != self.local_nrm[ids], axis=1)
             self.local_pos[ids], self.local_nrm[ids] = pos, nrm
-            moved.append(ids[change & self.present()[ids]])
+            moved.append(ids[change & (self.slot[ids] >= 0)])
         return np.concatenate(moved) if moved else np.zeros(0, np.int64)
 
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -504,8 +514,8 @@ class ServerTick:
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
         """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
         if len(ids):
-            self._check_locations(ids[self.present()[ids]])
-        here = self.present()[ids]
+            self._check_locations(ids[self.slot[ids] >= 0])
+        here = self.slot[ids] >= 0
         have, new = ids[here], codes[here]
         changed = 0
         if len(have):
