@@ -110,15 +110,27 @@ def bandwidth_chart(rows: list[dict], path: Path) -> None:
             raw = [r for r in rows if r["scene"] == s and r["method"] == "Video-raw" and r["latency_ms"] == L0]
             if raw:
                 ax.axhline(raw[0][key], color="tab:red", linestyle=":", linewidth=1, label="video before encoding")
+            idle = [r for r in rows if r["scene"] == s and r["kind"] == "psao" and r["latency_ms"] == L0
+                    and r.get("mbit_s") == 0]  # a static scene: nothing streamed after the snapshot
+            if idle:
+                top = max(idle, key=lambda r: r.get("density") or 0)
+                ax.axhline(top[key], color="tab:blue", linestyle=":", linewidth=1,
+                           label="PSAO, densest, 0 Mbit/s after its snapshot")
+                ax.annotate(top["method"], (0.02, top[key]), xycoords=("axes fraction", "data"), fontsize=7,
+                            color="tab:blue", textcoords="offset points", xytext=(0, 3))
             ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(plt.NullFormatter())
             ax.set_xlabel("Mbit/s (log)")
             ax.set_ylabel(label)
             ax.grid(alpha=0.3, which="both")
             if row == 0:
                 ax.set_title(s)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside lower center", ncol=5, fontsize=8)
+    legend = {}  # every panel's lines, once per label (a static scene's panel has no PSAO curve)
+    for ax in axes.flat:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, h)
+    if legend:
+        fig.legend(list(legend.values()), list(legend), loc="outside lower center", ncol=6, fontsize=8)
     fig.suptitle("Quality against bandwidth: PSAO (densities) and per-client AO video (bitrates)")
     fig.savefig(path, dpi=80)
     plt.close(fig)
