@@ -20,6 +20,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,10 @@ VIDEO_METHOD = "video"  # server-rendered AO streamed per client as video (video
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    # A value that starts with a minus and a digit ("-1,2" for a list option) is a value, not an option,
+    # so its range check gives the one-line error (argparse before 3.12.7 only takes "-1" or "-1.5"; this
+    # is the pattern later versions use).
+    p._negative_number_matcher = re.compile(r"-\.?\d")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="builtin:NAME, a scene .toml, or a glTF/OBJ/... file")
     p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated")
     p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated")

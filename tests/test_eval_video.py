@@ -120,6 +120,8 @@ def bench(tmp_path: Path, *extra: str) -> list[str]:
     (["--video-codec", "mjpeg2000"], "unknown video codec 'mjpeg2000'"),
     (["--video-bitrates", "0"], "bitrate must be > 0"),
     (["--video-bitrates", "1,-2"], "bitrate must be > 0"),
+    (["--video-bitrates", "-1,2"], "bitrate must be > 0"),
+    (["--latency-ms", "-50,0"], "latency must be >= 0"),
     (["--latency-ms", "-50"], "latency must be >= 0"),
 ])
 def test_bad_video_arguments_are_one_line(tmp_path, capsys, args, msg):
