@@ -327,7 +327,8 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
 def quality_scene(name: str, args) -> dict:
     """Run the budgeted tick in real time (scene time = wall time, as the service does) over --move-s of
     motion then --rest-s with the scene held still, sampling the stored AO of a fixed random set of the
-    points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted tick at the same scene times; then the reference at every sample."""
+    points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted
+    tick at the same scene times, with the reference traced right after each sampled tick."""
     import copy
 
     from psao_scene import load_scene
@@ -375,6 +376,22 @@ def quality_scene(name: str, args) -> dict:
         ticks_per_s = k / (time.perf_counter() - start)
     finally:
         budgeted.close()
+    def reference(tick, t):
+        """Each sampled point in the camera's view traced with many rays in the tick's last frame (at t:
+        skinned points stand where that tick put them)."""
+        frame = tick.last_frame
+        here = tick.present()[sample]
+        pos, _ = tick.world_points(frame, sample[here])
+        seen = np.zeros(len(sample), bool)
+        seen[here] = in_any_view(pos, [camera_planes(*camera(scene, t), 0.0)], 0.0)
+        tick.pose_tracer(frame)
+        ref = np.full(len(sample), -1.0)
+        sel = np.flatnonzero(seen)
+        p2, n2 = tick.world_points(frame, sample[sel])
+        ref[sel] = tick.tracer.visibility(p2, n2, sample[sel], TraceSettings(
+            rays=args.ref_rays, ao_distance=scene.ao_distance, seed=12345))
+        return ref, seen
+
     unbudgeted = ServerTick(twin, TickSettings(rays=args.quality_rays, workers=args.workers))
     samples_u, refs, views = [], [], []
     try:
@@ -384,20 +401,9 @@ def quality_scene(name: str, args) -> dict:
             unbudgeted.grid.take_dirty()
             if k in sampled_ticks:
                 samples_u.append(stored(unbudgeted))
-        for wall, t in times:  # the reference: each sampled point in the camera's view, many rays, at t
-            frame = unbudgeted.animator.frame(t)
-            ids = sample[unbudgeted.present()[sample]]
-            pos, nrm = unbudgeted.world_points(frame, ids)
-            seen = np.zeros(len(sample), bool)
-            seen[unbudgeted.present()[sample]] = in_any_view(pos, [camera_planes(*camera(scene, t), 0.0)], 0.0)
-            unbudgeted.pose_tracer(frame)
-            ref = np.full(len(sample), -1.0)
-            sel = np.flatnonzero(seen)
-            p2, n2 = unbudgeted.world_points(frame, sample[sel])
-            ref[sel] = unbudgeted.tracer.visibility(p2, n2, sample[sel], TraceSettings(
-                rays=args.ref_rays, ao_distance=scene.ao_distance, seed=12345))
-            refs.append(ref)
-            views.append(seen)
+                ref, seen = reference(unbudgeted, t)  # now: the skinned points are where they are at t
+                refs.append(ref)
+                views.append(seen)
     finally:
         unbudgeted.close()
 
