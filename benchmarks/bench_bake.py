@@ -1,4 +1,5 @@
-"""Bake accuracy and tracing throughput against the Core issue's targets, in one run.
+"""Bake accuracy and tracing throughput in one run; the verdicts check the reconstruction MAE at N = 256
+against each scene's target (TARGETS).
 
 For each scene and density: points kept, dropped by overflow, hole fraction and reconstruction MAE at
 random surface probes against AO traced directly there with many rays, and the share of the workers'

@@ -21,6 +21,11 @@ class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+def comma_list(values) -> str:
+    """A tuple default as the comma-separated text its option takes: (128, 256.0) -> '128,256'."""
+    return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values)
+
+
 def default(settings_class: type, name: str):
     """Default of field `name` of a settings dataclass (a dotted name reaches into nested settings)."""
     head, _, rest = name.partition(".")

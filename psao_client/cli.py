@@ -14,11 +14,9 @@ import time
 from pathlib import Path
 
 from protocol.codecs import CODEC_NAMES
+from psao.options import comma_list, default
 from psao_client.errors import ConnectError
-
-# Preference order: the first one the server also offers is used.
-CODEC_ORDER = ("zstd-stream", "zstd", "lz4", "none")
-assert set(CODEC_ORDER) == set(CODEC_NAMES)
+from psao_client.settings import ConnectSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,14 +35,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="read the token from FILE (first line); the environment variable PSAO_TOKEN also works")
     p.add_argument("--tls-ca", type=Path, default=None, metavar="PEM",
                    help="with wss://, trust only these certificates (e.g. a server's self-signed one)")
-    p.add_argument("--codecs", default=",".join(CODEC_ORDER),
+    p.add_argument("--codecs", default=comma_list(default(ConnectSettings, "codecs")),
                    help="codecs to accept, comma-separated: the names psao serve --codec takes")
-    p.add_argument("--read-delay", type=float, default=0.0, metavar="S",
+    p.add_argument("--read-delay", type=float, default=default(ConnectSettings, "read_delay"), metavar="S",
                    help="pause S seconds after every message (simulates a slow client)")
     p.add_argument("--recv-buffer", type=int, default=None, metavar="BYTES",
                    help="socket receive buffer size (small values make a slow reader felt by the server at once)")
     p.add_argument("--no-reconnect", action="store_true", help="exit when the connection drops")
-    p.add_argument("--reconnect-timeout", type=float, default=10.0, help="give up after S seconds without a message")
+    p.add_argument("--reconnect-timeout", type=float, default=default(ConnectSettings, "reconnect_timeout"),
+                   help="give up after S seconds without a message")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append the mirror's state digest (jsonl) after every Snapshot and Update (tests)")
     from psao_client.render.stream_render import add_render_arguments

@@ -10,15 +10,18 @@ import sys
 import time
 from pathlib import Path
 
+from psao.options import default
 from psao_client.render.stream_render import add_frame_arguments
+from psao_client.settings import FrameSettings
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("scene", metavar="SCENE", help="builtin:NAME, a .toml scene or a mesh file")
     parser.add_argument("--grid", required=True, metavar="FILE", help="baked grid (.npz from psao bake)")
-    parser.add_argument("--frames", type=int, default=1, metavar="N", help="frames spread over the path")
+    parser.add_argument("--frames", type=int, default=default(FrameSettings, "frames"), metavar="N",
+                        help="frames spread over the path")
     add_frame_arguments(parser)
-    parser.add_argument("--out", default="frames", metavar="DIR", help="output folder")
+    parser.add_argument("--out", default=default(FrameSettings, "out"), metavar="DIR", help="output folder")
     parser.add_argument("--json", action="store_true", help="print per-frame pass times as JSON (last line)")
 
 

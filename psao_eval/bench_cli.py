@@ -25,17 +25,18 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from psao.options import default
-from psao_client.render.renderer import AO_METHODS
+from psao.options import comma_list, default
+from psao_client.render.renderer import AO_METHODS, MethodOptions
 from psao_client.render.ssao_pass import SsaoSettings
 from psao_eval import video_bench
 from psao_eval.errors import EvalError
 from psao_eval.reference import ReferenceSettings
+from psao_eval.settings import BenchSettings
 from psao_server.bake_cli import add_bake_arguments, bake_arguments, bake_settings
 from psao_server.settings import BakeSettings, TickSettings
 
 TICK_RAYS = default(TickSettings, "rays")  # rays per re-traced point of an animating server
-DEFAULT_METHODS = ("ssao", "gtao", "psao")
+DEFAULT_METHODS = BenchSettings.methods
 VIDEO_METHOD = "video"  # server-rendered AO streamed per client as video (video_bench), not a client pass
 
 
@@ -45,30 +46,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     # is the pattern later versions use).
     p._negative_number_matcher = re.compile(r"-\.?\d")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="builtin:NAME, a scene .toml, or a glTF/OBJ/... file")
-    p.add_argument("--densities", default="128,256,512,1024", help="PSAO densities N, comma-separated")
-    p.add_argument("--tick-hz", default="5,15,30,60", help="server tick rates for the stream, comma-separated")
-    p.add_argument("--frames", type=int, default=4, help="frames along the camera path scored per scene")
+    p.add_argument("--densities", default=comma_list(default(BenchSettings, "densities")),
+                   help="PSAO densities N, comma-separated")
+    p.add_argument("--tick-hz", default=comma_list(default(BenchSettings, "tick_hz")),
+                   help="server tick rates for the stream, comma-separated")
+    p.add_argument("--frames", type=int, default=default(BenchSettings, "frames"),
+                   help="frames along the camera path scored per scene")
     p.add_argument("--spp", type=int, default=default(ReferenceSettings, "spp"), help="RTAO reference rays per pixel")
-    p.add_argument("--size", default="640x360", metavar="WxH", help="frame size")
+    p.add_argument("--size", default=default(BenchSettings, "size"), metavar="WxH", help="frame size")
     p.add_argument("--ssao-samples", type=int, default=default(SsaoSettings, "samples"), help="SSAO kernel size")
-    p.add_argument("--methods", "--ao", dest="methods", default=",".join(DEFAULT_METHODS), metavar="LIST",
+    p.add_argument("--methods", "--ao", dest="methods", default=comma_list(default(BenchSettings, "methods")), metavar="LIST",
                    help=f"AO methods scored against RTAO, comma-separated: the renderer's --ao names "
                         f"({', '.join(AO_METHODS)}) and {VIDEO_METHOD} (per-client video of server-rendered AO, "
                         f"compared with PSAO at equal bandwidth, under latency and per client: see the video "
                         f"options); psao is always scored, one row per density, and every row is compared with it")
-    p.add_argument("--gtao-preset", default="quality", metavar="NAME", help="GTAO slices x steps: speed, quality, ultra")
-    p.add_argument("--mlp-steps", type=int, default=1500,
+    p.add_argument("--gtao-preset", default=default(MethodOptions, "gtao_preset"), metavar="NAME",
+                   help="GTAO slices x steps: speed, quality, ultra")
+    p.add_argument("--mlp-steps", type=int, default=default(BenchSettings, "mlp_steps"),
                    help="Adam steps of MLP baking, trained per scene on the first density's grid")
-    p.add_argument("--stream-seconds", type=float, default=3.0, help="seconds the client runs after its snapshot, per config")
+    p.add_argument("--stream-seconds", type=float, default=default(BenchSettings, "stream_seconds"), help="seconds the client runs after its snapshot, per config")
     p.add_argument("--camera-path", default=None, metavar="NAME", help="camera path (the scene's first by default)")
-    p.add_argument("--out", type=Path, default=Path("out") / "bench", metavar="DIR", help="output folder")
-    p.add_argument("--cache", type=Path, default=Path("out") / ".cache", metavar="DIR",
+    p.add_argument("--out", type=Path, default=default(BenchSettings, "out"), metavar="DIR", help="output folder")
+    p.add_argument("--cache", type=Path, default=default(BenchSettings, "cache"), metavar="DIR",
                    help="cache of grids and RTAO references")
     p.add_argument("--no-stream", action="store_true", help="skip the server/client runs (quality only)")
     p.add_argument("--animate", action="store_true",
                    help="animated scenes: score each frame at its scene time (server tick in process) and stream "
                         "from `psao serve --animate` (static scenes are unaffected)")
-    p.add_argument("--image-scale", type=float, default=1.0, help="scale of the side-by-side PNGs")
+    p.add_argument("--image-scale", type=float, default=default(BenchSettings, "image_scale"),
+                   help="scale of the side-by-side PNGs")
     p.add_argument("--json", action="store_true", help="print the table's rows as one JSON array as the last line")
     add_bake_arguments(p, density=False)
     video_bench.add_arguments(p)
@@ -89,11 +95,11 @@ class BenchConfig:
     out: Path
     cache: Path
     stream: bool = True
-    image_scale: float = 1.0
+    image_scale: float = BenchSettings.image_scale
     animate: bool = False
     methods: tuple[str, ...] = DEFAULT_METHODS
-    gtao_preset: str = "quality"
-    mlp_steps: int = 1500
+    gtao_preset: str = MethodOptions.gtao_preset
+    mlp_steps: int = BenchSettings.mlp_steps
     video: video_bench.VideoBenchConfig | None = None  # set when VIDEO_METHOD is among the methods
 
     @property

@@ -21,17 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-SCENE = "builtin:courtyard"
-DENSITY = 96.0  # points per unit^2: a fraction of the bench's densities, so the demo stays short
-RAYS = 32  # AO rays per point in the demo bake
-FRAMES = 24  # frames rendered along the camera path
-SCORED = 3  # of which scored against RTAO
-CLIENT_SCORED = 2  # frames of the streaming client's own scored against RTAO
-SPP = 64  # RTAO rays per pixel for the demo's reference (the bench uses 512)
-SIZE = (640, 360)
-STREAM_SECONDS = 4.0
-TICK_HZ = 30.0  # the served stream's tick rate
-OUT = Path("out") / "demo"
+from psao_client.render.output import parse_size
+from psao_eval.settings import DemoSettings
+
+DEMO = DemoSettings()
+SIZE = parse_size(DEMO.size)  # (width, height) pixels
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,10 +44,10 @@ def _run(args) -> int:
     from psao_scene import load_scene
 
     t_start = time.perf_counter()
-    out = ensure_writable(OUT, "output folder")
+    out = ensure_writable(DEMO.out, "output folder")
     ensure_writable(Path("out") / ".cache", "cache folder")
     log = Log()
-    scene = load_scene(SCENE)
+    scene = load_scene(DEMO.scene)
     stream = stream_demo(scene, out, log)
     quality = quality_demo(scene, out, log)
     client = client_demo(scene, stream, log)
@@ -70,11 +64,11 @@ def stream_demo(scene, out: Path, log) -> dict:
     if client_has_render():
         frames_dir = out / "client_frames"
         extra = ["--render", str(frames_dir), "--ao", "psao", "--size", f"{SIZE[0]}x{SIZE[1]}"]
-    log(f"psao serve {SCENE} --animate (N={DENSITY:g}, {RAYS} rays, {TICK_HZ:g} Hz) and a headless psao client "
-        f"for {STREAM_SECONDS:g} s after its snapshot")
-    with ServerProcess(SCENE, ["--animate", "--density", f"{DENSITY:g}", "--rays", str(RAYS), "--tick-rays",
-                               str(RAYS), "--tick-hz", f"{TICK_HZ:g}"]) as server:
-        stats = run_client(server.url, SCENE, STREAM_SECONDS, extra)
+    log(f"psao serve {DEMO.scene} --animate (N={DEMO.density:g}, {DEMO.rays} rays, {DEMO.tick_hz:g} Hz) and a headless psao client "
+        f"for {DEMO.stream_seconds:g} s after its snapshot")
+    with ServerProcess(DEMO.scene, ["--animate", "--density", f"{DEMO.density:g}", "--rays", str(DEMO.rays), "--tick-rays",
+                               str(DEMO.rays), "--tick-hz", f"{DEMO.tick_hz:g}"]) as server:
+        stats = run_client(server.url, DEMO.scene, DEMO.stream_seconds, extra)
         rates = stream_rates(stats, welcome_bytes(scene))
         rates["server_ms_tick"] = server.tick_ms()
         rates["url"] = server.url
@@ -90,9 +84,9 @@ def client_demo(scene, stream: dict, log) -> list:
 
     if not stream["client_frames_dir"]:
         return []
-    log(f"RTAO reference at {SPP} spp on {CLIENT_SCORED} of the streaming client's own frames")
-    return score_client_frames(scene, stream["client_frames_dir"], CLIENT_SCORED,
-                               ReferenceSettings(spp=SPP, cache_dir=Path("out") / ".cache" / "rtao"))
+    log(f"RTAO reference at {DEMO.spp} spp on {DEMO.client_scored} of the streaming client's own frames")
+    return score_client_frames(scene, stream["client_frames_dir"], DEMO.client_scored,
+                               ReferenceSettings(spp=DEMO.spp, cache_dir=Path("out") / ".cache" / "rtao"))
 
 
 def quality_demo(scene, out: Path, log) -> dict:
@@ -105,11 +99,11 @@ def quality_demo(scene, out: Path, log) -> dict:
     from psao_eval.quality import QualityRenderer, frame_poses, reference_images, score_frames
     from psao_eval.reference import ReferenceSettings
 
-    poses = frame_poses(scene, FRAMES, SIZE)
-    log(f"animating {SCENE} (server tick in this process, N={DENSITY:g}) and rendering {len(poses)} frames "
+    poses = frame_poses(scene, DEMO.frames, SIZE)
+    log(f"animating {DEMO.scene} (server tick in this process, N={DEMO.density:g}) and rendering {len(poses)} frames "
         f"of the camera path with PSAO and SSAO at {SIZE[0]}x{SIZE[1]}")
-    with AnimatedServer(scene, AnimatedSettings(BakeSettings(density=DENSITY, rays=RAYS), tick_rays=RAYS,
-                                                       tick_hz=TICK_HZ)) as server:
+    with AnimatedServer(scene, AnimatedSettings(BakeSettings(density=DEMO.density, rays=DEMO.rays), tick_rays=DEMO.rays,
+                                                       tick_hz=DEMO.tick_hz)) as server:
         with QualityRenderer(scene, SIZE) as qr:
             t0 = time.perf_counter()
             frames = qr.render(server.grid, poses, timing_repeats=1, before_frame=server.frame_state)
@@ -123,9 +117,9 @@ def quality_demo(scene, out: Path, log) -> dict:
     for f in frames:
         for m, rgb in (f.composite or {}).items():
             Image.fromarray(rgb, mode="RGB").save(frames_dir / f"frame_{f.pose.index:03d}_{m}.png")
-    picked = [frames[i] for i in np.linspace(0, len(frames) - 1, SCORED).round().astype(int)]
-    log(f"RTAO reference at {SPP} spp on {len(picked)} frames")
-    refs = reference_images(scene, picked, ReferenceSettings(spp=SPP, cache_dir=Path("out") / ".cache" / "rtao"))
+    picked = [frames[i] for i in np.linspace(0, len(frames) - 1, DEMO.scored).round().astype(int)]
+    log(f"RTAO reference at {DEMO.spp} spp on {len(picked)} frames")
+    refs = reference_images(scene, picked, ReferenceSettings(spp=DEMO.spp, cache_dir=Path("out") / ".cache" / "rtao"))
     rows = score_frames(picked, refs)
     return {"frames": frames, "picked": picked, "refs": refs, "rows": rows,
             "frame_wall_ms": 1e3 * (wall - tick_s) / len(poses), "tick_ms": tick_ms,
@@ -140,7 +134,7 @@ def write_demo_outputs(q: dict, out: Path) -> list[Path]:
     panels = []
     for m in ("psao", "ssao"):
         r = next(r for r in q["rows"] if r.frame == q["picked"][mid].pose.index and r.method == m)
-        panels.append((m.upper() if m == "ssao" else f"PSAO-{DENSITY:g}", q["picked"][mid].ao[m], r.flip_map, r.scores.as_dict()))
+        panels.append((m.upper() if m == "ssao" else f"PSAO-{DEMO.density:g}", q["picked"][mid].ao[m], r.flip_map, r.scores.as_dict()))
     path = out / "side_by_side.png"
     report.side_by_side(q["refs"][mid], panels, path)
     written.append(path)
@@ -172,10 +166,10 @@ def frame_chart(q: dict, path: Path) -> None:
     a.legend()
     a.grid(alpha=0.3)
     b.set_xlabel("frame")
-    b.set_ylabel(f"FLIP vs RTAO {SPP} spp (lower is better)")
+    b.set_ylabel(f"FLIP vs RTAO {DEMO.spp} spp (lower is better)")
     b.legend()
     b.grid(alpha=0.3)
-    fig.suptitle(f"psao demo: {SCENE}, N={DENSITY:g}, {q['gl_renderer']}")
+    fig.suptitle(f"psao demo: {DEMO.scene}, N={DEMO.density:g}, {q['gl_renderer']}")
     fig.savefig(path, dpi=80)
     plt.close(fig)
 
@@ -187,18 +181,18 @@ def print_report(scene, s: dict, q: dict, client: list, written: list[Path], sec
     ps, ss = mean_scores(q["rows"], "psao"), mean_scores(q["rows"], "ssao")
     gpu = {m: float(np.median([f.gpu_ms[m] for f in q["frames"]])) for m in ("psao", "ssao")}
     lines = [
-        f"psao demo: {scene.name}, PSAO N={DENSITY:g} ({q['points']:,} points, {RAYS} rays/point), "
+        f"psao demo: {scene.name}, PSAO N={DEMO.density:g} ({q['points']:,} points, {DEMO.rays} rays/point), "
         f"{SIZE[0]}x{SIZE[1]}, {q['gl_renderer']}",
-        f"stream   psao serve --animate at {s['url']} ({TICK_HZ:g} Hz asked): snapshot {s['snapshot_mb']:.2f} MB in "
-        f"{s['snapshot_s']:.2f} s, then {s['stream_mbit_s']:.3f} Mbit/s over {STREAM_SECONDS:g} s, {s['updates']} updates "
+        f"stream   psao serve --animate at {s['url']} ({DEMO.tick_hz:g} Hz asked): snapshot {s['snapshot_mb']:.2f} MB in "
+        f"{s['snapshot_s']:.2f} s, then {s['stream_mbit_s']:.3f} Mbit/s over {DEMO.stream_seconds:g} s, {s['updates']} updates "
         f"({s['updates_per_s']:.1f}/s), server {s['server_ms_tick']:.1f} ms/tick"
         + (f"; the headless client rendered {s['client_frames']} frames" if s["client_frames"] else ""),
         f"frames   {len(q['frames'])} along the camera path; client GPU ms per frame (median): PSAO {gpu['psao']:.1f}, "
         f"SSAO {gpu['ssao']:.1f}; wall {q['frame_wall_ms']:.0f} ms per frame (both methods, read-back included); "
-        f"in-process server tick {q['tick_ms']:.0f} ms (rolling boulders, {RAYS} rays per re-traced point)",
-        f"quality  vs RTAO {SPP} spp on {len(q['picked'])} animated frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
+        f"in-process server tick {q['tick_ms']:.0f} ms (rolling boulders, {DEMO.rays} rays per re-traced point)",
+        f"quality  vs RTAO {DEMO.spp} spp on {len(q['picked'])} animated frames: PSAO PSNR {ps.psnr:.2f} dB, SSIM {ps.ssim:.3f}, "
         f"FLIP {ps.flip:.3f} | SSAO PSNR {ss.psnr:.2f} dB, SSIM {ss.ssim:.3f}, FLIP {ss.flip:.3f}",
-        *([f"client   its own frames {', '.join(str(c.frame) for c in client)} vs RTAO {SPP} spp: PSAO PSNR "
+        *([f"client   its own frames {', '.join(str(c.frame) for c in client)} vs RTAO {DEMO.spp} spp: PSAO PSNR "
            f"{np.mean([c.psao.psnr for c in client]):.2f} dB, FLIP {np.mean([c.psao.flip for c in client]):.3f} | SSAO "
            f"PSNR {np.mean([c.ssao.psnr for c in client]):.2f} dB, FLIP {np.mean([c.ssao.flip for c in client]):.3f}"]
           if client else []),

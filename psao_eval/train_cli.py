@@ -16,8 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from psao.options import DefaultsFormatter
+from psao.options import DefaultsFormatter, default
 from psao_eval.errors import EvalError
+from psao_eval.learn.aogan_train import AoganDataSettings, AoganTrainSettings
+from psao_eval.learn.mlp_train import MlpTrainSettings
+from psao_eval.learn.nnao_train import NnaoDataSettings, NnaoTrainSettings
 
 
 def add_arguments(p) -> None:
@@ -26,9 +29,9 @@ def add_arguments(p) -> None:
     m.add_argument("scene", metavar="SCENE")
     m.add_argument("--grid", required=True, metavar="FILE", help="baked grid of SCENE (psao bake)")
     m.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
-    m.add_argument("--steps", type=int, default=2000, help="Adam steps")
-    m.add_argument("--points", type=int, default=8192, help="training points per object")
-    m.add_argument("--seed", type=int, default=1)
+    m.add_argument("--steps", type=int, default=default(MlpTrainSettings, "steps"), help="Adam steps")
+    m.add_argument("--points", type=int, default=default(MlpTrainSettings, "points"), help="training points per object")
+    m.add_argument("--seed", type=int, default=default(MlpTrainSettings, "seed"))
     m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
 
     n = sub.add_parser("nnao", formatter_class=DefaultsFormatter, help="NNAO (Holden et al.): one network trained on G-buffers and RTAO at sampled pixels")
@@ -36,23 +39,24 @@ def add_arguments(p) -> None:
                    help="training scenes (without any: builtin:pavilion and builtin:playground, the example TOML scenes "
                         "kept out of the benchmark)")
     n.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
-    n.add_argument("--frames", type=int, default=16, help="frames per scene")
-    n.add_argument("--pixels", type=int, default=768, help="sampled pixels per frame")
-    n.add_argument("--spp", type=int, default=256, help="RTAO rays per sampled pixel")
-    n.add_argument("--epochs", type=int, default=12, help="passes over the data")
+    n.add_argument("--frames", type=int, default=default(NnaoDataSettings, "frames"), help="frames per scene")
+    n.add_argument("--pixels", type=int, default=default(NnaoDataSettings, "pixels"), help="sampled pixels per frame")
+    n.add_argument("--spp", type=int, default=default(NnaoDataSettings, "spp"), help="RTAO rays per sampled pixel")
+    n.add_argument("--epochs", type=int, default=default(NnaoTrainSettings, "epochs"), help="passes over the data")
     n.add_argument("--steps", type=int, default=None, help="Adam steps instead of --epochs")
-    n.add_argument("--seed", type=int, default=1)
+    n.add_argument("--seed", type=int, default=default(NnaoTrainSettings, "seed"))
     n.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
 
-    g = sub.add_parser("aogan", help="AOGAN, scaled down for CPU (needs PyTorch): attention U-Net on G-buffers, "
+    g = sub.add_parser("aogan", formatter_class=DefaultsFormatter, help="AOGAN, scaled down for CPU (needs PyTorch): attention U-Net on G-buffers, "
                                      "PatchGAN critic, dense RTAO")
     g.add_argument("scenes", nargs="*", metavar="SCENE", help="training scenes (default: as for nnao)")
     g.add_argument("--out", required=True, type=Path, metavar="FILE", help="weights file to write (.npz)")
-    g.add_argument("--frames", type=int, default=12, help="frames per scene")
-    g.add_argument("--size", default="320x180", metavar="WxH", help="training frame size")
-    g.add_argument("--spp", type=int, default=128, help="RTAO rays per pixel")
-    g.add_argument("--steps", type=int, default=600, help="generator updates")
-    g.add_argument("--seed", type=int, default=1)
+    g.add_argument("--frames", type=int, default=default(AoganDataSettings, "frames"), help="frames per scene")
+    g.add_argument("--size", default="x".join(map(str, default(AoganDataSettings, "size"))), metavar="WxH",
+                   help="training frame size")
+    g.add_argument("--spp", type=int, default=default(AoganDataSettings, "spp"), help="RTAO rays per pixel")
+    g.add_argument("--steps", type=int, default=default(AoganTrainSettings, "steps"), help="generator updates")
+    g.add_argument("--seed", type=int, default=default(AoganTrainSettings, "seed"))
     g.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
 
 

@@ -23,7 +23,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from psao.options import comma_list, default
 from psao_eval.errors import EvalError
+from psao_eval.settings import VideoSweepSettings
 from psao_eval.video import CODECS, VideoSettings, check_latency, decode_stream, encode_stream, reproject
 from psao_server.settings import BakeSettings, TickSettings
 
@@ -41,21 +43,23 @@ class VideoBenchConfig:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     d = VideoSettings()
     g = p.add_argument_group("video AO streaming competitor (the method video of --methods / --ao)")
-    g.add_argument("--video-bitrates", default="0.25,0.5,1,2,4,8", metavar="MBITS",
+    g.add_argument("--video-bitrates", default=comma_list(default(VideoSweepSettings, "bitrates")), metavar="MBITS",
                    help="video bitrates in Mbit/s, comma-separated")
     g.add_argument("--video-codec", default=d.codec, help=f"video codec: {', '.join(CODECS)}")
     g.add_argument("--video-fps", type=float, default=d.fps, help=f"video frames per second")
     g.add_argument("--video-spp", type=int, default=d.spp, help=f"AO rays per pixel per video frame")
-    g.add_argument("--video-clip", type=int, default=30, help="frames streamed before each scored frame")
+    g.add_argument("--video-clip", type=int, default=default(VideoBenchConfig, "clip"), help="frames streamed before each scored frame")
     g.add_argument("--video-accumulate", type=float, default=d.accumulate,
                    help="temporal accumulation: weight of the reprojected history, 0 = off")
     g.add_argument("--video-denoise", type=float, default=d.denoise_px, metavar="SIGMA",
                    help=f"depth-aware Gaussian over the traced AO, sigma in pixels, 0 = off")
-    g.add_argument("--camera-speed", type=float, default=1.0,
+    g.add_argument("--camera-speed", type=float, default=default(VideoBenchConfig, "camera_speed"),
                    help="before each scored frame the camera runs its path this many times faster (fast motion; "
                         "the scored poses stay the bench's)")
-    g.add_argument("--latency-ms", default="0,50,100", help="latencies in ms, comma-separated")
-    g.add_argument("--clients", default="1,10,100", help="client counts of the server-cost table")
+    g.add_argument("--latency-ms", default=comma_list(default(VideoSweepSettings, "latencies_ms")),
+                   help="latencies in ms, comma-separated")
+    g.add_argument("--clients", default=comma_list(default(VideoSweepSettings, "clients")),
+                   help="client counts of the server-cost table")
 
 
 def _numbers(text: str, what: str) -> list[float]:

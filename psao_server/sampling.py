@@ -58,7 +58,7 @@ def add_arguments(p) -> None:
                             "the courtyard's 256 at its AO distance 1.5, so files in any units get the same sampling")
     group.add_argument("--points", type=float, default=None, metavar="COUNT",
                        help="total point budget instead of a density (e.g. 2e6)")
-    p.add_argument("--max-points", type=float, default=DEFAULT_MAX_POINTS, metavar="COUNT",
+    p.add_argument("--max-points", type=float, default=SamplingSettings.max_points, metavar="COUNT",
                    help=f"refuse, before generating anything, a setting estimated above this many points "
                         f"({DEFAULT_MAX_POINTS:,} is about {DEFAULT_MAX_POINTS * BYTES_PER_POINT / 2 ** 30:.0f} GiB)")
 

@@ -34,7 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="update layout: packed or the paper's plain uint32 layout")
     p.add_argument("--stats-json", type=Path, default=None, metavar="FILE",
                    help="append one JSON line per tick: points considered/traced/changed, dirty rows, stage times, bytes")
-    p.add_argument("--json", action="store_true", help="print one JSON object with the final statistics as the last line")
+    p.add_argument("--json", action="store_true",
+                   help="when stopped, print one JSON object as the last line: the run's totals (connections, "
+                        "bytes, updates, ...) and tick_stats (ticks, ticks/s, mean/p95/max tick ms, bytes, cells "
+                        "and points traced/changed summed over the ticks, peak clients)")
     p.add_argument("--tick-hz", type=float, default=default(ServeSettings, "tick_hz"), help="server ticks per second, 5..60")
     p.add_argument("--token", default="",
                    help="clients must present this token (visible in the process list: prefer PSAO_TOKEN or --token-file)")
@@ -297,5 +300,6 @@ async def _serve(service, listener: socket.socket, as_json: bool = False) -> int
         got[0] if got else "request", c.ticks, c.connections, c.rejected, c.bytes_out / 1e6)
     if as_json:
         totals = {k: v for k, v in dataclasses.asdict(c).items() if isinstance(v, (int, float))}
-        print(json.dumps({"stopped_by": got[0] if got else "request", **totals}), flush=True)
+        print(json.dumps({"stopped_by": got[0] if got else "request", **totals, "tick_stats": service.summary.to_dict()}),
+              flush=True)
     return 0

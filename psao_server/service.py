@@ -48,6 +48,7 @@ from . import webpage
 from .clients import Client, Registry, SnapshotPlan, read_delta
 from .errors import ConfigError
 from .settings import ServeSettings
+from .tick_summary import TickSummary
 
 log = logging.getLogger("psao.serve")
 
@@ -75,6 +76,7 @@ class Counters:
     ticks: int = 0
     bytes_out: int = 0
     messages_out: int = 0
+    updates_out: int = 0  # Update messages sent, all clients
     connections: int = 0
     rejected: int = 0
     cameras: int = 0  # Camera messages received
@@ -125,6 +127,7 @@ class Service:
         self._digests = open(settings.digest_log, "a", buffering=1) if settings.digest_log else None
         self._stats_out = open(settings.stats_json, "a", buffering=1) if settings.stats_json else None
         self.last_tick_stats: dict = {}
+        self.summary = TickSummary()  # the whole run's per-tick statistics (psao serve --json)
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None,
@@ -211,6 +214,7 @@ class Service:
                       buckets_sent=since["buckets_sent"], seconds_encode=since["seconds_encode"],
                       bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry))
         self.last_tick_stats = record
+        self.summary.add(record)
         if self._stats_out:
             self._stats_out.write(json.dumps(record) + "\n")
 
@@ -462,6 +466,7 @@ class Service:
             self.counters.buckets_sent += len(b)
             await self._send(ws, client, data)
             client.updates_sent += 1
+            self.counters.updates_out += 1
 
 
 def tls_context(cert: Path, key: Path) -> ssl.SSLContext:

@@ -289,7 +289,7 @@ class ServerTick:
         return int((self.tracked[ids] & (self.slot[ids] < 0)).sum())
 
     def _check_locations(self, ids: np.ndarray) -> None:
-        """Someone else (a compaction, a scene edit) may have moved points: find them again (ids: points
+        """Someone else (an edit outside the tick) may have moved points: find them again (ids: points
         believed present; afterwards present() tells where they really are)."""
         ok = self.grid.point_id[self.slot[ids], self.index[ids]] == ids
         if not ok.all():

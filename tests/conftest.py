@@ -1,4 +1,5 @@
-"""Fixtures shared by the test modules: the headless GL context, the repository root, the shared scenes."""
+"""Fixtures shared by the test modules: the headless GL context, the repository root, the shared scenes,
+the server tick on a fresh bake."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,3 +34,22 @@ def shared_scene():
             pytest.skip(f"{path} not present")
         return path
     return find
+
+
+@pytest.fixture
+def make_tick():
+    """make_tick("NAME", density, rays, bake_rays=rays, budget=None, baked_time=0.0, **tick_settings) ->
+    (tick, bake): the server tick on a fresh bake of builtin:NAME, one tracer worker each, dirty sets drained.
+    The test closes the tick."""
+    from psao_scene import load_scene
+    from psao_server.bake import bake_scene
+    from psao_server.settings import BakeSettings, TickSettings
+    from psao_server.tick import ServerTick
+
+    def make(name, density=32, rays=8, bake_rays=None, budget=None, baked_time=0.0, **tick_settings):
+        bake = bake_scene(load_scene(f"builtin:{name}"),
+                          BakeSettings(density=density, rays=bake_rays or rays, workers=1), show_progress=False)
+        tick = ServerTick(bake, TickSettings(rays=rays, workers=1, budget=budget, **tick_settings), baked_time=baked_time)
+        tick.grid.take_dirty()
+        return tick, bake
+    return make

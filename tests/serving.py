@@ -1,4 +1,4 @@
-"""Test helper for `psao serve` subprocesses: the URL it prints once it listens."""
+"""Test helper for `psao serve` subprocesses: the URL it prints once it listens, or any line of its log."""
 
 from __future__ import annotations
 
@@ -7,13 +7,14 @@ import subprocess
 import time
 from pathlib import Path
 
-LISTENING = re.compile(r"listening on (ws://127\.0\.0\.1:\d+)")
+LOOPBACK = r"127\.0\.0\.1"
 
 
-def server_url(proc: subprocess.Popen, err: Path, timeout: float | None = None) -> str:
-    """Wait until the server writes its listening line to `err`; fails if it exits first or `timeout`
-    seconds pass (None: no deadline of its own, the test's timeout applies)."""
-    return wait_for_log(proc, err, LISTENING, timeout).group(1)
+def server_url(proc: subprocess.Popen, err: Path, timeout: float | None = None, host: str = LOOPBACK) -> str:
+    """The ws:// or wss:// URL, once the server wrote its listening line on `host` (a regular expression)
+    to `err`; fails if it exits first or `timeout` seconds pass (None: no deadline of its own, the test's
+    timeout applies)."""
+    return wait_for_log(proc, err, re.compile(rf"listening on (wss?://{host}:\d+)"), timeout).group(1)
 
 
 def wait_for_log(proc: subprocess.Popen, err: Path, pattern: re.Pattern, timeout: float | None = None) -> re.Match:

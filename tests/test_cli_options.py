@@ -1,13 +1,17 @@
 """One command line: defaults read from the settings dataclasses, the same options wherever the same work
 happens, one codec vocabulary, --json on every sub-command that reports figures."""
 import argparse
+import ast
 import re
+from pathlib import Path
 
 import pytest
 
 from protocol.codecs import CODEC_NAMES, codec_name
 from psao.cli import build_parser
+from psao_client.settings import FrameSettings
 from psao_eval.reference import ReferenceSettings
+from psao_eval.settings import BenchSettings
 from psao_server.settings import BakeSettings, PointSettings, ServeSettings, TraceSettings
 
 BAKE_OPTIONS = {"--density", "--rays", "--seed", "--spawn-ratio", "--gap-fill", "--gap-fill-ratio", "--tracer", "--workers"}
@@ -80,3 +84,67 @@ def test_bad_choice_is_a_usage_error(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(argv)
     assert exc.value.code == 2
+
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("psao", "protocol", "psao_scene", "psao_server", "psao_client", "psao_eval")
+OFF = (None, False, "")  # defaults that mean "not given": off, derived or empty
+
+
+def _literal_defaults(path: Path) -> list[str]:
+    """`add_argument(..., default=X)` calls whose X is written out in the module: a number or string
+    literal anywhere in X (but the field name of default(Settings, "name") and the separator of a
+    "sep".join(...)), or a name the module itself binds to a literal."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    bound = {t.id for node in tree.body if isinstance(node, ast.Assign) for t in node.targets
+             if isinstance(t, ast.Name) and not any(isinstance(n, ast.Name) for n in ast.walk(node.value))}
+    allowed: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "default":
+            allowed.update(id(a) for a in node.args[1:])
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "join":
+            allowed.add(id(node.func.value))
+    found = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument"):
+            continue
+        for kw in node.keywords:
+            if kw.arg != "default":
+                continue
+            value = kw.value
+            if isinstance(value, ast.Constant) and value.value in OFF or isinstance(value, (ast.List, ast.Tuple)) and not value.elts:
+                continue
+            written = [n for n in ast.walk(value) if isinstance(n, ast.Constant) and id(n) not in allowed
+                       and isinstance(n.value, (int, float, str)) and not isinstance(n.value, bool)]
+            names = [n for n in ast.walk(value) if isinstance(n, ast.Name) and n.id in bound]
+            if written or names:
+                found.append(f"{path.name}:{node.lineno}: default={ast.unparse(value)}")
+    return found
+
+
+def test_no_literal_default_in_a_command_line_module():
+    """Every option's default comes from a settings dataclass (psao_server/settings.py,
+    psao_client/settings.py, psao_eval/settings.py, ...), never a number or string written in the CLI."""
+    modules = [p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py")) if "add_argument(" in p.read_text(encoding="utf-8")]
+    assert len(modules) >= 8
+    bad = [line for path in modules for line in _literal_defaults(path)]
+    assert not bad, "literal defaults:\n" + "\n".join(bad)
+
+
+def test_the_literal_default_check_catches_one(tmp_path):
+    probe = tmp_path / "probe_cli.py"
+    probe.write_text('SIZE = "640x360"\n\ndef add_arguments(p):\n    p.add_argument("--frames", type=int, default=4)\n'
+                     '    p.add_argument("--size", default=SIZE)\n    p.add_argument("--ok", default=default(S, "f"))\n')
+    found = _literal_defaults(probe)
+    assert [f.split(": ", 1)[1] for f in found] == ["default=4", "default=SIZE"]
+
+
+def test_help_prints_the_settings_defaults():
+    subs = _subparsers()
+    bench = " ".join(subs["bench"].format_help().split())
+    assert f"(default: {','.join(f'{d:g}' for d in BenchSettings.densities)})" in bench
+    client = " ".join(subs["client"].format_help().split())
+    assert f"(default: {FrameSettings.fps})" in client and f"(default: {FrameSettings.size})" in client
+    train = next(a for a in subs["train"]._actions if isinstance(a, argparse._SubParsersAction))
+    for method, p in train.choices.items():  # psao train METHOD: the nested parsers print their defaults too
+        assert "--steps STEPS" in p.format_help() and "(default:" in p.format_help(), method

@@ -1,4 +1,4 @@
-"""The commands the README and docs/results.md name beside their figures still exist, with every option
+"""The commands the README and every docs/*.md name beside their figures still exist, with every option
 they pass: `psao SUB ...` is checked against the sub-command's parser, `python -m benchmarks.X ...`
 against the benchmark's --help, `python -m pytest FILE -k NAME` against the test file."""
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 from conftest import REPO
 from psao.cli import build_parser
 
-DOCS = [REPO / "README.md", REPO / "docs" / "results.md"]
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 _INLINE = re.compile(r"`((?:psao|python -m) [^`]+)`")
 
 
@@ -26,7 +26,7 @@ def documented_commands() -> list[tuple[str, str]]:
         text = doc.read_text()
         for m in _INLINE.finditer(text):
             found.append((f"{doc.name}:{text[:m.start()].count(chr(10)) + 1}", m.group(1)))
-        for block in re.findall(r"```\n(.*?)```", text, flags=re.S):
+        for block in re.findall(r"```[\w-]*\n(.*?)```", text, flags=re.S):
             joined = block.replace("\\\n", " ")
             for line in joined.splitlines():
                 if line.startswith(("psao ", "python -m ")):
@@ -98,3 +98,12 @@ def test_figures_name_their_command():
     for para in re.split(r"\n\s*\n", results):
         if re.match(r"\*\*[^*]+\*\*", para.strip()) and re.search(r"\d", para):
             assert _INLINE.search(para), f"README figure without its command: {para[:80]!r}"
+
+
+def test_every_doc_is_read():
+    """Every markdown page is among DOCS and names at least one command (a page without any would mean the
+    patterns above no longer match how the docs write commands)."""
+    names = {doc.name for doc in DOCS}
+    assert {"README.md", "results.md", "dask.md"} <= names
+    for doc in DOCS:
+        assert any(where.startswith(doc.name) for where, _ in documented_commands()), doc.name

@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 
+from serving import server_url
 from test_streaming_cli import ROOT, one_line_error, psao
 
 SMALL = ["builtin:cornell", "--density", "8", "--rays", "1"]
@@ -24,11 +23,7 @@ def start_serve(tmp_path, *args, env=None, host_pattern=r"127\.0\.0\.1"):
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *SMALL, "--port", "0", *args], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True,
                             env={**os.environ, **(env or {})})
-    end = time.time() + 120
-    while not (m := re.search(rf"listening on (wss?://{host_pattern}:\d+)", err.read_text())):
-        assert time.time() < end and proc.poll() is None, err.read_text()
-        time.sleep(0.1)
-    return m.group(1), proc, err
+    return server_url(proc, err, 120, host=host_pattern), proc, err
 
 
 def stop(proc):

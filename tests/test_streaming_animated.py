@@ -4,11 +4,11 @@ server's state bit for bit (digest logs, as in test_streaming_mirror)."""
 from __future__ import annotations
 
 import json
-import re
 import signal
 import subprocess
 
-from test_streaming_mirror import matched, psao, read_jsonl, wait_for
+from serving import server_url
+from test_streaming_mirror import matched, psao, read_jsonl
 
 SCENE = "builtin:robots"  # skinned walkers (points move between cells) in a room
 
@@ -20,9 +20,7 @@ def test_mirror_bit_exact_under_animation(tmp_path):
                   "--tick-hz", "10", "--digest-log", str(server_log), stdout=subprocess.DEVNULL, stderr=open(err, "w"))
     procs = [server]
     try:
-        port = int(wait_for(lambda: re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text()), 180,
-                            "the server to listen").group(1))
-        url = f"ws://127.0.0.1:{port}"
+        url = server_url(server, err, 180)
         common = ["--json", "--reconnect-timeout", "30"]
         logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow")}
         plain = psao("client", url, SCENE, "--frames", "40", "--digest-log", str(logs["plain"]), *common)

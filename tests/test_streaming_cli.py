@@ -47,20 +47,21 @@ def test_animate_needs_its_own_bake():
                    "cannot serve a --grid file")
 
 
-def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tuple[str, str]], list[dict]]:
-    """Run `psao serve ... --port 0` with digest and stats logs, one `psao client` against it, stop the
-    server with SIGTERM. Returns the server's log, (server digest, client digest) pairs of the messages
-    both logged, and the per-tick stats records."""
+def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tuple[str, str]], list[dict], dict]:
+    """Run `psao serve ... --port 0 --json` with digest and stats logs, one `psao client` against it, stop
+    the server with SIGTERM. Returns the server's log, (server digest, client digest) pairs of the messages
+    both logged, the per-tick stats records and the server's final JSON line."""
     err, slog, clog, stats = (tmp_path / n for n in ("serve.err", "server.jsonl", "client.jsonl", "stats.jsonl"))
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *serve_args, "--port", "0", "--digest-log", str(slog),
-                             "--stats-json", str(stats)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"),
+                             "--stats-json", str(stats), "--json"], cwd=ROOT, stdout=subprocess.PIPE, stderr=open(err, "w"),
                             text=True)
     try:
         url = server_url(proc, err, 120)
         out = psao("client", url, *client_args, "--json", "--digest-log", str(clog))
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(30) == 0
+        final, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -68,13 +69,14 @@ def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tupl
     server = {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, slog.read_text().splitlines())}
     client = [json.loads(line) for line in clog.read_text().splitlines()]
     pairs = [(server[(d["conn"], d["seq"])], d["digest"]) for d in client if (d["conn"], d["seq"]) in server]
-    return err.read_text(), pairs, [json.loads(line) for line in stats.read_text().splitlines()]
+    return (err.read_text(), pairs, [json.loads(line) for line in stats.read_text().splitlines()],
+            json.loads(final.splitlines()[-1]))
 
 
 def test_animated_server_keeps_mirror_exact(tmp_path):
     """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
-    log, pairs, ticks = serve_with_client(tmp_path, ["builtin:courtyard", "--animate", "--density", "8", "--rays", "4",
-                                                     "--tick-rays", "4", "--tick-hz", "20"], ["--frames", "30"])
+    log, pairs, ticks, final = serve_with_client(tmp_path, ["builtin:courtyard", "--animate", "--density", "8", "--rays",
+                                                            "4", "--tick-rays", "4", "--tick-hz", "20"], ["--frames", "30"])
     assert len(pairs) >= 25 and all(a == b for a, b in pairs)
     assert "server tick on" in log
     # Per-tick statistics as JSON lines: stage times, and what was sent since the previous tick.
@@ -84,6 +86,18 @@ def test_animated_server_keeps_mirror_exact(tmp_path):
         assert all(key in t and t[key] >= 0 for t in ticks), key
     assert sum(t["bytes_sent"] for t in ticks) == ticks[-1]["bytes_out"] > 0
     assert sum(t["cells_sent"] for t in ticks) > 0
+    # serve --json: the run's totals and the per-tick records summed up (the same ticks as the jsonl).
+    s = final["tick_stats"]
+    # two connections: the client fetched the scene (it was given none), then streamed
+    assert final["stopped_by"] == "SIGTERM" and final["connections"] == 2 and final["updates_out"] >= 30
+    assert s["ticks"] == len(ticks) == final["ticks"] and s["clients_peak"] == 1
+    for key in ("bytes_sent", "cells_sent", "cells_dirty", "traced", "changed"):
+        assert s[key] == sum(t[key] for t in ticks), key
+    ms = sorted(1e3 * t["seconds_tick"] for t in ticks)
+    assert s["tick_ms_mean"] == pytest.approx(sum(ms) / len(ms)) and s["tick_ms_max"] == pytest.approx(ms[-1])
+    assert ms[0] <= s["tick_ms_p95"] <= ms[-1] and s["tick_ms_p95"] >= ms[len(ms) // 2]
+    assert s["ticks_per_s"] == pytest.approx((len(ticks) - 1) / (ticks[-1]["time"] - ticks[0]["time"]))
+    assert 0 < s["budget_used_mean"]
 
 
 def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
@@ -91,7 +105,7 @@ def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
     (writing the improvements into the grid the service streams); the client's mirror is exact and the queue
     only shrinks (nothing moves). How far the refinement got when the client connects depends on the
     machine: the snapshot is what is sure to come."""
-    log, pairs, ticks = serve_with_client(tmp_path, ["builtin:cornell", "--progressive", "--density", "32", "--rays", "16",
+    log, pairs, ticks, _ = serve_with_client(tmp_path, ["builtin:cornell", "--progressive", "--density", "32", "--rays", "16",
                                                      "--tick-rays", "2", "--tick-budget-ms", "1", "--tick-hz", "20"],
                                           ["builtin:cornell", "--frames", "0"])
     assert "with 2 rays" in log

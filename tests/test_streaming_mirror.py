@@ -12,15 +12,16 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import pytest
+from serving import server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "builtin:courtyard"
@@ -158,9 +159,8 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
     proxy = None
     try:
         err = tmp_path / "server.err"
-        port = int(wait_for(lambda: re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text()), 120,
-                            "the server to listen").group(1))
-        url = f"ws://127.0.0.1:{port}"
+        url = server_url(server, err, 120)
+        port = urlsplit(url).port
         proxy = CuttingProxy(port, after=40, cuts=2)
         common = ["--json", "--reconnect-timeout", "20"]
         logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow", "cut", "killed")}

@@ -17,14 +17,6 @@ from psao_server.tick import ServerTick
 RAYS = 8
 
 
-def make_tick(name, density=32, rays=RAYS, baked_time=0.0, **kw):
-    bake = bake_scene(load_scene(f"builtin:{name}"), BakeSettings(density=density, rays=rays, workers=1),
-                      show_progress=False)
-    tick = ServerTick(bake, TickSettings(rays=rays, workers=1, **kw), baked_time=baked_time)
-    bake.grid.take_dirty()
-    return tick, bake
-
-
 def full_retrace_codes(tick, t):
     """AO codes of every point the tick holds, traced now at time t with the tick's own tracer."""
     ids = np.flatnonzero(tick.present())
@@ -39,7 +31,7 @@ def stored_codes(tick, ids):
 
 
 @pytest.mark.parametrize("baked_time", [0.0, None])
-def test_static_scene_traces_nothing_after_first_sync(baked_time):
+def test_static_scene_traces_nothing_after_first_sync(make_tick, baked_time):
     tick, bake = make_tick("cornell", density=64, baked_time=baked_time)
     try:
         first = tick(bake.grid, 0.0)
@@ -54,7 +46,7 @@ def test_static_scene_traces_nothing_after_first_sync(baked_time):
         tick.close()
 
 
-def test_courtyard_skipped_points_agree_with_full_retrace():
+def test_courtyard_skipped_points_agree_with_full_retrace(make_tick):
     tick, bake = make_tick("courtyard")
     try:
         for t in (0.4, 0.8):
@@ -69,7 +61,7 @@ def test_courtyard_skipped_points_agree_with_full_retrace():
         tick.close()
 
 
-def test_same_time_twice_gives_no_update():
+def test_same_time_twice_gives_no_update(make_tick):
     tick, bake = make_tick("courtyard")
     try:
         tick(bake.grid, 1.0)
@@ -85,7 +77,7 @@ def rigid_words(tick, inst):
     return cells, tick.grid.cells[cells].copy()
 
 
-def test_rigid_motion_keeps_point_words():
+def test_rigid_motion_keeps_point_words(make_tick):
     tick, bake = make_tick("courtyard")
     try:
         rolling = tick.kinds.rigid
@@ -106,7 +98,7 @@ def test_rigid_motion_keeps_point_words():
         tick.close()
 
 
-def test_far_rigid_motion_dirties_nothing():
+def test_far_rigid_motion_dirties_nothing(make_tick):
     """builtin:space: the tumbling asteroids are far from everything: no cell is dirtied by their motion."""
     tick, bake = make_tick("space", density=8)
     try:
@@ -118,7 +110,7 @@ def test_far_rigid_motion_dirties_nothing():
         tick.close()
 
 
-def test_skinned_points_follow_their_triangles():
+def test_skinned_points_follow_their_triangles(make_tick):
     tick, bake = make_tick("robots")
     try:
         t = 0.73
@@ -156,7 +148,7 @@ def test_skinned_points_follow_their_triangles():
         tick.close()
 
 
-def test_view_selection_traces_inside_and_catches_up_later():
+def test_view_selection_traces_inside_and_catches_up_later(make_tick):
     tick, bake = make_tick("courtyard", baked_time=None)
     try:
         cam = look_at((0.0, 1.7, 3.0), (0.0, 1.5, -5.0))
@@ -178,7 +170,7 @@ def test_view_selection_traces_inside_and_catches_up_later():
         tick.close()
 
 
-def test_selection_off_traces_every_visible_point():
+def test_selection_off_traces_every_visible_point(make_tick):
     tick, bake = make_tick("robots", selection=False)
     try:
         s = tick(bake.grid, 0.2)
@@ -214,7 +206,7 @@ def test_grid_boxes_cover_the_skinned_animation():
         tick.close()
 
 
-def test_prepare_writes_nothing_and_apply_writes_it():
+def test_prepare_writes_nothing_and_apply_writes_it(make_tick):
     """The service may run prepare() in a thread while it reads the grid: prepare must not touch it."""
     tick, bake = make_tick("robots")
     try:
@@ -243,7 +235,7 @@ def reinsert_every_point(grid):
         grid.insert_points(inst, t.local_pos[sel], t.local_normal[sel], t.ao_code[sel], t.point_id[sel], back=back[sel])
 
 
-def test_grid_edited_behind_the_ticks_back():
+def test_grid_edited_behind_the_ticks_back(make_tick):
     """Points that changed places in the grid outside the tick: the tick notices and finds them again."""
     tick, bake = make_tick("courtyard")
     try:

@@ -16,19 +16,19 @@ from psao_server.settings import BakeSettings, TickSettings
 from psao_server.tick import ServerTick
 
 
-def make_tick(name, density, bake_rays, rays, round_rays, min_points, budget_ms=1e-3):
-    bake = bake_scene(load_scene(f"builtin:{name}"), BakeSettings(density=density, rays=bake_rays, workers=1),
-                      show_progress=False)
-    budget = BudgetSettings(budget_ms=budget_ms, round_rays=round_rays, min_points=min_points)
-    tick = ServerTick(bake, TickSettings(rays=rays, workers=1, budget=budget))
-    tick.grid.take_dirty()
-    return tick
+@pytest.fixture
+def budgeted_tick(make_tick):
+    """The server tick with a budget so small that every tick traces its minimum batch (`min_points`)."""
+    def make(name, density, bake_rays, rays, round_rays, min_points, budget_ms=1e-3):
+        budget = BudgetSettings(budget_ms=budget_ms, round_rays=round_rays, min_points=min_points)
+        return make_tick(name, density, rays, bake_rays=bake_rays, budget=budget)[0]
+    return make
 
 
-def test_progressive_refinement_converges_then_sends_nothing():
+def test_progressive_refinement_converges_then_sends_nothing(budgeted_tick):
     # a static scene baked with 2 rays refines to 8 in rounds of 2 while the budget allows only the
     # minimum batch: each tick makes progress, and once every point holds 8 rays nothing moves
-    tick = make_tick("cornell", 24, bake_rays=2, rays=8, round_rays=2, min_points=100)
+    tick = budgeted_tick("cornell", 24, bake_rays=2, rays=8, round_rays=2, min_points=100)
     try:
         n = int(tick.tracked.sum())
         first = tick(tick.grid, 0.0)
@@ -58,9 +58,9 @@ def estimates(tick, ids):
     return pw.quantise_ao(unocc / total), pw.quantise_ao(full)
 
 
-def test_refined_ao_is_exactly_a_full_trace():
+def test_refined_ao_is_exactly_a_full_trace(budgeted_tick):
     # rounds are interleaved slices of the one 64-ray set: once a point has all 16, its AO is that set's
-    tick = make_tick("cornell", 24, bake_rays=4, rays=64, round_rays=4, min_points=100000)
+    tick = budgeted_tick("cornell", 24, bake_rays=4, rays=64, round_rays=4, min_points=100000)
     try:
         while tick(tick.grid, 0.0).queue > 0:
             pass
@@ -74,11 +74,11 @@ def test_refined_ao_is_exactly_a_full_trace():
         tick.close()
 
 
-def test_after_motion_stops_every_point_converges_to_a_full_trace_at_the_final_pose():
+def test_after_motion_stops_every_point_converges_to_a_full_trace_at_the_final_pose(budgeted_tick):
     """Motion resets the history of every point whose AO it may change: once still and drained, each
     point's accumulated AO equals a full trace of the scene as it now stands (a point the selection missed
     would keep AO of the old pose)."""
-    tick = make_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=2000)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=2000)
     try:
         for t in (0.1, 0.2, 0.3, 0.9, 1.7):  # the movers travel, resetting what they pass
             tick(tick.grid, t)
@@ -91,8 +91,8 @@ def test_after_motion_stops_every_point_converges_to_a_full_trace_at_the_final_p
         tick.close()
 
 
-def test_motion_resets_history_near_the_mover_only_and_queue_stays_bounded():
-    tick = make_tick("courtyard", 16, bake_rays=4, rays=4, round_rays=4, min_points=64)
+def test_motion_resets_history_near_the_mover_only_and_queue_stays_bounded(budgeted_tick):
+    tick = budgeted_tick("courtyard", 16, bake_rays=4, rays=4, round_rays=4, min_points=64)
     try:
         n = int(tick.tracked.sum())
         assert len(tick.queue.waiting(tick.tracked)) == 0  # the bake holds every point's target already

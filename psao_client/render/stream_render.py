@@ -22,14 +22,15 @@ from psao.options import default
 from psao_client.errors import RenderError
 from psao_client.render.gtao_pass import GTAO_PRESETS
 from psao_client.render.renderer import MethodOptions
-
-FRAME_SIZE = "640x360"  # pixels, width x height
-FPS = 30.0  # frames per second the streaming client renders at
+from psao_client.settings import FrameSettings
 
 
 class StreamRenderer:
-    def __init__(self, scene, out_dir, size=(640, 360), ao_mode="psao", camera_path=None, ssao_samples=16,
-                 tick_rate: float = 30.0, ctx=None, window: bool = False, options=None):
+    def __init__(self, scene, out_dir, size: tuple[int, int] | None = None, ao_mode: str = FrameSettings.ao,
+                 camera_path=None, ssao_samples: int = MethodOptions.ssao_samples,
+                 tick_rate: float = FrameSettings.tick_rate, ctx=None, window: bool = False, options=None):
+        """size: (width, height) in pixels, FrameSettings.size without it."""
+        from psao_client.render.output import parse_size
         from psao_client.render.renderer import FrameRenderer
         from psao_scene import scene_camera
 
@@ -41,7 +42,7 @@ class StreamRenderer:
             raise RenderError(f"tick rate must be > 0, got {tick_rate}")
         self.scene = scene
         self.out_dir = Path(out_dir)
-        self.size = tuple(size)
+        self.size = parse_size(FrameSettings.size) if size is None else tuple(size)
         self.tick_rate = float(tick_rate)
         self.renderer = FrameRenderer(scene, self.size, ao_mode, ssao_samples=ssao_samples, ctx=ctx, window=window,
                                       options=options)
@@ -104,11 +105,11 @@ def make_render_callback(scene, args) -> StreamRenderer:
     return StreamRenderer(
         scene,
         args.render,
-        size=parse_size(getattr(args, "size", "640x360")),
-        ao_mode=getattr(args, "ao", "psao"),
+        size=parse_size(getattr(args, "size", FrameSettings.size)),
+        ao_mode=getattr(args, "ao", FrameSettings.ao),
         camera_path=getattr(args, "camera_path", None),
-        ssao_samples=int(getattr(args, "ssao_samples", 16)),
-        tick_rate=float(getattr(args, "tick_rate", 30.0) or 30.0),
+        ssao_samples=int(getattr(args, "ssao_samples", MethodOptions.ssao_samples)),
+        tick_rate=float(getattr(args, "tick_rate", None) or FrameSettings.tick_rate),
         window=bool(getattr(args, "window", False)),
         options=MethodOptions.from_args(args),
     )
@@ -117,8 +118,8 @@ def make_render_callback(scene, args) -> StreamRenderer:
 def add_frame_arguments(parser) -> None:
     """The options of the frames themselves, the same on every sub-command that renders (client, render)."""
     parser.add_argument("--camera-path", metavar="NAME", default=None, help="camera path of the scene (its first by default)")
-    parser.add_argument("--size", default=FRAME_SIZE, metavar="WxH", help="frame size in pixels")
-    parser.add_argument("--ao", default="psao", metavar="METHODS",
+    parser.add_argument("--size", default=default(FrameSettings, "size"), metavar="WxH", help="frame size in pixels")
+    parser.add_argument("--ao", default=default(FrameSettings, "ao"), metavar="METHODS",
                         help="AO method(s) to render: psao, ssao, gtao, nnao, mlp, aogan, comma-separated, or both (= psao,ssao)")
     parser.add_argument("--ssao-samples", type=int, default=default(MethodOptions, "ssao_samples"), metavar="K",
                         help="SSAO kernel size")
@@ -139,6 +140,6 @@ def add_render_arguments(parser) -> None:
     """The options `psao client` needs for --render."""
     parser.add_argument("--render", metavar="OUTDIR", default=None, help="render frames (PNG) into OUTDIR")
     add_frame_arguments(parser)
-    parser.add_argument("--fps", type=float, default=FPS, metavar="F",
+    parser.add_argument("--fps", type=float, default=default(FrameSettings, "fps"), metavar="F",
                         help="frames per second to render at, the client's own rate, whatever the server's tick rate "
                              "(a slow GPU renders as fast as it can)")
