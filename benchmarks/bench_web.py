@@ -1,18 +1,22 @@
 """Web client: time from opening the URL to the first PSAO frame, JS decode per update, browser frame
 time against the moderngl client's on the same frame, scene bytes against snapshot bytes.
 
-A real `psao serve SCENE --density N --test-edits K` (edits keep Updates coming), Debian's chromium
-driven by playwright (WebGL2 on SwiftShader) opening the served page at a fixed camera (the scene's first
-camera path at t = 0), and the desktop client's FrameRenderer (moderngl, EGL/llvmpipe here) drawing the
-page's own mirror at the same camera and size. Both are software renderers on the same busy CPU: the
-frame figure is their ratio, measured in the same run.
+A real `psao serve SCENE --density N --test-edits K` (edits keep Updates coming; `--grid FILE` serves a
+grid baked before, so a locked run does not wait for the bake), Debian's chromium driven by playwright
+(WebGL2 on SwiftShader) opening the served page at a fixed camera (the scene's first camera path at
+t = 0), once per codec in `--codecs` (the page offers only that one), and the desktop client's
+FrameRenderer (moderngl, EGL/llvmpipe here) drawing the page's own mirror at the same camera and size.
+Both are software renderers on the same busy CPU: the frame figure is their ratio, measured in the same run.
 
-    .venv/bin/python -m benchmarks.bench_web [--scene builtin:courtyard] [--density 256] [--size 320x180]
+    .venv/bin/python -m benchmarks.bench_web [--scene builtin:courtyard] [--density 256] [--grid FILE]
+        [--size 320x180] [--codecs zstd-stream,zstd]
 
 Splits of the first frame (ms after navigation start): page start (HTML, modules, WebGL2 context and
 shader compiles), scene load (SceneRequest to the scene decoded and uploaded), snapshot transfer and
-decode (Hello to the last chunk applied and uploaded), first draw (to the first frame drawn with PSAO,
-waited for with a one-pixel read).
+decode (Hello to the last chunk applied and uploaded; its JS work is split into zstd decompression,
+delta parsing, mirror writes and texture upload, the rest is waiting for the server and the socket),
+first draw (to the first frame drawn with PSAO, waited for with a one-pixel read). Without chromium,
+playwright or the page's npm packages it says so in one line and exits 0 (skipped).
 """
 from __future__ import annotations
 
@@ -36,12 +40,26 @@ CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swi
                  "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
 
 
+def missing_browser() -> str | None:
+    """Why the page cannot be driven here, or None."""
+    if not shutil.which("chromium"):
+        return "chromium is not installed (make browser)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "playwright is not installed (pip install '.[test]')"
+    if not (ROOT / "web" / "node_modules" / "fzstd").exists():
+        return "web/node_modules is missing (make runs npm ci in web/)"
+    return None
+
+
 def start_server(args) -> tuple[subprocess.Popen, int, Path]:
     err = Path(args.out) / "serve.err"
     err.parent.mkdir(parents=True, exist_ok=True)
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--density", str(args.density),
-                             "--rays", str(args.rays), "--test-edits", str(args.edits), "--tick-hz", str(args.tick_hz),
-                             "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(err, "w"))
+    grid = ["--grid", str(args.grid)] if args.grid else ["--density", str(args.density), "--rays", str(args.rays)]
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, *grid, "--test-edits", str(args.edits),
+                             "--tick-hz", str(args.tick_hz), "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=open(err, "w"))
     t0 = time.time()
     while not (m := re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text())):
         if proc.poll() is not None:
@@ -49,7 +67,8 @@ def start_server(args) -> tuple[subprocess.Popen, int, Path]:
         if time.time() - t0 > 1800:
             raise SystemExit("bench_web: the server did not start within 30 minutes")
         time.sleep(0.5)
-    print(f"server up after {time.time() - t0:.0f} s (bake of {args.scene} at N={args.density})", flush=True)
+    print(f"server up after {time.time() - t0:.0f} s ({f'grid {args.grid}' if args.grid else f'bake at N={args.density:g}'})",
+          flush=True)
     return proc, int(m.group(1)), err
 
 
@@ -63,7 +82,7 @@ def fixed_camera(scene, w: int, h: int):
     return look_at(eye, target), perspective(path.fov_y, w / h, far * 1e-4, far)
 
 
-def browser_run(port: int, view, proj, w: int, h: int, updates: int, frames: int, shot: Path) -> dict:
+def browser_run(port: int, view, proj, w: int, h: int, args, codec: str, shot: Path) -> dict:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
@@ -72,17 +91,21 @@ def browser_run(port: int, view, proj, w: int, h: int, updates: int, frames: int
         cam = [view.astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()]
         # The camera is fixed before the page's module runs, so the first frame is the measured view.
         page.add_init_script(f"window.__psaoCamera = {json.dumps(cam)};")
-        page.goto(f"http://127.0.0.1:{port}/?width={w}&height={h}", wait_until="commit", timeout=600_000)
-        page.wait_for_function("!!(window.psao && window.psao.timings.firstDraw)", timeout=600_000, polling=50)
-        page.wait_for_function(f"window.psao.updates >= {updates}", timeout=600_000, polling=100)
+        page.goto(f"http://127.0.0.1:{port}/?width={w}&height={h}&codecs={codec}", wait_until="commit", timeout=600_000)
+        page.wait_for_function("!!(window.psao && (window.psao.timings.firstDraw || window.psao.refused))",
+                               timeout=600_000, polling=50)
+        if page.evaluate("window.psao.refused"):
+            raise SystemExit(f"bench_web: the page was refused: {page.evaluate('window.psao.message')}")
+        page.wait_for_function(f"window.psao.updates >= {args.updates}", timeout=600_000, polling=100)
         out = page.evaluate("""(n) => {
             const a = window.psao; a.paused = true;
             const ms = []; for (let i = 0; i < n; i++) ms.push(a.renderOnce());
-            return { timings: a.timings, decode: a.decodeMs.slice(), frameMs: ms, sceneBytes: a.sceneBytes,
-                     snapshotBytes: a.snapshotBytes, frame: a.readPsao(), points: a.mirror.allocatedPoints(),
-                     tableWidth: 0 };
-        }""", frames)
+            return { timings: a.timings, profile: a.profile, decode: a.decodeMs.slice(), frameMs: ms,
+                     sceneBytes: a.sceneBytes, snapshotBytes: a.snapshotBytes, updateBytes: a.updateBytes,
+                     updates: a.updates, codec: a.codec, frame: a.readPsao(), points: a.mirror.allocatedPoints() };
+        }""", args.frames)
         url = page.evaluate("document.getElementById('view').toDataURL('image/png')")
+        shot.parent.mkdir(parents=True, exist_ok=True)
         shot.write_bytes(base64.b64decode(url.split(",", 1)[1]))
         browser.close()
     return out
@@ -109,60 +132,95 @@ def moderngl_ms(scene, frame: dict, view, proj, w: int, h: int, frames: int) -> 
     return out
 
 
+def first_frame_rows(res: dict) -> list[tuple[str, float]]:
+    t, pr = res["timings"], res["profile"]
+    js = pr["decompressMs"] + pr["parseMs"] + pr["applyMs"] + pr["uploadMs"]
+    snap = t["snapshot"] - t["scene"]
+    return [
+        ("page start (HTML, modules, WebGL2 context, shader compiles)", t["connect"]),
+        ("  of which WebGL2 context and shader compiles", t["renderer"] - t["module"]),
+        ("scene load (SceneRequest, transfer, decode, upload)", t["scene"] - t["connect"]),
+        ("snapshot transfer + decode + upload", snap),
+        ("  Hello to Welcome (server)", t["welcome"] - t["hello"]),
+        ("  Welcome to the first chunk's arrival (server reads and compresses it)", t["firstChunk"] - t["welcome"]),
+        (f"  zstd decompression ({pr['chunks']} chunks)", pr["decompressMs"]),
+        ("  delta parsing", pr["parseMs"]),
+        ("  mirror writes", pr["applyMs"]),
+        ("  texture upload (one texImage2D per table)", pr["uploadMs"]),
+        ("  waiting for later chunks (server and socket)", snap - (t["firstChunk"] - t["scene"]) - js),
+        ("first draw", t["firstDraw"] - t["snapshot"]),
+        ("total", t["firstDraw"]),
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="builtin:courtyard")
     ap.add_argument("--density", type=float, default=256.0)
+    ap.add_argument("--grid", type=Path, default=None, help="serve this grid (psao bake --out) instead of baking")
     ap.add_argument("--rays", type=int, default=16, help="bake rays per point (the page's work does not depend on it)")
     ap.add_argument("--edits", type=int, default=200, help="points edited per tick (keeps Updates coming)")
-    ap.add_argument("--tick-hz", type=float, default=30.0)
+    ap.add_argument("--tick-hz", type=float, default=10.0)
     ap.add_argument("--size", default="320x180")
+    ap.add_argument("--codecs", default="zstd-stream,zstd", help="one page per codec, each offering only that one")
     ap.add_argument("--updates", type=int, default=60, help="Updates to decode before measuring frames")
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--out", default=str(ROOT / "out" / "bench_web"))
     args = ap.parse_args(argv)
-    if not shutil.which("chromium"):
-        print("bench_web: chromium is not installed (make browser)", file=sys.stderr)
-        return 2
+    why = missing_browser()
+    if why:
+        print(f"bench_web: SKIPPED: {why}", flush=True)
+        return 0
     from psao_scene import load_scene
     from psao_server.scene_export import scene_blob, scene_file
 
     w, h = (int(v) for v in args.size.split("x"))
+    codecs = [c.strip() for c in args.codecs.split(",") if c.strip()]
     scene = load_scene(args.scene)
     view, proj = fixed_camera(scene, w, h)
     proc, port, _ = start_server(args)
+    runs = {}
     try:
-        res = browser_run(port, view, proj, w, h, args.updates, args.frames, Path(args.out) / "first_frame.png")
+        for codec in codecs:
+            runs[codec] = browser_run(port, view, proj, w, h, args, codec, Path(args.out) / f"first_frame_{codec}.png")
+            print(f"page with {codec}: first PSAO frame {runs[codec]['timings']['firstDraw'] / 1e3:.1f} s after opening the URL",
+                  flush=True)
     finally:
         proc.terminate()
         proc.wait(60)
-    desk = moderngl_ms(scene, res["frame"], view, proj, w, h, args.frames)
-    t = res["timings"]
-    start_ms, scene_ms = t["connect"], t["scene"] - t["connect"]
-    snap_ms, draw_ms = t["snapshot"] - t["scene"], t["firstDraw"] - t["snapshot"]
-    total = t["firstDraw"]
-    decode = float(np.mean(res["decode"])) if res["decode"] else float("nan")
-    web_ms, gl_ms = statistics.median(res["frameMs"]), statistics.median(desk)
+    first = runs[codecs[0]]
+    desk = moderngl_ms(scene, first["frame"], view, proj, w, h, args.frames)
+    gl_ms = statistics.median(desk)
     raw_scene = len(scene_file(scene).serialize())
-    print(f"\n{args.scene} N={args.density:g}, {res['points']} points, {w}x{h}, tick {args.tick_hz:g} Hz, "
+    print(f"\n{args.scene} N={args.density:g}, {first['points']:,} points, {w}x{h}, tick {args.tick_hz:g} Hz, "
           f"{args.edits} edits per tick")
-    print("| first PSAO frame after opening the URL | ms |\n|---|---|")
-    for k, v in (("page start (modules, WebGL2, shader compiles)", start_ms), ("scene load (SceneRequest, decode, upload)", scene_ms),
-                 ("snapshot transfer + decode + upload", snap_ms), ("first draw", draw_ms), ("total", total)):
-        print(f"| {k} | {v:.0f} |")
-    print(f"\nJS decode per Update (zstd stream + packed delta + mirror): {decode:.2f} ms mean over {len(res['decode'])}")
-    print(f"frame ms (median of {args.frames}): browser {web_ms:.1f}, moderngl {gl_ms:.1f}, ratio {web_ms / gl_ms:.2f}")
+    print("| first PSAO frame after opening the URL, ms | " + " | ".join(codecs) + " |\n|---|" + "---|" * len(codecs))
+    rows = {c: first_frame_rows(r) for c, r in runs.items()}
+    for i, (what, _) in enumerate(rows[codecs[0]]):
+        print(f"| {what} | " + " | ".join(f"{rows[c][i][1]:.0f}" for c in codecs) + " |")
+    print("\n| per codec | " + " | ".join(codecs) + " |\n|---|" + "---|" * len(codecs))
+    decode = {c: float(np.mean(r["decode"])) if r["decode"] else float("nan") for c, r in runs.items()}
+    web_ms = {c: statistics.median(r["frameMs"]) for c, r in runs.items()}
+    for what, f in (("JS decode per Update, ms (decompress + delta + mirror)", lambda c: f"{decode[c]:.2f}"),
+                    ("Updates decoded", lambda c: f"{len(runs[c]['decode'])}"),
+                    ("bytes per Update", lambda c: f"{runs[c]['updateBytes'] / max(runs[c]['updates'], 1):,.0f}"),
+                    ("snapshot bytes (its chunks as received)", lambda c: f"{runs[c]['snapshotBytes']:,}"),
+                    ("browser frame ms (median)", lambda c: f"{web_ms[c]:.1f}")):
+        print(f"| {what} | " + " | ".join(f(c) for c in codecs) + " |")
+    print(f"\nframe ms (median of {args.frames}, same frame): browser ({codecs[0]} page) {web_ms[codecs[0]]:.1f}, moderngl "
+          f"{gl_ms:.1f}, ratio {web_ms[codecs[0]] / gl_ms:.2f}")
     print("\n| bytes | once per client |\n|---|---|")
-    print(f"| scene (SceneData, zstd) | {res['sceneBytes']:,} |\n| scene uncompressed | {raw_scene:,} |")
-    print(f"| snapshot (Welcome + chunks, zstd stream) | {res['snapshotBytes']:,} |")
-    print(f"| scene / snapshot | {res['sceneBytes'] / res['snapshotBytes']:.3f} |\n", flush=True)
-    assert res["sceneBytes"] == len(scene_blob(scene))
+    print(f"| scene (SceneData, zstd) | {first['sceneBytes']:,} |\n| scene uncompressed | {raw_scene:,} |")
+    print(f"| snapshot ({codecs[0]}) | {first['snapshotBytes']:,} |")
+    print(f"| scene / snapshot | {first['sceneBytes'] / first['snapshotBytes']:.3f} |\n", flush=True)
+    assert first["sceneBytes"] == len(scene_blob(scene))
     v = Verdicts("bench_web")
     # Targets (mine): decoding keeps up with the tick rate with room to draw; a browser frame within 4x
     # of the desktop client's; the one-off scene smaller than the snapshot it comes with.
-    v.check("JS decode ms per update", decode, "<", 1e3 / args.tick_hz / 2)
-    v.check("browser / moderngl frame ms", web_ms / gl_ms, "<=", 4.0)
-    v.check("scene bytes / snapshot bytes", res["sceneBytes"] / res["snapshotBytes"], "<", 1.0)
+    for c in codecs:
+        v.check(f"JS decode ms per update ({c})", decode[c], "<", 1e3 / args.tick_hz / 2)
+    v.check("browser / moderngl frame ms", web_ms[codecs[0]] / gl_ms, "<=", 4.0)
+    v.check("scene bytes / snapshot bytes", first["sceneBytes"] / first["snapshotBytes"], "<", 1.0)
     return v.exit_code()
 
 

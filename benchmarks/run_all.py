@@ -4,7 +4,9 @@ Each script measures its own ratio against a baseline in the same run, prints on
 line per target (benchmarks.verdicts) and exits 1 on a miss; this runner keeps going after a miss or a
 crash, ends with one line per benchmark (its exit status and how many `VERDICT FAIL` lines it printed)
 and exits non-zero if any benchmark failed, crashed or missed a target. `--only bake,tick` picks some; `--quick` passes each script the small settings
-listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine).
+listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine). A benchmark that cannot run here
+(bench_web without chromium, playwright or the page's npm packages) prints one `SKIPPED` line naming
+what is missing and exits 0.
 
     .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick]
 """
@@ -21,7 +23,7 @@ from contextlib import redirect_stdout
 from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "denoise", "video", "realtime", "dask")
+BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "web", "denoise", "video", "realtime", "dask")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -31,6 +33,7 @@ QUICK_ARGS = {
     "render": ["--densities", "64,256", "--frames", "2"],
     "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
+    "web": ["--density", "16", "--updates", "10", "--frames", "3", "--codecs", "zstd-stream"],
     "denoise": ["--scenes", "builtin:robots", "--frames", "1", "--repeats", "3"],
     "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "2", "--spp", "32",
               "--clip", "8", "--bitrates", "0.25,1,4,20"],

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao_scene.model import Scene
-from psao_server.grid import NO_POINT, Grid
+from protocol import gridformat as gf
+from psao_server.grid import NO_POINT, Grid, PointTable
 
 
 @dataclass
@@ -30,14 +31,40 @@ class EditMix:
 
 
 def _cluster(grid: Grid, rng: np.random.Generator, k: int):
-    """Point table and the indices of the k points of one instance nearest to a random point."""
-    table = grid.point_table()
-    if len(table) == 0:
-        return table, np.zeros(0, np.int64)
-    seed = int(rng.integers(len(table)))
-    same = np.flatnonzero(table.instance == table.instance[seed])
-    d = np.linalg.norm(table.local_pos[same] - table.local_pos[seed], axis=1)
-    return table, same[np.argsort(d, kind="stable")[:k]]
+    """A point table of the points around one random point and the indices in it of the k points of the
+    same instance nearest to that point (ties in point order).
+
+    Only the cells within a box of R cells around the seed's cell are read, R doubling until the k-th
+    nearest distance is shorter than R - 1 cells (every point closer lies inside the box then): the
+    same points as a search over the whole grid, at a cost that follows k rather than the grid (the hook
+    runs on the server's event loop every tick)."""
+    occupied = grid.point_id != NO_POINT
+    flat = np.flatnonzero(occupied)
+    if len(flat) == 0:
+        return grid.point_table(), np.zeros(0, np.int64)
+    seed_slot, seed_index = divmod(int(flat[int(rng.integers(len(flat)))]), gf.POINTS_PER_CELL)
+    inst = int(grid.cell_instance[seed_slot])
+    rec = grid.instances[inst]
+    cells = np.flatnonzero((grid.cell_instance == inst) & occupied[:, 0])  # a cell's points come first
+    offset = np.abs(gf.key_to_cell(grid.cells[cells, gf.KEY_WORD], rec["dims"])
+                    - gf.key_to_cell(grid.cells[seed_slot, gf.KEY_WORD], rec["dims"]))
+    reach = np.maximum(np.maximum(offset[:, 0], offset[:, 1]), offset[:, 2])  # cells, along the farthest axis
+    seed_pos = grid.point_local[seed_slot, seed_index]
+    size = float(rec["cell_size"])
+    r = 2
+    while True:
+        box = cells[reach <= r]  # ascending slots: point order as in the whole grid's table
+        rows, index = np.nonzero(occupied[box])
+        slot = box[rows]
+        d = np.linalg.norm(grid.point_local[slot, index] - seed_pos, axis=1)
+        near = np.argsort(d, kind="stable")[:k]
+        if len(box) == len(cells) or (len(near) == k and (k == 0 or d[near[-1]] < (r - 1) * size)):
+            break
+        r *= 2
+    table = PointTable(slot=slot.astype(np.uint32), index=index.astype(np.int64), instance=grid.cell_instance[slot],
+                       point_id=grid.point_id[slot, index], local_pos=grid.point_local[slot, index],
+                       local_normal=grid.point_normal[slot, index], ao_code=grid.cells[slot, index] & np.uint32(0xFF))
+    return table, near
 
 
 def _inside(grid: Grid, inst: int, pos: np.ndarray) -> np.ndarray:

@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol import messages as m
 from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
+from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_scene.camera import camera_at, look_at, perspective, scene_camera
@@ -197,3 +199,52 @@ def test_refused_token_lost_server_and_resync(browser, tmp_path):
     # page's digest equals what the new server logged for that message.
     assert again["digest"] == first["digest"]
     check_digests(log, server, least=1)
+
+
+def refusal(port: int, data: bytes) -> tuple[m.Error, int]:
+    """Send one raw message as a websocket client would; the server's Error reply and its close code."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    with connect(f"ws://127.0.0.1:{port}/", max_size=None, open_timeout=60) as ws:
+        ws.send(data)
+        reply = ws.recv(timeout=60)
+        try:
+            ws.recv(timeout=60)
+        except ConnectionClosed as closed:
+            code = closed.rcvd.code
+    header = m.Header.parse(reply, DEFAULT_LIMITS.server_payload_bytes)
+    assert header.type == m.MessageType.ERROR
+    return m.Error.parse(reply[HEADER_SIZE:], DEFAULT_LIMITS), code
+
+
+def test_old_page_and_bad_scene_requests_are_refused_while_a_page_streams(browser, tmp_path):
+    server = Server(tmp_path, "builtin:cornell", "--density", "16", "--rays", "8", "--test-edits", "10", "--tick-hz", "10")
+    url = f"http://127.0.0.1:{server.port}/?width={W}&height={H}"
+    good, old = (browser.new_page(viewport={"width": W + 40, "height": H + 40}) for _ in range(2))
+    try:
+        good.goto(url + "&digests=1", wait_until="commit")
+        wait_page(good, "window.psao && window.psao.state === 'streaming' && window.psao.updates >= 1")
+        # A page that speaks the previous protocol version: refused, and the page says why.
+        old.goto(url + f"&protocol={m.PROTOCOL_VERSION - 1}", wait_until="commit")
+        wait_page(old, "window.psao && window.psao.state === 'refused'")
+        text = old.inner_text("#message")
+        assert f"unsupported protocol version {m.PROTOCOL_VERSION - 1}" in text and "BAD_HEADER" in text, text
+        shot(old, tmp_path, "old_protocol_refused")
+        # Scene requests from websocket clients: one cut short, one over the message size limit.
+        short = m.frame(m.MessageType.SCENE_REQUEST, m.Codec.NONE, bytes(20))
+        err, code = refusal(server.port, short)
+        assert err.code == m.ErrorCode.BAD_PAYLOAD and "SceneRequest" in err.text and code >= 1002, (err, code)
+        big = m.frame(m.MessageType.SCENE_REQUEST, m.Codec.NONE, bytes(DEFAULT_LIMITS.client_message_bytes))
+        err, code = refusal(server.port, big)
+        assert err.code == m.ErrorCode.TOO_LARGE and "over the limit" in err.text, (err, code)
+        # The first page kept streaming through all of it, its mirror equal to the server's.
+        after = good.evaluate("window.psao.updates")
+        wait_page(good, f"window.psao.updates >= {after + 3} && window.psao.state === 'streaming'")
+        log = good.evaluate("window.psao.digestLog")
+        assert good.evaluate("window.psao.connection") == 1
+    finally:
+        good.close()
+        old.close()
+        server.stop()
+    check_digests(log, server, least=after + 3)

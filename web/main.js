@@ -1,8 +1,10 @@
 // The PSAO web client: connects back to the server that served the page, takes its scene (SceneRequest),
 // mirrors the grid (Snapshot, Update), draws PSAO / SSAO, sends its camera, reconnects and resyncs.
 // URL parameters: token, width and height (fixed canvas size), mode (psao, ssao, none, psao-only,
-// ssao-only), camera (orbit, fly, or path:NAME for a scene camera path), digests=1 (keep the mirror's
-// state digest after every Snapshot and Update, as `psao client --digest-log` does: tests).
+// ssao-only), camera (orbit, fly, or path:NAME for a scene camera path), codecs (the codecs to offer,
+// e.g. zstd or zstd-stream,zstd,none; default all the page decodes, the server picks), digests=1 (keep the
+// mirror's state digest after every Snapshot and Update, as `psao client --digest-log` does: tests),
+// protocol=N (speak protocol version N: tests of how a server refuses an old page).
 import * as C from "/psao_constants.js";
 import { decompress } from "/vendor/fzstd.js";
 import { Controls, cameraAt, lookAt, perspective } from "/camera.js";
@@ -20,11 +22,15 @@ const RECONNECT_PAUSES = [0.25, 0.5, 1, 2];  // seconds; the last repeats
 const app = {
   state: "starting", message: "", connection: 0, reconnects: 0, refused: false,
   scene: null, sceneHash: null, mirror: null, session: null, ws: null,
-  bytes: 0, updates: 0, snapshotBytes: 0, sceneBytes: 0, points: 0, frameMs: 0, decodeMs: [],
-  timings: {}, fixedCamera: window.__psaoCamera ? { view: new Float32Array(window.__psaoCamera[0]), proj: new Float32Array(window.__psaoCamera[1]) } : null, mode: MODES[params.get("mode")] !== undefined ? params.get("mode") : "psao",
+  bytes: 0, updates: 0, updateBytes: 0, snapshotBytes: 0, sceneBytes: 0, points: 0, frameMs: 0, decodeMs: [],
+  timings: { module: performance.now() }, profile: null, fixedCamera: window.__psaoCamera ? { view: new Float32Array(window.__psaoCamera[0]), proj: new Float32Array(window.__psaoCamera[1]) } : null, mode: MODES[params.get("mode")] !== undefined ? params.get("mode") : "psao",
   frames: 0, seq: 0, digestLog: [],
 };
 const KEEP_DIGESTS = params.get("digests") === "1";
+const SESSION_OPTIONS = {
+  ...(params.get("codecs") ? { codecs: params.get("codecs").split(",").map((c) => c.trim()).filter(Boolean) } : {}),
+  ...(params.get("protocol") ? { version: Number(params.get("protocol")) } : {}),
+};
 window.psao = app;  // the tests and the benchmark read and drive the page through this object
 
 function setState(state, message = "", bad = false) {
@@ -40,6 +46,7 @@ let renderer, controls;
 try {
   renderer = new Renderer(canvas);
   await renderer.init();
+  app.timings.renderer = performance.now();  // WebGL2 context and shader programs ready
   controls = new Controls(canvas);
 } catch (exc) {
   setState("no WebGL2", String(exc.message || exc), true);
@@ -81,7 +88,14 @@ function cameraNow(dt) {
 // ---------------------------------------------------------------------------------------- connection
 function connect() {
   app.connection++;
-  const session = new ClientSession(params.get("token") || "", app.sceneHash);
+  let session;
+  try {
+    session = new ClientSession(params.get("token") || "", app.sceneHash, SESSION_OPTIONS);
+  } catch (exc) {
+    app.refused = true;
+    setState("bad URL", String(exc.message || exc), true);
+    return;
+  }
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/`);
   ws.binaryType = "arraybuffer";
   app.session = session;
@@ -91,6 +105,7 @@ function connect() {
   ws.onopen = () => { ws.send(session.sceneRequest()); if (!app.reconnects) setState("loading scene"); };
   ws.onmessage = (e) => {
     if (ws !== app.ws) return;
+    app.arrived = performance.now();
     app.bytes += e.data.byteLength;
     try {
       handle(ws, session, session.receive(e.data), e.data.byteLength);
@@ -137,6 +152,7 @@ function handle(ws, session, ev, nbytes) {
     app.sceneHash = ev.hash;
     app.timings.scene = performance.now();
     ws.send(session.hello());
+    app.timings.hello = performance.now();
     if (!app.reconnects) setState("loading snapshot");
   } else if (ev.kind === "welcome") {
     app.seq = 0;  // Welcome is message 0 of the grid stream, as the server counts
@@ -144,12 +160,23 @@ function handle(ws, session, ev, nbytes) {
     app.connectionId = ev.welcome.connectionId;
     app.codec = Object.keys(C.Codec).find((k) => C.Codec[k] === ev.welcome.codec);
     app.snapshotBytes = 0;
+    app.timings.welcome = performance.now();
+    app.profile = { chunks: 0, decompressMs: 0, parseMs: 0, applyMs: 0, uploadMs: 0 };
     startCameras(ws, session);
   } else if (ev.kind === "snapshot") {
+    const prof = app.profile;
+    if (!prof.chunks) app.timings.firstChunk = app.arrived;
+    prof.chunks++;
+    prof.decompressMs += session.decompressMs;
+    prof.parseMs += session.decodeMs - session.decompressMs;
+    const ta = performance.now();
     app.mirror.apply(ev.delta);
+    prof.applyMs += performance.now() - ta;
     app.snapshotBytes += nbytes;
     if (ev.complete) {
+      const tu = performance.now();
       renderer.uploadGrid(app.mirror);
+      prof.uploadMs = performance.now() - tu;
       app.timings.snapshot = performance.now();
       app.snapshotDigest = null;
       setState("streaming");
@@ -159,6 +186,7 @@ function handle(ws, session, ev, nbytes) {
     app.mirror.tick = ev.tick;
     app.mirror.serverTime = ev.serverTime;
     app.updates++;
+    app.updateBytes += nbytes;
     app.decodeMs.push(session.decodeMs + (performance.now() - t));
     if (app.decodeMs.length > 1000) app.decodeMs.shift();
   }

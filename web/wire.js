@@ -48,11 +48,12 @@ export class Reader {
   }
 }
 
-export function frame(type, body) {
+// version: the header's protocol version (an older one only to test how servers refuse such pages).
+export function frame(type, body, version = C.PROTOCOL_VERSION) {
   const out = new Uint8Array(C.HEADER_SIZE + body.length);
   const dv = new DataView(out.buffer);
   out.set(enc.encode(C.MAGIC), 0);
-  dv.setUint16(4, C.PROTOCOL_VERSION, true);
+  dv.setUint16(4, version, true);
   out[6] = type;
   out[7] = C.Codec.NONE;
   dv.setUint32(8, body.length, true);
@@ -66,25 +67,25 @@ function tokenBytes(token) {
   return t;
 }
 
-export function helloMessage(sceneHash, codecMask, token) {
+export function helloMessage(sceneHash, codecMask, token, version = C.PROTOCOL_VERSION) {
   const t = tokenBytes(token);
   const body = new Uint8Array(2 + 4 + 32 + 2 + t.length);
   const dv = new DataView(body.buffer);
-  dv.setUint16(0, C.PROTOCOL_VERSION, true);
+  dv.setUint16(0, version, true);
   dv.setUint32(2, codecMask, true);
   body.set(sceneHash, 6);
   dv.setUint16(38, t.length, true);
   body.set(t, 40);
-  return frame(T.HELLO, body);
+  return frame(T.HELLO, body, version);
 }
 
-export function sceneRequestMessage(cachedHash, token) {
+export function sceneRequestMessage(cachedHash, token, version = C.PROTOCOL_VERSION) {
   const t = tokenBytes(token);
   const body = new Uint8Array(32 + 2 + t.length);
   body.set(cachedHash || new Uint8Array(32), 0);
   new DataView(body.buffer).setUint16(32, t.length, true);
   body.set(t, 34);
-  return frame(T.SCENE_REQUEST, body);
+  return frame(T.SCENE_REQUEST, body, version);
 }
 
 // view, projection: row-major Float32Array(16) each (protocol.messages.Camera).
@@ -128,13 +129,25 @@ function gaps(bytes, count, what) {
   return d;
 }
 
-// Byte planes (protocol.updates.planes) -> values; `size` bytes per value.
+// Byte planes (protocol.updates.planes) -> values; `size` bytes per value. 2- and 4-byte values (all the
+// packed layout has) are assembled a whole value at a time.
 function unplanes(r, size, count) {
   const raw = r.take(size * count);
+  const plane = (b) => raw.subarray(b * count, (b + 1) * count);
+  if (size === 4) {
+    const out = new Uint32Array(count), [p0, p1, p2, p3] = [0, 1, 2, 3].map(plane);
+    for (let i = 0; i < count; i++) out[i] = (p0[i] | (p1[i] << 8) | (p2[i] << 16) | (p3[i] << 24)) >>> 0;
+    return out.buffer;
+  }
+  if (size === 2) {
+    const out = new Uint16Array(count), [p0, p1] = [0, 1].map(plane);
+    for (let i = 0; i < count; i++) out[i] = p0[i] | (p1[i] << 8);
+    return out.buffer;
+  }
   const out = new Uint8Array(size * count);
   for (let b = 0; b < size; b++) {
-    const plane = raw.subarray(b * count, (b + 1) * count);
-    for (let i = 0; i < count; i++) out[i * size + b] = plane[i];
+    const p = plane(b);
+    for (let i = 0; i < count; i++) out[i * size + b] = p[i];
   }
   return out.buffer;
 }
@@ -220,12 +233,26 @@ export function decodeDelta(r) {
 
 export const State = { AWAIT_SCENE: "await scene", AWAIT_WELCOME: "await welcome", SNAPSHOT: "snapshot",
                        STREAMING: "streaming", CLOSED: "closed" };
-export const OFFERED_CODECS = (1 << C.Codec.NONE) | (1 << C.Codec.ZSTD) | (1 << C.Codec.ZSTD_STREAM);
+// The codecs this page decodes, by the command line's names (protocol.codecs.Codec, lower case, '-').
+export const PAGE_CODECS = ["zstd-stream", "zstd", "none"];
+
+// "zstd,none" -> the Hello's codec mask; a name the page cannot decode is a ProtocolError.
+export function codecMask(names) {
+  let mask = 0;
+  for (const name of names) {
+    if (!PAGE_CODECS.includes(name)) throw new ProtocolError(`codec '${name}' is not one this page decodes (${PAGE_CODECS.join(", ")})`);
+    mask |= 1 << C.Codec[name.toUpperCase().replace("-", "_")];
+  }
+  return mask;
+}
 
 // Client end of one connection (a reconnect starts a new one); receive(bytes) -> event object.
+// codecs: names to offer (PAGE_CODECS order); version: the protocol version it speaks (tests only).
 export class ClientSession {
-  constructor(token, cachedHash) {
+  constructor(token, cachedHash, { codecs = PAGE_CODECS, version = C.PROTOCOL_VERSION } = {}) {
     this.token = token;
+    this.offered = codecMask(codecs);
+    this.version = version;
     this.cached = cachedHash || new Uint8Array(32);
     this.state = State.AWAIT_SCENE;
     this.sceneParts = [];
@@ -234,9 +261,10 @@ export class ClientSession {
     this.nextChunk = 0;
     this.payloadBytes = 0;
     this.decodeMs = 0;  // decompression + parsing of the last Snapshot/Update
+    this.decompressMs = 0;  // of which decompression
   }
-  sceneRequest() { return sceneRequestMessage(this.cached, this.token); }
-  hello() { return helloMessage(this.sceneHash, OFFERED_CODECS, this.token); }
+  sceneRequest() { return sceneRequestMessage(this.cached, this.token, this.version); }
+  hello() { return helloMessage(this.sceneHash, this.offered, this.token, this.version); }
 
   payload(codec, body) {
     const cap = C.LIMITS.server_payload_bytes;
@@ -273,7 +301,9 @@ export class ClientSession {
     if (version !== C.PROTOCOL_VERSION)
       throw new RemoteError(C.ErrorCode.BAD_HEADER, `the server speaks protocol version ${version}, this page ${C.PROTOCOL_VERSION}`);
     if (length !== b.length - C.HEADER_SIZE) throw new ProtocolError(`header says ${length} payload bytes, message carries ${b.length - C.HEADER_SIZE}`);
+    const tz = performance.now();
     const payload = this.payload(codec, b.subarray(C.HEADER_SIZE));
+    this.decompressMs = performance.now() - tz;
     const p = new Reader(payload, "payload");
     if (type === T.ERROR) {
       const code = p.u16(), n = p.u16();
@@ -348,7 +378,7 @@ export class ClientSession {
     w.nInstances = nInst;
     p.done();
     if (!equalBytes(hash, this.sceneHash)) throw new RemoteError(C.ErrorCode.SCENE_MISMATCH, "Welcome names another scene");
-    if (!(OFFERED_CODECS & (1 << w.codec))) throw new ProtocolError(`server chose codec ${w.codec}, not offered`);
+    if (!(this.offered & (1 << w.codec))) throw new ProtocolError(`server chose codec ${w.codec}, not offered`);
     if (w.codec === C.Codec.ZSTD_STREAM) this.stream = new Decompress((chunk) => this.streamOut.push(chunk));
     this.state = State.SNAPSHOT;
     return { kind: "welcome", welcome: w };
@@ -362,6 +392,17 @@ export function equalBytes(a, b) {
 }
 
 // ------------------------------------------------------------------------------------------- mirror
+
+// table[ids[i]] = rows[i] for rows of `width` values; ids sorted, so each run of consecutive ids (a
+// snapshot chunk is mostly one) is one copy.
+function writeRows(table, rows, ids, width) {
+  for (let i = 0; i < ids.length;) {
+    let j = i + 1;
+    while (j < ids.length && ids[j] === ids[j - 1] + 1) j++;
+    table.set(rows.subarray(width * i, width * j), width * ids[i]);
+    i = j;
+  }
+}
 
 // The page's copy of the server's grid, shaped like psao_client.mirror.Mirror; applying a delta is
 // assignment of whole rows, so after every message it equals the server for everything sent.
@@ -397,9 +438,9 @@ export class Mirror {
       this.cells = cells;
       this.resized = true;
     }
-    for (let i = 0; i < d.k; i++) this.transforms.set(d.transforms.subarray(16 * i, 16 * i + 16), 16 * d.transformIds[i]);
-    for (let i = 0; i < d.nb; i++) this.buckets.set(d.buckets.subarray(W * i, W * i + W), W * d.bucketIds[i]);
-    for (let i = 0; i < d.nc; i++) this.cells.set(d.cells.subarray(CW * i, CW * i + CW), CW * d.cellSlots[i]);
+    writeRows(this.transforms, d.transforms, d.transformIds, 16);
+    writeRows(this.buckets, d.buckets, d.bucketIds, W);
+    writeRows(this.cells, d.cells, d.cellSlots, CW);
     if (d.nb) this.dirtyBuckets.push(d.bucketIds);
     if (d.nc) this.dirtyCells.push(d.cellSlots);
     this.version++;
