@@ -238,8 +238,11 @@ def test_old_page_and_bad_scene_requests_are_refused_while_a_page_streams(browse
         big = m.frame(m.MessageType.SCENE_REQUEST, m.Codec.NONE, bytes(DEFAULT_LIMITS.client_message_bytes))
         err, code = refusal(server.port, big)
         assert err.code == m.ErrorCode.TOO_LARGE and "over the limit" in err.text, (err, code)
-        # The first page kept streaming through all of it, its mirror equal to the server's.
+        # The first page kept streaming through all of it, its mirror equal to the server's, and a new
+        # page speaking the current version is served as well.
         after = good.evaluate("window.psao.updates")
+        old.goto(url, wait_until="commit")
+        wait_page(old, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
         wait_page(good, f"window.psao.updates >= {after + 3} && window.psao.state === 'streaming'")
         log = good.evaluate("window.psao.digestLog")
         assert good.evaluate("window.psao.connection") == 1
