@@ -6,12 +6,20 @@ cost depends on how cells are filled, not on the AO values). Every frame of the 
 rendered once as warm-up, then each AO pass is timed on the same G-buffer with GPU timer queries and
 with wall time bracketed by ctx.finish(). Target: PSAO <= 1.5x SSAO (AO + blur), flat in N.
 
-    .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake]
+`--against TREE` first runs the same benchmark, same arguments, from another checkout (e.g. an older
+commit made with `git worktree add /tmp/before COMMIT`) in a child process, then this tree's, and
+judges the growth of the PSAO/SSAO ratio at each N against it (target: at most MAX_GROWTH, +15%). Each
+tree's PSAO is normalised by its own SSAO measured on the same frames at the same time, so the machine's
+load drifting between the two runs cancels out.
+
+    .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake] [--against TREE]
 """
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -20,6 +28,26 @@ import numpy as np
 from benchmarks.verdicts import Verdicts
 
 TARGET_RATIO = 1.5
+MAX_GROWTH = 1.15  # --against: this tree's PSAO/SSAO ratio over the other tree's, at each N
+
+
+def run_against(tree: Path, argv: list[str]) -> dict:
+    """The same benchmark run from `tree` (its own code, its own shaders): its --json result."""
+    args = [a for a in argv if a != "--json"]
+    if "--against" in args:
+        k = args.index("--against")
+        del args[k:k + 2]
+    args = [a for a in args if not a.startswith("--against=")]
+    cmd = [sys.executable, "-m", "benchmarks.bench_render", *args, "--json", "--chart", str(Path("out") / "bench_render_against.png")]
+    print(f"baseline from {tree}: {' '.join(cmd[1:])}", flush=True)
+    proc = subprocess.run(cmd, cwd=tree, capture_output=True, text=True)
+    for line in proc.stdout.splitlines()[:-1]:
+        print(f"  [baseline] {line}", flush=True)
+    last = proc.stdout.strip().splitlines()[-1:] or [""]
+    if not last[0].startswith("{"):
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise SystemExit(f"bench_render: the baseline run in {tree} failed: {tail}")
+    return json.loads(last[0])
 
 
 def build_grid(scene, density: float, bake: bool, rays: int):
@@ -150,7 +178,10 @@ def main(argv=None) -> int:
     p.add_argument("--images", default=None, metavar="DIR", help="also save the first frame's PNGs per N")
     p.add_argument("--chart", default="out/bench_render/bench_render.png")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--against", type=Path, default=None, metavar="TREE",
+                   help="also run this benchmark from another checkout first and judge the ratio's growth against it")
     args = p.parse_args(argv)
+    baseline = run_against(args.against, list(sys.argv[1:] if argv is None else argv)) if args.against else None
 
     from psao_client.render.output import parse_size
     from psao_client.render.views import path_matrices, path_times
@@ -172,6 +203,12 @@ def main(argv=None) -> int:
     print(f"ratio max/min over N {spread:.2f}")
     v = Verdicts("bench_render")
     v.check(f"worst PSAO/SSAO GPU time ratio over N={args.densities}", worst, "<=", TARGET_RATIO)
+    if baseline is not None:
+        for row, base in zip(rows, baseline["rows"]):
+            growth = row["ratio_gpu"] / base["ratio_gpu"]
+            print(f"N={row['density']:g}: PSAO/SSAO {row['ratio_gpu']:.3f} here, {base['ratio_gpu']:.3f} in {args.against} "
+                  f"(PSAO {row['gpu_ms']['psao']:.2f} vs {base['gpu_ms']['psao']:.2f} ms): growth x{growth:.3f}")
+            v.check(f"N={row['density']:g} PSAO/SSAO ratio growth against {args.against}", growth, "<=", MAX_GROWTH)
     chart(rows, Path(args.chart), f"{scene.name} {size[0]}x{size[1]}: PSAO vs SSAO-{args.ssao_samples}")
     print(f"chart: {args.chart}")
     if args.json:

@@ -3,7 +3,8 @@
 Memory (all uint32 unless said otherwise):
 
     cells    (n_slots, 8)       words 0-6 point words (allocated first), word 7 the cell key
-    buckets  (n_buckets, 8, 2)  entries (key, slot); empty entry = (EMPTY, EMPTY); used entries first
+    buckets  (n_buckets, 8, 2)  entries (key, slot); empty entry = (EMPTY, EMPTY); used entries first,
+                                a key's entries next to each other
     instances INSTANCE_DTYPE    one record per mesh instance, 48 bytes, std430-compatible (3 x 16 bytes)
 
 A free cell slot holds FREE_CELL (all points zero, key EMPTY). The key of a cell is its linear index
@@ -14,8 +15,9 @@ sides of a thin surface share space, and sharing cells would halve what a cell h
 lookup at a fragment reads one key per cell: the back-side key where the G-buffer flags the fragment as
 the back side of a double-sided instance, else the front key. Where more than 7 points fall in one cell
 (surfaces crossing, thin parts with two faces close together) the key takes further cells, up to KEY_CELLS:
-further entries of its bucket with the same key, and the lookup reads every one of them, where the paper
-drops what does not fit. Points are stored in instance-local space:
+further entries of its bucket with the same key, next to each other (the server keeps every bucket's
+entries sorted by key), and the lookup reads them from the key's first entry on, where the paper drops
+what does not fit. Points are stored in instance-local space:
 a point word's 5-bit codes q give the local position `origin + (cell + (q + 0.5) / 32) * cell_size`.
 
 The lookup thresholds T_N and T_D (paper eq. 3) live here too: the oracle (reconstruct.py), the gap fill
@@ -33,8 +35,8 @@ CELL_WORDS = 8
 POINTS_PER_CELL = 7
 KEY_WORD = 7
 BUCKET_ENTRIES = 8
-# A cell key whose points do not fit one cell takes up to this many cells (entries of its bucket with the
-# same key); the lookup reads them all. Beyond it points are dropped.
+# A cell key whose points do not fit one cell takes up to this many cells (consecutive entries of its
+# bucket with the same key); the lookup reads them all. Beyond it points are dropped.
 KEY_CELLS = 3
 EMPTY = np.uint32(0xFFFFFFFF)
 MAX_DIM = 1 << 10  # per axis; Dx * Dy * Dz <= 2^30 keeps keys below BACK_BIT
@@ -46,6 +48,9 @@ HASH_Z = 31
 # Paper eq. 3: a point counts at a fragment only if n_p . n_x > T_N and (n_p . (p - x) / |p - x|)^2 < T_D.
 T_N = 0.1  # normal threshold (cosine; paper value)
 T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
+# Where eq. 2-4 find no weight in the 2x2x2 block, the lookup tries the 3x3x3 block around the fragment's
+# cell with the radius times this (a wider ring: every point within one cell, s >= 2 r, lies in that block).
+FALLBACK_SCALE = 2.0
 
 FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
 EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)

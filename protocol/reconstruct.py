@@ -2,10 +2,12 @@
 
 It reads exactly the arrays the client holds (instances, buckets, cells) and does exactly what
 `psao_client/shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
-hash -> bucket -> linear scan for the key -> the allocated points of every cell with that key (a key
-holding more than 7 points owns several entries of its bucket), weights
-max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean,
-or 1 where all weights are 0. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
+hash -> bucket -> linear scan for the key's first entry -> the allocated points of its cell and of the
+cells of the entries right after it with the same key (a key holding more than 7 points owns up to
+KEY_CELLS consecutive entries of its bucket), weights
+max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean;
+where all weights are 0, the same over the fallback ring (the 3x3x3 block floor(g) + {-1,0,1}^3 with
+radius FALLBACK_SCALE * r), and 1 where that finds no weight either. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
 does; without `back` (a probe whose side nobody flagged) both keys are scanned and eq. 3's normal test
 keeps the right side's points. Arithmetic is float32 like the shader's so the two agree to rounding.
@@ -19,6 +21,7 @@ from protocol import pointword as pw
 from protocol.gridformat import T_D, T_N
 
 _BLOCK = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], dtype=np.int64)
+_RING = np.array([[dx, dy, dz] for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.int64)
 
 
 def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal, t_n: float = T_N,
@@ -33,19 +36,30 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
     back = None if back is None else np.asarray(back, bool).reshape(-1)
     for s in range(0, len(inst_ids), chunk):
         sl = slice(s, s + chunk)
-        ao[sl], wsum[sl] = _reconstruct_chunk(instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl],
-                                              t_n, t_d, None if back is None else back[sl])
+        args = (instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d,
+                None if back is None else back[sl])
+        ao[sl], wsum[sl] = _reconstruct_chunk(*args)
+        hole = np.flatnonzero(wsum[sl] == 0)
+        if len(hole):  # the fallback ring where the 2x2x2 block found no weight
+            ring = [a if a is None or np.ndim(a) == 0 or k < 3 else a[hole] for k, a in enumerate(args)]
+            ao[s + hole], wsum[s + hole] = _reconstruct_chunk(*ring, fallback=True)
     return ao, wsum
 
 
-def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None):
+def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, fallback=False):
+    """The 2x2x2 block with radius r, or (fallback) the 3x3x3 ring around the fragment's cell with radius
+    FALLBACK_SCALE * r."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
     r = rec["radius"].astype(np.float32)
     dims = rec["dims"].astype(np.int64)
     g = (x - origin) / s[:, None]
-    cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
+    if fallback:
+        r = (r * np.float32(gf.FALLBACK_SCALE)).astype(np.float32)
+        cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
+    else:
+        cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
     inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
     c = np.where(inside[..., None], cell, 0)
     cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
@@ -55,21 +69,23 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     back_key = np.where(two_sided[:, None], key | gf.BACK_BIT, gf.EMPTY).astype(np.uint32)
     b = gf.bucket_index(cx, cy, cz, dims[:, None, :], rec["bucket_offset"][:, None], rec["bucket_count"][:, None])
     b = np.where(inside, b.astype(np.int64), 0)
-    entries = buckets[b]  # (M, 8, 8, 2)
+    entries = buckets[b]  # (M, C, 8, 2)
     if back is not None:
         # The side is known (the shader's case): one key per cell of the block, the back one where flagged.
         keys = np.where((back & two_sided)[:, None], back_key, key)
     else:
-        # 16 candidate cells: the block's front keys, then its back keys (EMPTY, never matched, if one-sided).
+        # Twice the block's cells: its front keys, then its back keys (EMPTY, never matched, if one-sided).
         cell = np.concatenate([cell, cell], axis=1)
         inside = np.concatenate([inside, inside & two_sided[:, None]], axis=1)
         keys = np.concatenate([key, back_key], axis=1)
         entries = np.concatenate([entries, entries], axis=1)
-    # Every entry of the bucket whose key matches contributes its cell: a key with more than 7 points owns
-    # several cells (the server gives it at most KEY_CELLS). Entries are used-first, so "before the first
-    # EMPTY" is the same as "anywhere".
+    # The key's first entry and the entries right after it with the same key contribute their cells, at
+    # most KEY_CELLS: a key with more than 7 points owns several cells, next to each other in its bucket.
+    # Entries are used-first, so "before the first EMPTY" is the same as "anywhere".
     match = (entries[..., 0] == keys[..., None]) & inside[..., None]  # (M, C, 8)
-    match &= np.cumsum(match, axis=2) <= gf.KEY_CELLS  # the lookup reads a key's first KEY_CELLS cells
+    after_first = np.cumsum(match, axis=2) > 0
+    broken = np.cumsum(after_first & ~match, axis=2) > 0  # an entry of another key ended the run
+    match &= ~broken & (np.cumsum(match, axis=2) <= gf.KEY_CELLS)
     mi, ci, ei = np.nonzero(match)
     slot = entries[mi, ci, ei, 1].astype(np.int64)
     words = cells[slot][:, : gf.POINTS_PER_CELL]  # (K, 7)

@@ -40,10 +40,10 @@ def define_values(t_n: float = gf.T_N, t_d: float = gf.T_D, table_width: int | N
     if table_width is not None and (table_width <= 0 or table_width & (table_width - 1)):
         raise ValueError(f"table width {table_width} is not a power of two")
     assert gf.INSTANCE_DTYPE.itemsize % TEXEL_BYTES == 0
-    assert gf.KEY_CELLS == 3, "psao_common.glsl's psao_accumulate_cell holds three slots per cell key"
     return {
         "PSAO_T_N": _float(t_n),
         "PSAO_T_D": _float(t_d),
+        "PSAO_FALLBACK_SCALE": _float(gf.FALLBACK_SCALE),
         "PSAO_EMPTY": _uint(gf.EMPTY),
         "PSAO_BACK_BIT": _uint(gf.BACK_BIT),
         "PSAO_FLAG_DOUBLE_SIDED": _uint(gf.FLAG_DOUBLE_SIDED),
@@ -51,7 +51,7 @@ def define_values(t_n: float = gf.T_N, t_d: float = gf.T_D, table_width: int | N
         "PSAO_HASH_Z": _uint(gf.HASH_Z),
         "PSAO_POINTS_PER_CELL": str(gf.POINTS_PER_CELL),  # int: it sizes a GLSL array
         "PSAO_BUCKET_ENTRIES": _uint(gf.BUCKET_ENTRIES),
-        "PSAO_KEY_CELLS": str(gf.KEY_CELLS),  # int: the shader holds that many slots per key
+        "PSAO_KEY_CELLS": str(gf.KEY_CELLS),  # int: the most cells the lookup reads per key
         "PSAO_INSTANCE_TEXELS": _uint(gf.INSTANCE_DTYPE.itemsize // TEXEL_BYTES),
         "PSAO_BUCKET_TEXELS": _uint(gf.BUCKET_ENTRIES * 2 * 4 // TEXEL_BYTES),
         "PSAO_CELL_TEXELS": _uint(gf.CELL_WORDS * 4 // TEXEL_BYTES),

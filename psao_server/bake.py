@@ -15,6 +15,7 @@ from protocol import gridformat as gf
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
+from psao_server.buried import BuriedTest
 from psao_server.gapfill import fill_gaps
 from psao_server.grid import Grid
 from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
@@ -152,10 +153,11 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
     with _progress(show_progress) as bar:
         t0 = time.perf_counter()
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
+        buried = BuriedTest(scene) if settings.skip_buried else None
         pointsets = generate_scene_points(
             scene, PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
                                  spawn_ratio=settings.spawn_ratio),
-            progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+            progress=(lambda done, total: bar.update(task, completed=done)) if bar else None, buried=buried)
         stats["seconds_points"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -169,7 +171,8 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         if settings.gap_fill.passes > 0:
             task = bar.add_task("gap fill", total=settings.gap_fill.passes) if bar else None
             pointsets, grid, added = fill_gaps(scene, pointsets, grid, build, settings.gap_fill,
-                                               progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+                                               progress=(lambda done, total: bar.update(task, completed=done)) if bar else None,
+                                               buried=buried)
         stats["points_gap_fill"] = int(added)
         stats["seconds_gap_fill"] = time.perf_counter() - t0
 

@@ -59,6 +59,14 @@ def surface_candidates(scene: Scene, i: int, ratio: float, per_side: int, rng: n
     return Candidates(faces, bary, pos, mesh.face_normals()[faces].astype(np.float32))
 
 
+def visible_candidates(cand: Candidates, buried, transform: np.ndarray) -> Candidates:
+    """The candidates the buried test does not reject (front side: the test applies to one-sided meshes)."""
+    from psao_server.bake import to_world  # bake imports this module
+
+    keep = ~buried.mask(*to_world(transform, cand.local_pos, cand.local_normal))
+    return Candidates(cand.faces[keep], cand.bary[keep], cand.local_pos[keep], cand.local_normal[keep])
+
+
 def kd_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
                radius: float) -> np.ndarray:
     """Bool (C,): some stored point passes a strict version of eq. 3 at each candidate. The nearest
@@ -146,14 +154,17 @@ def append_points(ps: PointSet, cand: Candidates, front: np.ndarray, back: np.nd
 
 
 def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.random.Generator,
-              ratio: float, spacing: float = 1.0) -> tuple[list[PointSet], int]:
-    """One round over every instance; returns the new point sets and how many points were added."""
+              ratio: float, spacing: float = 1.0, buried=None) -> tuple[list[PointSet], int]:
+    """One round over every instance; returns the new point sets and how many points were added.
+    `buried` (psao_server.buried.BuriedTest): candidates on buried surfaces are no gaps."""
     table = grid.point_table()
     out, added = list(pointsets), 0
     for i, ps in enumerate(pointsets):
         double = bool(grid.instances[i]["flags"] & gf.FLAG_DOUBLE_SIDED)
         per_side = int(np.count_nonzero(~ps.back))
         cand = surface_candidates(scene, i, ratio, per_side, rng)
+        if buried is not None and buried.applies_to(i):
+            cand = visible_candidates(cand, buried, scene.instances[i].transform)
         radius = float(grid.instances[i]["radius"])
         sides = [(1.0, False)] + ([(-1.0, True)] if double else [])
         picked = []
@@ -169,7 +180,7 @@ def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.rando
 
 
 def fill_gaps(scene: Scene, pointsets: list[PointSet], grid: Grid, build, settings: GapFillSettings,
-              progress=None) -> tuple[list[PointSet], Grid, int]:
+              progress=None, buried=None) -> tuple[list[PointSet], Grid, int]:
     """Up to `settings.passes` rounds of fill_pass, rebuilding the grid with build(pointsets) after each
     round that added points. Returns the point sets, their grid and the points added in all."""
     rng = np.random.default_rng(settings.seed)
@@ -179,7 +190,7 @@ def fill_gaps(scene: Scene, pointsets: list[PointSet], grid: Grid, build, settin
     # (cornell 0.185% against 0.100%: small holes the first round's candidates missed stay missed) for
     # little time saved (43 against 48 s on the courtyard).
     for k in range(settings.passes):
-        pointsets, added = fill_pass(scene, pointsets, grid, rng, settings.ratio, settings.spacing)
+        pointsets, added = fill_pass(scene, pointsets, grid, rng, settings.ratio, settings.spacing, buried)
         if progress is not None:
             progress(k + 1, settings.passes)
         if added == 0:

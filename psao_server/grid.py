@@ -8,7 +8,7 @@ so unchanged geometry gives unchanged AO) and the instance the cell belongs to.
 
 Every edit marks the cells and buckets it touches dirty; `take_dirty()` hands them to the streaming layer.
 All edits are vectorised over arrays of points; the per-cell bookkeeping (allocated points first, used
-bucket entries first) is restored by `_compact_cells` / `_compact_buckets` on the touched rows only.
+bucket entries first, sorted by key) is restored by `_compact_cells` / `_compact_buckets` on the touched rows only.
 """
 from __future__ import annotations
 
@@ -356,6 +356,7 @@ class Grid:
         self.cell_instance[fresh] = inst
         self.dirty_buckets[nb] = True
         self.dirty_cells[fresh] = True
+        self._compact_buckets(np.unique(nb))  # a key's new cell goes next to its others
         slots[new] = fresh
         return slots, used
 
@@ -411,8 +412,9 @@ class Grid:
         self.cells[slots, : gf.POINTS_PER_CELL] = np.take_along_axis(pts, order, axis=1)
 
     def _compact_buckets(self, rows: np.ndarray) -> None:
-        empty = self.buckets[rows, :, 0] == gf.EMPTY
-        order = np.argsort(empty, axis=1, kind="stable")
+        """Entries sorted by key (stable), which puts the used ones first (EMPTY is the largest key) and a
+        key's cells next to each other, as the lookup reads them."""
+        order = np.argsort(self.buckets[rows, :, 0], axis=1, kind="stable")
         self.buckets[rows] = np.take_along_axis(self.buckets[rows], order[..., None], axis=1)
 
     # ------------------------------------------------------------------ persistence
@@ -448,6 +450,7 @@ class Grid:
         grid.dirty_cells = np.zeros(len(grid.cells), dtype=bool)
         grid.dirty_buckets = np.zeros(len(grid.buckets), dtype=bool)
         grid.free_slots = np.flatnonzero(grid.cells[:, gf.KEY_WORD] == gf.EMPTY)[::-1].tolist()
+        grid._compact_buckets(np.arange(len(grid.buckets)))  # files written before buckets were kept sorted
         grid.stats = InsertStats()
         return grid, scene_hash, meta
 

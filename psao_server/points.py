@@ -119,10 +119,14 @@ def eliminate(positions: np.ndarray, normals: np.ndarray, area: float, keep: int
     return eliminate_csr(offsets, nbrs, w, keep)
 
 
-def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, seed: int | None = None) -> PointSet:
+def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, seed: int | None = None,
+                    reject=None) -> PointSet:
     """Points of one instance of `mesh` placed by `transform` (4x4 local-to-world).
 
     `seed` overrides settings.seed; callers mix the instance index in (instance_seed) so instances differ.
+    `reject(world_positions, world_normals) -> bool mask`, if given, removes spawned points before the
+    elimination (as the paper rejects points on masked transparent surfaces): the kept count shrinks in
+    proportion, so the density on what remains is unchanged.
     """
     settings.check()
     world_vertices = mesh.vertices @ _check_geometry(mesh, transform).T  # translation left out, see above
@@ -140,7 +144,14 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
     normals_local = mesh.face_normals()
     world_positions = _on_triangles(world_vertices, mesh.faces, faces, bary)
     world_normals = _unit(np.cross(*_edges(world_vertices, mesh.faces)))
-    kept = eliminate(world_positions, world_normals[faces], world_area, keep, settings)
+    area_left, keep_left = world_area, keep
+    if reject is not None and spawn:
+        out = reject(world_positions + np.asarray(transform, np.float64)[:3, 3], world_normals[faces])
+        share = 1.0 - float(np.count_nonzero(out)) / spawn
+        faces, bary, world_positions = faces[~out], bary[~out], world_positions[~out]
+        area_left, keep_left = world_area * share, min(len(faces), int(round(keep * share)))
+    kept = eliminate(world_positions, world_normals[faces], area_left, keep_left, settings) if keep_left else \
+        np.zeros(len(faces), bool)
     faces, bary = faces[kept], bary[kept]
 
     positions = _on_triangles(mesh.vertices, mesh.faces, faces, bary)
@@ -173,14 +184,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
-def generate_scene_points(scene: Scene, settings: PointSettings, progress=None) -> list[PointSet]:
+def generate_scene_points(scene: Scene, settings: PointSettings, progress=None, buried=None) -> list[PointSet]:
     """One PointSet per instance of `scene`, in instance order, each seeded by instance_seed.
 
     `progress`, if given, is called as progress(done_instances, total_instances) after each instance.
+    `buried` (psao_server.buried.BuriedTest), if given, keeps points off the surfaces it finds buried.
     """
     out = []
     for k, inst in enumerate(scene.instances):
-        out.append(generate_points(scene.meshes[inst.mesh], inst.transform, settings, instance_seed(settings.seed, k)))
+        seed = instance_seed(settings.seed, k)
+        reject = None
+        if buried is not None and buried.applies_to(k):
+            def reject(pos, nrm, seed=seed):
+                return buried.mask(pos, nrm, seed)
+        out.append(generate_points(scene.meshes[inst.mesh], inst.transform, settings, seed, reject))
         if progress is not None:
             progress(k + 1, len(scene.instances))
     return out

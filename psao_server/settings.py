@@ -136,6 +136,7 @@ class BakeSettings:
     spawn_ratio: float = PointSettings.spawn_ratio  # spawned / kept before elimination
     grid: GridSettings = field(default_factory=GridSettings)
     gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
+    skip_buried: bool = True  # no points on surfaces inside closed static geometry (psao_server/buried.py)
     cluster: ClusterSettings | None = None  # trace on a Dask cluster (the dask back-end) instead of `tracer`
 
     def check(self) -> None:

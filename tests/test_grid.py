@@ -22,6 +22,11 @@ def check_invariants(grid: Grid):
     # used entries first, empty entries fully EMPTY
     assert not (np.diff(used.astype(int), axis=1) > 0).any()
     assert (grid.buckets[~used] == gf.EMPTY).all()
+    # a key's entries (several cells of one crowded key) are next to each other, as the lookup reads them
+    keys = grid.buckets[:, :, 0]
+    starts = used & np.concatenate([np.ones((len(keys), 1), bool), keys[:, 1:] != keys[:, :-1]], axis=1)
+    for b in np.flatnonzero(used.any(axis=1)):
+        assert starts[b].sum() == len(np.unique(keys[b][used[b]])), f"bucket {b}: a key's entries are apart"
     live = grid.allocated_cells()
     referenced = grid.buckets[used][:, 1]
     assert sorted(referenced.tolist()) == sorted(live.tolist()), "bucket entries and allocated cells disagree"

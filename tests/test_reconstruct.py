@@ -9,7 +9,8 @@ from psao_server.grid import Grid
 
 
 def brute_force(grid: Grid, inst, x, n_x):
-    """eq. 2-4 over ALL decoded points of the instance, no grid lookup."""
+    """eq. 2-4 over ALL decoded points of the instance, no grid lookup; where no point has weight, the
+    same with the radius times FALLBACK_SCALE (the lookup's fallback ring)."""
     rec = grid.instances[inst]
     slots = np.flatnonzero(grid.cell_instance == inst)
     words = grid.cells[slots, : gf.POINTS_PER_CELL]
@@ -18,14 +19,16 @@ def brute_force(grid: Grid, inst, x, n_x):
     p = gf.decode_point_local(np.repeat(cell[:, None, :], 7, axis=1), q, rec["origin"], rec["cell_size"])[alloc]
     n_p = pw.oct_decode(ncode[alloc])
     a = pw.dequantise_ao(ao[alloc])
-    r = float(rec["radius"])
     out = []
     for xi, ni in zip(x, n_x):
         d = p - xi
         dist = np.linalg.norm(d, axis=1)
-        w = np.maximum(0, (r - dist) / r)
         cosd = np.where(dist > 0, (n_p * d).sum(1) / np.where(dist > 0, dist, 1), 0)
-        w[((n_p @ ni) <= T_N) | (cosd ** 2 >= T_D)] = 0
+        for r in (float(rec["radius"]), float(rec["radius"]) * gf.FALLBACK_SCALE):
+            w = np.maximum(0, (r - dist) / r)
+            w[((n_p @ ni) <= T_N) | (cosd ** 2 >= T_D)] = 0
+            if w.sum() > 0:
+                break
         out.append((w * a).sum() / w.sum() if w.sum() > 0 else 1.0)
     return np.array(out)
 
@@ -49,6 +52,30 @@ def test_lookup_equals_brute_force_on_random_surfaces():
     ref = brute_force(grid, 0, x.astype(np.float32), nx)
     np.testing.assert_allclose(ao, ref, atol=2e-5)
     assert (wsum > 0).mean() > 0.99
+
+
+def test_fallback_ring_fills_gaps_wider_than_r_and_nothing_beyond_its_radius():
+    """Points on a lattice 1.6 r apart: probes in the middle of a square are farther than r from every
+    point (a hole for eq. 2-4 alone), the ring finds the four corners; a probe 2.5 r off the plane
+    finds nothing (AO 1)."""
+    r_poisson = 0.01
+    grid = Grid.build([(np.zeros((1, 3)), np.array([[0, 0, 1.0]]), r_poisson, 0)])
+    r = float(grid.instances[0]["radius"])
+    u = np.arange(20) * 1.6 * r
+    gx, gy = np.meshgrid(u, u)
+    p = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    grid = Grid.build([(p, np.tile([0, 0, 1.0], (len(p), 1)), r_poisson, 0)])
+    assert float(grid.instances[0]["radius"]) == r
+    t = grid.point_table()
+    rng = np.random.default_rng(5)
+    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
+    centres = np.column_stack([u[3:15] + 0.8 * r, u[3:15] + 0.8 * r, np.zeros(12)])
+    x = np.vstack([centres, [[u[8], u[8], 2.5 * r]]])
+    n = np.tile([0, 0, 1.0], (len(x), 1))
+    ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(len(x), int), x, n)
+    assert np.all(np.linalg.norm(t.local_pos[None, :, :] - centres[:, None, :], axis=2).min(axis=1) > r)
+    assert np.all(wsum[:-1] > 0) and wsum[-1] == 0 and ao[-1] == 1.0
+    np.testing.assert_allclose(ao, brute_force(grid, 0, x.astype(np.float32), n.astype(np.float32)), atol=2e-5)
 
 
 def test_no_points_gives_one_and_outside_grid_is_safe():

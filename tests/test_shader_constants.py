@@ -12,9 +12,10 @@ from protocol import shader_constants as sc
 from psao_client.render.shaderlib import SHADER_DIR, load_shader
 
 ROOT = Path(__file__).resolve().parents[1]
-# Numbers the lookup shader may write out: component indices, the 2x2x2 block, the step centre 0.5,
-# 1.0 and the rounding slack of the reach test. Anything else is a protocol value and must be a PSAO_ define.
-STRUCTURAL_LITERALS = {"0", "1", "2", "8", "0u", "1u", "2u", "0.0", "0.5", "1.0", "1.001"}
+# Numbers the lookup shader may write out: component indices, the 2x2x2 block and the 3x3x3 fallback ring,
+# the step centre 0.5, 1.0 and the rounding slack of the reach test. Anything else is a protocol value and
+# must be a PSAO_ define.
+STRUCTURAL_LITERALS = {"0", "1", "2", "3", "8", "9", "27", "0u", "1u", "2u", "0.0", "0.5", "1.0", "1.001"}
 _LITERAL = re.compile(r"(?<![\w.])(0[xX][0-9a-fA-F]+[uU]?|\d+\.\d*(?:[eE][-+]?\d+)?|\.\d+|\d+[uU]?)(?![\w.])")
 
 

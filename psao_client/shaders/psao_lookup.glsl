@@ -50,10 +50,10 @@ float psao_point_ao(uint word) {
     return float(word & PSAO_CODE_MASK) / PSAO_AO_LEVELS;
 }
 
-// Paper eq. 2-3: weight of point p (normal np) for the fragment at x with normal nx, radius r.
-float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
-    vec3 d = p - x;
-    float dist = length(d);
+// Paper eq. 2-3: weight of a point at offset d = p - x from the fragment (dist2 = |d|^2 < r^2), normal np,
+// for the fragment normal nx and radius r.
+float psao_weight(vec3 d, float dist2, vec3 np, vec3 nx, float r) {
+    float dist = sqrt(dist2);
     float w = max(0.0, (r - dist) / r);
     if (w <= 0.0 || dot(np, nx) <= PSAO_T_N) return 0.0;
     if (dist > 0.0) {
@@ -63,41 +63,47 @@ float psao_weight(vec3 p, vec3 np, vec3 x, vec3 nx, float r) {
     return w;
 }
 
-// Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c).
-void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+// Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c), radius r. A point at r or
+// farther has weight 0: it is skipped before its normal is decoded (most points of a 2x2x2 block are).
+void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, float r, inout float wsum, inout float aosum) {
     uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
     uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
     uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
+    float r2 = r * r;
     for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
         uint word = words[k];
         if ((word & PSAO_ALLOCATED) == 0u) break;
-        float w = psao_weight(psao_point_position(inst, c, word), psao_point_normal(word), x, nx, inst.radius);
+        vec3 d = psao_point_position(inst, c, word) - x;
+        float dist2 = dot(d, d);
+        if (dist2 >= r2) continue;
+        float w = psao_weight(d, dist2, psao_point_normal(word), nx, r);
         wsum += w;
         aosum += w * psao_point_ao(word);
     }
 }
 
-// Adds the points of cell c: every entry of its bucket with c's key (its back-side key, key | BACK_BIT,
-// with `back` on a double-sided instance); a key holding more than 7 points owns up to PSAO_KEY_CELLS
-// entries. The scan goes on past a match to the first EMPTY (used entries come first) and only collects
-// slots; the accumulation loop's trip count is data-dependent, so the compiler keeps one copy of
-// psao_accumulate (accumulating inside the unrolled scan made the pass 2-3x slower on llvmpipe). It holds
-// three slots (s0..s2): shader_constants.define_values checks that KEY_CELLS is three.
-void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, inout float wsum, inout float aosum) {
+// Adds the points of cell c: the entries of its bucket with c's key (its back-side key, key | BACK_BIT,
+// with `back` on a double-sided instance). A key holding more than 7 points owns up to PSAO_KEY_CELLS
+// entries, and the server keeps them next to each other, so the scan stops at the key's first entry (or
+// at EMPTY: used entries come first) and the accumulation reads on only while the next entry has the same
+// key. One call of psao_accumulate in a loop with a data-dependent trip count: the compiler keeps one copy
+// of it (accumulating inside the unrolled scan made the pass 2-3x slower on llvmpipe).
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, float r, inout float wsum, inout float aosum) {
     uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
     uint key = psao_cell_key(c, inst.dims);
     if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
-    uint s0 = PSAO_EMPTY, s1 = PSAO_EMPTY, s2 = PSAO_EMPTY;
-    uint found = 0u;
-    for (uint e = 0u; e < PSAO_BUCKET_TEXELS; ++e) {
-        uvec4 pair = psao_fetch(u_psao_buckets, base + e);  // two entries: (key, slot, key, slot)
-        if (pair.x == PSAO_EMPTY) break;
-        if (pair.x == key) { s2 = s1; s1 = s0; s0 = pair.y; ++found; }
-        if (pair.z == PSAO_EMPTY) break;
-        if (pair.z == key) { s2 = s1; s1 = s0; s0 = pair.w; ++found; }
+    uint e = PSAO_BUCKET_ENTRIES;  // the key's first entry
+    for (uint t = 0u; t < PSAO_BUCKET_TEXELS; ++t) {
+        uvec4 pair = psao_fetch(u_psao_buckets, base + t);  // two entries: (key, slot, key, slot)
+        if (pair.x == key) { e = 2u * t; break; }
+        if (pair.x == PSAO_EMPTY || pair.z == PSAO_EMPTY) break;
+        if (pair.z == key) { e = 2u * t + 1u; break; }
     }
-    for (uint k = 0u; k < min(found, uint(PSAO_KEY_CELLS)); ++k) {
-        psao_accumulate(inst, c, k == 0u ? s0 : (k == 1u ? s1 : s2), x, nx, wsum, aosum);
+    for (uint k = 0u; k < uint(PSAO_KEY_CELLS) && e < PSAO_BUCKET_ENTRIES; ++k, ++e) {
+        uvec4 pair = psao_fetch(u_psao_buckets, base + (e >> 1u));
+        uvec2 entry = (e & 1u) == 0u ? pair.xy : pair.zw;
+        if (entry.x != key) break;
+        psao_accumulate(inst, c, entry.y, x, nx, r, wsum, aosum);
     }
 }
 
@@ -108,24 +114,37 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 }
 
 // Paper eq. 4 over the 2x2x2 block floor(g - 0.5) + {0,1}^3 around local position x (normal nx) of
-// instance `inst_id`. Returns (AO, weight sum); AO is 1 when no point has weight. `back`: the fragment
-// shows the back side of a double-sided surface (the G-buffer flipped its normal), so only back-side
-// cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided instances.
+// instance `inst_id`. Where no point there has weight (a hole: a gap in the sampling wider than r, or a
+// small face whose points went to its neighbours), the fallback ring: the 3x3x3 block floor(g) + {-1,0,1}^3
+// with radius PSAO_FALLBACK_SCALE * r (it holds every point within one cell, s >= 2 r, of x). Returns
+// (AO, weight sum); AO is 1 when even the ring finds no weight. `back`: the fragment shows the back side
+// of a double-sided surface (the G-buffer flipped its normal), so only back-side cells can hold points
+// that pass eq. 3's normal test: one key per cell, as for one-sided instances. One loop and one call of
+// psao_accumulate_cell for both blocks keeps one copy of the lookup in the compiled shader.
 vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     PsaoInstance inst = psao_instance(inst_id);
     vec3 g = (x - inst.origin) / inst.cell_size;
     ivec3 base = ivec3(floor(g - 0.5));
     ivec3 dims = ivec3(inst.dims);
+    float r = inst.radius;
     // A cell whose box is farther than r cannot hold a point with weight > 0 (small slack for rounding).
-    float reach = inst.radius / inst.cell_size * 1.001;
+    float reach = r / inst.cell_size * 1.001;
     float reach2 = reach * reach;
     float wsum = 0.0;
     float aosum = 0.0;
-    for (int i = 0; i < 8; ++i) {
-        ivec3 c = base + ivec3(i & 1, (i >> 1) & 1, (i >> 2) & 1);
+    for (int i = 0; i < 8 + 27; ++i) {
+        if (i == 8) {
+            if (wsum > 0.0) break;
+            base = ivec3(floor(g)) - 1;
+            r *= PSAO_FALLBACK_SCALE;
+            reach *= PSAO_FALLBACK_SCALE;
+            reach2 = reach * reach;
+        }
+        int j = i < 8 ? i : i - 8;
+        ivec3 c = i < 8 ? base + ivec3(j & 1, (j >> 1) & 1, (j >> 2) & 1) : base + ivec3(j % 3, (j / 3) % 3, j / 9);
         if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
         if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
-        psao_accumulate_cell(inst, uvec3(c), back, x, nx, wsum, aosum);
+        psao_accumulate_cell(inst, uvec3(c), back, x, nx, r, wsum, aosum);
     }
     return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
 }
