@@ -1,11 +1,14 @@
 """Every model at its default settings, and at 4x the default density: one table, one chart.
 
 For each scene (every mesh file under ../shared/scenes and every built-in scene) and each density scale,
-a child process bakes at the scene's default (scale-aware) density times the scale and reports: points,
-bake seconds, points dropped to grid overflow, reconstruction MAE and hole fraction at random surface
-probes against AO traced there directly, PSNR of PSAO, SSAO and GTAO against an RTAO reference on the same
-frames, and the child's peak resident memory. Reference spp, probe rays, frame size and frame count are
-kept modest for a shared 2-core machine and printed with the table.
+a child process bakes at the scene's default (scale-aware) density times the scale, with the bake's default
+rays per point unless --rays, and reports: points, bake seconds, points dropped to grid overflow,
+reconstruction MAE and hole fraction at random surface probes against AO traced there directly, PSNR of
+PSAO, SSAO and GTAO against an RTAO reference on the same frames, and the child's peak resident memory.
+Probes on surfaces buried inside closed geometry (psao_server/buried.py, every one-sided instance as
+posed at time 0) are seen from nowhere and left out of MAE and holes; their share is the "buried"
+column. Reference spp, probe rays, frame size and frame count are kept modest for a shared 2-core machine
+and printed with the table.
 
 Targets per scene and scale: recon_mae < 0.02, holes < 0.1 %, dropped < 0.5 %, PSNR PSAO > SSAO and
 > GTAO.
@@ -41,16 +44,19 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     from psao_eval.reference import ReferenceSettings
     from psao_scene import load_scene
     from psao_server.bake import bake_scene, reconstruction_error, sample_probes
+    from psao_server.buried import visible_probes
     from psao_server.settings import BakeSettings
     from psao_server.sampling import default_density
 
     scene = load_scene(spec)
     density = default_density(scene) * scale
     t0 = time.perf_counter()
-    res = bake_scene(scene, BakeSettings(density=density, rays=cfg["rays"]), show_progress=False)
+    rays = {} if cfg["rays"] is None else {"rays": cfg["rays"]}
+    res = bake_scene(scene, BakeSettings(density=density, **rays), show_progress=False)
     seconds = time.perf_counter() - t0
+    probes = visible_probes(scene, sample_probes(scene, cfg["probes"]))
     try:
-        err = reconstruction_error(res.grid, scene, res.tracer, sample_probes(scene, cfg["probes"]), rays=cfg["probe_rays"])
+        err = reconstruction_error(res.grid, scene, res.tracer, probes, rays=cfg["probe_rays"])
     finally:
         res.tracer.close()
     methods = ("psao", "ssao", "gtao")
@@ -64,7 +70,7 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     return {
         "scene": scene.name, "spec": spec, "scale": scale, "density": density, "points": s["points_kept"],
         "seconds": seconds, "dropped_pct": 100 * s["points_dropped_overflow"] / max(s["points_generated"], 1),
-        "recon_mae": err["recon_mae"], "holes_pct": 100 * err["hole_fraction"],
+        "recon_mae": err["recon_mae"], "holes_pct": 100 * err["hole_fraction"], "buried_pct": 100 * (1 - err["probes"] / cfg["probes"]),
         **{f"psnr_{m}": mean_scores(rows, m).psnr for m in methods},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
@@ -84,11 +90,11 @@ def format_row(r: dict) -> str:
     if "error" in r:
         return f"{r['scene']:>18s} x{r['scale']:<3g} error: {r['error']}"
     return (f"{r['scene']:>18s} x{r['scale']:<3g} {r['density']:>9.4g} {r['points']:>10,d} {r['seconds']:>7.1f} "
-            f"{r['dropped_pct']:>8.3f} {r['recon_mae']:>8.4f} {r['holes_pct']:>7.3f} {r['psnr_psao']:>6.2f} "
+            f"{r['dropped_pct']:>8.3f} {r.get('buried_pct', float('nan')):>7.1f} {r['recon_mae']:>8.4f} {r['holes_pct']:>7.3f} {r['psnr_psao']:>6.2f} "
             f"{r['psnr_ssao']:>6.2f} {r['psnr_gtao']:>6.2f} {r['peak_mb']:>8.0f}")
 
 
-HEADER = (f"{'scene':>18s} {'':4s} {'N/unit^2':>9s} {'points':>10s} {'bake s':>7s} {'drop %':>8s} {'MAE':>8s} "
+HEADER = (f"{'scene':>18s} {'':4s} {'N/unit^2':>9s} {'points':>10s} {'bake s':>7s} {'drop %':>8s} {'buried%':>7s} {'MAE':>8s} "
           f"{'holes %':>7s} {'PSAO':>6s} {'SSAO':>6s} {'GTAO':>6s} {'peak MB':>8s}")
 
 
@@ -127,7 +133,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=None, help="comma list (default: every shared mesh and built-in scene)")
     ap.add_argument("--scales", default="1,4", help="density multiples of each scene's default")
-    ap.add_argument("--rays", type=int, default=64, help="bake rays per point")
+    ap.add_argument("--rays", type=int, default=None, help="bake rays per point (default: the bake's)")
     ap.add_argument("--probes", type=int, default=20000)
     ap.add_argument("--probe-rays", type=int, default=256)
     ap.add_argument("--spp", type=int, default=64, help="RTAO reference samples per pixel")
@@ -143,7 +149,7 @@ def main(argv=None) -> int:
     w, h = (int(v) for v in args.size.split("x"))
     cfg = {"rays": args.rays, "probes": args.probes, "probe_rays": args.probe_rays, "spp": args.spp,
            "size": [w, h], "frames": args.frames}
-    print(f"bake {args.rays} rays/point; {args.probes} probes x {args.probe_rays} rays; RTAO {args.spp} spp, "
+    print(f"bake {args.rays or 'default'} rays/point; {args.probes} probes x {args.probe_rays} rays; RTAO {args.spp} spp, "
           f"{args.frames} frames at {w}x{h} along each scene's camera path (default orbit where it has none)")
     print(HEADER, flush=True)
     specs = args.scenes.split(",") if args.scenes else scene_specs()

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -210,6 +210,9 @@ class Probes:
     world_normal: np.ndarray  # (M, 3)
     local_pos: np.ndarray
     local_normal: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> "Probes":
+        return Probes(*(getattr(self, f.name)[mask] for f in fields(self)))
 
 
 def sample_probes(scene: Scene, count: int, seed: int = 12345) -> Probes:

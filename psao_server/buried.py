@@ -40,20 +40,22 @@ def is_static(scene: Scene, i: int) -> bool:
     return inst.animation is None and scene.meshes[inst.mesh].skin is None
 
 
-def closed_instances(scene: Scene) -> list[int]:
-    """Instances that can bury surfaces and be buried: static and one-sided."""
+def closed_instances(scene: Scene, moving: bool = False) -> list[int]:
+    """Instances that can bury surfaces and be buried: one-sided, and static unless `moving`."""
     return [i for i, inst in enumerate(scene.instances)
-            if is_static(scene, i) and not scene.meshes[inst.mesh].double_sided]
+            if (moving or is_static(scene, i)) and not scene.meshes[inst.mesh].double_sided]
 
 
 class BuriedTest:
     """One Embree scene of the occluders (world space, re-centred for float32), asked per batch of points."""
 
-    def __init__(self, scene: Scene, settings: BuriedSettings | None = None):
+    def __init__(self, scene: Scene, settings: BuriedSettings | None = None, moving: bool = False):
+        """`moving`: moving and skinned instances too, as posed at time 0 (what is hidden in that pose,
+        e.g. to leave surfaces nobody sees out of an accuracy measure); the bake leaves them out."""
         from psao_server.bake import scene_world_geometry  # bake imports this module
 
         self.settings = settings or BuriedSettings()
-        self.instances = set(closed_instances(scene))
+        self.instances = set(closed_instances(scene, moving))
         self.ao_distance = scene.ao_distance
         verts, faces = scene_world_geometry(scene, sorted(self.instances))
         self.centre = verts.mean(axis=0) if len(verts) else np.zeros(3)
@@ -89,3 +91,9 @@ class BuriedTest:
             # Embree's geometric normal Ng points to the counter-clockwise (outward) side, as the meshes'.
             back[sl] = hit & (np.einsum("ij,ij->i", out["Ng"], dirs[sl]) > 0)
         return back.reshape(n, k).mean(axis=1) > self.settings.back_fraction
+
+
+def visible_probes(scene: Scene, probes):
+    """The probes (psao_server.bake.Probes) not buried in any one-sided instance as posed at time 0: the
+    surface an accuracy measure should score, since nothing shows the rest."""
+    return probes.subset(~BuriedTest(scene, moving=True).mask(probes.world_pos, probes.world_normal))

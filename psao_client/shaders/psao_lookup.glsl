@@ -86,8 +86,7 @@ void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, flo
 // with `back` on a double-sided instance). A key holding more than 7 points owns up to PSAO_KEY_CELLS
 // entries, and the server keeps them next to each other, so the scan stops at the key's first entry (or
 // at EMPTY: used entries come first) and the accumulation reads on only while the next entry has the same
-// key. One call of psao_accumulate in a loop with a data-dependent trip count: the compiler keeps one copy
-// of it (accumulating inside the unrolled scan made the pass 2-3x slower on llvmpipe).
+// key.
 void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, float r, inout float wsum, inout float aosum) {
     uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
     uint key = psao_cell_key(c, inst.dims);
@@ -99,7 +98,10 @@ void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx
         if (pair.x == PSAO_EMPTY || pair.z == PSAO_EMPTY) break;
         if (pair.z == key) { e = 2u * t + 1u; break; }
     }
-    for (uint k = 0u; k < uint(PSAO_KEY_CELLS) && e < PSAO_BUCKET_ENTRIES; ++k, ++e) {
+    // A trip count the compiler cannot bound to a constant: it keeps one copy of psao_accumulate instead of
+    // unrolling PSAO_KEY_CELLS copies (measured slower on llvmpipe).
+    uint cells = e < PSAO_BUCKET_ENTRIES ? min(uint(PSAO_KEY_CELLS), PSAO_BUCKET_ENTRIES - e) : 0u;
+    for (uint k = 0u; k < cells; ++k, ++e) {
         uvec4 pair = psao_fetch(u_psao_buckets, base + (e >> 1u));
         uvec2 entry = (e & 1u) == 0u ? pair.xy : pair.zw;
         if (entry.x != key) break;
