@@ -66,6 +66,8 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
         frames = qr.render(res.grid, poses, timing_repeats=1)
     refs = reference_images(scene, frames, ReferenceSettings(spp=cfg["spp"]), show_progress=False)
     rows = score_frames(frames, refs, methods)
+    if cfg.get("maps"):
+        save_maps(res.grid, frames[0], refs[0], Path(cfg["maps"]) / f"maps_{scene.name}_x{scale:g}.png")
     s = res.stats
     return {
         "scene": scene.name, "spec": spec, "scale": scale, "density": density, "points": s["points_kept"],
@@ -74,6 +76,44 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
         **{f"psnr_{m}": mean_scores(rows, m).psnr for m in methods},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+
+
+def save_maps(grid, frame, ref, path: Path) -> None:
+    """One frame as three panels: PSAO's AO with its holes (no point has weight, eq. 4 falls back to 1) in
+    red, |PSAO - RTAO| (0..0.25), and the RTAO reference. The weights are the oracle's on the frame's own
+    G-buffer, which the shader equals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from protocol.reconstruct import reconstruct_ao
+
+    gb = frame.gbuffer
+    m = gb.mask & (gb.instance >= 0)
+    back = None if gb.back_side is None else gb.back_side[m]
+    _, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, gb.instance[m], gb.local[m], gb.local_normal[m],
+                             back=back)
+    holes = np.zeros(m.shape, bool)
+    holes[m] = wsum == 0
+    rgb = np.repeat(frame.ao["psao"][..., None], 3, axis=2)
+    rgb[holes] = (1.0, 0.0, 0.0)
+    err = np.where(m, np.abs(frame.ao["psao"] - ref), 0.0)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.2), dpi=100)
+    axes[0].imshow(np.clip(rgb, 0, 1))
+    axes[0].set_title(f"PSAO, holes in red ({holes.sum()} px, {holes.sum() / max(m.sum(), 1):.3%})")
+    im = axes[1].imshow(err, cmap="magma", vmin=0, vmax=0.25)
+    axes[1].set_title(f"|PSAO - RTAO|, mean {err[m].mean():.4f}")
+    fig.colorbar(im, ax=axes[1], fraction=0.03)
+    axes[2].imshow(ref, cmap="gray", vmin=0, vmax=1)
+    axes[2].set_title("RTAO reference")
+    for a in axes:
+        a.axis("off")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def run_child(spec: str, scale: float, cfg: dict) -> dict:
@@ -140,6 +180,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x180")
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("out") / "bench_scenes")
+    ap.add_argument("--maps", action="store_true", help="also save maps_SCENE_xSCALE.png per scene (holes, error map)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
@@ -148,7 +189,7 @@ def main(argv=None) -> int:
         return 0
     w, h = (int(v) for v in args.size.split("x"))
     cfg = {"rays": args.rays, "probes": args.probes, "probe_rays": args.probe_rays, "spp": args.spp,
-           "size": [w, h], "frames": args.frames}
+           "size": [w, h], "frames": args.frames, "maps": str(args.out) if args.maps else None}
     print(f"bake {args.rays or 'default'} rays/point; {args.probes} probes x {args.probe_rays} rays; RTAO {args.spp} spp, "
           f"{args.frames} frames at {w}x{h} along each scene's camera path (default orbit where it has none)")
     print(HEADER, flush=True)

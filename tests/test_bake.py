@@ -9,12 +9,15 @@ import pytest
 from protocol import pointword as pw
 from psao_scene import load_scene
 from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to_world
+from psao_server.buried import visible_probes
 from psao_server.settings import BakeSettings
 from psao_server.errors import ConfigError
 
 
 def bake_codes(scene, density, rays=64):
-    res = bake_scene(scene, BakeSettings(density=density, rays=rays, workers=1), show_progress=False)
+    # The buried-surface test is left out: a point right at a contact edge may fall either side of it at
+    # another scale, and one point changed moves the elimination's others; what is checked is the trace.
+    res = bake_scene(scene, BakeSettings(density=density, rays=rays, workers=1, skip_buried=False), show_progress=False)
     res.tracer.close()
     t = res.grid.point_table()
     order = np.argsort(t.point_id)
@@ -62,7 +65,8 @@ def test_cornell_accuracy_targets():
     scene = load_scene("builtin:cornell")
     res = bake_scene(scene, BakeSettings(density=256, rays=128), show_progress=False)
     try:
-        err = reconstruction_error(res.grid, scene, res.tracer, sample_probes(scene, 5000), rays=512)
+        # probes on the surface the boxes' bottoms press into the floor are seen from nowhere and have no points
+        err = reconstruction_error(res.grid, scene, res.tracer, visible_probes(scene, sample_probes(scene, 5000)), rays=512)
     finally:
         res.tracer.close()
     assert err["recon_mae"] < 0.02
