@@ -92,6 +92,8 @@ def _budget(args):
             raise ConfigError(f"--tick-rays must divide --rays ({args.rays}): each round traces one slice of the "
                               f"target ray set, got {args.tick_rays}")
         b.round_rays = args.tick_rays
+    elif args.rays >= 1:  # the default round, or the largest divisor of --rays below it
+        b.round_rays = max(d for d in range(1, min(b.round_rays, args.rays) + 1) if args.rays % d == 0)
     return b
 
 

@@ -200,3 +200,17 @@ def test_kept_history_blends_until_as_many_fresh_rays_have_come():
     assert code[0] == 0
     q.add(ids, np.array([0.0]), 8, 4.0)
     assert len(q.waiting(np.ones(1, bool))) == 0
+
+
+@pytest.mark.parametrize("rays, tick_rays, round_rays", [(128, None, 8), (12, None, 6), (7, None, 7), (5, None, 5),
+                                                         (32, 4, 4)])
+def test_serve_rounds_divide_the_target_rays(rays, tick_rays, round_rays):
+    """Without --tick-rays a round is the default 8 rays or the largest divisor of --rays below it."""
+    import argparse
+
+    from psao_server.serve_cli import _budget
+
+    args = argparse.Namespace(tick_hz=60.0, tick_budget_ms=None, tick_rays=tick_rays, rays=rays)
+    b = _budget(args)
+    assert b.round_rays == round_rays
+    TickSettings(rays=rays, budget=b).check()
