@@ -1,8 +1,10 @@
 """Sans-I/O protocol state machines for both ends (in the style of websockets' protocol.py).
 
 A session turns one received websocket message (bytes) into one event, and messages to send into
-bytes; it owns the connection's codec state (the zstd stream) and checks that messages come in an order
-the protocol allows. It does no I/O, so it is tested without sockets; the asyncio server and client
+bytes; it owns the connection's codec state (its own zstd stream) and checks that messages come in an
+order the protocol allows. A `SharedStream` encodes an Update once for many server sessions: a session
+takes its bytes (`ServerSession.shared`) and from then on is on that stream until it sends a message of
+its own again, which starts its own stream anew (protocol.codecs: a message that begins a frame). It does no I/O, so it is tested without sockets; the asyncio server and client
 are thin loops around it.
 
 Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
@@ -23,6 +25,7 @@ import numpy as np
 
 from . import messages as m
 from .codecs import (
+    CONNECTION_ZSTD,
     PAPER_ZSTD,
     Codec,
     FrameCodec,
@@ -32,6 +35,7 @@ from .codecs import (
     codec_mask,
     codecs_from_mask,
     decompress_frame,
+    starts_frame,
 )
 from .errors import (CodecError, EditError, HeaderError, LimitError, PayloadError, ProtocolError, RefusedError,
                      RemoteError, UnexpectedMessage)
@@ -118,8 +122,9 @@ class ServerConfig:
     edit_token: str = ""  # "" refuses every SceneEdit; else a Hello with this token may edit (and view)
     codec: Codec = Codec.ZSTD_STREAM  # preferred payload codec for Snapshot and Update
     layout: Layout = Layout.PACKED
-    zstd: ZstdSettings = PAPER_ZSTD
+    zstd: ZstdSettings = PAPER_ZSTD  # per-message zstd, and the stream shared by many connections
     limits: Limits = DEFAULT_LIMITS
+    connection_zstd: ZstdSettings = CONNECTION_ZSTD  # a connection's own zstd stream
 
     def codec_preference(self) -> list[Codec]:
         prefs = [self.codec]
@@ -164,7 +169,8 @@ class ServerSession:
         self.codec: Codec | None = None
         self.traffic = Traffic()
         self.may_edit = False
-        self._compress = None
+        self._compress = None  # FrameCodec, or StreamCompressor (None while on a shared stream)
+        self.on_shared = False  # the last grid message came from a SharedStream
         self.scene_requests = 0
 
     # ------------------------------------------------------------------ inbound
@@ -237,7 +243,8 @@ class ServerSession:
         if codec is None:
             raise CodecError(f"no common codec: client accepts {sorted(c.name for c in accepted)}")
         self.codec = codec
-        self._compress = StreamCompressor(cfg.zstd) if codec == Codec.ZSTD_STREAM else FrameCodec(codec, cfg.zstd)
+        self._compress = (StreamCompressor(cfg.connection_zstd) if codec == Codec.ZSTD_STREAM
+                          else FrameCodec(codec, cfg.zstd))
         self.state = ServerState.OPEN
         self.may_edit = may_edit
         return HelloAccepted(hello, codec, may_edit)
@@ -246,9 +253,23 @@ class ServerSession:
     def _grid_message(self, msg: m.Snapshot | m.Update) -> bytes:
         # Only the handshake gates sending: a Bye received meanwhile (on another thread) closes the inbound
         # side, and an Update already being encoded may still go out; the peer ignores it.
-        if self._compress is None:
+        if self.codec is None:
             raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the handshake")
+        if self._compress is None:  # back from a shared stream: a fresh stream of our own starts a frame
+            self._compress = StreamCompressor(self.config.connection_zstd)
+        self.on_shared = False
         return self.traffic.sent(m.frame(msg.TYPE, self.codec, self._compress.compress(msg.serialize())))
+
+    def shared(self, data: bytes) -> bytes:
+        """An Update that a SharedStream encoded for many connections, sent on this one. A connection joins
+        a shared stream only at a message that starts a frame; its own stream is dropped meanwhile."""
+        if self.codec != Codec.ZSTD_STREAM:
+            raise UnexpectedMessage("only a zstd-stream connection takes a shared stream")
+        if not self.on_shared and not starts_frame(memoryview(data)[HEADER_SIZE:]):
+            raise UnexpectedMessage("a connection joins a shared stream only where the stream starts a frame")
+        self.on_shared = True
+        self._compress = None
+        return self.traffic.sent(data)
 
     def welcome(self, connection_id: int, tick_hz: float, n_buckets: int, cell_capacity: int,
                 instances: np.ndarray) -> bytes:
@@ -282,6 +303,29 @@ class ServerSession:
         self.state = ServerState.CLOSED
         data, code = error_reply(exc)
         return self.traffic.sent(data), code
+
+
+class SharedStream:
+    """Updates encoded once for every connection on this stream (ZSTD_STREAM with the config's zstd
+    settings). A connection takes each message through ServerSession.shared, from a message that starts
+    a frame (the first one, or the first after restart()) on, in order, without a gap."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        self._compress = StreamCompressor(config.zstd)
+        self.messages = 0
+        self.frame_start = True  # the next message starts a frame
+
+    def restart(self) -> None:
+        """The next message starts a frame, so connections may join at it."""
+        self._compress.restart()
+        self.frame_start = True
+
+    def update(self, tick: int, server_time: float, delta: GridDelta) -> bytes:
+        msg = m.Update(tick, server_time, delta, self.config.layout)
+        self.messages += 1
+        self.frame_start = False
+        return m.frame(msg.TYPE, Codec.ZSTD_STREAM, self._compress.compress(msg.serialize()))
 
 
 # -------------------------------------------------------------------------------------------------- client

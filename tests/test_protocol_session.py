@@ -19,6 +19,7 @@ from protocol.session import (
     SceneEditReceived,
     ServerConfig,
     ServerSession,
+    SharedStream,
     SnapshotReceived,
     UnexpectedMessage,
     UpdateReceived,
@@ -329,3 +330,61 @@ def test_claims_of_a_tiny_message_allocate_nothing_big():
     mirror.apply(client.receive(data).snapshot.delta)
     mirror.complete()
     assert_mirror_equals(mirror, g)
+
+
+def _joined(g: SyntheticGrid, k: int):
+    """A zstd-stream connection with its snapshot (one chunk, its own stream): (server, client, mirror)."""
+    server, client, _ = handshake(codecs={Codec.ZSTD_STREAM})
+    mirror = Mirror.from_welcome(client.receive(server.welcome(k, 60.0, len(g.buckets), len(g.cells),
+                                                               g.instances)).welcome)
+    b_all = np.flatnonzero(np.any(g.buckets != EMPTY, axis=(1, 2))).astype(np.uint32)
+    c_all = np.flatnonzero(np.any(g.cells != FREE_CELL, axis=1)).astype(np.uint32)
+    mirror.apply(client.receive(server.snapshot(0, 1, g.delta(b_all, c_all, np.arange(3)))).snapshot.delta)
+    return server, client, mirror
+
+
+def test_shared_stream_serves_connections_joining_leaving_and_rejoining():
+    """One SharedStream encodes each Update once; connections join it where it starts a frame, leave it for
+    their own stream and come back, and every mirror stays exact through every switch."""
+    rng = np.random.default_rng(5)
+    g = SyntheticGrid(rng)
+    shared = SharedStream(ServerConfig(HASH))
+    ends = [_joined(g, k) for k in range(3)]
+    on_shared = [False, False, False]
+    schedule = {0: {0: True}, 6: {1: True}, 12: {2: True, 0: False}, 20: {1: False}, 27: {0: True, 1: True}}
+    decoders_restarted = 0
+    for tick in range(34):
+        b, c = g.edit(int(rng.integers(1, 30)))
+        joining = {k for k, on in schedule.get(tick, {}).items() if on and not on_shared[k]}
+        for k, on in schedule.get(tick, {}).items():
+            on_shared[k] = on
+        if joining:
+            shared.restart()
+        data = shared.update(tick, tick / 60, g.delta(b, c, np.arange(3))) if any(on_shared) else None
+        for k, (server, client, mirror) in enumerate(ends):
+            if on_shared[k]:
+                msg = server.shared(data)
+                assert msg is data  # the same bytes for every member: encoded once
+            else:
+                msg = server.update(tick, tick / 60, g.delta(b, c, np.arange(3)))
+            mirror.apply(client.receive(msg).update.delta)
+            assert_mirror_equals(mirror, g)
+    decoders_restarted = sum(client._stream.restarts for _, client, _ in ends)
+    assert decoders_restarted >= 6  # every switch between streams started a frame
+    assert shared.messages == 34
+
+
+def test_a_connection_joins_a_shared_stream_only_where_a_frame_starts():
+    rng = np.random.default_rng(6)
+    g = SyntheticGrid(rng)
+    shared = SharedStream(ServerConfig(HASH))
+    server, client, mirror = _joined(g, 1)
+    b, c = g.edit(10)
+    shared.update(0, 0.0, g.delta(b, c, np.arange(3)))  # the stream is under way
+    b, c = g.edit(10)
+    with pytest.raises(UnexpectedMessage, match="starts a frame"):
+        server.shared(shared.update(1, 0.1, g.delta(b, c, np.arange(3))))
+    frame_server, *_ = handshake(codecs={Codec.ZSTD}, server_codec=Codec.ZSTD)
+    shared.restart()
+    with pytest.raises(UnexpectedMessage, match="zstd-stream"):
+        frame_server.shared(shared.update(2, 0.2, g.delta(b, c, np.arange(3))))

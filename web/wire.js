@@ -246,6 +246,9 @@ export function codecMask(names) {
   return mask;
 }
 
+const ZSTD_FRAME_MAGIC = [0x28, 0xb5, 0x2f, 0xfd];
+const startsFrame = (b) => b.length >= 4 && ZSTD_FRAME_MAGIC.every((x, i) => b[i] === x);
+
 // Client end of one connection (a reconnect starts a new one); receive(bytes) -> event object.
 // codecs: names to offer (PAGE_CODECS order); version: the protocol version it speaks (tests only).
 export class ClientSession {
@@ -276,6 +279,8 @@ export class ClientSession {
     }
     if (codec === C.Codec.ZSTD_STREAM) {
       if (!this.stream) throw new ProtocolError("zstd-stream payload on a connection that did not negotiate it");
+      // A payload that begins a zstd frame starts the stream anew (the server switched encoders).
+      if (this.streamMessages++ > 0 && startsFrame(body)) this.stream = new Decompress((chunk) => this.streamOut.push(chunk));
       this.streamOut = [];
       this.stream.push(body);
       let n = 0;
@@ -379,7 +384,10 @@ export class ClientSession {
     p.done();
     if (!equalBytes(hash, this.sceneHash)) throw new RemoteError(C.ErrorCode.SCENE_MISMATCH, "Welcome names another scene");
     if (!(this.offered & (1 << w.codec))) throw new ProtocolError(`server chose codec ${w.codec}, not offered`);
-    if (w.codec === C.Codec.ZSTD_STREAM) this.stream = new Decompress((chunk) => this.streamOut.push(chunk));
+    if (w.codec === C.Codec.ZSTD_STREAM) {
+      this.stream = new Decompress((chunk) => this.streamOut.push(chunk));
+      this.streamMessages = 0;
+    }
     this.state = State.SNAPSHOT;
     return { kind: "welcome", welcome: w };
   }
