@@ -77,7 +77,7 @@ class MirrorClient:
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
                  limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
-                 tls_ca: Path | None = None):
+                 tls_ca: Path | None = None, digest_every: int = 1):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -88,6 +88,7 @@ class MirrorClient:
         self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
+        self.digest_every = digest_every  # log every k-th Snapshot/Update digest (each hashes the whole mirror)
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
         self.camera_period = 1.0 / camera_hz
@@ -177,7 +178,8 @@ class MirrorClient:
                     if isinstance(event, SnapshotReceived) and event.complete and self.on_frame is not None:
                         await _cancel(renders)
                         renders = asyncio.create_task(self._render_frames(ws, session, frames))
-                    if digests and isinstance(event, (SnapshotReceived, UpdateReceived)):
+                    if (digests and isinstance(event, (SnapshotReceived, UpdateReceived))
+                            and seq % self.digest_every == 0):
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                                   "digest": self.mirror.digest()}) + "\n")
                     seq += 1

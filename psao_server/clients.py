@@ -1,15 +1,18 @@
 """Per-connection streaming state: pending dirty sets, the snapshot plan, what each client was sent.
 
-DESIGN.md, server tick step 6: every tick ORs the grid's dirty buckets and cells into every client's
-pending sets; a send drains a client's pending sets (all of them, until view culling exists, and at most
-one message's worth) and reads the grid's content at that moment. Nothing is dropped and nothing is
-queued twice: a client that is slow to read simply has more pending the next time, and receives the
-latest content of everything it missed.
+DESIGN.md, server tick step 6: a tick's dirty buckets and cells go to each client either as its share
+of an Update encoded once for many (psao_server.fanout: the client's `outbox`) or into its pending sets;
+a send of its own drains the pending buckets and the pending cells inside the client's extended view (at
+most one message's worth) and reads the grid's content at that moment; cells outside the view stay
+pending until they enter it. Nothing is dropped and nothing is queued twice: a client that is slow to
+read simply has more pending the next time, and receives the latest content of everything it missed.
 """
 from __future__ import annotations
 
 import asyncio
 import itertools
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,9 +84,17 @@ class Client:
     sent_transforms: np.ndarray | None = None  # last transforms sent; None before the first message
     camera: tuple[np.ndarray, np.ndarray] | None = None  # (view, projection) last received
     wake: asyncio.Event = field(default_factory=asyncio.Event)
+    stream_codec: bool = True  # the connection's codec is zstd-stream: it may take a shared stream
+    streaming: bool = False  # the snapshot has been sent: Updates may follow
+    shared: bool = False  # on the shared stream: its Updates come through `outbox` only
+    busy: bool = False  # its sender is building or sending an Update of its own
+    outbox: deque = field(default_factory=deque)  # shared Update bytes waiting to be sent, in order
+    assigned: int = 0  # messages made for this connection so far (Welcome is message 0)
     messages_sent: int = 0
     updates_sent: int = 0
     bytes_sent: int = 0
+    _planes_of: tuple | None = None  # the camera the cached planes belong to
+    _planes: np.ndarray | None = None
 
     def __post_init__(self):
         self.pending_buckets = np.zeros(self.n_buckets, dtype=bool)
@@ -107,11 +118,15 @@ class Client:
         self.pending_buckets[bucket_ids] = False
         self.pending_cells[cell_slots] = False
 
-    def take_pending(self, limits: Limits, capacity: int) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Drain at most one message's worth: (bucket ids, cell slots, everything drained)."""
+    def take_pending(self, limits: Limits, capacity: int,
+                     in_view: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Drain at most one message's worth: (bucket ids, cell slots, everything drained). `in_view`
+        (cell slots -> bool per slot) keeps the cells outside the client's view pending."""
         self._fit(capacity)
         b = np.flatnonzero(self.pending_buckets)
         c = np.flatnonzero(self.pending_cells)
+        if in_view is not None and len(c):
+            c = c[in_view(c)]
         b, c = b[: limits.max_buckets_per_message], c[: limits.max_cells_per_message]
         self.pending_buckets[b] = False
         self.pending_cells[c] = False
@@ -134,6 +149,17 @@ class Client:
     def pending_anything(self) -> bool:
         return bool(self.pending_buckets.any() or self.pending_cells.any())
 
+    def view_planes(self, make: Callable[[tuple], np.ndarray | None]) -> np.ndarray | None:
+        """The extended frustum of the last camera (`make(camera)`), kept until the camera changes."""
+        if self._planes_of is not self.camera:
+            self._planes_of, self._planes = self.camera, make(self.camera)
+        return self._planes
+
+    def next_seq(self) -> int:
+        """The index of the message being made for this connection."""
+        self.assigned += 1
+        return self.assigned - 1
+
     def sent(self, data: bytes) -> None:
         self.messages_sent += 1
         self.bytes_sent += len(data)
@@ -150,11 +176,6 @@ class Registry:
 
     def remove(self, client: Client) -> None:
         self.clients.pop(client.id, None)
-
-    def broadcast(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
-        """A tick's dirty sets go to every client; every client's sender wakes up (transforms may move)."""
-        for c in self.clients.values():
-            c.mark(bucket_ids, cell_slots, capacity)
 
     def wake_all(self) -> None:
         for c in self.clients.values():

@@ -18,7 +18,7 @@ from psao.options import default
 from psao_server.bake_cli import add_bake_arguments, bake_settings
 from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError
-from psao_server.settings import BakeSettings, ServeSettings, TickSettings
+from psao_server.settings import BakeSettings, FanoutSettings, ServeSettings, TickSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="open connections at most; more are refused with SERVER_FULL")
     p.add_argument("--send-buffer", type=int, default=default(ServeSettings, "send_buffer"), metavar="BYTES",
                    help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
+    p.add_argument("--no-cull", action="store_true",
+                   help="send every client every change; by default a client gets the cells in its extended view "
+                        "and the rest when they enter it")
     p.add_argument("--animate", action="store_true",
                    help="run the server tick: animate the scene, re-trace the points it affects in the clients' views")
     p.add_argument("--tick-rays", type=int, default=None, metavar="R",
@@ -183,7 +186,8 @@ def _settings(args):
                       layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
                       allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
                       allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key,
-                      digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer)
+                      digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer,
+                      fanout=FanoutSettings(cull=not args.no_cull))
     s.check()
     return s
 

@@ -1,11 +1,13 @@
 """The websocket service: a tick loop that edits the grid, and one sender and one reader per client.
 
 Thin by design: protocol decisions live in protocol.session (sans-I/O), streaming state in
-psao_server.clients. The service knows nothing about what a tick does: it calls `tick(grid, t)` at the
-tick rate (psao_server.tick.ServerTick, or a test hook of psao_server.testhook), takes the grid's
-dirty sets and hands them to every client. Each client's sender sends the snapshot, then waits for work
-and sends one Update at a time: while a message is being written (a slow reader), ticks only accumulate
-in that client's pending sets, so its queue never holds more than one message.
+psao_server.clients, who gets what in psao_server.fanout. The service knows nothing about what a tick
+does: it calls `tick(grid, t)` at the tick rate (psao_server.tick.ServerTick, or a test hook of
+psao_server.testhook), takes the grid's dirty sets and hands them to the fan-out, which encodes one
+shared Update for the clients in sync and marks the changes pending for the others. Each client's sender
+sends the snapshot, then the shared Updates in its outbox, or (off the shared stream) one Update of its
+own at a time with what is pending in its view: while a message is being written (a slow reader), ticks
+only accumulate in that client's pending sets (or, on the shared stream, at most a few in its outbox).
 
 The same port answers plain HTTP GETs with the web client's page (psao_server.webpage, an allow-list);
 before Hello a connection may ask for the scene (SceneRequest), answered from `scene_blob`.
@@ -47,6 +49,7 @@ from protocol.updates import state_digest
 from . import webpage
 from .clients import Client, Registry, SnapshotPlan, read_delta
 from .errors import ConfigError
+from .fanout import Fanout
 from .settings import ServeSettings
 from .tick_summary import TickSummary
 
@@ -117,6 +120,8 @@ class Service:
         self.config = ServerConfig(scene_hash, settings.token, settings.edit_token if settings.allow_edits else "",
                                    settings.codec, settings.layout, settings.zstd, settings.limits)
         self._cameras_changed_since_tick = False
+        self.fanout = Fanout(self.config, settings.fanout)
+        self._digest_of: tuple | None = None  # (tick, edits) and the state digest then
         self._open = 0  # connections being served, handshake included
         self.registry = Registry()
         self.counters = Counters()
@@ -189,7 +194,7 @@ class Service:
             self.tick += 1
             self.counters.ticks += 1
             b, c = self.grid.take_dirty()
-            self.registry.broadcast(b, c, len(self.grid.cells))
+            await self._fan_out(b, c)
             self.counters.tick_seconds += time.perf_counter() - t0
             self._record_tick(stats, len(b), len(c), time.perf_counter() - t0)
             now = time.perf_counter()
@@ -198,6 +203,22 @@ class Service:
                 last_stats = now
             next_at = max(next_at + period, now)  # a late tick is not made up for
             await asyncio.sleep(next_at - now)
+
+    async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:
+        """The tick's changes: one Update encoded once for the clients on the shared stream, pending for the rest."""
+        share = self.fanout.plan(list(self.registry), self.grid, bucket_ids, cell_slots, self.transforms(), self.tick,
+                                 self.time, time.perf_counter())
+        if share is None:
+            return
+        digest = self._state_digest() if self._digests else None  # the state the Update brings them to
+        t_encode = time.perf_counter()
+        data = await asyncio.to_thread(share.encode)
+        self.counters.encode_seconds += time.perf_counter() - t_encode
+        for client, seq in self.fanout.deliver(share, data):
+            self.counters.cells_sent += len(cell_slots)
+            self.counters.buckets_sent += len(bucket_ids)
+            if digest is not None and not client.pending_anything():
+                self._write_digest(client, seq, digest)
 
     def _record_tick(self, stats, buckets_dirty: int, cells_dirty: int, seconds: float) -> None:
         """Keep the tick's own statistics (the server tick's TickStats) for the live line and the jsonl.
@@ -212,7 +233,10 @@ class Service:
         record.update(service_tick=self.tick, time=self.time, buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
                       seconds_tick=seconds, bytes_sent=since["bytes_out"], cells_sent=since["cells_sent"],
                       buckets_sent=since["buckets_sent"], seconds_encode=since["seconds_encode"],
-                      bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry))
+                      bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry),
+                      shared_members=sum(cl.shared for cl in self.registry),
+                      shared_updates=self.fanout.counters.shared_updates,
+                      shared_sends=self.fanout.counters.shared_sends)
         self.last_tick_stats = record
         self.summary.add(record)
         if self._stats_out:
@@ -235,8 +259,10 @@ class Service:
             if s.get("budget_ms"):  # the time-budgeted tick: its queue and how much of its budget it used
                 work += (f" | queue {s['queue']} (oldest {s['queue_oldest_ms']:.0f} ms), budget "
                          f"{s['budget_ms']:.1f} ms, used {100 * s['budget_used']:.0f}%")
-        log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients | out %.1f kB/s | most pending cells %d%s",
-                 self.tick, ticks, 100 * busy, len(self.registry), rate / 1e3, pending, work)
+        shared = sum(cl.shared for cl in self.registry)
+        log.info("tick %d | %.1f ticks/s | tick load %.0f%% | %d clients (%d on the shared stream) | out %.1f kB/s | "
+                 "most pending cells %d%s", self.tick, ticks, 100 * busy, len(self.registry), shared, rate / 1e3,
+                 pending, work)
         c.last = {"bytes": c.bytes_out, "ticks": c.ticks, "tick_s": c.tick_seconds, "encode_s": c.encode_seconds}
 
     # ---------------------------------------------------------------- connections
@@ -279,7 +305,8 @@ class Service:
             if not self._too_big(exc, f"connection from {peer}"):
                 log.info("connection from %s closed before Hello", peer)
             return
-        client = Client(peer, len(self.grid.buckets), len(self.grid.cells))
+        client = Client(peer, len(self.grid.buckets), len(self.grid.cells),
+                        stream_codec=event.codec == Codec.ZSTD_STREAM)
         self._connections.add(ws)
         try:
             await self._serve_client(ws, session, client, event.codec)
@@ -386,7 +413,7 @@ class Service:
             if isinstance(event, CameraReceived):
                 client.camera = (event.camera.view, event.camera.projection)
                 self.counters.cameras += 1
-                self._cameras_changed()
+                self._cameras_changed()  # (cells kept back for it are looked at again at the next tick)
             elif isinstance(event, SceneEditReceived):  # the session let through only allowed, sane edits
                 self.on_scene_edit(event.edit.instance, event.edit.transform)
                 self.counters.edits += 1
@@ -411,15 +438,21 @@ class Service:
         self.counters.bytes_out += len(data)
         self.counters.messages_out += 1
 
-    def _log_digest(self, client: Client, seq: int | None = None) -> None:
-        """After the message `seq` (default: the next one sent), which leaves nothing pending, the client's
-        mirror must equal this state."""
-        if self._digests:
+    def _state_digest(self) -> str:
+        """Digest of the state now (grid and transforms); computed once per tick and edit, not per client."""
+        key = (self.tick, self.counters.edits)
+        if self._digest_of is None or self._digest_of[0] != key:
             g = self.grid
-            digest = state_digest(g.instances, g.buckets, g.cells, self.transforms())
-            seq = client.messages_sent if seq is None else seq
-            self._digests.write(json.dumps({"conn": client.id, "seq": seq, "tick": self.tick,
-                                            "digest": digest}) + "\n")
+            self._digest_of = (key, state_digest(g.instances, g.buckets, g.cells, self.transforms()))
+        return self._digest_of[1]
+
+    def _log_digest(self, client: Client, seq: int) -> None:
+        """After the message `seq`, which leaves nothing pending, the client's mirror must equal this state."""
+        if self._digests:
+            self._write_digest(client, seq, self._state_digest())
+
+    def _write_digest(self, client: Client, seq: int, digest: str) -> None:
+        self._digests.write(json.dumps({"conn": client.id, "seq": seq, "tick": self.tick, "digest": digest}) + "\n")
 
     async def _write(self, ws, session: ServerSession, client: Client) -> None:
         grid, limits = self.grid, self.settings.limits
@@ -446,27 +479,46 @@ class Service:
                 await self._send(ws, client, data)
         finally:
             upcoming.cancel()
+        client.assigned = len(plan) + 1
+        client.streaming = True
         while True:
+            if client.outbox:  # shared Updates, in order, before anything of its own
+                await self._send(ws, client, session.shared(client.outbox.popleft()))
+                client.updates_sent += 1
+                self.counters.updates_out += 1
+                continue
             await client.wake.wait()
             client.wake.clear()
-            tids = client.changed_transforms(self.transforms())
-            b, c, drained = client.take_pending(limits, len(grid.cells))
-            if not (len(b) or len(c) or len(tids)):
-                continue
-            tids = client.read_transforms(self.transforms())
-            delta = read_delta(grid, self.transforms(), tids, b, c)
-            if drained:
-                self._log_digest(client)
-            else:
-                client.wake.set()  # more than one message's worth: go again right away
-            t_encode = time.perf_counter()
-            data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
-            self.counters.encode_seconds += time.perf_counter() - t_encode
-            self.counters.cells_sent += len(c)
-            self.counters.buckets_sent += len(b)
-            await self._send(ws, client, data)
-            client.updates_sent += 1
-            self.counters.updates_out += 1
+            if not (client.shared or client.outbox):
+                client.busy = True
+                try:
+                    await self._send_own_update(ws, session, client)
+                finally:
+                    client.busy = False
+
+    async def _send_own_update(self, ws, session: ServerSession, client: Client) -> None:
+        """One Update of this client's own: pending buckets, pending cells in its view, moved transforms."""
+        grid, limits = self.grid, self.settings.limits
+        transforms = self.transforms()
+        tids = client.changed_transforms(transforms)
+        b, c, drained = client.take_pending(limits, len(grid.cells), self.fanout.in_view(client, grid, transforms))
+        if not (len(b) or len(c) or len(tids)):
+            return
+        tids = client.read_transforms(transforms)
+        delta = read_delta(grid, transforms, tids, b, c)
+        seq = client.next_seq()
+        if drained:
+            self._log_digest(client, seq)
+        if len(b) == limits.max_buckets_per_message or len(c) == limits.max_cells_per_message:
+            client.wake.set()  # more than one message's worth: go again right away
+        t_encode = time.perf_counter()
+        data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
+        self.counters.encode_seconds += time.perf_counter() - t_encode
+        self.counters.cells_sent += len(c)
+        self.counters.buckets_sent += len(b)
+        await self._send(ws, client, data)
+        client.updates_sent += 1
+        self.counters.updates_out += 1
 
 
 def tls_context(cert: Path, key: Path) -> ssl.SSLContext:

@@ -173,6 +173,16 @@ class ViewSettings:
 
 
 @dataclass
+class FanoutSettings:
+    """Who is sent what (psao_server.fanout): the shared stream and per-client culling of sends."""
+
+    cull: bool = True  # send each client only the cells in its extended view; the rest wait until they enter it
+    view: ViewSettings = field(default_factory=ViewSettings)  # the extended view (the tick's selection uses the same)
+    join_interval: float = 1.0  # seconds between restarts of the shared stream for clients waiting to join
+    max_queued: int = 4  # shared Updates waiting in a client's outbox before it leaves the shared stream
+
+
+@dataclass
 class TickSettings:
     threshold: int = 2  # AO codes (of 255): a traced point is written only when |new - stored| > threshold
     rays: int = 32  # rays per traced point
@@ -233,6 +243,7 @@ class ServeSettings:
     stats_interval: float = 1.0  # seconds between live statistics lines
     digest_log: Path | None = None  # jsonl of state digests after every message that drained everything
     stats_json: Path | None = None  # jsonl: one record per tick (the tick's own statistics, dirty rows, bytes)
+    fanout: FanoutSettings = field(default_factory=FanoutSettings)  # shared stream and per-client culling
 
     def check(self) -> None:
         if not 5.0 <= self.tick_hz <= 60.0:

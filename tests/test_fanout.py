@@ -1,0 +1,176 @@
+"""Compress once, send to many, and per-client culling of sends: the service in-process with real clients
+over loopback websockets. Every wait is for an event or a count, never for a duration."""
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+
+from protocol.gridformat import poisson_radius
+from protocol.updates import state_digest
+from psao_client.connection import MirrorClient
+from psao_scene.camera import look_at, perspective
+from psao_server.grid import Grid
+from psao_server.service import Service
+from psao_server.settings import FanoutSettings, ServeSettings
+from psao_server.testhook import RandomEdits
+from test_bad_input_server import HASH, make_grid
+
+PATIENCE = 120.0  # seconds before a wait for an event is a failure (a loaded machine is slow, not wrong)
+
+
+def read_jsonl(path):
+    return [json.loads(line) for line in open(path)] if path.exists() else []
+
+
+async def until(condition, what: str) -> None:
+    async def poll():
+        while not condition():
+            await asyncio.sleep(0.01)
+    try:
+        await asyncio.wait_for(poll(), PATIENCE)
+    except asyncio.TimeoutError:
+        raise AssertionError(f"never happened: {what}") from None
+
+
+async def start(grid, settings: ServeSettings, tick):
+    service = Service(grid, HASH, settings, tick=tick)
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
+    await ready.wait()
+    return service, stop, task, f"ws://127.0.0.1:{service.port}"
+
+
+def assert_digests_equal(tmp_path, names, at_least):
+    server = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(tmp_path / "server.jsonl")}
+    for name in names:
+        mine = read_jsonl(tmp_path / f"{name}.jsonl")
+        both = [d for d in mine if (d["conn"], d["seq"]) in server]
+        assert len(both) >= at_least, name
+        assert all(server[(d["conn"], d["seq"])] == d["digest"] for d in both), name
+
+
+def test_clients_joining_at_different_times_and_a_slow_reader_share_updates_and_mirror_exactly(tmp_path):
+    """Four clients join one after another while ticks edit the grid; then the fourth reads slowly. The
+    in-sync ones take shared Updates (one encode for all), the slow one leaves the shared stream and
+    catches up on its own; every logged state matches its mirror bit for bit."""
+
+    async def scenario():
+        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9, digest_log=tmp_path / "server.jsonl",
+                                 send_buffer=4096, fanout=FanoutSettings(join_interval=0.0, max_queued=2))
+        service, stop, task, url = await start(make_grid(3000), settings, RandomEdits(150))
+        runs, clients = [], []
+        try:
+            for k in range(3):
+                c = MirrorClient(url, HASH, digest_log=tmp_path / f"c{k}.jsonl")
+                clients.append(c)
+                runs.append(asyncio.create_task(c.run(frames=120)))
+                await until(lambda: service.fanout.counters.joins >= k + 1, f"client {k} joins the shared stream")
+            slow = MirrorClient(url, HASH, digest_log=tmp_path / "slow.jsonl", recv_buffer=4096)
+            runs.append(asyncio.create_task(slow.run(frames=400)))
+            await until(lambda: service.fanout.counters.joins >= 4, "the fourth client joins")
+            slow.read_delay = 0.2  # now it reads slowly: its outbox fills up
+            await until(lambda: service.fanout.counters.leaves_slow >= 1, "a slow reader leaves the shared stream")
+            slow.read_delay = 0.0  # and catches up on its own stream
+            stats = await asyncio.wait_for(asyncio.gather(*runs), PATIENCE)
+        finally:
+            stop.set()
+            await task
+        return service, stats
+
+    service, stats = asyncio.run(scenario())
+    f = service.fanout.counters
+    assert f.shared_sends > f.shared_updates >= 60  # updates went to several clients from one encode each
+    assert all(s.reconnects == 0 for s in stats)
+    assert_digests_equal(tmp_path, ["c0", "c1", "c2"], at_least=60)
+    assert_digests_equal(tmp_path, ["slow"], at_least=1)
+
+
+class TwoSides:
+    """Points on the floor at x < -15 and at x > 15; `ticks` ticks rewrite the AO of points on both sides."""
+
+    def __init__(self, ticks: int, seed: int = 0):
+        self.ticks = ticks
+        self.done = 0
+        self.rng = np.random.default_rng(seed)
+
+    @staticmethod
+    def grid(n: int = 4000) -> Grid:
+        rng = np.random.default_rng(1)
+        pos = np.column_stack([rng.uniform(15, 20, n), np.zeros(n), rng.uniform(-2.5, 2.5, n)])
+        pos[: n // 2, 0] *= -1
+        nrm = np.tile(np.float32([0, 1, 0]), (n, 1))
+        return Grid.build([(pos, nrm, poisson_radius(50.0, n), 0)])
+
+    def __call__(self, grid: Grid, t: float) -> None:
+        if self.done >= self.ticks:
+            return
+        self.done += 1
+        table = grid.point_table()
+        pick = self.rng.choice(len(table), 200, replace=False)
+        grid.set_ao(table.slot[pick], table.index[pick], self.rng.integers(0, 256, len(pick)).astype(np.uint32))
+
+
+def camera_towards(x: float):
+    return look_at((0.0, 2.0, 0.0), (x, 0.0, 0.0)), perspective(60.0, 16 / 9, 0.1, 100.0)
+
+
+def test_cells_outside_a_clients_view_wait_until_it_turns_around(tmp_path):
+    """A client looking at -x receives the changes at -x only; what changed at +x stays pending (its
+    mirror still holds the old cells there, every other row equals the server's); once it turns around
+    it receives them and its mirror equals the server's whole state."""
+    hook = TwoSides(ticks=0)
+
+    async def scenario():
+        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9)
+        service, stop, task, url = await start(TwoSides.grid(), settings, hook)
+        looking = {"x": -10.0}
+        client = MirrorClient(url, HASH, camera=lambda t: camera_towards(looking["x"]))
+        run = asyncio.create_task(client.run())
+        try:
+            await until(lambda: client.stats.snapshot_seconds is not None and len(service.registry) == 1
+                        and next(iter(service.registry)).camera is not None, "the snapshot and a camera")
+            server_client = next(iter(service.registry))
+            hook.ticks = hook.done + 20  # the edits start once the client has the whole state and a view
+
+            def quiet():
+                return (hook.done >= hook.ticks and server_client.camera is not None and not server_client.busy
+                        and not server_client.outbox and client.stats.messages == server_client.messages_sent
+                        and not server_client.wake.is_set())
+
+            await until(quiet, "the edits sent")
+            await asyncio.sleep(0)
+            grid, mirror = service.grid, client.mirror
+            pending = np.flatnonzero(server_client.pending_cells)
+            kept = np.zeros(len(grid.cells), bool)
+            kept[pending] = True
+            left = grid.cells[pending]
+            before = dict(pending=len(pending),
+                          same_elsewhere=mirror.cells[~kept].tobytes() == grid.cells[~kept].tobytes(),
+                          buckets=mirror.buckets.tobytes() == grid.buckets.tobytes(),
+                          stale_kept=int(np.any(mirror.cells[pending] != left, axis=1).sum()),
+                          far_side=bool(len(pending)) and all(_cell_x(grid, s) > 0 for s in pending))
+            looking["x"] = 10.0
+            await until(lambda: not server_client.pending_anything() and not server_client.busy
+                        and client.stats.messages == server_client.messages_sent, "the turned client drained")
+            after = state_digest(grid.instances, grid.buckets, grid.cells, service.transforms())
+            mine = state_digest(mirror.instances, mirror.buckets, mirror.cells, mirror.transforms)
+        finally:
+            client.stop()
+            await asyncio.wait_for(run, PATIENCE)
+            stop.set()
+            await task
+        return before, after, mine
+
+    before, after, mine = asyncio.run(scenario())
+    assert before["pending"] > 50 and before["far_side"]  # the +x changes waited
+    assert before["stale_kept"] > 0  # the mirror really lacks them
+    assert before["same_elsewhere"] and before["buckets"]  # everything it was sent is exact
+    assert mine == after
+
+
+def _cell_x(grid: Grid, slot: int) -> float:
+    from psao_server.sendview import CellPlaces
+
+    return float(CellPlaces(grid, np.array([slot]), np.tile(np.eye(4), (1, 1, 1))).centres[0, 0])
