@@ -1,13 +1,15 @@
 """Many clients on one server: `python -m benchmarks.bench_clients [--counts 1,10,30,100]`.
 
 A real `psao serve builtin:courtyard --animate` process (N=64 by default); clients are the project's own
-MirrorClient (protocol code, real websockets on loopback) in one separate process (`--client-host`),
-each sending its camera at 30 Hz along the scene's camera path, shifted in time so the clients look
-in different directions. The clients join in stages (1, then 10, 30, 100 in all); at each stage, once
-every client has its snapshot, a window of `--seconds` is measured: the server's ticks/s (its own
---stats-json), updates/s per client, server CPU (share of one core) and RSS. Memory per extra client is
-the RSS growth from the 1-client stage divided by the clients added. Mirrors: each client checks its
-digest against the server's digest log (`--digest-log`) wherever both exist.
+MirrorClient (protocol code and a mirror, no renderer; real websockets on loopback), `--per-process` of
+them in each client process (`--client-host`), each sending its camera at 30 Hz along the scene's
+camera path, shifted in time so the clients look in different directions. The clients join in stages
+(1, then 10, 30, 100 in all); at each stage, once every client has its snapshot, a window of `--seconds`
+is measured: the server's ticks/s (its own --stats-json), updates/s per client, clients on the shared
+stream, server CPU (share of one core) and RSS. Memory per extra client is the RSS growth from the
+1-client stage divided by the clients added. Mirrors: each client logs the digest of every
+`--digest-every`-th message and checks it against the server's digest log (`--digest-log`) wherever
+both exist. Output: `--out`/table.md, table.json and clients.png.
 
 Verdicts: 10 clients >= 0.8x and 30 clients >= 0.6x the 1-client tick rate; every client of the last
 stage has its snapshot within 60 s of joining; RSS per extra client <= 4 MB; every compared digest equal.
@@ -41,8 +43,10 @@ def proc_stats(pid: int) -> tuple[float, int]:
 
 
 # ------------------------------------------------------------------------------------------ client host
-async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: Path, control: Path) -> None:
-    """Run MirrorClients, adding them stage by stage when `control` says so; report per stage on stdout."""
+async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: Path, control: Path, host: int,
+                      hosts: int, digest_every: int) -> None:
+    """Run the MirrorClients k with k % hosts == host, adding them stage by stage when `control` says so;
+    report per stage on stdout."""
     from protocol.session import scene_hash_bytes
     from psao_client.connection import MirrorClient, scene_camera_feed
     from psao_scene import load_scene
@@ -51,7 +55,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
     feed = scene_camera_feed(scene)
     clients: list[MirrorClient] = []
     tasks = []
-    joined: list[float] = []
+
     def said() -> tuple[int, bool]:  # the driver writes "S" (start stage S) and "Sm" (stage S measured)
         text = control.read_text().strip() if control.exists() else ""
         return (int(text.rstrip("m")), text.endswith("m")) if text.rstrip("m").isdigit() else (-1, False)
@@ -59,18 +63,21 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
     for stage, n in enumerate(counts):
         while said()[0] < stage:
             await asyncio.sleep(0.1)
-        for k in range(len(clients), n):
+        new = []
+        for k in range(counts[stage - 1] if stage else 0, n):
+            if k % hosts != host:
+                continue
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
             c = MirrorClient(url, scene_hash_bytes(scene.content_hash()), camera=lambda t, s=shift: feed(t + s),
-                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0)
+                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0, digest_every=digest_every)
             clients.append(c)
-            joined.append(time.perf_counter())
+            new.append(c)
             tasks.append(asyncio.create_task(c.run()))
         while not all(c.stats.snapshot_seconds is not None for c in clients):
             if any(t.done() for t in tasks):
                 raise RuntimeError(f"a client ended: {[t.exception() for t in tasks if t.done()][0]}")
             await asyncio.sleep(0.1)
-        snap = max(c.stats.snapshot_seconds for c in clients[-(n - (counts[stage - 1] if stage else 0)):])
+        snap = max((c.stats.snapshot_seconds for c in new), default=0.0)
         print(json.dumps({"stage": stage, "clients": n, "ready": True, "snapshot_s_max": snap,
                           "updates": [c.stats.updates for c in clients]}), flush=True)
         while said() < (stage, True):
@@ -95,19 +102,75 @@ def read_jsonl(path: Path) -> list[dict]:
     return out
 
 
+def host_lines(hosts: list[subprocess.Popen]) -> dict | None:
+    """One JSON line from every client host, merged (updates in host order); None when one has ended."""
+    parts = []
+    for h in hosts:
+        line = h.stdout.readline()
+        if not line:
+            return None
+        parts.append(json.loads(line))
+    return {"updates": [u for p in parts for u in p["updates"]], "snapshot_s_max": max(p.get("snapshot_s_max", 0.0)
+                                                                                        for p in parts)}
+
+
+def chart(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["clients"] for r in rows]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    ax[0].plot(n, [r["ticks_per_s"] for r in rows], "o-", label="server ticks/s")
+    ax[0].plot(n, [r["updates_per_s_per_client"] for r in rows], "s--", label="updates/s per client")
+    ax[0].set_ylabel("per second")
+    ax[1].plot(n, [100 * r["server_cpu"] for r in rows], "o-", label="server CPU (% of a core)")
+    ax[1].plot(n, [100 * r["clients_cpu"] for r in rows], "s--", label="client processes CPU (% of a core)")
+    ax[2].plot(n, [r["server_rss_mb"] for r in rows], "o-", label="server RSS (MB)")
+    for a in ax:
+        a.set_xscale("log")
+        a.set_xlabel("clients")
+        a.legend(fontsize=8)
+        a.grid(alpha=0.3)
+    fig.suptitle("psao serve builtin:courtyard --animate: clients sending cameras at 30 Hz")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| clients | ticks/s | updates/s per client | on the shared stream | server CPU (% of a core) | "
+           "client processes CPU | server RSS (MB) | slowest snapshot (s) |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['clients']} | {r['ticks_per_s']:.2f} | {r['updates_per_s_per_client']:.2f} | "
+                   f"{r['shared_members']:.1f} | {100 * r['server_cpu']:.0f} | {100 * r['clients_cpu']:.0f} | "
+                   f"{r['server_rss_mb']:.0f} | {r['snapshot_s_max']:.1f} |")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_clients", description=__doc__.splitlines()[0])
     p.add_argument("--counts", default="1,10,30,100")
     p.add_argument("--density", type=float, default=64.0)
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per stage")
     p.add_argument("--scene", default="builtin:courtyard")
-    p.add_argument("--client-host", nargs=4, metavar=("URL", "SCENE", "COUNTS", "DIR"), help=argparse.SUPPRESS)
+    p.add_argument("--per-process", type=int, default=25, help="clients per client process")
+    p.add_argument("--digest-every", type=int, default=8, help="clients log the digest of every k-th message")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench_clients")
+    p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "HOSTS", "EVERY"),
+                   help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.client_host:
-        url, scene, counts, d = args.client_host
-        asyncio.run(client_host(url, scene, [int(c) for c in counts.split(",")], Path(d), Path(d) / "control"))
+        url, scene, counts, d, host, hosts, every = args.client_host
+        asyncio.run(client_host(url, scene, [int(c) for c in counts.split(",")], Path(d), Path(d) / "control",
+                                int(host), int(hosts), int(every)))
         return 0
     counts = [int(c) for c in args.counts.split(",")]
+    if not counts or counts[0] < 1 or args.per_process < 1 or args.digest_every < 1:
+        print("bench_clients: error: counts, --per-process and --digest-every must be >= 1", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_clients_"))
     stats, slog = work / "stats.jsonl", work / "server_digests.jsonl"
     server = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--animate", "--density",
@@ -131,44 +194,55 @@ def main(argv: list[str] | None = None) -> int:
     threading.Thread(target=lambda: log_lines.extend(iter(server.stderr.readline, "")), daemon=True).start()
     control = work / "control"
     control.write_text("0")
-    host = subprocess.Popen([sys.executable, "-m", "benchmarks.bench_clients", "--client-host",
-                             f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work)],
-                            cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    n_hosts = -(-max(counts) // args.per_process)
+    hosts = [subprocess.Popen([sys.executable, "-m", "benchmarks.bench_clients", "--client-host",
+                               f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work), str(h), str(n_hosts),
+                               str(args.digest_every)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+             for h in range(n_hosts)]
+    print(f"{n_hosts} client processes of up to {args.per_process} clients each (MirrorClient: protocol and mirror, "
+          f"no renderer)", flush=True)
     rows = []
     try:
         for stage, n in enumerate(counts):
             control.write_text(str(stage))
-            line = host.stdout.readline()
-            if not line:  # the client host ended (its error is on stderr): judge what was measured
-                print(f"bench_clients: the client process ended during the {n}-client stage", flush=True)
+            ready = host_lines(hosts)
+            if ready is None:  # a client host ended (its error is on stderr): judge what was measured
+                print(f"bench_clients: a client process ended during the {n}-client stage", flush=True)
                 rows.append({"clients": n, "ticks_per_s": 0.0, "updates_per_s_per_client": 0.0, "server_cpu": 0.0,
+                             "clients_cpu": 0.0, "shared_members": 0.0,
                              "server_rss_mb": proc_stats(server.pid)[1] / 2**20, "snapshot_s_max": float("inf")})
                 break
-            ready = json.loads(line)
             t0 = time.time()
             recs0 = read_jsonl(stats)
             cpu0, _ = proc_stats(server.pid)
+            ccpu0 = sum(proc_stats(h.pid)[0] for h in hosts)
             time.sleep(args.seconds)
             recs1 = read_jsonl(stats)
             cpu1, rss = proc_stats(server.pid)
+            ccpu1 = sum(proc_stats(h.pid)[0] for h in hosts)
             wall = time.time() - t0
             control.write_text(f"{stage}m")
-            measured = json.loads(host.stdout.readline())
+            measured = host_lines(hosts)
             a, b = recs0[-1], recs1[-1]
+            window = [r for r in recs1 if a["service_tick"] < r["service_tick"] <= b["service_tick"]]
             ticks = (b["service_tick"] - a["service_tick"]) / max(b["time"] - a["time"], 1e-9)
             ups = [(u1 - u0) / wall for u0, u1 in zip(ready["updates"], measured["updates"])]
             rows.append({"clients": n, "ticks_per_s": ticks, "updates_per_s_per_client": sum(ups) / len(ups),
-                         "server_cpu": (cpu1 - cpu0) / wall, "server_rss_mb": rss / 2**20,
-                         "snapshot_s_max": ready["snapshot_s_max"]})
-            print(f"{n:4d} clients: {ticks:6.1f} ticks/s, {rows[-1]['updates_per_s_per_client']:5.1f} updates/s per "
-                  f"client, server CPU {100 * rows[-1]['server_cpu']:.0f}% of a core, RSS {rss / 2**20:.0f} MB, "
-                  f"slowest snapshot {ready['snapshot_s_max']:.1f} s", flush=True)
+                         "shared_members": sum(r.get("shared_members", 0) for r in window) / max(len(window), 1),
+                         "server_cpu": (cpu1 - cpu0) / wall, "clients_cpu": (ccpu1 - ccpu0) / wall,
+                         "server_rss_mb": rss / 2**20, "snapshot_s_max": ready["snapshot_s_max"]})
+            r = rows[-1]
+            print(f"{n:4d} clients: {ticks:6.2f} ticks/s, {r['updates_per_s_per_client']:5.2f} updates/s per client, "
+                  f"{r['shared_members']:.1f} on the shared stream, server CPU {100 * r['server_cpu']:.0f}% of a core, "
+                  f"client processes {100 * r['clients_cpu']:.0f}%, RSS {rss / 2**20:.0f} MB, slowest snapshot "
+                  f"{ready['snapshot_s_max']:.1f} s", flush=True)
     finally:
         control.write_text(f"{len(counts)}m")
-        try:
-            host.wait(60)
-        except subprocess.TimeoutExpired:
-            host.kill()
+        for h in hosts:
+            try:
+                h.wait(60)
+            except subprocess.TimeoutExpired:
+                h.kill()
         server.send_signal(signal.SIGTERM)
         try:
             server.wait(60)
@@ -184,6 +258,11 @@ def main(argv: list[str] | None = None) -> int:
                 differ += ours[d["conn"], d["seq"]] != d["digest"]
     print(f"mirror digests compared: {compared}, different: {differ}")
     traceback = any("Traceback" in line for line in log_lines)
+    print(table(rows))
+    (args.out / "table.md").write_text(table(rows) + "\n")
+    (args.out / "table.json").write_text(json.dumps(rows, indent=1))
+    chart(rows, args.out / "clients.png")
+    print(f"table and chart: {args.out}/table.md, {args.out}/clients.png")
     v = Verdicts("bench_clients")
     base = rows[0]
     for r in rows[1:]:
@@ -198,8 +277,6 @@ def main(argv: list[str] | None = None) -> int:
     v.check("mirror digests compared", compared, ">=", 1)
     v.check("mirror digests different", differ, "<=", 0)
     v.check("tracebacks in the server log", int(traceback), "<=", 0)
-    (work / "table.json").write_text(json.dumps(rows, indent=1))
-    print(f"table: {work / 'table.json'}")
     return v.exit_code()
 
 

@@ -25,8 +25,8 @@ import numpy as np
 
 from . import messages as m
 from .codecs import (
-    CONNECTION_ZSTD,
     PAPER_ZSTD,
+    STREAM_ZSTD,
     Codec,
     FrameCodec,
     StreamCompressor,
@@ -122,9 +122,9 @@ class ServerConfig:
     edit_token: str = ""  # "" refuses every SceneEdit; else a Hello with this token may edit (and view)
     codec: Codec = Codec.ZSTD_STREAM  # preferred payload codec for Snapshot and Update
     layout: Layout = Layout.PACKED
-    zstd: ZstdSettings = PAPER_ZSTD  # per-message zstd, and the stream shared by many connections
+    zstd: ZstdSettings = PAPER_ZSTD  # per-message zstd
     limits: Limits = DEFAULT_LIMITS
-    connection_zstd: ZstdSettings = CONNECTION_ZSTD  # a connection's own zstd stream
+    stream_zstd: ZstdSettings = STREAM_ZSTD  # zstd streams: a connection's own and the shared ones
 
     def codec_preference(self) -> list[Codec]:
         prefs = [self.codec]
@@ -243,7 +243,7 @@ class ServerSession:
         if codec is None:
             raise CodecError(f"no common codec: client accepts {sorted(c.name for c in accepted)}")
         self.codec = codec
-        self._compress = (StreamCompressor(cfg.connection_zstd) if codec == Codec.ZSTD_STREAM
+        self._compress = (StreamCompressor(cfg.stream_zstd) if codec == Codec.ZSTD_STREAM
                           else FrameCodec(codec, cfg.zstd))
         self.state = ServerState.OPEN
         self.may_edit = may_edit
@@ -256,7 +256,7 @@ class ServerSession:
         if self.codec is None:
             raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the handshake")
         if self._compress is None:  # back from a shared stream: a fresh stream of our own starts a frame
-            self._compress = StreamCompressor(self.config.connection_zstd)
+            self._compress = StreamCompressor(self.config.stream_zstd)
         self.on_shared = False
         return self.traffic.sent(m.frame(msg.TYPE, self.codec, self._compress.compress(msg.serialize())))
 
@@ -306,13 +306,13 @@ class ServerSession:
 
 
 class SharedStream:
-    """Updates encoded once for every connection on this stream (ZSTD_STREAM with the config's zstd
+    """Updates encoded once for every connection on this stream (ZSTD_STREAM with the config's stream
     settings). A connection takes each message through ServerSession.shared, from a message that starts
     a frame (the first one, or the first after restart()) on, in order, without a gap."""
 
     def __init__(self, config: ServerConfig):
         self.config = config
-        self._compress = StreamCompressor(config.zstd)
+        self._compress = StreamCompressor(config.stream_zstd)
         self.messages = 0
         self.frame_start = True  # the next message starts a frame
 
