@@ -9,7 +9,8 @@ is measured: the server's ticks/s (its own --stats-json), updates/s per client, 
 stream, server CPU (share of one core) and RSS. Memory per extra client is the RSS growth from the
 1-client stage divided by the clients added. Mirrors: each client logs the digest of every
 `--digest-every`-th message and checks it against the server's digest log (`--digest-log`) wherever
-both exist. Output: `--out`/table.md, table.json and clients.png.
+both exist (the server logs a digest after a message that leaves nothing pending for that client: with
+culling, a client whose view leaves cells behind has none; `--no-cull` sends every change). Output: `--out`/table.md, table.json and clients.png.
 
 Verdicts: 10 clients >= 0.8x and 30 clients >= 0.6x the 1-client tick rate; every client of the last
 stage has its snapshot within 60 s of joining; RSS per extra client <= 4 MB; every compared digest equal.
@@ -158,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--per-process", type=int, default=25, help="clients per client process")
     p.add_argument("--digest-every", type=int, default=8, help="clients log the digest of every k-th message")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_clients")
+    p.add_argument("--no-cull", action="store_true", help="serve with --no-cull (every client is sent every change)")
     p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "HOSTS", "EVERY"),
                    help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -175,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     stats, slog = work / "stats.jsonl", work / "server_digests.jsonl"
     server = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--animate", "--density",
                                str(args.density), "--port", "0", "--max-clients", str(max(counts) + 8),
-                               "--stats-json", str(stats), "--digest-log", str(slog)],
+                               "--stats-json", str(stats), "--digest-log", str(slog)] + (["--no-cull"] if args.no_cull else []),
                               cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     import re
 

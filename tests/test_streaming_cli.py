@@ -74,9 +74,11 @@ def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tupl
 
 
 def test_animated_server_keeps_mirror_exact(tmp_path):
-    """The real server tick (animation, selection by the client's camera, re-tracing) behind the service."""
+    """The real server tick (animation, selection by the client's camera, re-tracing) behind the service;
+    every change sent (--no-cull), so that every Update leaves the mirror equal to the whole state."""
     log, pairs, ticks, final = serve_with_client(tmp_path, ["builtin:courtyard", "--animate", "--density", "8", "--rays",
-                                                            "4", "--tick-rays", "4", "--tick-hz", "20"], ["--frames", "30"])
+                                                            "4", "--tick-rays", "4", "--tick-hz", "20", "--no-cull"],
+                                                 ["--frames", "30"])
     assert len(pairs) >= 25 and all(a == b for a, b in pairs)
     assert "server tick on" in log
     # Per-tick statistics as JSON lines: stage times, and what was sent since the previous tick.
