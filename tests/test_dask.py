@@ -169,38 +169,28 @@ def test_bake_on_the_cluster_gives_the_same_grid(cluster):
 
 
 # ---------------------------------------------------------------- command line
-def psao_together(*commands, timeout=300) -> list[subprocess.CompletedProcess]:
-    """psao commands run at once (their start-up, mostly imports, overlaps); each one's exit status and output."""
-    procs = [subprocess.Popen([sys.executable, "-m", "psao", *args], cwd=ROOT, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for args in commands]
-    done = []
-    for p in procs:
-        out, err = p.communicate(timeout=timeout)
-        done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
-    return done
-
-
 def grid_arrays(path) -> bytes:
     with np.load(path) as z:
         return b"".join(z[k].tobytes() for k in ("instances", "buckets", "cells"))
 
 
-def test_cli_bake_local_cluster_and_remote_scheduler(cluster, tmp_path):
-    """--cluster local:N starts (and stops) its own workers; --cluster ADDRESS uses a running scheduler."""
+def test_cli_bake_local_cluster_and_remote_scheduler(cluster, tmp_path, capsys):
+    """--cluster local:N starts (and stops) its own workers; --cluster ADDRESS uses a running scheduler. The
+    commands run in this process (psao.cli.main): a second Python start-up would cost more than the bakes."""
     local = bake_scene(load_scene("builtin:cornell"), BakeSettings(density=32, rays=RAYS, workers=1), show_progress=False)
     local.tracer.close()
     want = b"".join(a.tobytes() for a in (local.grid.instances, local.grid.buckets, local.grid.cells))
     common = ["bake", "builtin:cornell", "--density", "32", "--rays", str(RAYS), "--probes", "0", "--json"]
-    started, remote = psao_together(
-        [*common, "--out", str(tmp_path / "started.npz"), "--cluster", "local:1", "--tiles", "--tile-points", "60"],
-        [*common, "--out", str(tmp_path / "remote.npz"), "--cluster", cluster.scheduler_address])
-    assert started.returncode == 0, started.stderr
-    assert remote.returncode == 0, remote.stderr
-    stats = json.loads(started.stdout.splitlines()[-1])
-    assert stats["tracer"] == "dask" and stats["cluster"] == "local:1" and stats["cluster_tasks"] >= 2
-    assert json.loads(remote.stdout.splitlines()[-1])["cluster"] == cluster.scheduler_address
-    assert grid_arrays(tmp_path / "started.npz") == want
-    assert grid_arrays(tmp_path / "remote.npz") == want
+    stats = {}
+    for name, extra in (("started", ["--cluster", "local:1", "--tiles", "--tile-points", "60"]),
+                        ("remote", ["--cluster", cluster.scheduler_address])):
+        capsys.readouterr()
+        assert main([*common, "--out", str(tmp_path / f"{name}.npz"), *extra]) == 0, capsys.readouterr().err
+        stats[name] = json.loads(capsys.readouterr().out.splitlines()[-1])
+        assert grid_arrays(tmp_path / f"{name}.npz") == want
+    assert stats["started"]["tracer"] == "dask" and stats["started"]["cluster"] == "local:1"
+    assert stats["started"]["cluster_tasks"] >= 2
+    assert stats["remote"]["cluster"] == cluster.scheduler_address
 
 
 def test_cli_serve_progressive_refines_on_the_cluster(cluster, tmp_path, capsys):
