@@ -58,7 +58,9 @@ class Fanout:
         self.sent_transforms: np.ndarray | None = None  # what the shared stream's members were last sent
         self.last_restart = -np.inf
         self.counters = FanoutCounters()
-        self._places: CellPlaces | None = None
+        self._places: CellPlaces | None = None  # every slot's place, kept across ticks
+        self._placed_with: np.ndarray | None = None  # the transforms it holds
+        self._stale = np.zeros(0, np.int64)  # slots changed since (the ticks' dirty cells)
 
     def planes(self, client: Client) -> np.ndarray | None:
         """The client's extended frustum, or None when it sees everything (no culling, no usable camera)."""
@@ -67,9 +69,21 @@ class Fanout:
         return client.view_planes(lambda camera: client_planes(camera, self.settings.view))
 
     def places(self, grid, transforms: np.ndarray) -> CellPlaces:
-        """Where every cell slot is, worked out once per tick (plan() forgets it) for all the clients."""
-        if self._places is None or len(self._places.centres) != len(grid.cells):
-            self._places = CellPlaces(grid, np.arange(len(grid.cells)), transforms)
+        """Where every cell slot is, for all the clients: worked out in full when the pool changes size,
+        else again only for the slots the ticks changed and the cells of instances that moved."""
+        t = np.ascontiguousarray(transforms, np.float32)
+        if (self._places is None or len(self._places.centres) != len(grid.cells)
+                or self._placed_with.shape != t.shape):
+            self._places = CellPlaces(grid, np.arange(len(grid.cells)), t)
+        else:
+            moved = np.flatnonzero(np.any(self._placed_with.reshape(len(t), -1) != t.reshape(len(t), -1), axis=1))
+            rows = self._stale
+            if len(moved):
+                rows = np.union1d(rows, np.flatnonzero(np.isin(grid.cell_instance, moved)))
+            if len(rows):
+                self._places.refresh(grid, rows, t)
+        self._placed_with = t.copy()
+        self._stale = np.zeros(0, np.int64)
         return self._places
 
     def in_view(self, client: Client, grid, transforms: np.ndarray):
@@ -84,7 +98,7 @@ class Fanout:
         """Decide who gets this tick's changes shared; mark them pending for everyone else. Reads the grid
         (on the loop, before anything else may change it)."""
         capacity = len(grid.cells)
-        self._places = None  # the tick moved things
+        self._stale = np.union1d(self._stale, cell_slots)  # their places may have changed
         members, joiners = [], []
         for c in clients:
             planes = self.planes(c)

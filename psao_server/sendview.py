@@ -38,6 +38,13 @@ class CellPlaces:
             scale = float(np.linalg.norm(m[:3, :3], axis=0).max())
             self.reach[rows] = 0.5 * np.sqrt(3.0) * float(rec["cell_size"]) * scale
 
+    def refresh(self, grid, slots: np.ndarray, transforms: np.ndarray) -> None:
+        """Work the places of these slots out again (their cells changed, or their instance moved); the
+        slots here are all of the grid's, 0..n-1."""
+        part = CellPlaces(grid, slots, transforms)
+        self.centres[slots] = part.centres
+        self.reach[slots] = part.reach
+
     def in_view(self, planes: np.ndarray | None, view: ViewSettings, rows: np.ndarray | None = None) -> np.ndarray:
         """Bool per slot (or per one of `rows`, indices into the slots): in the extended view of a camera's
         planes (None: a camera that sees all)."""
