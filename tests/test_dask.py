@@ -198,8 +198,9 @@ def test_cli_serve_progressive_refines_on_the_cluster(cluster, tmp_path, capsys)
     cluster; once every point has its rays the client mirrors exactly the server's grid."""
     err, digests = tmp_path / "serve.err", tmp_path / "digests.jsonl"
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:cornell", "--density", "32", "--rays",
-                             str(RAYS), "--tick-rays", "8", "--progressive", "--tick-hz", "20", "--workers", "1", "--port", "0",
-                             "--cluster", cluster.scheduler_address, "--digest-log", str(digests)], cwd=ROOT,
+                             str(RAYS), "--tick-rays", "8", "--progressive", "--tick-hz", "20", "--workers", "1",
+                             "--no-cull", "--port", "0", "--cluster", cluster.scheduler_address,
+                             "--digest-log", str(digests)], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=open(err, "w"), text=True)
     try:
         url = server_url(proc, err)
