@@ -103,6 +103,29 @@ def read_jsonl(path: Path) -> list[dict]:
     return out
 
 
+def stop_server(server: subprocess.Popen) -> None:
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(60)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
+def compare_digests(server_log: Path, client_logs) -> tuple[int, int, set]:
+    """(pairs compared, pairs different, connections compared): every (connection, message) that both the
+    server and a client logged must have the same state digest."""
+    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
+    compared = differ = 0
+    conns = set()
+    for f in client_logs:
+        for d in read_jsonl(f):
+            if (d["conn"], d["seq"]) in ours:
+                compared += 1
+                differ += ours[d["conn"], d["seq"]] != d["digest"]
+                conns.add(d["conn"])
+    return compared, differ, conns
+
+
 def host_lines(hosts: list[subprocess.Popen]) -> dict | None:
     """One JSON line from every client host, merged (updates in host order); None when one has ended."""
     parts = []
@@ -245,19 +268,8 @@ def main(argv: list[str] | None = None) -> int:
                 h.wait(60)
             except subprocess.TimeoutExpired:
                 h.kill()
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(60)
-        except subprocess.TimeoutExpired:
-            server.kill()
-    # mirrors: every (connection, message) both logged must agree
-    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(slog)}
-    compared = differ = 0
-    for f in work.glob("c*.jsonl"):
-        for d in read_jsonl(f):
-            if (d["conn"], d["seq"]) in ours:
-                compared += 1
-                differ += ours[d["conn"], d["seq"]] != d["digest"]
+        stop_server(server)
+    compared, differ, _ = compare_digests(slog, work.glob("c*.jsonl"))
     print(f"mirror digests compared: {compared}, different: {differ}")
     traceback = any("Traceback" in line for line in log_lines)
     print(table(rows))

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_clients import proc_stats, read_jsonl
+from benchmarks.bench_clients import compare_digests, proc_stats, stop_server
 from benchmarks.verdicts import Verdicts
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -187,20 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if host.poll() is None:
             host.kill()
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(60)
-        except subprocess.TimeoutExpired:
-            server.kill()
-    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(slog)}
-    compared = differ = 0
-    conns = set()
-    for f in work.glob("s*.jsonl"):
-        for d in read_jsonl(f):
-            if (d["conn"], d["seq"]) in ours:
-                compared += 1
-                differ += ours[d["conn"], d["seq"]] != d["digest"]
-                conns.add(d["conn"])
+        stop_server(server)
+    compared, differ, conns = compare_digests(slog, work.glob("s*.jsonl"))
     warm = args.warmup * duration
     span = min(60.0, 0.2 * duration)
     after_warm = median_between(samples, warm, warm + span)
