@@ -7,13 +7,11 @@ from __future__ import annotations
 import base64
 import json
 import os
-import re
 import shutil
 import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+from serving import server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -54,11 +53,7 @@ class Server:
         self.proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *args, "--port", str(port),
                                       "--digest-log", str(self.digests)], cwd=ROOT, stdout=subprocess.DEVNULL,
                                      stderr=open(self.err, "w"))
-        end = time.time() + 300
-        while not (m := re.search(r"listening on ws://127\.0\.0\.1:(\d+)", self.err.read_text())):
-            assert self.proc.poll() is None and time.time() < end, self.err.read_text()
-            time.sleep(0.2)
-        self.port = int(m.group(1))
+        self.port = int(server_url(self.proc, self.err, timeout=300).rsplit(":", 1)[1])
 
     def server_digests(self) -> dict:
         return {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, self.digests.read_text().splitlines())}
@@ -77,7 +72,7 @@ def browser():
         b.close()
 
 
-def wait_page(page, predicate: str, timeout: float = 120.0):
+def wait_page(page, predicate: str, timeout: float = 600.0):
     """Wait until the JS expression is truthy (an event, not a duration: the timeout only bounds a hang)."""
     try:
         page.wait_for_function(predicate, timeout=timeout * 1000, polling=250)
