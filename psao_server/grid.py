@@ -242,9 +242,11 @@ class Grid:
 
     def move_points(self, slots, idx, new_local_pos, new_normals) -> np.ndarray:
         """Re-quantise points at new positions/normals, keeping AO and id. Points that stay in their cell
-        are rewritten in place; points that leave it are removed and re-inserted; an instance most of whose
-        moved points leave their cells (a deforming mesh in motion) is cleared and filled anew in one
-        insertion instead, which costs less than removing and compacting cell by cell. Returns kept mask."""
+        are rewritten in place; points that leave it are removed and re-inserted; an instance all of whose
+        points move and most of them out of their cells (a deforming mesh in motion) is cleared and filled
+        anew in one insertion instead, which costs less than removing and compacting cell by cell. Only a
+        whole instance is refilled: a few points moved in a large instance must not re-insert (and dirty) the
+        rest of it. Returns kept mask."""
         slots = np.asarray(slots, np.int64)
         idx = np.asarray(idx, np.int64)
         new_local_pos = np.asarray(new_local_pos, np.float64).reshape(-1, 3)
@@ -263,7 +265,7 @@ class Grid:
             cell, inside = self.cell_of(inst, new_local_pos[sel])
             keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
             same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
-            if 2 * int(same.sum()) < len(sel):
+            if 2 * int(same.sum()) < len(sel) and len(sel) == self._points_of_instance(inst):
                 kept[sel] = self._refill_instance(inst, slots[sel], idx[sel], new_local_pos[sel], new_normals[sel])
                 stay[sel] = True  # done
                 continue
@@ -284,6 +286,9 @@ class Grid:
                 kept[sel] = self.insert_points(inst, new_local_pos[sel], new_normals[sel], ao[sel], ids[sel],
                                                back=side[sel] != 0)
         return kept
+
+    def _points_of_instance(self, inst: int) -> int:
+        return int(np.count_nonzero(self.point_id[self.cell_instance == inst] != NO_POINT))
 
     def _refill_instance(self, inst: int, slots, idx, new_local_pos, new_normals) -> np.ndarray:
         """Move points of instance `inst` (at slots/idx) by clearing the instance's cells and buckets and

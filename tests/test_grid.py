@@ -131,9 +131,10 @@ def test_random_edits_keep_invariants_and_dirty_flags():
         assert set(changed_b) <= set(db.tolist())
 
 
-def test_moving_most_points_of_an_instance_refills_it_exactly():
-    """A deforming instance moving most of its points (the refill path): every point is held once at its
-    new position with its id, AO and side, the other instance is untouched, invariants and dirty flags
+@pytest.mark.parametrize("moved_fraction", [1.0, 0.9])
+def test_moving_most_points_of_an_instance_refills_it_exactly(moved_fraction):
+    """A deforming instance moving all (the refill path) or most of its points: every point is held once at
+    its new position with its id, AO and side, the other instance is untouched, invariants and dirty flags
     hold, and the pool does not grow."""
     rng = np.random.default_rng(7)
     p, n = plane_points(3000, rng)
@@ -148,7 +149,7 @@ def test_moving_most_points_of_an_instance_refills_it_exactly():
     other = t.instance == 1
     before_other = {int(i): int(w) for i, w in zip(t.point_id[other], grid.cells[t.slot[other], t.index[other]])}
     mine = np.flatnonzero(t.instance == 0)
-    pick = mine[: int(0.9 * len(mine))]  # some points of the instance stay put
+    pick = mine[: int(moved_fraction * len(mine))]  # at 0.9 some points of the instance stay put
     newpos = t.local_pos[rng.permutation(pick)]  # inside the box, cells no fuller than before
     cells_before, buckets_before, capacity = grid.cells.copy(), grid.buckets.copy(), grid.capacity
     kept = grid.move_points(t.slot[pick], t.index[pick], newpos, t.local_normal[pick])
@@ -169,6 +170,26 @@ def test_moving_most_points_of_an_instance_refills_it_exactly():
     changed_c = np.flatnonzero((grid.cells != cells_before).any(axis=1))
     changed_b = np.flatnonzero((grid.buckets != buckets_before).any(axis=(1, 2)))
     assert set(changed_c) <= set(dc.tolist()) and set(changed_b) <= set(db.tolist())
+
+
+def test_moving_a_few_points_of_a_large_instance_leaves_the_rest_alone():
+    """A few points moved out of their cells in a large instance (an edit, a small part): every point is
+    kept, and only the cells those points leave or enter are marked dirty (no refill of the whole instance,
+    which would put all of it on the wire)."""
+    rng = np.random.default_rng(8)
+    p, n = plane_points(4000, rng)
+    grid = Grid.build([(p, n, 0.01, 0)])
+    grid.take_dirty()
+    t = grid.point_table()
+    pick = rng.choice(len(t), 40, replace=False)
+    newpos = t.local_pos[pick].copy()
+    newpos[:, :2] = (newpos[:, :2] + 0.05) % 1.0  # several cells away, inside the plane
+    kept = grid.move_points(t.slot[pick], t.index[pick], newpos, t.local_normal[pick])
+    assert kept.all()
+    check_invariants(grid)
+    assert len(grid.point_table()) == len(t)
+    _, dirty_cells = grid.take_dirty()
+    assert len(dirty_cells) <= 2 * len(pick) * gf.KEY_CELLS
 
 
 def test_pool_grows_when_full():
