@@ -8,6 +8,9 @@ import time
 from pathlib import Path
 
 LOOPBACK = r"127\.0\.0\.1"
+# Deadline that only stops a hung test: a working run never reaches it, however loaded the machine (tests
+# wait for events and counts, never for speed).
+HANG_S = 900.0
 
 
 def server_url(proc: subprocess.Popen, err: Path, timeout: float | None = None, host: str = LOOPBACK) -> str:

@@ -23,6 +23,7 @@ from psao_server.grid import Grid
 from psao_server.service import Service
 from psao_server.settings import ServeSettings
 from psao_server.testhook import RandomEdits
+from serving import HANG_S
 
 HASH = bytes(range(32))
 ALL = codec_mask(Codec)
@@ -58,7 +59,7 @@ async def raw_exchange(url: str, messages: list, read_all=True) -> tuple[m.Error
             await ws.send(msg)
         try:
             while True:
-                data = await asyncio.wait_for(ws.recv(), 10)
+                data = await asyncio.wait_for(ws.recv(), HANG_S)
                 hdr = m.Header.parse(data, 1 << 30)
                 if hdr.type == m.MessageType.ERROR:
                     error = m.Error.parse(data[12:])
@@ -75,7 +76,7 @@ async def with_server(body, token="", **more):
     service = Service(grid, HASH, settings, tick=RandomEdits(20, seed=1))
     stop, ready = asyncio.Event(), asyncio.Event()
     server = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
-    await asyncio.wait_for(ready.wait(), 10)
+    await asyncio.wait_for(ready.wait(), HANG_S)
     url = f"ws://127.0.0.1:{service.port}"
     good = MirrorClient(url, HASH, token=token, reconnect=False)
     good_task = asyncio.create_task(good.run())
@@ -89,9 +90,9 @@ async def with_server(body, token="", **more):
         assert not good_task.done() and good.stats.reconnects == 0
     finally:
         good.stop()
-        await asyncio.wait_for(good_task, 10)
+        await asyncio.wait_for(good_task, HANG_S)
         stop.set()
-        await asyncio.wait_for(server, 10)
+        await asyncio.wait_for(server, HANG_S)
     return result
 
 

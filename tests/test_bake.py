@@ -12,6 +12,7 @@ from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to
 from psao_server.buried import visible_probes
 from psao_server.settings import BakeSettings
 from psao_server.errors import ConfigError
+from serving import HANG_S
 
 
 def bake_codes(scene, density, rays=64):
@@ -84,7 +85,7 @@ def test_bad_settings_are_rejected():
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "psao", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "psao", *args], capture_output=True, text=True, timeout=HANG_S)
 
 
 def test_cli_json_has_every_field(tmp_path):

@@ -17,7 +17,7 @@ import trimesh
 distributed = pytest.importorskip("distributed")
 
 from protocol.updates import state_digest  # noqa: E402
-from serving import server_url, wait_for_log  # noqa: E402
+from serving import HANG_S, server_url, wait_for_log  # noqa: E402
 from psao_scene import load_scene  # noqa: E402
 from psao_server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
 from psao_server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
@@ -135,7 +135,7 @@ def test_worker_killed_mid_trace_and_workers_joining_later(cluster, courtyard):
             np.testing.assert_array_equal(vis, ref)
             assert set(killed) <= tracer.workers_lost and tracer.throughput()["cluster_workers_lost"] >= 1
 
-            client.wait_for_workers(len(pids) + 1, timeout=300)  # the nanny's restart and the one started by hand
+            client.wait_for_workers(len(pids) + 1, timeout=HANG_S)  # the nanny's restart and the one started by hand
             workers = client.nthreads()
             assert set(workers).isdisjoint(killed)
             assert set(client.run(_plugin_error, tracer.plugin_name).values()) == {None}

@@ -9,11 +9,12 @@ from pathlib import Path
 import pytest
 
 from psao.cli import main
+from serving import HANG_S
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run(code_or_args, timeout=120) -> subprocess.CompletedProcess:
+def run(code_or_args, timeout=HANG_S) -> subprocess.CompletedProcess:
     argv = ["-c", code_or_args] if isinstance(code_or_args, str) else ["-m", "psao", *code_or_args]
     return subprocess.run([sys.executable, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 

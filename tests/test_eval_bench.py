@@ -18,6 +18,7 @@ import pytest
 
 from psao_eval.errors import EvalError
 from psao_eval.processes import ServerProcess, run_client
+from serving import HANG_S
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,7 +56,7 @@ def bench(tmp_path: Path, *extra: str, out: Path | None = None) -> list[str]:
 def test_tiny_bench_end_to_end(tmp_path):
     out = tmp_path / "out"
     r = subprocess.run(bench(tmp_path, "builtin:cornell", "--densities", "128", "--tick-hz", "30",
-                             "--stream-seconds", "1"), cwd=ROOT, capture_output=True, text=True, timeout=240)
+                             "--stream-seconds", "1"), cwd=ROOT, capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-2000:]
     for name in ("table.md", "table.csv", "results.json", "runtime_error.png", "bandwidth_quality.png",
                  "frame_cornell.png"):
@@ -140,7 +141,7 @@ def test_killed_mid_run_leaves_nothing(tmp_path, victim):
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         server = None
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + HANG_S
         while server is None and time.monotonic() < deadline and proc.poll() is None:
             servers = [p for p in processes_mentioning(str(tmp_path)) if _is_serving(p)]
             server = servers[0] if servers else None
@@ -151,7 +152,7 @@ def test_killed_mid_run_leaves_nothing(tmp_path, victim):
             os.kill(server, signal.SIGKILL)
         else:
             proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=90)
+        out, err = proc.communicate(timeout=HANG_S)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -182,7 +183,7 @@ def test_server_process_group_dies_with_an_exception(tmp_path):
 def test_unreachable_server_is_an_error(tmp_path):
     with pytest.raises(EvalError):
         run_client("ws://127.0.0.1:9", "builtin:cornell", 0.5, extra=["--digest-log", str(tmp_path / "d.jsonl")],
-                   connect_timeout=60)
+                   connect_timeout=HANG_S)
     assert not wait_gone(str(tmp_path))
 
 
@@ -191,7 +192,7 @@ def test_scene_without_camera_path_uses_an_orbit(tmp_path):
     obj.write_text(_boxes_obj())
     out = tmp_path / "out"
     r = subprocess.run(bench(tmp_path, str(obj), "--densities", "64", "--no-stream", "--frames", "1"), cwd=ROOT,
-                       capture_output=True, text=True, timeout=240)
+                       capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "no camera path" in r.stderr
     rows = json.loads((out / "results.json").read_text())

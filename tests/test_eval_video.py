@@ -14,6 +14,7 @@ import pytest
 from psao_eval.errors import EvalError
 from psao_eval.metrics import psnr
 from psao_eval.video import VideoServer, VideoSettings, decode_stream, encode_stream, reproject
+from serving import HANG_S
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = (96, 54)
@@ -136,7 +137,7 @@ def test_bad_video_arguments_are_one_line(tmp_path, capsys, args, msg):
 def test_bench_video_end_to_end(tmp_path):
     r = subprocess.run(bench(tmp_path, "--ao", "video", "--video-bitrates", "0.5,4", "--video-spp", "2",
                              "--video-clip", "3", "--latency-ms", "0,50", "--clients", "1,10"),
-                       cwd=ROOT, capture_output=True, text=True, timeout=400)
+                       cwd=ROOT, capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-2000:]
     out = tmp_path / "out"
     for name in ("video_table.md", "video_results.json", "video_bandwidth_quality.png", "video_latency.png",

@@ -17,6 +17,7 @@ from psao_client.render.views import path_matrices
 from psao_client.render.weights import save_weights
 from psao_eval.learn.grid_points import instance_points
 from psao_eval.learn.mlp_train import MlpTrainSettings, train_mlp
+from serving import HANG_S
 
 psao_scene = pytest.importorskip("psao_scene")
 REPO = Path(__file__).resolve().parents[1]
@@ -98,12 +99,12 @@ def test_cli_train_and_bad_weights_exit_2(cornell, tmp_path):
     out = tmp_path / "mlp.npz"
     r = subprocess.run([sys.executable, "-m", "psao", "train", "mlp", "builtin:cornell", "--grid", str(grid_path),
                         "--out", str(out), "--steps", "20", "--points", "256", "--json"],
-                       cwd=REPO, capture_output=True, text=True, timeout=300)
+                       cwd=REPO, capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-2000:]
     assert out.is_file() and '"weight_bytes"' in r.stdout.splitlines()[-1]
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"xx")
     r = subprocess.run([sys.executable, "-m", "psao", "render", "builtin:cornell", "--grid", str(grid_path),
                         "--ao", "mlp", "--mlp-weights", str(bad), "--out", str(tmp_path / "f"), "--size", "32x32"],
-                       cwd=REPO, capture_output=True, text=True, timeout=300)
+                       cwd=REPO, capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "mlp weights" in r.stderr, r.stderr

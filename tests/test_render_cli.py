@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from test_render_gridbuild import server_grid
+from serving import HANG_S
 
 from protocol.updates import GridDelta
 from psao_client.errors import RenderError
@@ -31,7 +32,7 @@ def cornell_grid(tmp_path_factory):
 
 def psao(*args):
     return subprocess.run([sys.executable, "-m", "psao", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, timeout=120)
+                          cwd=REPO, timeout=HANG_S)
 
 
 def test_render_writes_numbered_pngs_and_json_last_line(cornell_grid, tmp_path):
@@ -121,7 +122,7 @@ def test_no_egl_is_one_line_exit_2(cornell_grid, tmp_path):
     _, _, grid_path = cornell_grid
     env = {**os.environ, "__EGL_VENDOR_LIBRARY_FILENAMES": str(tmp_path / "no-vendor.json")}
     res = subprocess.run([sys.executable, "-m", "psao", "render", "builtin:cornell", "--grid", str(grid_path),
-                          "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO, env=env, timeout=120)
+                          "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO, env=env, timeout=HANG_S)
     assert res.returncode == 2 and "no EGL display available" in res.stderr and "Traceback" not in res.stderr
     assert not (tmp_path / "o").exists()
 
@@ -134,7 +135,7 @@ def test_window_without_display_or_glfw_is_one_line_exit_2(cornell_grid, tmp_pat
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     res = subprocess.run([sys.executable, "-m", "psao", "render", "builtin:cornell", "--grid", str(grid_path),
                           "--window", "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO,
-                         env=env, timeout=120)
+                         env=env, timeout=HANG_S)
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and ("glfw" in res.stderr or "window" in res.stderr)
     assert not (tmp_path / "o").exists()

@@ -13,6 +13,7 @@ from psao_scene import load_scene
 from psao_server.errors import ConfigError
 from psao_server.sampling import (POINTS_PER_AO_AREA, SamplingSettings, default_density, estimate_points,
                                   resolve_density)
+from serving import HANG_S
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -68,7 +69,7 @@ def test_estimate_above_the_limit_names_count_and_what_to_pass(tmp_path):
 
 def psao(*args):
     return subprocess.run([sys.executable, "-m", "psao", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, timeout=300)
+                          cwd=REPO, timeout=HANG_S)
 
 
 def test_cli_refuses_a_huge_file_before_generating(tmp_path):

@@ -23,6 +23,7 @@ from psao_server.scene_export import scene_blob, scene_file
 from psao_server.service import Service
 from psao_server.settings import ServeSettings
 from psao_server.webpage import ASSETS, answer
+from serving import HANG_S
 
 HASH = bytes(range(32))
 H = bytes.fromhex
@@ -184,7 +185,7 @@ def test_client_without_a_scene_takes_the_servers():
     async def use(port):
         url = f"ws://127.0.0.1:{port}"
         got, h, nbytes = await fetch_scene(url)
-        stats = await asyncio.wait_for(MirrorClient(url, h).run(frames=0), 30)
+        stats = await asyncio.wait_for(MirrorClient(url, h).run(frames=0), HANG_S)
 
         def get(path):
             try:

@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from serving import server_url
+from serving import HANG_S, server_url
 from test_streaming_cli import ROOT, one_line_error, psao
 
 SMALL = ["builtin:cornell", "--density", "8", "--rays", "1"]
@@ -33,7 +33,7 @@ def stop(proc):
 
 def client(url, *args, env=None):
     return subprocess.run([sys.executable, "-m", "psao", "client", url, "builtin:cornell", "--json",
-                           "--no-reconnect", *args], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                           "--no-reconnect", *args], cwd=ROOT, capture_output=True, text=True, timeout=HANG_S,
                           env={**os.environ, **(env or {})})
 
 
@@ -72,7 +72,7 @@ def test_static_server_client_with_frames_ends(tmp_path):
 ])
 def test_bad_access_settings(args, env, text):
     proc = subprocess.run([sys.executable, "-m", "psao", "serve", *SMALL, "--port", "0", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60, env={**os.environ, **env})
+                          capture_output=True, text=True, timeout=HANG_S, env={**os.environ, **env})
     one_line_error(proc, text)
 
 

@@ -17,6 +17,7 @@ from psao_server.errors import ConfigError
 from psao_server.settings import ServeSettings
 from test_bad_input_server import HASH, hello
 from test_service_crowd import start
+from serving import HANG_S
 
 
 async def opens(url, origin=None, **kw) -> bool:
@@ -24,7 +25,7 @@ async def opens(url, origin=None, **kw) -> bool:
     try:
         async with connect(url, compression=None, max_size=None, origin=origin, **kw) as ws:
             await ws.send(hello())
-            await asyncio.wait_for(ws.recv(), 10)  # the Welcome
+            await asyncio.wait_for(ws.recv(), HANG_S)  # the Welcome
             return True
     except InvalidStatus as exc:
         assert exc.response.status_code == 403
@@ -68,7 +69,7 @@ def test_tls_with_a_self_signed_certificate(self_signed):
         service, stop, task, _ = await start(settings)
         wss = f"wss://127.0.0.1:{service.port}"
         try:
-            good = await asyncio.wait_for(MirrorClient(wss, HASH, reconnect=False, tls_ca=cert).run(frames=3), 60)
+            good = await asyncio.wait_for(MirrorClient(wss, HASH, reconnect=False, tls_ca=cert).run(frames=3), HANG_S)
             with pytest.raises(ConnectError, match="cannot connect"):  # not trusted without the certificate
                 await MirrorClient(wss, HASH, reconnect=False).run(frames=1)
             with pytest.raises(ConnectError):  # plain ws:// to a TLS port

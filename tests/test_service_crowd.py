@@ -14,6 +14,7 @@ from psao_server.service import Service
 from psao_server.settings import ServeSettings
 from psao_server.testhook import RandomEdits
 from test_bad_input_server import EYE, HASH, hello, make_grid
+from serving import HANG_S
 
 
 class CameraCountingTick(RandomEdits):
@@ -31,7 +32,7 @@ async def start(settings: ServeSettings, tick=None):
     service = Service(make_grid(), HASH, settings, tick=tick or RandomEdits(5, seed=1))
     stop, ready = asyncio.Event(), asyncio.Event()
     task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
-    await asyncio.wait_for(ready.wait(), 10)
+    await asyncio.wait_for(ready.wait(), HANG_S)
     return service, stop, task, f"ws://127.0.0.1:{service.port}"
 
 
@@ -71,7 +72,7 @@ def test_cameras_merged_once_per_tick():
 async def refusal(url):
     """Connect and read: the server speaks first (an Error) when it will not serve this connection."""
     async with connect(url, compression=None, max_size=None) as ws:
-        data = await asyncio.wait_for(ws.recv(), 10)
+        data = await asyncio.wait_for(ws.recv(), HANG_S)
         await ws.wait_closed()
         return m.Error.parse(data[12:]), ws.close_code
 
@@ -92,7 +93,7 @@ def test_connections_over_the_cap_are_refused_with_server_full(caplog):
             while service._open > 1:
                 await asyncio.sleep(0.02)
             third = MirrorClient(url, HASH, reconnect=False)
-            stats = await asyncio.wait_for(third.run(frames=2), 30)
+            stats = await asyncio.wait_for(third.run(frames=2), HANG_S)
             return refused, stats
         finally:
             for c in clients:
@@ -120,7 +121,7 @@ def test_clients_leaving_during_the_handshake_leave_no_traceback(caplog):
             while service._open:
                 await asyncio.sleep(0.02)
             good = MirrorClient(url, HASH, reconnect=False)
-            return await asyncio.wait_for(good.run(frames=2), 30)
+            return await asyncio.wait_for(good.run(frames=2), HANG_S)
         finally:
             stop.set()
             await task

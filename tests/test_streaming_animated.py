@@ -7,7 +7,7 @@ import json
 import signal
 import subprocess
 
-from serving import server_url
+from serving import HANG_S, server_url
 from test_streaming_mirror import matched, psao, read_jsonl
 
 SCENE = "builtin:robots"  # skinned walkers (points move between cells) in a room
@@ -29,7 +29,7 @@ def test_mirror_bit_exact_under_animation(tmp_path):
         procs += [plain, slow]
         reports = {}
         for name, p in (("plain", plain), ("slow", slow)):
-            out, _ = p.communicate(timeout=240)
+            out, _ = p.communicate(timeout=HANG_S)
             assert p.returncode == 0, f"client {name} failed"
             reports[name] = json.loads(out.strip().splitlines()[-1])
         server.send_signal(signal.SIGTERM)

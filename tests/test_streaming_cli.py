@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from serving import server_url
+from serving import HANG_S, server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def psao(*args, timeout=60) -> subprocess.CompletedProcess:
+def psao(*args, timeout=HANG_S) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "psao", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
 
@@ -60,7 +60,7 @@ def serve_with_client(tmp_path, serve_args, client_args) -> tuple[str, list[tupl
         out = psao("client", url, *client_args, "--json", "--digest-log", str(clog))
         assert out.returncode == 0, out.stderr
         proc.send_signal(signal.SIGTERM)
-        final, _ = proc.communicate(timeout=30)
+        final, _ = proc.communicate(timeout=HANG_S)
         assert proc.returncode == 0
     finally:
         if proc.poll() is None:

@@ -21,7 +21,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 import pytest
-from serving import server_url
+from serving import HANG_S, server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "builtin:courtyard"
@@ -180,7 +180,7 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
 
         reports = {}
         for name, p in (("plain", plain), ("slow", slow), ("cut", cut), ("restarted", restarted)):
-            out, _ = p.communicate(timeout=600)
+            out, _ = p.communicate(timeout=HANG_S)
             assert p.returncode == 0, f"client {name} failed"
             reports[name] = json.loads(out.strip().splitlines()[-1])
         server.send_signal(signal.SIGTERM)

@@ -23,6 +23,7 @@ from psao_server.serve_cli import AtRest
 from psao_server.service import Service
 from psao_server.settings import BakeSettings, ServeSettings, TickSettings
 from psao_server.tick import ServerTick
+from serving import HANG_S
 
 EDIT_TOKEN = "edit-secret"
 BOULDER = "boulder3"  # a static instance of the courtyard, on the floor
@@ -71,7 +72,7 @@ def test_an_edit_is_retraced_and_the_mirror_equals_the_server():
     async def body():
         stop, ready = asyncio.Event(), asyncio.Event()
         server = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
-        await asyncio.wait_for(ready.wait(), 60)
+        await asyncio.wait_for(ready.wait(), HANG_S)
         url = f"ws://127.0.0.1:{service.port}"
         watcher = MirrorClient(url, scene_hash, reconnect=False)
         task = asyncio.create_task(watcher.run())
@@ -94,7 +95,7 @@ def test_an_edit_is_retraced_and_the_mirror_equals_the_server():
             with contextlib.suppress(asyncio.CancelledError):
                 await task
             stop.set()
-            await asyncio.wait_for(server, 30)
+            await asyncio.wait_for(server, HANG_S)
 
     try:
         before, after, transforms = asyncio.run(body())

@@ -23,7 +23,7 @@ from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
 from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_scene.camera import camera_at, look_at, perspective, scene_camera
-from serving import server_url
+from serving import HANG_S, server_url
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -53,7 +53,7 @@ class Server:
         self.proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", *args, "--port", str(port),
                                       "--digest-log", str(self.digests)], cwd=ROOT, stdout=subprocess.DEVNULL,
                                      stderr=open(self.err, "w"))
-        self.port = int(server_url(self.proc, self.err, timeout=300).rsplit(":", 1)[1])
+        self.port = int(server_url(self.proc, self.err, timeout=HANG_S).rsplit(":", 1)[1])
 
     def server_digests(self) -> dict:
         return {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, self.digests.read_text().splitlines())}
@@ -201,11 +201,11 @@ def refusal(port: int, data: bytes) -> tuple[m.Error, int]:
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
 
-    with connect(f"ws://127.0.0.1:{port}/", max_size=None, open_timeout=60) as ws:
+    with connect(f"ws://127.0.0.1:{port}/", max_size=None, open_timeout=HANG_S) as ws:
         ws.send(data)
-        reply = ws.recv(timeout=60)
+        reply = ws.recv(timeout=HANG_S)
         try:
-            ws.recv(timeout=60)
+            ws.recv(timeout=HANG_S)
         except ConnectionClosed as closed:
             code = closed.rcvd.code
     header = m.Header.parse(reply, DEFAULT_LIMITS.server_payload_bytes)

@@ -6,6 +6,7 @@ import signal
 import time
 
 from test_serve_access import start_serve
+from serving import HANG_S
 
 
 def children(pid: int) -> list[int]:
@@ -36,7 +37,7 @@ def test_workers_die_when_the_server_is_killed(tmp_path):
     assert workers, "the animated server runs tracer worker processes"
     proc.send_signal(signal.SIGKILL)
     proc.wait(30)
-    end = time.time() + 60  # an event (the workers' exit), waited for with a generous bound
+    end = time.time() + HANG_S  # an event (the workers' exit), waited for with a generous bound
     while any(alive(w) for w in workers) and time.time() < end:
         time.sleep(0.1)
     assert not any(alive(w) for w in workers), [w for w in workers if alive(w)]
