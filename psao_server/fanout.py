@@ -98,6 +98,7 @@ class Fanout:
         """Decide who gets this tick's changes shared; mark them pending for everyone else. Reads the grid
         (on the loop, before anything else may change it)."""
         capacity = len(grid.cells)
+        changed_rows = bool(len(bucket_ids) or len(cell_slots))
         self._stale = np.union1d(self._stale, cell_slots)  # their places may have changed
         members, joiners = [], []
         for c in clients:
@@ -112,7 +113,8 @@ class Fanout:
                 c.shared = False
                 self.counters.leaves_view += not sees_all
                 self.counters.leaves_slow += sees_all
-            elif sees_all and c.stream_codec and c.streaming and not c.outbox and not c.pending_anything():
+            elif (sees_all and c.stream_codec and c.streaming and not c.outbox and not c.pending_anything()
+                  and (changed_rows or len(c.changed_transforms(transforms)))):  # a scene at rest sends nothing
                 joiners.append(c)
                 continue
             c.mark(bucket_ids, cell_slots, capacity)
