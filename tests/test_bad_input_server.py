@@ -69,6 +69,12 @@ async def raw_exchange(url: str, messages: list, read_all=True) -> tuple[m.Error
         return error, ws.close_code
 
 
+async def updates_beyond(client, task, count):
+    """Returns once `client` has more than `count` updates, or its task ended (a count, not a time)."""
+    while client.stats.updates <= count and not task.done():
+        await asyncio.sleep(0.05)
+
+
 async def with_server(body, token="", **more):
     """Run a server with random edits and one good client; `body(url)` runs meanwhile."""
     grid = make_grid()
@@ -85,7 +91,7 @@ async def with_server(body, token="", **more):
     try:
         before = good.stats.updates
         result = await body(url)
-        await asyncio.sleep(0.3)
+        await asyncio.wait_for(updates_beyond(good, good_task, before + 3), HANG_S)
         assert good.stats.updates > before + 3, "the good client stopped being served"
         assert not good_task.done() and good.stats.reconnects == 0
     finally:

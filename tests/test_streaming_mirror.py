@@ -172,7 +172,7 @@ def test_mirrors_equal_server_bit_for_bit(tmp_path):
                    *common)
         killed = psao("client", url, SCENE, "--digest-log", str(logs["killed"]), *common)
         procs += [plain, slow, cut, killed]
-        wait_for(lambda: len(read_jsonl(logs["killed"])) >= 30, 300, "the doomed client to get going")
+        wait_for(lambda: len(read_jsonl(logs["killed"])) >= 30, HANG_S, "the doomed client to get going")
         killed.send_signal(signal.SIGKILL)
         killed.wait(10)
         restarted = psao("client", url, SCENE, "--frames", "40", "--digest-log", str(logs["killed"]), *common)
