@@ -265,10 +265,13 @@ class Grid:
             cell, inside = self.cell_of(inst, new_local_pos[sel])
             keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
             same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
-            if 2 * int(same.sum()) < len(sel) and len(sel) == self._points_of_instance(inst):
-                kept[sel] = self._refill_instance(inst, slots[sel], idx[sel], new_local_pos[sel], new_normals[sel])
-                stay[sel] = True  # done
-                continue
+            if 2 * int(same.sum()) < len(sel):
+                mine = np.flatnonzero(self.cell_instance == inst)
+                if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
+                    kept[sel] = self._refill_instance(inst, mine, slots[sel], idx[sel], new_local_pos[sel],
+                                                      new_normals[sel])
+                    stay[sel] = True  # done
+                    continue
             s_sel = sel[same]
             frac = gf.grid_coords(new_local_pos[s_sel], rec["origin"], rec["cell_size"]) - cell[same]
             words = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[s_sel]), ao[s_sel])
@@ -287,14 +290,10 @@ class Grid:
                                                back=side[sel] != 0)
         return kept
 
-    def _points_of_instance(self, inst: int) -> int:
-        return int(np.count_nonzero(self.point_id[self.cell_instance == inst] != NO_POINT))
-
-    def _refill_instance(self, inst: int, slots, idx, new_local_pos, new_normals) -> np.ndarray:
-        """Move points of instance `inst` (at slots/idx) by clearing the instance's cells and buckets and
-        inserting all its points anew (the others where they are), ids, AO and sides kept. The freed slots
-        are taken again first, so the pool does not grow. Returns the kept mask of the moved points."""
-        mine = np.flatnonzero(self.cell_instance == inst)
+    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals) -> np.ndarray:
+        """Move every point of instance `inst` (cells `mine`; the points at slots/idx) by clearing its cells
+        and buckets and inserting them all anew, ids, AO and sides kept. The freed slots are taken again
+        first, so the pool does not grow. Returns the kept mask of the moved points."""
         s, k = np.nonzero(self.point_id[mine] != NO_POINT)
         s = mine[s]
         where = np.searchsorted(s * gf.POINTS_PER_CELL + k, slots * gf.POINTS_PER_CELL + idx)  # (s, k) row-major: sorted
