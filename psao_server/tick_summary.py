@@ -1,17 +1,59 @@
 """The statistics of a whole `psao serve` run, summed from its per-tick records (Service._record_tick):
 what `psao serve --json` prints when the server stops, beside the service's counters.
 
-Every tick's duration is kept (8 bytes a tick: a day at 60 Hz is 40 MB) so the 95th percentile is exact.
+Memory is fixed however long the server runs: tick durations go into a histogram of log-spaced bins
+(`DurationHistogram`, each bin `BIN_RATIO` wide), so the 95th percentile is known to within that ratio;
+the mean and the maximum are exact.
 """
 from __future__ import annotations
 
 import math
-from array import array
+
+import numpy as np
+
+BIN_RATIO = 1.01  # neighbouring bin edges differ by 1%: the p95's relative error is below that
+LOWEST_S = 1e-6  # durations at or below this fall in the first bin (s)
+HIGHEST_S = 1e4  # and at or above this in the last (s)
+
+
+class DurationHistogram:
+    """Counts of durations in log-spaced bins from LOWEST_S to HIGHEST_S, with exact count, sum, min, max."""
+
+    def __init__(self):
+        self._log_ratio = math.log(BIN_RATIO)
+        self.counts = np.zeros(math.ceil(math.log(HIGHEST_S / LOWEST_S) / self._log_ratio) + 1, np.int64)
+        self.n = 0
+        self.total = 0.0
+        self.lowest = math.inf
+        self.highest = -math.inf
+
+    def _bin(self, seconds: float) -> int:
+        if seconds <= LOWEST_S:
+            return 0
+        return min(len(self.counts) - 1, int(math.log(seconds / LOWEST_S) / self._log_ratio) + 1)
+
+    def add(self, seconds: float) -> None:
+        self.counts[self._bin(seconds)] += 1
+        self.n += 1
+        self.total += seconds
+        self.lowest = min(self.lowest, seconds)
+        self.highest = max(self.highest, seconds)
+
+    def quantile(self, q: float) -> float:
+        """The q-quantile (the smallest duration with at least q of them at or below it), as the upper edge
+        of its bin, kept within the exact min and max: at most BIN_RATIO above the exact value (the last
+        bin, open above, answers the exact max; the first at most LOWEST_S)."""
+        if not self.n:
+            return 0.0
+        rank = max(1, math.ceil(q * self.n))
+        b = int(np.searchsorted(np.cumsum(self.counts), rank))
+        edge = self.highest if b == len(self.counts) - 1 else LOWEST_S * BIN_RATIO ** b
+        return min(max(edge, self.lowest), self.highest)
 
 
 class TickSummary:
     def __init__(self):
-        self.tick_seconds = array("d")
+        self.durations = DurationHistogram()
         self.first_time: float | None = None  # service time (s) of the first and last tick recorded
         self.last_time = 0.0
         self.sums = {"bytes_sent": 0, "cells_sent": 0, "buckets_sent": 0, "cells_dirty": 0, "buckets_dirty": 0,
@@ -23,7 +65,7 @@ class TickSummary:
     def add(self, record: dict) -> None:
         """One tick's record: seconds_tick, time, clients, the sums' keys and, from the server tick,
         traced/changed/budget_ms/budget_used."""
-        self.tick_seconds.append(float(record["seconds_tick"]))
+        self.durations.add(float(record["seconds_tick"]))
         if self.first_time is None:
             self.first_time = float(record["time"])
         self.last_time = float(record["time"])
@@ -36,17 +78,17 @@ class TickSummary:
 
     def to_dict(self) -> dict:
         """ticks, seconds (first to last tick), ticks_per_s, tick_ms_mean/p95/max, the sums, clients_peak
-        and, for a budgeted tick, budget_used_mean."""
-        n = len(self.tick_seconds)
-        ms = sorted(1e3 * s for s in self.tick_seconds)
+        and, for a budgeted tick, budget_used_mean. tick_ms_p95 is within BIN_RATIO above the exact p95."""
+        d = self.durations
+        n = d.n
         span = self.last_time - self.first_time if self.first_time is not None else 0.0
         out = {
             "ticks": n,
             "seconds": span,
             "ticks_per_s": (n - 1) / span if n > 1 and span > 0 else 0.0,
-            "tick_ms_mean": sum(ms) / n if n else 0.0,
-            "tick_ms_p95": ms[min(n - 1, math.ceil(0.95 * n) - 1)] if n else 0.0,
-            "tick_ms_max": ms[-1] if n else 0.0,
+            "tick_ms_mean": 1e3 * d.total / n if n else 0.0,
+            "tick_ms_p95": 1e3 * d.quantile(0.95),
+            "tick_ms_max": 1e3 * d.highest if n else 0.0,
             **self.sums,
             "clients_peak": self.clients_peak,
         }
