@@ -12,6 +12,10 @@ Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
 Client:  [AWAIT_SCENE --last SceneData-->] AWAIT_WELCOME --Welcome--> SNAPSHOT --last chunk--> STREAMING
          --Bye / Error--> CLOSED   (a client without the scene asks for it first: scene_request())
 
+A server that replaces its grid (`psao serve --progressive`: the coarse first grid by the full one) ends
+every connection with the websocket close code GRID_REPLACED_CLOSE and no Error message: the client
+reconnects at once (`reconnect_at_once`) and gets the new grid's Welcome and Snapshot on a new session.
+
 Any malformed or unexpected input raises a ProtocolError subclass; `error_reply(exc)` gives the Error
 message and websocket close code to answer it with.
 """
@@ -63,6 +67,17 @@ def error_code_for(exc: ProtocolError) -> m.ErrorCode:
 def error_reply(exc: ProtocolError) -> tuple[bytes, int]:
     """Error message bytes and websocket close code that answer a protocol error."""
     return m.encode(m.Error(error_code_for(exc), str(exc))), exc.close_code
+
+
+# Websocket close code (RFC 6455 private range 4000-4999) and reason of a connection the server ends
+# because it replaced its grid: the client reconnects at once, whatever its policy for lost connections.
+GRID_REPLACED_CLOSE = 4000
+GRID_REPLACED_REASON = "grid replaced: reconnect"
+
+
+def reconnect_at_once(close_code: int | None) -> bool:
+    """True when a connection closed with `close_code` is to be reopened at once (the server replaced its grid)."""
+    return close_code == GRID_REPLACED_CLOSE
 
 
 def scene_hash_bytes(content_hash_hex: str) -> bytes:

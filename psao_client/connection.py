@@ -10,7 +10,8 @@ Thin around protocol.session.ClientSession (which decides what bytes mean). Anot
                                             (a renderer draws the latest state and transforms)
 
 After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
-fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried.
+fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried. A server
+that replaced its grid (close code GRID_REPLACED_CLOSE) is reconnected to at once, also with reconnect=False.
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ from protocol.session import (
     SnapshotReceived,
     UpdateReceived,
     Welcomed,
+    reconnect_at_once,
 )
 
 from .errors import ClientError, ConnectError
@@ -59,6 +61,7 @@ class ClientStats:
     snapshot_bytes: int = 0
     updates: int = 0
     reconnects: int = 0
+    grid_replacements: int = 0  # connections the server closed because it replaced its grid (reconnected at once)
     frames: int = 0  # on_frame calls (frames rendered), all connections
     snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
     connection_id: int = 0
@@ -125,6 +128,10 @@ class MirrorClient:
                 except ProtocolError as exc:
                     raise ConnectError(f"{self.url}: bad data from the server: {exc}") from None
                 except (_Lost, ConnectionClosed, OSError, asyncio.TimeoutError, InvalidHandshake) as exc:
+                    if isinstance(exc, ConnectionClosed) and exc.rcvd is not None and reconnect_at_once(exc.rcvd.code):
+                        self.stats.grid_replacements += 1  # not a loss: the new grid is there now
+                        self._last_ok = time.perf_counter()
+                        continue
                     if not self.reconnect or time.perf_counter() - self._last_ok > self.reconnect_timeout:
                         if not self.stats.messages:
                             raise ConnectError(f"{self.url}: cannot connect ({_why(exc)})") from None

@@ -114,6 +114,8 @@ def elimination_radii(area: float, spawned: int, keep: int, settings: PointSetti
 
 def eliminate(positions: np.ndarray, normals: np.ndarray, area: float, keep: int, settings: PointSettings) -> np.ndarray:
     """Bool mask of the `keep` samples that survive weighted sample elimination on a surface of `area`."""
+    if keep >= len(positions):  # nothing to eliminate (spawn ratio 1): the neighbour graph would go unused
+        return np.ones(len(positions), bool)
     d_max, d_min = elimination_radii(area, len(positions), keep, settings)
     offsets, nbrs, w = neighbour_graph(positions, normals, d_max, d_min, settings.alpha, settings.normal_cos_min)
     return eliminate_csr(offsets, nbrs, w, keep)

@@ -18,6 +18,7 @@ from psao.options import default
 from psao_server.bake_cli import add_bake_arguments, bake_settings
 from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError
+from psao_server.progressive import ProgressiveSettings
 from psao_server.settings import BakeSettings, FanoutSettings, ServeSettings, TickSettings
 
 
@@ -71,8 +72,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
                         "(60%% of the tick period less the other stages without it); waiting points queue")
     p.add_argument("--progressive", action="store_true",
-                   help="stream a first grid traced with --tick-rays at once, then refine it to --rays in the "
-                        "ticks' spare budget, streaming the improvements")
+                   help="stream a coarse first grid (--first-points points traced with --tick-rays) at once, replace "
+                        "it by the full grid traced with --tick-rays when that is baked (clients reconnect to it), "
+                        "then refine that to --rays in the ticks' spare budget, streaming the improvements")
+    p.add_argument("--first-points", type=int, default=default(ProgressiveSettings, "first_points"), metavar="P",
+                   help="with --progressive: points of the coarse first grid (uniform, no elimination, no buried-"
+                        "surface test); 0, or a full grid under "
+                        f"{default(ProgressiveSettings, 'min_ratio'):g}x that, streams the full grid first")
     p.add_argument("--test-edits", type=int, default=None, metavar="K",
                    help="test hook: edit about K points per tick (AO, moves, frees and allocations; none without it)")
     p.add_argument("--digest-log", type=Path, default=None,
@@ -114,7 +120,7 @@ class AtRest:
         return self.tick.prepare(0.0)
 
 
-def _ticking(args, bake_with: BakeSettings):
+def _ticking(args, bake_with: BakeSettings, scene=None):
     """(scene, grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point
     sets): animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing
     what scene edits move with --allow-edits."""
@@ -128,7 +134,7 @@ def _ticking(args, bake_with: BakeSettings):
     if args.test_edits:
         raise ConfigError(f"{flag} and --test-edits both edit the grid: choose one")
     budget = _budget(args)
-    scene = load_scene(args.scene)
+    scene = scene or load_scene(args.scene)
     bake_rays = budget.round_rays if args.progressive else args.rays
     bake = bake_scene(scene, dataclasses.replace(bake_with, rays=bake_rays))
     # The bake's AO counts as that many rays of every point's history: with --rays it is converged, with
@@ -151,6 +157,32 @@ def _ticking(args, bake_with: BakeSettings):
         "baked %s at N=%g with %d rays: %d points; server tick on (%d rays per point per round, up to %d)",
         scene.name, bake.stats["density"], bake_rays, bake.stats["points_kept"], budget.round_rays, args.rays)
     return scene, tick.grid, tick
+
+
+def _coarse_first(args, bake_with: BakeSettings):
+    """(scene, coarse first grid) when --progressive starts from a coarse grid (psao_server.progressive),
+    else None (also for the settings _ticking refuses, so that it says why)."""
+    from psao_scene import load_scene
+    from psao_server.bake import bake_scene
+    from psao_server.progressive import coarse_bake_settings, wants_coarse_grid
+
+    if (not args.progressive or args.allow_edits or bake_with.cluster is not None or args.grid is not None
+            or args.test_edits):
+        return None
+    if args.first_points < 0:
+        raise ConfigError(f"--first-points must be >= 0, got {args.first_points}")
+    budget = _budget(args)
+    scene = load_scene(args.scene)
+    if not wants_coarse_grid(scene, bake_with, ProgressiveSettings(first_points=args.first_points)):
+        return None
+    coarse = bake_scene(scene, coarse_bake_settings(bake_with, args.first_points, budget.round_rays))
+    coarse.tracer.close()
+    logging.getLogger("psao.serve").info(
+        "coarse first grid of %s: %d points with %d rays in %.1f s; the full grid (N=%s) is baked behind it",
+        scene.name, coarse.stats["points_kept"], budget.round_rays,
+        sum(v for k, v in coarse.stats.items() if k.startswith("seconds_")),
+        f"{bake_with.density:g}" if bake_with.density else "default")
+    return scene, coarse.grid
 
 
 def _load(args, bake_with: BakeSettings):
@@ -274,7 +306,12 @@ def run(args: argparse.Namespace) -> int:
     if settings.tls_cert is not None:
         tls_context(settings.tls_cert, settings.tls_key)  # a bad certificate fails before the bake
     listener = bind_listener(settings.host, settings.port)
-    if args.animate or args.progressive or args.allow_edits:  # scene edits are re-traced by the server tick
+    coarse = _coarse_first(args, bake)
+    if coarse is not None:  # the full grid and its tick come from the background bake
+        scene, grid = coarse
+        tick = None
+        transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
+    elif args.animate or args.progressive or args.allow_edits:  # scene edits are re-traced by the server tick
         scene, grid, tick = _ticking(args, bake)
         transforms = tick.transforms
     else:
@@ -283,15 +320,22 @@ def run(args: argparse.Namespace) -> int:
         tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
                       on_scene_edit=getattr(tick, "edit", None), scene_blob=scene_blob(scene))
+    full = None
+    if coarse is not None:
+        from psao_server.progressive import BackgroundBake
+        full = lambda on_error: BackgroundBake(lambda: _ticking(args, bake, scene)[1:],  # noqa: E731
+                                               service.replace_grid, on_error)
     try:
-        return asyncio.run(_serve(service, listener, args.json))
+        return asyncio.run(_serve(service, listener, args.json, full))
     finally:
         listener.close()
         if hasattr(tick, "close"):
             tick.close()
 
 
-async def _serve(service, listener: socket.socket, as_json: bool = False) -> int:
+async def _serve(service, listener: socket.socket, as_json: bool = False, background=None) -> int:
+    """Serve until SIGINT or SIGTERM. `background(on_error)`: a BackgroundBake started once the service
+    listens; its failure stops the server and is raised here."""
     import asyncio
 
     stop = asyncio.Event()
@@ -299,7 +343,15 @@ async def _serve(service, listener: socket.socket, as_json: bool = False) -> int
     got: list[str] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (got.append(s.name), stop.set()))
-    await service.run(stop, sock=listener)
+    failed: list[BaseException] = []
+    bake = background(lambda exc: (failed.append(exc), loop.call_soon_threadsafe(stop.set))) if background else None
+    try:
+        await service.run(stop, ready=(lambda port: bake.start()) if bake else None, sock=listener)
+    finally:
+        if bake is not None:
+            bake.close()
+    if failed:
+        raise failed[0]
     c = service.counters
     logging.getLogger("psao.serve").info(
         "stopped on %s after %d ticks: %d connections, %d rejected, %.1f MB sent",

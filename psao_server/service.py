@@ -9,6 +9,10 @@ sends the snapshot, then the shared Updates in its outbox, or (off the shared st
 own at a time with what is pending in its view: while a message is being written (a slow reader), ticks
 only accumulate in that client's pending sets (or, on the shared stream, at most a few in its outbox).
 
+`replace_grid` swaps in another grid (and its tick) at the next tick: every connection is closed with
+GRID_REPLACED_CLOSE and its client reconnects to the new grid (`psao serve --progressive` serves a coarse
+first grid while the full one is baked).
+
 The same port answers plain HTTP GETs with the web client's page (psao_server.webpage, an allow-list);
 before Hello a connection may ask for the scene (SceneRequest), answered from `scene_blob`.
 """
@@ -42,6 +46,8 @@ from protocol.session import (
     SceneRequested,
     ServerConfig,
     ServerSession,
+    GRID_REPLACED_CLOSE,
+    GRID_REPLACED_REASON,
     error_reply,
 )
 from protocol.updates import state_digest
@@ -133,6 +139,10 @@ class Service:
         self._stats_out = open(settings.stats_json, "a", buffering=1) if settings.stats_json else None
         self.last_tick_stats: dict = {}
         self.summary = TickSummary()  # the whole run's per-tick statistics (psao serve --json)
+        self._replacement: tuple | None = None  # (grid, tick, transforms) to serve from the next tick on
+        self._live: dict[int, tuple] = {}  # client id -> (reader, writer) tasks of a client being served
+        self._replaced: set[int] = set()  # clients whose connection ends because the grid was replaced
+        self.grids_replaced = 0
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None,
@@ -175,6 +185,39 @@ class Service:
             except (ConnectionClosed, asyncio.TimeoutError, OSError):
                 pass
 
+    # ---------------------------------------------------------------- grid replacement
+    def replace_grid(self, grid, tick: TickFn | None = None, transforms: Callable[[], np.ndarray] | None = None) -> None:
+        """Serve `grid` (ticked by `tick`, instances placed by `transforms`, by default the tick's) from the
+        next tick on; callable from any thread. Connections open then are closed with GRID_REPLACED_CLOSE."""
+        if len(grid.instances) != len(self.grid.instances):
+            raise ConfigError(f"a replacement grid has {len(grid.instances)} instances, the served one {len(self.grid.instances)}")
+        self._replacement = (grid, tick, transforms if transforms is not None else getattr(tick, "transforms", None))
+
+    def _swap_grid(self) -> None:
+        """Between ticks, on the loop (nothing else runs meanwhile): the new grid, tick and transforms in,
+        the clients of the old grid out of the registry and their senders and readers cancelled, so that
+        nothing reads the new grid for a client whose mirror holds the old one; _serve_client then closes
+        each connection with GRID_REPLACED_CLOSE."""
+        grid, tick, transforms = self._replacement
+        self._replacement = None
+        self.grid, self.tick_fn = grid, tick
+        self.transforms = transforms if transforms is not None else StaticTransforms(self.transforms())
+        self.on_scene_edit = getattr(tick, "edit", None) or getattr(self.transforms, "edit", None)
+        self.on_cameras = getattr(tick, "set_cameras", None)
+        counters, self.fanout = self.fanout.counters, Fanout(self.config, self.settings.fanout)
+        self.fanout.counters = counters
+        self._digest_of = None
+        grid.take_dirty()  # all of it goes out in the snapshots
+        for client_id, (client, tasks) in list(self._live.items()):
+            self._replaced.add(client_id)
+            self.registry.remove(client)
+            for task in tasks:
+                task.cancel()
+        self.grids_replaced += 1
+        self._cameras_changed()
+        log.info("grid replaced (%d cells in use): %d clients reconnect to it", int(len(grid.allocated_cells())),
+                 len(self._replaced))
+
     # ---------------------------------------------------------------- ticking
     async def _tick_loop(self, stop: asyncio.Event) -> None:
         period = 1.0 / self.settings.tick_hz
@@ -184,6 +227,8 @@ class Service:
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
+            if self._replacement is not None:
+                self._swap_grid()
             self._merge_cameras()
             stats = None
             if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
@@ -365,10 +410,23 @@ class Service:
         log.info("client %d from %s connected (codec %s)", client.id, client.peer, codec_name(codec))
         reader = asyncio.create_task(self._read(ws, session, client))
         writer = asyncio.create_task(self._write(ws, session, client))
-        done, _ = await asyncio.wait({reader, writer}, return_when=asyncio.FIRST_COMPLETED)
-        for task in (reader, writer):
-            task.cancel()
-        await asyncio.gather(reader, writer, return_exceptions=True)
+        self._live[client.id] = (client, (reader, writer))
+        try:
+            done, _ = await asyncio.wait({reader, writer}, return_when=asyncio.FIRST_COMPLETED)
+            for task in (reader, writer):
+                task.cancel()
+            await asyncio.gather(reader, writer, return_exceptions=True)
+        finally:
+            self._live.pop(client.id, None)
+        if client.id in self._replaced:
+            self._replaced.discard(client.id)
+            log.info("client %d from %s: grid replaced, closing (close code %d) after %d messages", client.id,
+                     client.peer, GRID_REPLACED_CLOSE, client.messages_sent)
+            try:
+                await ws.close(GRID_REPLACED_CLOSE, GRID_REPLACED_REASON)
+            except ConnectionClosed:
+                pass
+            return
         exc = next((t.exception() for t in done if not t.cancelled() and t.exception()), None)
         if isinstance(exc, ProtocolError):
             await self._reject(ws, session, exc, client.peer, client.id)

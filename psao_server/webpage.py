@@ -20,6 +20,7 @@ from protocol import pointword as pw
 from protocol import scenefile as sf
 from protocol.codecs import Codec
 from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
+from protocol.session import GRID_REPLACED_CLOSE
 from protocol.shader_constants import define_block
 from protocol.updates import RAW, Layout
 
@@ -65,6 +66,7 @@ def constants_module() -> str:
         "SCENE_HASH_BYTES": m.SCENE_HASH_BYTES,
         "MessageType": {t.name: int(t) for t in m.MessageType},
         "ErrorCode": {c.name: int(c) for c in m.ErrorCode},
+        "GRID_REPLACED_CLOSE": GRID_REPLACED_CLOSE,
         "Codec": {c.name: int(c) for c in Codec},
         "Layout": {x.name: int(x) for x in Layout},
         "RAW": RAW,

@@ -116,6 +116,11 @@ function connect() {
   ws.onclose = (e) => {
     if (ws !== app.ws || app.refused) return;
     app.ws = null;
+    if (e.code === C.GRID_REPLACED_CLOSE) {  // not a loss: the server swapped in a better grid, fetch it now
+      app.gridReplacements = (app.gridReplacements || 0) + 1;
+      connect();
+      return;
+    }
     const pause = RECONNECT_PAUSES[Math.min(app.reconnects, RECONNECT_PAUSES.length - 1)];
     setState("server gone", `Connection to the server lost (close code ${e.code}); reconnecting in ${pause} s (attempt ${app.reconnects + 1}).`, true);
     setTimeout(() => { app.reconnects++; connect(); }, pause * 1000);
