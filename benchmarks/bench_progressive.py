@@ -1,0 +1,222 @@
+"""Progressive start: `psao serve --progressive` against a plain `psao serve` (whole bake first), courtyard N=256.
+
+In one run, each server a real `psao serve` process with a real client (in this process) that connects as
+soon as the server listens and sends its camera:
+  - seconds from process start to the client's complete first snapshot (target for --progressive: < 3 s),
+    and, for --progressive, to the full grid's snapshot after the coarse grid was replaced;
+  - the error of what the client shows over time: the AO its mirror reconstructs (paper eq. 2-4, the oracle
+    its shader equals, tests/test_render_psao.py) at random surface probes that are not buried, against AO
+    traced at the probes with --ref-rays rays, as PSNR (AO in 0..1). For --progressive at each mark
+    (seconds since process start; before the first snapshot there is nothing to show), for the plain server
+    from its first snapshot on (its full --rays bake);
+  - a chart of PSNR against seconds since start for both (run time against error).
+
+    .venv/bin/python -m benchmarks.bench_progressive [--density 256] [--rays 128] [--marks 1,2,3,5,10,20,30]
+        [--out out/bench_progressive]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.verdicts import Verdicts
+
+TARGET_FIRST_SNAPSHOT_S = 3.0
+SCENE = "builtin:courtyard"
+
+
+def reference(scene, probes: int, rays: int, workers: int):
+    """Visible probes and their AO traced with `rays` rays."""
+    from psao_server.bake import sample_probes, scene_center, scene_world_geometry
+    from psao_server.buried import visible_probes
+    from psao_server.tracer import TraceSettings, make_tracer
+
+    p = visible_probes(scene, sample_probes(scene, probes))
+    tracer = make_tracer("embree", scene_center(scene), workers=workers)
+    try:
+        tracer.set_static(*scene_world_geometry(scene))
+        truth = tracer.visibility(p.world_pos, p.world_normal, np.arange(len(p.instance)) + (1 << 30),
+                                  TraceSettings(rays=rays, ao_distance=scene.ao_distance, seed=4242))
+    finally:
+        tracer.close()
+    return p, truth
+
+
+def psnr(state: dict, probes, truth: np.ndarray) -> float:
+    """PSNR (dB) of the AO reconstructed from a mirror's arrays at the probes against `truth`."""
+    from protocol.reconstruct import reconstruct_ao
+
+    ao, _ = reconstruct_ao(state["instances"], state["buckets"], state["cells"], probes.instance, probes.local_pos,
+                           probes.local_normal)
+    mse = float(np.mean((np.asarray(ao, np.float64) - truth) ** 2))
+    return 10.0 * np.log10(1.0 / max(mse, 1e-12))
+
+
+def watch(scene, serve_args: list[str], marks: list[float], until_snapshots: int, hang_s: float) -> dict:
+    """Start `psao serve SCENE ... --port 0` and connect a client as soon as it listens. Returns the seconds
+    since process start of every complete snapshot, and a copy of the mirror the client shows (its last
+    complete snapshot and the updates since) at each mark; ends after the last mark and `until_snapshots`
+    complete snapshots."""
+    from protocol.session import scene_hash_bytes
+    from psao_client.connection import MirrorClient, scene_camera_feed
+    from psao_client.errors import ConnectError
+
+    started = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", SCENE, "--port", "0", *serve_args],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    log: list[str] = []
+    port = None
+    while port is None:
+        line = proc.stderr.readline()
+        if not line and proc.poll() is not None:
+            raise RuntimeError(f"psao serve {' '.join(serve_args)} exited:\n" + "".join(log))
+        log.append(line)
+        m = re.search(r"listening on ws://[^:]+:(\d+)", line)
+        port = int(m.group(1)) if m else None
+    listening_s = time.perf_counter() - started
+    shown: dict = {"mirror": None}
+    result: dict = {"listening_s": listening_s, "snapshots_s": [], "snapshot_cells": [], "captured": {}}
+
+    def on_snapshot(mirror):
+        result["snapshots_s"].append(time.perf_counter() - started)
+        result["snapshot_cells"].append(int(mirror.allocated_cells()))
+        shown["mirror"] = mirror  # a new connection's mirror is shown once its snapshot is complete
+
+    def copy(mirror) -> dict:
+        return {k: np.array(getattr(mirror, k), copy=True) for k in ("instances", "buckets", "cells")}
+
+    client = MirrorClient(f"ws://127.0.0.1:{port}", scene_hash_bytes(scene.content_hash()),
+                          camera=scene_camera_feed(scene), on_snapshot=on_snapshot)
+
+    async def run():
+        task = asyncio.create_task(client.run())
+        pending = sorted(marks)
+        while not task.done():
+            now = time.perf_counter() - started
+            while pending and now >= pending[0]:
+                mark = pending.pop(0)
+                result["captured"][mark] = copy(shown["mirror"]) if shown["mirror"] is not None else None
+            if (not pending and len(result["snapshots_s"]) >= until_snapshots) or now > hang_s:
+                break
+            await asyncio.sleep(0.02)
+        client.stop()
+        try:
+            await asyncio.wait_for(task, 30)
+        except (ConnectError, asyncio.TimeoutError):  # the connection dropping as the client stops is not a result
+            pass
+        if shown["mirror"] is not None:
+            result["final"] = copy(shown["mirror"])
+
+    try:
+        asyncio.run(run())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+        log.append(err)
+    result["log"] = "".join(log)
+    result["grid_replacements"] = client.stats.grid_replacements
+    return result
+
+
+def chart(r: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    pts = [(m, v) for m, v in r["progressive_psnr_at_s"].items() if v is not None]
+    ax.plot([m for m, _ in pts], [v for _, v in pts], "o-", label="psao serve --progressive (client's view)")
+    full_s, full_db = r["plain_first_snapshot_s"], r["full_bake_psnr_db"]
+    end = max([full_s, *r["progressive_psnr_at_s"]]) * 1.05
+    ax.plot([full_s, end], [full_db, full_db], "r-", lw=2, label=f"plain psao serve: full {r['rays']}-ray bake")
+    ax.axvline(r["progressive_first_snapshot_s"], color="g", ls=":",
+               label=f"--progressive first snapshot {r['progressive_first_snapshot_s']:.2f} s")
+    if r.get("progressive_full_grid_s"):
+        ax.axvline(r["progressive_full_grid_s"], color="b", ls=":",
+                   label=f"--progressive full grid {r['progressive_full_grid_s']:.1f} s")
+    ax.axvline(full_s, color="r", ls="--", label=f"plain serve first snapshot {full_s:.1f} s")
+    ax.set(xlabel="seconds since psao serve started", ylabel=f"PSNR vs {r['ref_rays']}-ray AO at probes, dB",
+           title=f"courtyard N={r['density']:g}: run time against error", xlim=(0, end))
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--density", type=float, default=256.0)
+    ap.add_argument("--rays", type=int, default=128, help="--rays of both servers (the full bake's rays)")
+    ap.add_argument("--marks", default="1,2,3,5,10,20,30", help="seconds since start at which the client's view is scored")
+    ap.add_argument("--probes", type=int, default=20000)
+    ap.add_argument("--ref-rays", type=int, default=1024)
+    ap.add_argument("--workers", type=int, default=0, help="tracer processes of the reference (0: all cores)")
+    ap.add_argument("--hang-s", type=float, default=400.0, help="give up on a server after this many seconds")
+    ap.add_argument("--skip-plain", action="store_true", help="only the --progressive server (no plain baseline)")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_progressive"))
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    marks = sorted(float(x) for x in args.marks.split(",") if x)
+    v = Verdicts("bench_progressive")
+
+    from psao_scene import load_scene
+
+    scene = load_scene(SCENE)
+    probes, truth = reference(scene, args.probes, args.ref_rays, args.workers)
+    print(f"reference: {len(truth):,} visible probes x {args.ref_rays} rays", flush=True)
+    common = ["--density", f"{args.density:g}", "--rays", str(args.rays)]
+    prog = watch(scene, ["--progressive", *common], marks, 2, args.hang_s)
+    at = {m: (psnr(s, probes, truth) if s is not None else None) for m, s in prog["captured"].items()}
+    snaps = prog["snapshots_s"]
+    r = {"density": args.density, "rays": args.rays, "ref_rays": args.ref_rays, "probes": int(len(truth)),
+         "progressive_listening_s": prog["listening_s"],
+         "progressive_first_snapshot_s": snaps[0] if snaps else float("nan"),
+         "progressive_full_grid_s": snaps[1] if len(snaps) > 1 else None,
+         "progressive_snapshot_cells": prog["snapshot_cells"], "grid_replacements": prog["grid_replacements"],
+         "progressive_psnr_at_s": at}
+    print(f"--progressive: listening {prog['listening_s']:.2f} s, first snapshot {r['progressive_first_snapshot_s']:.2f} s "
+          f"({prog['snapshot_cells'][0] if snaps else 0:,} cells), full grid "
+          f"{r['progressive_full_grid_s'] or float('nan'):.1f} s after start", flush=True)
+    if args.skip_plain:
+        r.update(plain_first_snapshot_s=float("nan"), full_bake_psnr_db=float("nan"))
+    else:
+        plain = watch(scene, common, [], 1, args.hang_s)
+        r.update(plain_first_snapshot_s=plain["snapshots_s"][0] if plain["snapshots_s"] else float("nan"),
+                 full_bake_psnr_db=psnr(plain["final"], probes, truth) if "final" in plain else float("nan"))
+    print(f"\ncourtyard N={args.density:g}, --rays {args.rays}: PSNR of the client's view vs {args.ref_rays}-ray AO at "
+          f"{len(truth):,} probes")
+    print("| seconds since start | --progressive | plain serve (full bake) |\n|---:|---:|---:|")
+    for m in marks:
+        plain_db = r["full_bake_psnr_db"] if m >= r["plain_first_snapshot_s"] else None
+        print(f"| {m:g} | {'%.2f dB' % at[m] if at[m] is not None else 'no snapshot yet'} | "
+              f"{'%.2f dB' % plain_db if plain_db is not None else 'no snapshot yet'} |")
+    print(f"plain serve: first snapshot {r['plain_first_snapshot_s']:.1f} s after start, "
+          f"{r['full_bake_psnr_db']:.2f} dB from then on")
+    (args.out / "progressive.json").write_text(json.dumps(r, indent=1))
+    chart(r, args.out / "progressive_start.png")
+    print(f"chart: {args.out / 'progressive_start.png'}")
+    v.check(f"courtyard N={args.density:g} psao serve --progressive: seconds from start to the client's first snapshot",
+            r["progressive_first_snapshot_s"], "<", TARGET_FIRST_SNAPSHOT_S)
+    v.record("the coarse grid was replaced by the full grid while the client watched", prog["grid_replacements"] == 1
+             and len(snaps) >= 2 and prog["snapshot_cells"][0] < prog["snapshot_cells"][1],
+             f"{prog['grid_replacements']} replacements, cells per snapshot {prog['snapshot_cells']}")
+    last = at[marks[-1]]
+    v.check(f"PSNR of the client's view at {marks[-1]:g} s minus at the first mark with a snapshot, dB (refinement "
+            "improves it)", (last if last is not None else float("nan"))
+            - next((x for x in at.values() if x is not None), float("nan")), ">", 0.0)
+    return v.exit_code()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
