@@ -148,6 +148,10 @@ async def run(args) -> int:
     finally:
         for c in clients.values():
             c.stop()
+        # stop() acts at the client's next message, and a held scene sends none: cancel whoever still waits
+        _, waiting = await asyncio.wait(tasks, timeout=5.0)
+        for task in waiting:
+            task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
         stop.set()
         await served

@@ -22,11 +22,15 @@ from contextlib import redirect_stdout
 
 from benchmarks.verdicts import count_failures
 
-# Order: cheapest first, so a broken install shows up early.
-BENCHMARKS = ("points", "bake", "bandwidth", "render", "tick", "quality", "web", "denoise", "video", "realtime", "dask")
+# Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
+# module MODULES names.
+BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "quality", "culling", "clients", "web",
+              "denoise", "video", "realtime", "dask", "scenes", "baselines", "soak")
+MODULES = {"fuzz": "benchmarks.fuzz"}
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
+    "fuzz": ["--inputs", "2000"],
     "points": ["--points", "200000", "--pcu-samples", "50000"],
     "bake": ["--densities", "64", "--probes", "4000", "--probe-rays", "256"],
     "bandwidth": ["--density", "64", "--animated-ticks", "20", "--ticks", "30", "--random-ticks", "10"],
@@ -40,6 +44,12 @@ QUICK_ARGS = {
     "realtime": ["--parts", "tracer,grid", "--tracer-density", "32", "--bake-points", "20000", "--bake-rays", "16",
                  "--tick-points", "4000", "--repeats", "2", "--skinned-points", "10000", "--grid-ticks", "5"],
     "dask": ["--density", "64", "--repeats", "1", "--large", "builtin:courtyard-3x3", "--rate-points", "30000"],
+    "culling": ["--seconds", "8", "--warmup", "1"],
+    "clients": ["--counts", "1,10", "--density", "32", "--seconds", "5"],
+    "scenes": ["--scenes", "builtin:cornell", "--scales", "1", "--probes", "2000", "--probe-rays", "64", "--spp", "16",
+               "--frames", "1"],
+    "baselines": ["--methods", "ssao,gtao,psao", "--frames", "1", "--spp", "32", "--no-stream", "--sponza-density", "64"],
+    "soak": ["--minutes", "1.5", "--clients", "4", "--event-seconds", "4", "--host-kill-seconds", "30"],
 }
 
 
@@ -58,13 +68,13 @@ class _Tee(io.TextIOBase):
 
 
 def run_one(name: str, args: list[str]) -> tuple[int, int, float]:
-    """Run benchmarks.bench_NAME.main(args); returns (exit code, FAIL verdicts printed, wall seconds).
+    """Run benchmarks.bench_NAME.main(args) (or MODULES[NAME].main); returns (exit code, FAIL verdicts printed, wall seconds).
     A crash counts as exit code 2."""
     start = time.perf_counter()
     tee = _Tee(sys.stdout)
     try:
         with redirect_stdout(tee):
-            module = importlib.import_module(f"benchmarks.bench_{name}")
+            module = importlib.import_module(MODULES.get(name, f"benchmarks.bench_{name}"))
             rc = int(module.main(args) or 0)
     except SystemExit as exc:  # argparse errors and scripts that call sys.exit
         rc = exc.code if isinstance(exc.code, int) else 1
