@@ -169,23 +169,21 @@ def _decode_plain(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDel
 # ------------------------------------------------------------------------------------- packed: helpers
 
 
+_VARINT_SHIFTS = np.arange(0, 35, 7, dtype=np.int64)  # the 5 groups of 7 bits of a uint32
+_VARINT_LIMITS = np.int64(1) << _VARINT_SHIFTS[1:]  # a value at or above limit k takes more than k + 1 bytes
+_VARINT_GROUP = np.arange(5)
+
+
 def varint_encode(values: np.ndarray) -> bytes:
-    """uint32 values -> LEB128 bytes (7 bits per byte, high bit = more follows), vectorised."""
-    v = np.asarray(values, dtype=np.uint64).reshape(-1)
+    """uint32 values -> LEB128 bytes (7 bits per byte, high bit = more follows), vectorised: every value's
+    5 groups at once, then the groups each value needs (its length) in order."""
+    v = np.asarray(values, dtype=np.int64).reshape(-1)
     if v.size == 0:
         return b""
-    nbytes = np.ones(v.size, dtype=np.int64)
-    for k in range(1, 5):
-        nbytes += v >= (np.uint64(1) << np.uint64(7 * k))
-    ends = np.cumsum(nbytes)
-    starts = ends - nbytes
-    out = np.zeros(int(ends[-1]), dtype=np.uint8)
-    for k in range(5):
-        has = nbytes > k
-        byte = (v[has] >> np.uint64(7 * k)) & np.uint64(0x7F)
-        more = (nbytes[has] > k + 1).astype(np.uint64) << np.uint64(7)
-        out[starts[has] + k] = (byte | more).astype(np.uint8)
-    return out.tobytes()
+    groups = (v[:, None] >> _VARINT_SHIFTS) & 0x7F  # (n, 5)
+    nbytes = np.searchsorted(_VARINT_LIMITS, v, side="right") + 1  # 1..5
+    groups[_VARINT_GROUP < (nbytes - 1)[:, None]] |= 0x80  # more follows
+    return groups.astype(np.uint8)[_VARINT_GROUP < nbytes[:, None]].tobytes()
 
 
 def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray:
@@ -213,8 +211,12 @@ def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray
 
 def gaps_encode(sorted_ids: np.ndarray) -> bytes:
     """Strictly increasing ids -> varints of the first id and of every gap minus one."""
-    ids = np.asarray(sorted_ids, dtype=np.int64)
-    return varint_encode(np.diff(ids, prepend=-1) - 1)
+    ids = np.asarray(sorted_ids, dtype=np.int64).reshape(-1)
+    gaps = np.empty_like(ids)
+    if len(ids):
+        gaps[0] = ids[0]
+        np.subtract(ids[1:], ids[:-1] + 1, out=gaps[1:])
+    return varint_encode(gaps)
 
 
 def gaps_decode(data, count: int, what: str) -> np.ndarray:

@@ -166,6 +166,24 @@ def test_varints_and_gaps():
     assert np.array_equal(gaps_decode(gaps_encode(ids), len(ids), "g"), ids)
 
 
+def _leb128(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def test_varints_equal_plain_leb128():
+    rng = np.random.default_rng(7)
+    edges = [2**k + d for k in (7, 14, 21, 28) for d in (-1, 0, 1)] + [0, 2**32 - 1]
+    values = np.concatenate([np.array(edges, np.uint32), rng.integers(0, 2**32, 500, dtype=np.uint32),
+                             (rng.integers(0, 2**32, 500, dtype=np.uint32) >> rng.integers(0, 32, 500)).astype(np.uint32)])
+    assert varint_encode(values) == b"".join(_leb128(int(x)) for x in values)
+    assert varint_encode(values[:1]) == _leb128(int(values[0])) and varint_encode(values[:0]) == b""
+
+
 def _random_delta(rng, nb=60, nc=90, cap=2000) -> GridDelta:
     b_ids = np.sort(rng.choice(1 << 14, nb, replace=False))
     buckets = np.full((nb, 8, 2), EMPTY, np.uint32)
