@@ -25,6 +25,7 @@ import socket
 import ssl
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -102,7 +103,9 @@ class Counters:
 class Service:
     """`tick(grid, t)` runs at the tick rate; a tick object with `prepare(t)` and `apply(plan)` (the
     server tick of psao_server.tick) runs its prepare in a worker thread (it writes no grid, so senders
-    keep reading the grid meanwhile) and its apply on the loop. `transforms()` gives the instance
+    keep reading the grid meanwhile) and its apply on the loop. The prepare and the shared Update's encode
+    run on a thread of their own, so a tick never queues behind the clients' own encodes (which run on the
+    loop's default executor, one per client). `transforms()` gives the instance
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
     connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob)
     answers SceneRequest; without it a SceneRequest is refused."""
@@ -143,6 +146,7 @@ class Service:
         self._live: dict[int, tuple] = {}  # client id -> (reader, writer) tasks of a client being served
         self._replaced: set[int] = set()  # clients whose connection ends because the grid was replaced
         self.grids_replaced = 0
+        self._tick_thread: ThreadPoolExecutor | None = None  # the tick's prepare and the shared encode (run)
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None,
@@ -164,6 +168,7 @@ class Service:
                      codec_name(s.codec), s.layout.name.lower(), s.tick_hz, ", token required" if s.token else "")
             if ready:
                 ready(self.port)
+            self._tick_thread = ThreadPoolExecutor(1, thread_name_prefix="psao-tick")
             ticker = asyncio.create_task(self._tick_loop(stop))
             stopper = asyncio.create_task(stop.wait())
             await asyncio.wait({ticker, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -171,6 +176,7 @@ class Service:
             if ticker.done():
                 ticker.result()  # a tick that raised is a bug: let it out
             ticker.cancel()
+            self._tick_thread.shutdown(wait=False, cancel_futures=True)
             await self._say_goodbye()
         if self._digests:
             self._digests.close()
@@ -232,7 +238,7 @@ class Service:
             self._merge_cameras()
             stats = None
             if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
-                plan = await asyncio.to_thread(self.tick_fn.prepare, self.time)
+                plan = await self._on_tick_thread(self.tick_fn.prepare, self.time)
                 stats = self.tick_fn.apply(plan)
             elif self.tick_fn is not None:
                 stats = self.tick_fn(self.grid, self.time)
@@ -257,13 +263,16 @@ class Service:
             return
         digest = self._state_digest() if self._digests else None  # the state the Update brings them to
         t_encode = time.perf_counter()
-        data = await asyncio.to_thread(share.encode)
+        data = await self._on_tick_thread(share.encode)
         self.counters.encode_seconds += time.perf_counter() - t_encode
         for client, seq in self.fanout.deliver(share, data):
             self.counters.cells_sent += len(cell_slots)
             self.counters.buckets_sent += len(bucket_ids)
             if digest is not None and not client.pending_anything():
                 self._write_digest(client, seq, digest)
+
+    async def _on_tick_thread(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self._tick_thread, fn, *args)
 
     def _record_tick(self, stats, buckets_dirty: int, cells_dirty: int, seconds: float) -> None:
         """Keep the tick's own statistics (the server tick's TickStats) for the live line and the jsonl.

@@ -130,3 +130,44 @@ def test_clients_leaving_during_the_handshake_leave_no_traceback(caplog):
     assert stats.updates >= 2
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
     assert not errors, [r.getMessage() for r in errors]
+
+
+class PreparedEdits(RandomEdits):
+    """Random edits as a prepare/apply tick (prepare off the loop, as the server tick runs)."""
+
+    def prepare(self, t: float):
+        return t
+
+    def apply(self, t: float) -> None:
+        self(self.grid, t)
+
+
+def test_ticks_go_on_while_every_default_worker_is_busy():
+    """The clients' own encodes run on the loop's default executor; with all of its workers busy (many
+    clients encoding) the tick's prepare and the shared encode still run: they have a thread of their own."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        pool = ThreadPoolExecutor(2)
+        loop.set_default_executor(pool)
+        release = threading.Event()
+        tick = PreparedEdits(5, seed=2)
+        service, stop, task, url = await start(ServeSettings(port=0, tick_hz=50, stats_interval=1e9), tick)
+        tick.grid = service.grid
+        blockers = [loop.run_in_executor(None, release.wait) for _ in range(2)]
+        try:
+            async with connect(url, compression=None, max_size=None) as ws:
+                await ws.send(hello())
+                ticks = service.counters.ticks
+                while service.counters.ticks < ticks + 5:
+                    await asyncio.sleep(0.01)
+                return service.counters.ticks - ticks
+        finally:
+            release.set()
+            await asyncio.gather(*blockers)
+            stop.set()
+            await task
+
+    assert asyncio.run(asyncio.wait_for(main(), HANG_S)) >= 5
