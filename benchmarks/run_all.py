@@ -25,7 +25,8 @@ from benchmarks.verdicts import count_failures
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
 BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "quality", "culling", "clients", "web",
-              "denoise", "video", "realtime", "dask", "scenes", "baselines", "soak")
+              "denoise", "video", "realtime", "dask", "progressive", "scenes", "baselines",
+              "soak")
 MODULES = {"fuzz": "benchmarks.fuzz"}
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
@@ -49,6 +50,7 @@ QUICK_ARGS = {
     "scenes": ["--scenes", "builtin:cornell", "--scales", "1", "--probes", "2000", "--probe-rays", "64", "--spp", "16",
                "--frames", "1"],
     "baselines": ["--methods", "ssao,gtao,psao", "--frames", "1", "--spp", "32", "--no-stream", "--sponza-density", "64"],
+    "progressive": ["--density", "64", "--rays", "32", "--marks", "1,3,5", "--probes", "4000", "--ref-rays", "256"],
     "soak": ["--minutes", "1.5", "--clients", "4", "--event-seconds", "4", "--host-kill-seconds", "30"],
 }
 
