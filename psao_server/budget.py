@@ -109,7 +109,9 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
     t0 = time.perf_counter()
     tracer.visibility(positions, normals, ids, trace_settings)
     big = time.perf_counter() - t0
-    return len(ids) * trace_settings.rays / max(big - small, 1e-6), small
+    # the big call less the small one's overhead, but at least half the big call: on a busy machine the
+    # two can come out alike, and a near-zero difference would promise an absurd rate
+    return len(ids) * trace_settings.rays / max(big - small, 0.5 * big, 1e-6), small
 
 
 class RefineQueue:
@@ -126,6 +128,24 @@ class RefineQueue:
         self.old_rays = np.zeros(n, np.float32)  # the estimate from before the change, as so many rays
         self.old_unoccluded = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
+        # the ids with done < slices, sorted: kept up to date by every change of `done`, so finding the
+        # waiting points costs in proportion to them, not to the scene
+        self._waiting = np.arange(n, dtype=np.int64)
+
+    def _now_waiting(self, ids: np.ndarray) -> None:
+        """`ids` join the waiting set (called before their done is set to 0)."""
+        new = np.sort(ids[self.done[ids] >= self.slices])
+        if len(new):
+            new = new[np.concatenate([[True], new[1:] != new[:-1]])]
+            merged = np.concatenate([self._waiting, new])
+            merged.sort(kind="stable")  # two sorted runs: a linear merge
+            self._waiting = merged
+
+    def _maybe_done(self, ids: np.ndarray) -> None:
+        """`ids` whose done grew leave the waiting set once they hold every slice."""
+        if len(ids) and np.any(self.done[ids] >= self.slices):
+            w = self._waiting
+            self._waiting = w[self.done[w] < self.slices]
 
     def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
         """The bake's AO (its quantised value stands for the mean of its rays): with at least the target's
@@ -135,7 +155,9 @@ class RefineQueue:
         if rays >= self.target:
             self.rays[ids], self.done[ids] = self.target, self.slices
             self.unoccluded[ids] = vis * self.target
+            self._maybe_done(ids)
         else:
+            self._now_waiting(ids)
             self.rays[ids], self.done[ids], self.unoccluded[ids] = 0, 0, 0.0
             self.old_rays[ids], self.old_unoccluded[ids] = rays, vis * rays
 
@@ -148,13 +170,15 @@ class RefineQueue:
             kept = np.minimum(total, min(self.keep, self.target))
             self.old_unoccluded[ids] = unocc / np.maximum(total, 1) * kept
             self.old_rays[ids] = kept
+        self._now_waiting(ids)
         self.rays[ids] = 0
         self.done[ids] = 0
         self.unoccluded[ids] = 0.0
 
     def waiting(self, eligible: np.ndarray) -> np.ndarray:
         """Ids (sorted) of eligible points whose history is short of the target."""
-        return np.flatnonzero(eligible & (self.done < self.slices))
+        w = self._waiting
+        return w[eligible[w] & (self.done[w] < self.slices)]
 
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int) -> np.ndarray:
         """The first `k` of `ids` in priority order (visible, reset, oldest)."""
@@ -173,6 +197,7 @@ class RefineQueue:
         self.unoccluded[ids] += np.rint(visibility.astype(np.float32) * rays)  # a count: exact in float32
         self.rays[ids] += rays
         self.done[ids] += slices
+        self._maybe_done(ids)
         self.waiting_since[ids] = now
         total, unocc = self._blend(ids)
         return pw.quantise_ao(unocc / total)

@@ -91,6 +91,15 @@ def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return starts + np.arange(total)
 
 
+def sorted_union(parts: list[np.ndarray]) -> np.ndarray:
+    """The sorted distinct values of sorted int arrays (a merge of sorted runs, no hashing)."""
+    if not parts:
+        return np.zeros(0, np.int64)
+    c = np.concatenate(parts)
+    c.sort(kind="stable")  # sorted runs: timsort merges them
+    return c[np.concatenate([[True], c[1:] != c[:-1]])] if len(c) else c
+
+
 class BlockIndex:
     """Points (fixed world positions) sorted by a coarse world block, for box queries."""
 
@@ -211,3 +220,61 @@ def static_points_near(index: BlockIndex, reach: dict, motion: MotionInput | Non
                 idx = idx[keep]
             out[idx] = True
     return out
+
+
+class NearCache:
+    """static_points_near over time: the same answer, found among a candidate set kept per mover.
+
+    A mover's reach changes a little from tick to tick, so the block index is queried for its reach
+    grown by `margin` (world units), and the candidates (ids, positions and normals, gathered once into
+    contiguous arrays) serve every following tick whose reach stays inside that grown box. Each tick
+    then tests only those candidates (in a reach box, may see the mover's sphere now or before), never
+    the block index or the whole point set."""
+
+    def __init__(self, index: BlockIndex, normals: np.ndarray, ao_distance: float, margin: float):
+        self.index = index
+        self.normals = np.asarray(normals, np.float64)
+        self.ao_distance = float(ao_distance)
+        self.margin = float(margin)
+        self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, candidate indices, positions, normals)
+        self.queries = 0  # block-index queries made (each a cache refill)
+
+    def _candidates(self, i: int, boxes: list[tuple[np.ndarray, np.ndarray]]) -> tuple:
+        lo = np.min([b[0] for b in boxes], axis=0)
+        hi = np.max([b[1] for b in boxes], axis=0)
+        held = self._held.get(i)
+        if held is None or np.any(lo < held[0]) or np.any(hi > held[1]):
+            q = (lo - self.margin, hi + self.margin)
+            idx = np.sort(self.index.query_box(q))
+            # coordinates as rows (3, P): the tests below run on contiguous 1-D arrays
+            held = self._held[i] = (q[0], q[1], idx, np.ascontiguousarray(self.index.positions[idx].T),
+                                    np.ascontiguousarray(self.normals[idx].T))
+            self.queries += 1
+        return held
+
+    def near(self, reach: dict, motion: MotionInput) -> np.ndarray:
+        """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
+        normals, ao_distance)."""
+        parts = []
+        for i, boxes in reach.items():
+            _, _, idx, pos, nrm = self._candidates(i, boxes)
+            keep = np.zeros(len(idx), dtype=bool)
+            for lo, hi in boxes:
+                keep |= ((pos[0] >= lo[0]) & (pos[0] <= hi[0]) & (pos[1] >= lo[1]) & (pos[1] <= hi[1])
+                         & (pos[2] >= lo[2]) & (pos[2] <= hi[2]))
+            spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
+            if spheres:
+                sel = np.flatnonzero(keep)
+                p, n = pos[:, sel], nrm[:, sel]
+                see = np.zeros(len(sel), dtype=bool)
+                for c, r in spheres:  # may_see_sphere, on rows
+                    d0, d1, d2 = c[0] - p[0], c[1] - p[1], c[2] - p[2]
+                    see |= ((d0 * d0 + d1 * d1 + d2 * d2 <= (r + self.ao_distance) ** 2)
+                            & (d0 * n[0] + d1 * n[1] + d2 * n[2] >= -r))
+                keep[sel[~see]] = False
+            parts.append(idx[keep])
+        return sorted_union(parts)
+
+    def forget(self) -> None:
+        """Drop every candidate set (the index or the normals changed)."""
+        self._held.clear()

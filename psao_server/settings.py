@@ -192,6 +192,8 @@ class TickSettings:
     tracer: str = BakeSettings.tracer  # back-end name
     workers: int = BakeSettings.workers  # tracer processes, 0 = all cores
     block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
+    near_margin: float = 0.25  # share of the AO distance a mover's reach is grown by when its nearby static
+    # points are gathered (selection.NearCache): they serve the following ticks until it moves that far
     fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
     history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
     budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)

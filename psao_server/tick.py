@@ -53,8 +53,8 @@ from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
-from psao_server.selection import (BlockIndex, MotionInput, camera_planes, in_any_view, reach_boxes, rigid_in_company,
-                                   static_points_near)
+from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
+                                   rigid_in_company, sorted_union)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.tracer import make_tracer
 
@@ -192,6 +192,8 @@ class ServerTick:
         block = self.settings.block or self.scene.ao_distance
         self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
         self.static_normals = self.world_nrm[self.static_ids].astype(np.float64)
+        self.near_cache = NearCache(self.block_index, self.static_normals, self.scene.ao_distance,
+                                    self.settings.near_margin * self.scene.ao_distance)
 
     def _init_tracer(self) -> None:
         s = self.settings
@@ -375,13 +377,13 @@ class ServerTick:
         the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
         now = t_anim
         if self.last_frame is None or not self.settings.selection:
-            changed = self.tracked
+            changed = np.flatnonzero(self.tracked)
         else:
-            changed = self._motion_candidates(frame) & self.tracked
-        self.queue.reset(np.flatnonzero(changed), now)
+            changed = self._motion_candidates(frame)
+        self.queue.reset(changed, now)
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
-        refined = self._refine(np.flatnonzero(changed), frame)
+        refined = self._refine(changed, frame)
         # parked skinned points too: a trace re-inserts them; not those the refiner has out
         eligible = self.tracked if self.refiner is None else self.tracked & ~self.refiner.busy
         waiting = all_waiting = self.queue.waiting(eligible)
@@ -461,7 +463,10 @@ class ServerTick:
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Point ids to trace this tick (sorted) with their world positions and normals; updates the
         stale flags."""
-        candidates = self.tracked.copy() if not self.settings.selection or self.last_frame is None else self._motion_candidates(frame)
+        candidates = self.tracked.copy()
+        if self.settings.selection and self.last_frame is not None:
+            candidates[:] = False
+            candidates[self._motion_candidates(frame)] = True
         candidates |= self.stale
         ids = np.flatnonzero(candidates & self.tracked)
         pos, nrm = self.world_points(frame, ids)
@@ -482,23 +487,23 @@ class ServerTick:
         return out
 
     def _motion_candidates(self, frame: Frame) -> np.ndarray:
-        """Points whose AO the motion since the last tick may have changed. Movers that stood still
-        since then count as static boxes for the company test and select nothing themselves."""
+        """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed.
+        Movers that stood still since then count as static boxes for the company test and select nothing
+        themselves. Costs in proportion to the points near movers (NearCache), not to the scene."""
         moved = self._moved_since(frame, self.last_frame)
-        out = np.zeros(len(self.tracked), dtype=bool)
         if not moved:
-            return out
+            return np.zeros(0, np.int64)
         pick = lambda d: {i: d[i] for i in moved if i in d}  # noqa: E731
         motion = MotionInput(pick(frame.bounds), pick(self.last_frame.bounds),
                              [i for i in self.kinds.rigid if i in moved], [i for i in self.kinds.skinned if i in moved],
                              pick(frame.spheres), pick(self.last_frame.spheres))
         reach = reach_boxes(motion, self.scene.ao_distance)
-        near = static_points_near(self.block_index, reach, motion, self.static_normals, self.scene.ao_distance)
-        out[self.static_ids[near]] = True
+        parts = [self.static_ids[self.near_cache.near(reach, motion)]]  # static ids are tracked
         standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
         for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
-            out[self.ids_of[i]] = True
-        return out
+            ids = self.ids_of[i]
+            parts.append(ids[self.tracked[ids]])
+        return sorted_union(parts)
 
     def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions (P, 3) float64 and normals (P, 3) float32 of points `ids` in `frame`."""

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from psao_scene.camera import look_at, perspective
-from psao_server.selection import (BlockIndex, MotionInput, frustum_planes, in_any_view, in_box, in_frustum,
-                                   reach_boxes, rigid_in_company, static_points_near)
+from psao_server.selection import (BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view, in_box, in_frustum,
+                                   reach_boxes, rigid_in_company, sorted_union, static_points_near)
 
 
 def random_points(n, seed=0, scale=20.0):
@@ -95,6 +95,48 @@ def test_reach_uses_current_and_previous_boxes():
     (u,) = reach_boxes(step, 0.5)[0]
     np.testing.assert_allclose(u[0], [-0.5, -0.5, -0.5])
     np.testing.assert_allclose(u[1], [1.6, 1.5, 1.5])
+
+
+def moving_spheres(rng, ticks, movers, step):
+    """Per tick, MotionInput of `movers` spheres wandering by up to `step` per tick (with the odd jump)."""
+    centre = rng.uniform(-8, 8, (movers, 3))
+    radius = rng.uniform(0.3, 1.5, movers)
+    before = None
+    for t in range(ticks):
+        centre = centre + rng.uniform(-step, step, centre.shape)
+        if t % 9 == 8:
+            centre[t % movers] = rng.uniform(-8, 8, 3)  # a jump: leaves the gathered candidates
+        boxes = {i: (centre[i] - radius[i], centre[i] + radius[i]) for i in range(movers)}
+        spheres = {i: (centre[i].copy(), float(radius[i])) for i in range(movers)}
+        yield MotionInput(boxes, before[0] if before else {}, list(range(movers)), [], spheres,
+                          before[1] if before else None)
+        before = boxes, spheres
+
+
+def test_near_cache_matches_static_points_near_over_a_motion():
+    rng = np.random.default_rng(7)
+    pts = random_points(60000, seed=5, scale=10.0)
+    nrm = rng.normal(size=pts.shape)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ao = 1.2
+    index = BlockIndex(pts, ao)
+    cache = NearCache(index, nrm, ao, margin=0.25 * ao)
+    for motion in moving_spheres(rng, 40, 3, 0.1):
+        reach = reach_boxes(motion, ao)
+        want = np.flatnonzero(static_points_near(index, reach, motion, nrm, ao))
+        np.testing.assert_array_equal(cache.near(reach, motion), want)
+    assert 3 <= cache.queries < 40 * 3  # candidates are reused between ticks, refilled when a mover leaves them
+    # without spheres: the boxes alone
+    motion = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {}, [0], [])
+    reach = reach_boxes(motion, ao)
+    np.testing.assert_array_equal(cache.near(reach, motion), np.flatnonzero(static_points_near(index, reach)))
+
+
+def test_sorted_union_is_unique_of_the_parts():
+    rng = np.random.default_rng(1)
+    parts = [np.unique(rng.integers(0, 500, n)) for n in (0, 40, 300, 7)]
+    np.testing.assert_array_equal(sorted_union(parts), np.unique(np.concatenate(parts)))
+    assert len(sorted_union([])) == 0 and len(sorted_union([np.zeros(0, np.int64)])) == 0
 
 
 def test_rigid_instance_in_company_only_when_near_another_box():

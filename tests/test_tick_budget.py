@@ -214,3 +214,21 @@ def test_serve_rounds_divide_the_target_rays(rays, tick_rays, round_rays):
     b = _budget(args)
     assert b.round_rays == round_rays
     TickSettings(rays=rays, budget=b).check()
+
+
+def test_waiting_set_follows_every_change_of_the_history():
+    # the queue keeps its waiting ids up to date through seed, reset and add: always done < slices
+    rng = np.random.default_rng(3)
+    n = 500
+    q = RefineQueue(n, target_rays=16, keep_rays=4, slices=4)
+    every = np.ones(n, bool)
+    q.seed_from_codes(np.arange(0, n, 2), rng.integers(0, 256, n // 2).astype(np.uint32), 16)
+    q.seed_from_codes(np.arange(1, n, 4), rng.integers(0, 256, len(range(1, n, 4))).astype(np.uint32), 4)
+    for step in range(60):
+        np.testing.assert_array_equal(q.waiting(every), np.flatnonzero(q.done < q.slices))
+        q.reset(rng.choice(n, rng.integers(0, 40), replace=True), float(step))
+        w = q.waiting(every)
+        picked = np.unique(rng.choice(w, min(len(w), 60), replace=False)) if len(w) else w
+        q.add(picked, rng.uniform(0, 1, len(picked)).astype(np.float32), 4, float(step), slices=int(rng.integers(1, 3)))
+    eligible = rng.uniform(size=n) < 0.5
+    np.testing.assert_array_equal(q.waiting(eligible), np.flatnonzero(eligible & (q.done < q.slices)))
