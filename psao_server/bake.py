@@ -4,6 +4,7 @@ This is everything the server does before it streams anything; `psao bake` expos
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from contextlib import nullcontext
@@ -19,9 +20,15 @@ from psao_server.buried import BuriedTest
 from psao_server.gapfill import fill_gaps
 from psao_server.grid import Grid
 from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
+from psao_server.points_pool import generate_scene_points_parallel
 from psao_server.sampling import resolve_density
 from psao_server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
 from psao_server.tracer import Tracer, make_tracer
+
+# A bake estimated at this many points or more generates its instances' points in `workers` processes
+# (forking them costs about a tenth of a second; below this the points take little longer than that).
+PARALLEL_POINTS = 100_000
+
 
 @dataclass
 class BakeResult:
@@ -154,10 +161,14 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         t0 = time.perf_counter()
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
         buried = BuriedTest(scene) if settings.skip_buried else None
-        pointsets = generate_scene_points(
-            scene, PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
-                                 spawn_ratio=settings.spawn_ratio),
-            progress=(lambda done, total: bar.update(task, completed=done)) if bar else None, buried=buried)
+        point_settings = PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
+                                       spawn_ratio=settings.spawn_ratio)
+        progress = (lambda done, total: bar.update(task, completed=done)) if bar else None
+        workers = settings.workers or os.cpu_count() or 1
+        if workers > 1 and len(scene.instances) > 1 and stats["points_estimated"] >= PARALLEL_POINTS:
+            pointsets = generate_scene_points_parallel(scene, point_settings, workers, settings.skip_buried, progress)
+        else:
+            pointsets = generate_scene_points(scene, point_settings, progress=progress, buried=buried)
         stats["seconds_points"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

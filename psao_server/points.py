@@ -186,6 +186,17 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
+def instance_points(scene: Scene, settings: PointSettings, k: int, buried=None) -> PointSet:
+    """The PointSet of instance k, seeded by instance_seed (independent of every other instance)."""
+    inst = scene.instances[k]
+    seed = instance_seed(settings.seed, k)
+    reject = None
+    if buried is not None and buried.applies_to(k):
+        def reject(pos, nrm, seed=seed):
+            return buried.mask(pos, nrm, seed)
+    return generate_points(scene.meshes[inst.mesh], inst.transform, settings, seed, reject)
+
+
 def generate_scene_points(scene: Scene, settings: PointSettings, progress=None, buried=None) -> list[PointSet]:
     """One PointSet per instance of `scene`, in instance order, each seeded by instance_seed.
 
@@ -193,13 +204,8 @@ def generate_scene_points(scene: Scene, settings: PointSettings, progress=None, 
     `buried` (psao_server.buried.BuriedTest), if given, keeps points off the surfaces it finds buried.
     """
     out = []
-    for k, inst in enumerate(scene.instances):
-        seed = instance_seed(settings.seed, k)
-        reject = None
-        if buried is not None and buried.applies_to(k):
-            def reject(pos, nrm, seed=seed):
-                return buried.mask(pos, nrm, seed)
-        out.append(generate_points(scene.meshes[inst.mesh], inst.transform, settings, seed, reject))
+    for k in range(len(scene.instances)):
+        out.append(instance_points(scene, settings, k, buried))
         if progress is not None:
             progress(k + 1, len(scene.instances))
     return out

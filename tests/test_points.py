@@ -308,3 +308,22 @@ def test_bunny_points_when_present():
     assert len(ps) == round(2e5 * tm.area)
     nn = nn_distance(ps.positions)
     assert nn.min() > 0.7 * ps.poisson_radius
+
+
+def test_parallel_generation_equals_serial():
+    """Instances in worker processes (each with its own buried-surface test): the same points, array for array."""
+    from psao_scene import load_scene
+    from psao_server.buried import BuriedTest
+    from psao_server.points_pool import generate_scene_points_parallel
+
+    scene = load_scene("builtin:courtyard")
+    s = PointSettings(density=4.0, seed=3)
+    serial = generate_scene_points(scene, s, buried=BuriedTest(scene))
+    calls = []
+    parallel = generate_scene_points_parallel(scene, s, 2, True, progress=lambda done, total: calls.append((done, total)))
+    assert len(parallel) == len(serial) == len(scene.instances)
+    assert calls[-1] == (len(scene.instances), len(scene.instances))
+    for a, b in zip(serial, parallel):
+        for name in ("positions", "normals", "faces", "barycentrics", "back"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert (a.poisson_radius, a.spawned) == (b.poisson_radius, b.spawned)
