@@ -9,17 +9,16 @@ Parts (--parts, comma list; all by default):
   rate     ticks per second of a real `psao serve --animate --tick-hz 60` process (its own statistics)
            with a real `psao client` sending its camera (benchmarks.served): courtyard N=256, robots
            N=256 and N=512, the skinned model (target >= 55); also the bytes per second it sends
-  start    `psao serve --progressive` on courtyard N=256: seconds from process start to the client's
-           complete snapshot (target < 3 s) beside a plain `psao serve` (whole bake first); the client's
-           mirror at 1, 5 and 30 s against the full --rays bake (PSNR of the points' AO), chart
   quality  budgeted tick at 60 Hz (real time) against the unbudgeted tick (every selected point fully
            re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
            points in the camera's view against a --ref-rays reference trace, while moving and one second
            after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart
 
+Progressive start (`psao serve --progressive`) has a benchmark of its own: benchmarks.bench_progressive.
+
 The Warp CUDA tracer is not measured here unless --tracer warp is given on a machine with a GPU.
 
-    .venv/bin/python -m benchmarks.bench_realtime [--parts tracer,grid,rate,start,quality] [--seconds 10]
+    .venv/bin/python -m benchmarks.bench_realtime [--parts tracer,grid,rate,quality] [--seconds 10]
         [--skinned ../shared/scenes/cesiumman/CesiumMan.glb] [--out out/bench_realtime]
 """
 from __future__ import annotations
@@ -33,9 +32,9 @@ import numpy as np
 
 from benchmarks.verdicts import Verdicts
 
-PARTS = ("tracer", "grid", "rate", "start", "quality")
+PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
-           "first_snapshot_s": 3.0, "moving_loss_db": 1.0, "rest_loss_db": 0.5}
+           "moving_loss_db": 1.0, "rest_loss_db": 0.5}
 SKINNED = "../shared/scenes/cesiumman/CesiumMan.glb"
 
 
@@ -176,135 +175,6 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
         v.check(f"{scene} N={density:g} ticks per second of psao serve --animate --tick-hz 60 with a client",
                 row["ticks_per_s"], ">=", TARGETS["ticks_per_s"])
     out["rate"] = rows
-
-
-# ------------------------------------------------------------------------------------------- start
-def part_start(args, v: Verdicts, out: dict) -> None:
-    from protocol import gridformat as gf
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings
-
-    spec, density = "builtin:courtyard", args.start_density
-    scene = load_scene(spec)
-    t0 = time.perf_counter()
-    full = bake_scene(scene, BakeSettings(density=density, rays=args.start_rays, workers=args.workers), show_progress=False)
-    full.tracer.close()
-    full_bake_s = time.perf_counter() - t0
-    truth = (full.grid.cells[:, :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
-    held = full.grid.point_id[:, :gf.POINTS_PER_CELL] >= 0
-
-    marks = sorted(args.start_marks)
-    progressive = watch_start(scene, spec, ["--progressive", "--density", f"{density:g}", "--rays", str(args.start_rays),
-                                            "--tick-hz", "60"], marks, len(truth))
-    captured = progressive["captured"]
-    first_snapshot = {"s": progressive["first_snapshot_s"]}
-    psnr = {}
-    for mark, ao in captured.items():
-        mse = float(np.mean((ao[held] - truth[held]) ** 2))
-        psnr[mark] = 10 * np.log10(1.0 / max(mse, 1e-12))
-    print(f"progressive start, courtyard N={density:g}: first snapshot {first_snapshot['s']:.2f} s after start; PSNR "
-          f"of the client's point AO vs the full {args.start_rays}-ray bake: "
-          + ", ".join(f"{psnr.get(m_, float('nan')):.2f} dB at {m_:g} s" for m_ in marks), flush=True)
-    plain = watch_start(scene, spec, ["--density", f"{density:g}", "--rays", str(args.start_rays)], [], len(truth))
-    out["start"] = {"density": density, "rays": args.start_rays, "first_snapshot_s": first_snapshot.get("s"),
-                    "plain_first_snapshot_s": plain["first_snapshot_s"], "full_bake_s": full_bake_s,
-                    "psnr_db_at_s": psnr}
-    print(f"progressive start, courtyard N={density:g}: first snapshot {first_snapshot.get('s', float('nan')):.2f} s "
-          f"after start (plain serve, whole {args.start_rays}-ray bake first: {plain['first_snapshot_s']:.1f} s)")
-    for mark in marks:
-        print(f"  {mark:5.1f} s after start: PSNR of the client's point AO vs the full {args.start_rays}-ray bake "
-              f"{psnr.get(mark, float('nan')):.2f} dB")
-    _chart_start(out["start"], args.out / "progressive_start.png")
-    v.check(f"courtyard N={density:g} psao serve --progressive: seconds to the client's first snapshot",
-            first_snapshot.get("s", float("nan")), "<", TARGETS["first_snapshot_s"])
-
-
-def watch_start(scene, spec: str, serve_args: list[str], marks: list[float], cells: int) -> dict:
-    """Start `psao serve SPEC ... --port 0`, connect a client (in this process) as soon as it listens:
-    seconds from process start to the complete snapshot, and the mirror's AO (cells x points, 0..1) at
-    each mark (seconds since process start)."""
-    import asyncio
-    import os
-    import re
-    import signal
-    import subprocess
-    import sys
-
-    from protocol import gridformat as gf
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient, scene_camera_feed
-    from psao_client.errors import ConnectError
-
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", spec, "--port", "0", *serve_args],
-                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    started = time.perf_counter()
-    port = None
-    while port is None:
-        line = proc.stderr.readline()
-        if not line and proc.poll() is not None:
-            raise RuntimeError(f"psao serve {' '.join(serve_args)} exited")
-        m = re.search(r"listening on ws://[^:]+:(\d+)", line)
-        port = int(m.group(1)) if m else None
-    result: dict = {"captured": {}}
-
-    def ao(mirror):
-        return (mirror.cells[:cells, :gf.POINTS_PER_CELL] & 0xFF).astype(np.float64) / 255.0
-
-    def on_snapshot(mirror):
-        result.setdefault("first_snapshot_s", time.perf_counter() - started)
-        result.setdefault("snapshot_ao", ao(mirror))
-
-    def on_update(mirror, transforms, tick):
-        now = time.perf_counter() - started
-        for mark in marks:
-            if mark not in result["captured"] and now >= mark:
-                result["captured"][mark] = ao(mirror)
-
-    client = MirrorClient(f"ws://127.0.0.1:{port}", scene_hash_bytes(scene.content_hash()),
-                          camera=scene_camera_feed(scene), on_snapshot=on_snapshot, on_update=on_update)
-
-    async def watch():
-        task = asyncio.create_task(client.run())
-        while not task.done() and ("first_snapshot_s" not in result or len(result["captured"]) < len(marks)):
-            await asyncio.sleep(0.05)
-            now = time.perf_counter() - started
-            for mark in marks:  # no update since the mark (nothing changed): the mirror as it is
-                if mark not in result["captured"] and now >= mark + 1.0 and client.mirror is not None \
-                        and "first_snapshot_s" in result:
-                    result["captured"][mark] = ao(client.mirror)
-        client.stop()
-        try:
-            await task
-        except ConnectError:  # the connection dropping as the client stops is not a result
-            pass
-
-    try:
-        asyncio.run(watch())
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=120)
-    return result
-
-
-def _chart_start(r: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    marks = sorted(r["psnr_db_at_s"])
-    ax.plot(marks, [r["psnr_db_at_s"][m] for m in marks], "o-", label="--progressive (client's mirror)")
-    ax.axvline(r["first_snapshot_s"], color="g", ls=":", label=f"first snapshot {r['first_snapshot_s']:.1f} s")
-    ax.axvline(r["plain_first_snapshot_s"], color="r", ls="--",
-               label=f"plain serve: first snapshot {r['plain_first_snapshot_s']:.0f} s (full bake, error 0 by definition)")
-    ax.set(xlabel="seconds since psao serve started", ylabel=f"PSNR vs the full {r['rays']}-ray bake, dB (point AO)",
-           title=f"courtyard N={r['density']:g}: progressive start")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------- quality
@@ -483,9 +353,6 @@ def main(argv=None) -> int:
     ap.add_argument("--grid-ticks", type=int, default=30)
     ap.add_argument("--seconds", type=float, default=10.0, help="measured window of each served run")
     ap.add_argument("--serve-rays", type=int, default=32, help="--rays of the served runs (bake and tick target)")
-    ap.add_argument("--start-density", type=float, default=256.0)
-    ap.add_argument("--start-rays", type=int, default=128)
-    ap.add_argument("--start-marks", default="1,5,30")
     ap.add_argument("--quality-density", type=float, default=64.0)
     ap.add_argument("--quality-rays", type=int, default=32)
     ap.add_argument("--round-rays", type=int, default=8)
@@ -497,7 +364,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/bench_realtime"))
     args = ap.parse_args(argv)
     args.tick_points = [int(x) for x in args.tick_points.split(",") if x]
-    args.start_marks = [float(x) for x in args.start_marks.split(",") if x]
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     if any(p not in PARTS for p in parts):
         ap.error(f"--parts: choose from {', '.join(PARTS)}")
