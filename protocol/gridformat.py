@@ -48,8 +48,9 @@ HASH_Z = 31
 # Paper eq. 3: a point counts at a fragment only if n_p . n_x > T_N and (n_p . (p - x) / |p - x|)^2 < T_D.
 T_N = 0.1  # normal threshold (cosine; paper value)
 T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
-# Where eq. 2-4 find no weight in the 2x2x2 block, the lookup tries the 3x3x3 block around the fragment's
-# cell with the radius times this (a wider ring: every point within one cell, s >= 2 r, lies in that block).
+# Where eq. 2-4 find no weight in the 2x2x2 block, the lookup takes the block's points with the radius
+# times this, and where those have none either, the 3x3x3 block around the fragment's cell with that radius
+# (every point within one cell, s >= 2 r, lies in it).
 FALLBACK_SCALE = 2.0
 
 FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
@@ -128,6 +129,7 @@ def lookup_block_base(g: np.ndarray) -> np.ndarray:
 
 
 def decode_point_local(cell_xyz: np.ndarray, qpos: np.ndarray, origin, cell_size) -> np.ndarray:
-    """Cell index (..., 3) and 5-bit codes (..., 3) -> local position (float32, as the shader computes it)."""
+    """Cell index (..., 3) and 5-bit codes (..., 3) -> local position (float32): the centre of the point's
+    1/32 step of the cell (the lookup works with the same position in grid units, cell + (q + 0.5) / 32)."""
     f = pw.dequantise_cell_fraction(qpos)
     return np.asarray(origin, dtype=np.float32) + (np.asarray(cell_xyz, dtype=np.float32) + f) * np.asarray(cell_size, dtype=np.float32)

@@ -1,13 +1,15 @@
 """Python oracle of the client's per-fragment AO lookup (DESIGN.md "AO at a fragment", paper eq. 2-4).
 
 It reads exactly the arrays the client holds (instances, buckets, cells) and does exactly what
-`psao_client/shaders/psao_common.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
+`psao_client/shaders/psao_lookup.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
 hash -> bucket -> linear scan for the key's first entry -> the allocated points of its cell and of the
 cells of the entries right after it with the same key (a key holding more than 7 points owns up to
-KEY_CELLS consecutive entries of its bucket), weights
-max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or (n_p . (p - x)/d)^2 >= T_d, and the weighted mean;
-where all weights are 0, the same over the fallback ring (the 3x3x3 block floor(g) + {-1,0,1}^3 with
-radius FALLBACK_SCALE * r), and 1 where that finds no weight either. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
+KEY_CELLS consecutive entries of its bucket), weights max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or
+(n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), and the weighted mean. Where all weights are 0, the same
+block's points with radius R = FALLBACK_SCALE * r; where those have none either, the 3x3x3 block
+floor(g) + {-1,0,1}^3 with radius R, and 1 where that finds no weight. Positions are in grid units (one
+cell = 1), as the shader computes them: g = (x - origin) / cell_size, a point's offset from the fragment
+(cell + (q + 0.5) / 32) - g. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
 does; without `back` (a probe whose side nobody flagged) both keys are scanned and eq. 3's normal test
 keeps the right side's points. Arithmetic is float32 like the shader's so the two agree to rounding.
@@ -26,7 +28,7 @@ _RING = np.array([[dx, dy, dz] for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx 
 
 def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal, t_n: float = T_N,
                    t_d: float = T_D, chunk: int = 65536, back=None) -> tuple[np.ndarray, np.ndarray]:
-    """AO (M,) float32 and the weight sum (M,) at fragments given in instance-local space; `back` (M,)
+    """AO (M,) float32 and the weight sum (M,) of the step that answered (0: no point found); `back` (M,)
     bool: the fragment shows the back side of a double-sided instance (None: unknown, scan both)."""
     inst_ids = np.asarray(inst_ids, np.int64)
     local_pos = np.asarray(local_pos, np.float32).reshape(-1, 3)
@@ -38,27 +40,31 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
         sl = slice(s, s + chunk)
         args = (instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d,
                 None if back is None else back[sl])
-        ao[sl], wsum[sl] = _reconstruct_chunk(*args)
+        (ao_r, w_r), (ao_big, w_big) = _reconstruct_chunk(*args)
+        found = w_r > 0  # else the block's points with the wider radius
+        ao[sl], wsum[sl] = np.where(found, ao_r, ao_big), np.where(found, w_r, w_big)
         hole = np.flatnonzero(wsum[sl] == 0)
-        if len(hole):  # the fallback ring where the 2x2x2 block found no weight
+        if len(hole):  # the 3x3x3 ring where the block found no weight at either radius
             ring = [a if a is None or np.ndim(a) == 0 or k < 3 else a[hole] for k, a in enumerate(args)]
-            ao[s + hole], wsum[s + hole] = _reconstruct_chunk(*ring, fallback=True)
+            ao[s + hole], wsum[s + hole] = _reconstruct_chunk(*ring, ring=True)[0]
     return ao, wsum
 
 
-def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, fallback=False):
-    """The 2x2x2 block with radius r, or (fallback) the 3x3x3 ring around the fragment's cell with radius
-    FALLBACK_SCALE * r."""
+def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
+    """[(AO, weight sum)] of the 2x2x2 block at radius r and at FALLBACK_SCALE * r, or (ring) of the 3x3x3
+    block around the fragment's cell at FALLBACK_SCALE * r."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
-    r = rec["radius"].astype(np.float32)
+    r = (rec["radius"].astype(np.float32) / s).astype(np.float32)  # grid units
+    wide = (r * np.float32(gf.FALLBACK_SCALE)).astype(np.float32)
     dims = rec["dims"].astype(np.int64)
-    g = (x - origin) / s[:, None]
-    if fallback:
-        r = (r * np.float32(gf.FALLBACK_SCALE)).astype(np.float32)
+    g = ((x - origin) / s[:, None]).astype(np.float32)
+    if ring:
+        radii = [wide]
         cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
     else:
+        radii = [r, wide]
         cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
     inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
     c = np.where(inside[..., None], cell, 0)
@@ -90,20 +96,23 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     slot = entries[mi, ci, ei, 1].astype(np.int64)
     words = cells[slot][:, : gf.POINTS_PER_CELL]  # (K, 7)
     allocated, qpos, ncode, aocode = pw.unpack_point(words)
-    p = gf.decode_point_local(cell[mi, ci][:, None, :], qpos, origin[mi][:, None, :], s[mi][:, None, None])
+    # Offset of each point from the fragment, in cells, in the shader's order of operations.
+    cg = (cell[mi, ci].astype(np.float32) + np.float32(0.5 / pw.POSITION_LEVELS)) - g[mi]
+    d_vec = cg[:, None, :] + qpos.astype(np.float32) * np.float32(1.0 / pw.POSITION_LEVELS)
     n_p = pw.oct_decode(ncode)
-    d_vec = p - x[mi][:, None, :]
-    dist = np.sqrt((d_vec * d_vec).sum(axis=-1))
-    rk = r[mi][:, None]
-    w = np.maximum(np.float32(0.0), (rk - dist) / rk)
+    dist2 = (d_vec * d_vec).sum(axis=-1, dtype=np.float32)
+    dist = np.sqrt(dist2)
     ndot = (n_p * n_x[mi][:, None, :]).sum(axis=-1)
-    safe = np.where(dist > 0, dist, np.float32(1.0))
-    ddot = (n_p * d_vec).sum(axis=-1) / safe
-    ddot = np.where(dist > 0, ddot, np.float32(0.0))
-    # The shader stops at the first unallocated word; allocated-first makes that the same as masking.
-    w = np.where((ndot <= t_n) | (ddot * ddot >= t_d) | ~allocated, np.float32(0.0), w).astype(np.float32)
-    wsum = np.bincount(mi, weights=w.sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
+    ddot = (n_p * d_vec).sum(axis=-1)
+    # eq. 3; the shader stops at the first unallocated word, allocated-first makes that the same as masking.
+    passes = (ndot > t_n) & ((ddot * ddot < np.float32(t_d) * dist2) | (dist2 == 0)) & allocated
     ao_vals = pw.dequantise_ao(aocode)
-    num = np.bincount(mi, weights=(w * ao_vals).sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
-    ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)
-    return ao, wsum
+    out = []
+    for radius in radii:
+        rk = radius[mi][:, None]
+        w = np.where(passes, np.maximum(np.float32(0.0), (rk - dist) / rk), np.float32(0.0)).astype(np.float32)
+        wsum = np.bincount(mi, weights=w.sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
+        num = np.bincount(mi, weights=(w * ao_vals).sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
+        ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)
+        out.append((ao, wsum))
+    return out

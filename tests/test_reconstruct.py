@@ -10,23 +10,28 @@ from psao_server.grid import Grid
 
 def brute_force(grid: Grid, inst, x, n_x):
     """eq. 2-4 over ALL decoded points of the instance, no grid lookup; where no point has weight, the
-    same with the radius times FALLBACK_SCALE (the lookup's fallback ring)."""
+    points of the 2x2x2 block around x with the radius times FALLBACK_SCALE, and where none of those
+    has weight, all points with that radius (the 3x3x3 ring holds every point within it)."""
     rec = grid.instances[inst]
     slots = np.flatnonzero(grid.cell_instance == inst)
     words = grid.cells[slots, : gf.POINTS_PER_CELL]
     alloc, q, ncode, ao = pw.unpack_point(words)
     cell = gf.key_to_cell(grid.cells[slots, gf.KEY_WORD], rec["dims"])
     p = gf.decode_point_local(np.repeat(cell[:, None, :], 7, axis=1), q, rec["origin"], rec["cell_size"])[alloc]
+    point_cell = np.repeat(cell[:, None, :], 7, axis=1)[alloc]
     n_p = pw.oct_decode(ncode[alloc])
     a = pw.dequantise_ao(ao[alloc])
+    r = float(rec["radius"])
     out = []
     for xi, ni in zip(x, n_x):
         d = p - xi
         dist = np.linalg.norm(d, axis=1)
         cosd = np.where(dist > 0, (n_p * d).sum(1) / np.where(dist > 0, dist, 1), 0)
-        for r in (float(rec["radius"]), float(rec["radius"]) * gf.FALLBACK_SCALE):
-            w = np.maximum(0, (r - dist) / r)
-            w[((n_p @ ni) <= T_N) | (cosd ** 2 >= T_D)] = 0
+        counts = ((n_p @ ni) > T_N) & (cosd ** 2 < T_D)
+        block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
+        in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
+        for radius, among in ((r, counts), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, counts)):
+            w = np.where(among, np.maximum(0, (radius - dist) / radius), 0)
             if w.sum() > 0:
                 break
         out.append((w * a).sum() / w.sum() if w.sum() > 0 else 1.0)

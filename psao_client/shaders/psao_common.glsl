@@ -5,8 +5,8 @@
 // Storage: the three tables are integer textures used as flat arrays (PSAO_TABLE_WIDTH texels per row,
 // RGBA32UI): instances PSAO_INSTANCE_TEXELS texels per record, buckets PSAO_BUCKET_TEXELS (2 entries
 // each), cells PSAO_CELL_TEXELS (7 point words + key); the bytes are gridformat's, texel for texel.
-// Normals come from u_psao_normals, the results of pointword.oct_decode in float32. Cells of the 2x2x2
-// block farther than r from the fragment are skipped before hashing.
+// Normals come from u_psao_normals, the results of pointword.oct_decode in float32. Cells farther than
+// the lookup's widest radius from the fragment are skipped before hashing.
 //
 // Every constant below (PSAO_*) comes from protocol/ through the generated include: the shader holds
 // no copy of a layout value or threshold (tests/test_shader_constants.py checks).

@@ -39,73 +39,69 @@ uint psao_cell_key(uvec3 c, uvec3 dims) {
     return c.x + dims.x * (c.y + dims.y * c.z);
 }
 
-// Local position of a point word in cell c (gridformat.decode_point_local): centre of its 5-bit step.
-vec3 psao_point_position(PsaoInstance inst, uvec3 c, uint word) {
-    uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
-    vec3 f = (vec3(q) + 0.5) / PSAO_POSITION_LEVELS;
-    return inst.origin + (vec3(c) + f) * inst.cell_size;
-}
-
 float psao_point_ao(uint word) {
     return float(word & PSAO_CODE_MASK) / PSAO_AO_LEVELS;
 }
 
-// Paper eq. 2-3: weight of a point at offset d = p - x from the fragment (dist2 = |d|^2 < r^2), normal np,
-// for the fragment normal nx and radius r.
-float psao_weight(vec3 d, float dist2, vec3 np, vec3 nx, float r) {
-    float dist = sqrt(dist2);
-    float w = max(0.0, (r - dist) / r);
-    if (w <= 0.0 || dot(np, nx) <= PSAO_T_N) return 0.0;
-    if (dist > 0.0) {
-        float c = dot(np, d) / dist;
-        if (c * c >= PSAO_T_D) return 0.0;
-    }
-    return w;
+// Paper eq. 3: whether a point at offset d from the fragment (dist2 = |d|^2), normal np, counts for the
+// fragment normal nx. The tangent-plane test (n_p . d / |d|)^2 < T_d is written without the division:
+// (n_p . d)^2 < T_d |d|^2, true at d = 0.
+bool psao_passes(vec3 d, float dist2, vec3 np, vec3 nx) {
+    float c = dot(np, d);
+    return dot(np, nx) > PSAO_T_N && (c * c < PSAO_T_D * dist2 || dist2 == 0.0);
 }
 
-// Adds the weighted AO of the allocated points of the cell in `slot` (cell coordinates c), radius r. A point at r or
-// farther has weight 0: it is skipped before its normal is decoded (most points of a 2x2x2 block are).
-void psao_accumulate(PsaoInstance inst, uvec3 c, uint slot, vec3 x, vec3 nx, float r, inout float wsum, inout float aosum) {
+// Adds the allocated points of the cell in `slot` (cell coordinates c) to acc = (weight sum, weighted AO)
+// at radius radii.x, then the same at radius radii.y. Everything is in grid units (one cell = 1): cg is
+// the cell's first position step relative to the fragment's grid coordinate, so a point's offset from
+// the fragment is one multiply-add of its 5-bit codes. Paper eq. 2: weight max(0, (r - d) / r).
+void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, inout vec4 acc) {
     uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
     uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
     uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
-    float r2 = r * r;
+    float outer2 = radii.y * radii.y;
     for (int k = 0; k < PSAO_POINTS_PER_CELL; ++k) {  // allocated words come first
         uint word = words[k];
         if ((word & PSAO_ALLOCATED) == 0u) break;
-        vec3 d = psao_point_position(inst, c, word) - x;
+        uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
+        vec3 d = cg + vec3(q) * (1.0 / PSAO_POSITION_LEVELS);
         float dist2 = dot(d, d);
-        if (dist2 >= r2) continue;
-        float w = psao_weight(d, dist2, psao_point_normal(word), nx, r);
-        wsum += w;
-        aosum += w * psao_point_ao(word);
+        if (dist2 >= outer2 || !psao_passes(d, dist2, psao_point_normal(word), nx)) continue;
+        vec2 w = max(vec2(0.0), (radii - sqrt(dist2)) / radii);
+        float ao = psao_point_ao(word);
+        acc += vec4(w.x, w.x * ao, w.y, w.y * ao);
     }
 }
 
-// Adds the points of cell c: the entries of its bucket with c's key (its back-side key, key | BACK_BIT,
-// with `back` on a double-sided instance). A key holding more than 7 points owns up to PSAO_KEY_CELLS
-// entries, and the server keeps them next to each other, so the scan stops at the key's first entry (or
-// at EMPTY: used entries come first) and the accumulation reads on only while the next entry has the same
-// key.
-void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 x, vec3 nx, float r, inout float wsum, inout float aosum) {
+// Adds the points of cell c (g: the fragment's grid coordinate): the entries of its bucket with c's key
+// (its back-side key, key | BACK_BIT, with `back` on a double-sided instance). A key holding more than 7
+// points owns up to PSAO_KEY_CELLS entries, next to each other (the server keeps buckets sorted by key),
+// so the scan stops at the key's first entry (or at EMPTY: used entries come first) and the cells are
+// read from there while the next entry has the same key. The next entry is often in the texel the scan
+// already holds; the loop's second pass runs only where some fragment's key goes on.
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx, vec2 radii, inout vec4 acc) {
     uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
     uint key = psao_cell_key(c, inst.dims);
     if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
     uint e = PSAO_BUCKET_ENTRIES;  // the key's first entry
+    uvec4 pair = uvec4(PSAO_EMPTY);  // the texel holding entry e: two entries (key, slot, key, slot)
     for (uint t = 0u; t < PSAO_BUCKET_TEXELS; ++t) {
-        uvec4 pair = psao_fetch(u_psao_buckets, base + t);  // two entries: (key, slot, key, slot)
+        pair = psao_fetch(u_psao_buckets, base + t);
         if (pair.x == key) { e = 2u * t; break; }
         if (pair.x == PSAO_EMPTY || pair.z == PSAO_EMPTY) break;
         if (pair.z == key) { e = 2u * t + 1u; break; }
     }
-    // A trip count the compiler cannot bound to a constant: it keeps one copy of psao_accumulate instead of
-    // unrolling PSAO_KEY_CELLS copies (measured slower on llvmpipe).
-    uint cells = e < PSAO_BUCKET_ENTRIES ? min(uint(PSAO_KEY_CELLS), PSAO_BUCKET_ENTRIES - e) : 0u;
-    for (uint k = 0u; k < cells; ++k, ++e) {
-        uvec4 pair = psao_fetch(u_psao_buckets, base + (e >> 1u));
+    if (e == PSAO_BUCKET_ENTRIES) return;
+    vec3 cg = vec3(c) + 0.5 / PSAO_POSITION_LEVELS - g;
+    uint slot = (e & 1u) == 0u ? pair.y : pair.w;
+    for (int k = 0; k < PSAO_KEY_CELLS; ++k) {
+        psao_accumulate(slot, cg, nx, radii, acc);
+        e += 1u;
+        if (e == PSAO_BUCKET_ENTRIES) break;
+        if ((e & 1u) == 0u) pair = psao_fetch(u_psao_buckets, base + (e >> 1u));
         uvec2 entry = (e & 1u) == 0u ? pair.xy : pair.zw;
         if (entry.x != key) break;
-        psao_accumulate(inst, c, entry.y, x, nx, r, wsum, aosum);
+        slot = entry.y;
     }
 }
 
@@ -115,38 +111,45 @@ float psao_cell_distance2(vec3 g, vec3 c) {
     return dot(d, d);
 }
 
-// Paper eq. 4 over the 2x2x2 block floor(g - 0.5) + {0,1}^3 around local position x (normal nx) of
-// instance `inst_id`. Where no point there has weight (a hole: a gap in the sampling wider than r, or a
-// small face whose points went to its neighbours), the fallback ring: the 3x3x3 block floor(g) + {-1,0,1}^3
-// with radius PSAO_FALLBACK_SCALE * r (it holds every point within one cell, s >= 2 r, of x). Returns
-// (AO, weight sum); AO is 1 when even the ring finds no weight. `back`: the fragment shows the back side
-// of a double-sided surface (the G-buffer flipped its normal), so only back-side cells can hold points
-// that pass eq. 3's normal test: one key per cell, as for one-sided instances. One loop and one call of
-// psao_accumulate_cell for both blocks keeps one copy of the lookup in the compiled shader.
+// Paper eq. 4 at local position x (normal nx) of instance `inst_id`, with two fallbacks where it finds no
+// weight (a gap in the sampling wider than r, a small face whose points went to its neighbours):
+//   1. the 2x2x2 block floor(g - 0.5) + {0,1}^3 with radius r (the paper's lookup);
+//   2. where that has no weight, the same block's points with radius R = PSAO_FALLBACK_SCALE * r. Both
+//      sums come from one pass over the block, so this costs no extra cell reads;
+//   3. where that has none either, the 3x3x3 block floor(g) + {-1,0,1}^3 (every point within one cell,
+//      s >= R, of x) with radius R. Only groups of fragments holding such a fragment run these 27 cells.
+// Returns (AO, weight sum of the step that answered); AO is 1 when even step 3 finds no weight. `back`:
+// the fragment shows the back side of a double-sided surface (the G-buffer flipped its normal), so only
+// back-side cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided
+// instances. One loop and one call of psao_accumulate_cell for both blocks keeps one copy of the lookup
+// in the compiled shader; the cell offsets are stepped, not divided out of the loop counter.
 vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     PsaoInstance inst = psao_instance(inst_id);
     vec3 g = (x - inst.origin) / inst.cell_size;
     ivec3 base = ivec3(floor(g - 0.5));
     ivec3 dims = ivec3(inst.dims);
-    float r = inst.radius;
-    // A cell whose box is farther than r cannot hold a point with weight > 0 (small slack for rounding).
-    float reach = r / inst.cell_size * 1.001;
+    vec2 radii = inst.radius / inst.cell_size * vec2(1.0, PSAO_FALLBACK_SCALE);  // grid units
+    // A cell whose box is farther than R cannot hold a point with weight > 0 (small slack for rounding).
+    float reach = radii.y * 1.001;
     float reach2 = reach * reach;
-    float wsum = 0.0;
-    float aosum = 0.0;
+    vec4 acc = vec4(0.0);  // (weight sum, weighted AO) at radius r, then at R
+    int side = 2;          // the block's edge in cells: 2, then 3 for step 3
+    ivec3 o = ivec3(0);    // the cell's offset in the block
     for (int i = 0; i < 8 + 27; ++i) {
-        if (i == 8) {
-            if (wsum > 0.0) break;
+        ivec3 c = base + o;
+        if (all(greaterThanEqual(c, ivec3(0))) && all(lessThan(c, dims)) && psao_cell_distance2(g, vec3(c)) <= reach2)
+            psao_accumulate_cell(inst, uvec3(c), back, g, nx, radii, acc);
+        o.x += 1;
+        if (o.x == side) { o.x = 0; o.y += 1; }
+        if (o.y == side) { o.y = 0; o.z += 1; }
+        if (i + 1 == 8) {  // the 2x2x2 block is done: the loop ends here unless step 3 is needed
+            if (acc.z > 0.0) break;
             base = ivec3(floor(g)) - 1;
-            r *= PSAO_FALLBACK_SCALE;
-            reach *= PSAO_FALLBACK_SCALE;
-            reach2 = reach * reach;
+            side = 3;
+            o = ivec3(0);
+            radii = radii.yy;
         }
-        int j = i < 8 ? i : i - 8;
-        ivec3 c = i < 8 ? base + ivec3(j & 1, (j >> 1) & 1, (j >> 2) & 1) : base + ivec3(j % 3, (j / 3) % 3, j / 9);
-        if (any(lessThan(c, ivec3(0))) || any(greaterThanEqual(c, dims))) continue;
-        if (psao_cell_distance2(g, vec3(c)) > reach2) continue;
-        psao_accumulate_cell(inst, uvec3(c), back, x, nx, r, wsum, aosum);
     }
-    return vec2(wsum > 0.0 ? aosum / wsum : 1.0, wsum);
+    if (acc.x > 0.0) return vec2(acc.y / acc.x, acc.x);
+    return vec2(acc.z > 0.0 ? acc.w / acc.z : 1.0, acc.z);
 }
