@@ -6,13 +6,15 @@ cost depends on how cells are filled, not on the AO values). Every frame of the 
 rendered once as warm-up, then each AO pass is timed on the same G-buffer with GPU timer queries and
 with wall time bracketed by ctx.finish(). Target: PSAO <= 1.5x SSAO (AO + blur), flat in N.
 
-`--against TREE` first runs the same benchmark, same arguments, from another checkout (e.g. an older
-commit made with `git worktree add /tmp/before COMMIT`) in a child process, then this tree's, and
-judges the growth of the PSAO/SSAO ratio at each N against it (target: at most MAX_GROWTH, +15%). Each
-tree's PSAO is normalised by its own SSAO measured on the same frames at the same time, so the machine's
-load drifting between the two runs cancels out.
+`--against TREE` judges this tree's AO pass against another checkout's (e.g. an older commit made with
+`git worktree add /tmp/before COMMIT`): both trees run this benchmark, same arguments, in child processes
+(each its own code, shaders and grid build), interleaved for `--rounds` rounds (A B, B A, A B, ...), and
+the growth of the PSAO/SSAO ratio at each N is the median over rounds of this tree's ratio over the other
+tree's in the same round (target: at most MAX_GROWTH, +15%). Each run's PSAO is normalised by its own SSAO
+measured on the same frames at the same time, and the pairs are run back to back, so the machine's load
+drifting during the benchmark cancels out; the median keeps one disturbed round from deciding.
 
-    .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake] [--against TREE]
+    .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake] [--against TREE [--rounds 3]]
 """
 from __future__ import annotations
 
@@ -31,23 +33,63 @@ TARGET_RATIO = 1.5
 MAX_GROWTH = 1.15  # --against: this tree's PSAO/SSAO ratio over the other tree's, at each N
 
 
-def run_against(tree: Path, argv: list[str]) -> dict:
-    """The same benchmark run from `tree` (its own code, its own shaders): its --json result."""
-    args = [a for a in argv if a != "--json"]
-    if "--against" in args:
-        k = args.index("--against")
-        del args[k:k + 2]
-    args = [a for a in args if not a.startswith("--against=")]
-    cmd = [sys.executable, "-m", "benchmarks.bench_render", *args, "--json", "--chart", str(Path("out") / "bench_render_against.png")]
-    print(f"baseline from {tree}: {' '.join(cmd[1:])}", flush=True)
+def child_argv(argv: list[str]) -> list[str]:
+    """The benchmark's arguments for a child run: without --against/--rounds/--json/--chart."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--against", "--rounds", "--chart"):
+            skip = True
+        elif arg != "--json" and not arg.startswith(("--against=", "--rounds=", "--chart=")):
+            out.append(arg)
+    return out
+
+
+def run_child(tree: Path, args: list[str], label: str, chart_path: Path) -> dict:
+    """This benchmark run from `tree` (its own code, its own shaders): its --json result."""
+    cmd = [sys.executable, "-m", "benchmarks.bench_render", *args, "--json", "--chart", str(chart_path)]
+    print(f"{label} from {tree}: {' '.join(cmd[1:])}", flush=True)
     proc = subprocess.run(cmd, cwd=tree, capture_output=True, text=True)
     for line in proc.stdout.splitlines()[:-1]:
-        print(f"  [baseline] {line}", flush=True)
+        if line.startswith("N="):
+            print(f"  [{label}] {line}", flush=True)
     last = proc.stdout.strip().splitlines()[-1:] or [""]
     if not last[0].startswith("{"):
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-        raise SystemExit(f"bench_render: the baseline run in {tree} failed: {tail}")
+        raise SystemExit(f"bench_render: the {label} run in {tree} failed: {tail}")
     return json.loads(last[0])
+
+
+def run_against(tree: Path, rounds: int, argv: list[str]) -> tuple[list[dict], list[dict]]:
+    """`rounds` runs of each tree, interleaved, the order swapped every round: (this tree's, the other's)."""
+    here = Path(__file__).resolve().parents[1]
+    args = child_argv(argv)
+    runs: dict[str, list[dict]] = {"this tree": [], "baseline": []}
+    trees = [("this tree", here), ("baseline", tree)]
+    for k in range(rounds):
+        print(f"round {k + 1}/{rounds}", flush=True)
+        for label, root in trees if k % 2 == 0 else trees[::-1]:
+            chart_path = here / "out" / "bench_render" / f"against_{label.replace(' ', '_')}.png"
+            runs[label].append(run_child(root, args, label, chart_path))
+    return runs["this tree"], runs["baseline"]
+
+
+def judge_against(tree: Path, here: list[dict], base: list[dict], v) -> None:
+    """Per N: the median over rounds of this tree's PSAO/SSAO ratio over the baseline's in the same round."""
+    for i, row in enumerate(here[0]["rows"]):
+        pairs = [(h["rows"][i], b["rows"][i]) for h, b in zip(here, base)]
+        growths = [h["ratio_gpu"] / b["ratio_gpu"] for h, b in pairs]
+        for k, ((h, b), g) in enumerate(zip(pairs, growths)):
+            print(f"N={row['density']:g} round {k + 1}: PSAO/SSAO {h['ratio_gpu']:.3f} here (PSAO {h['gpu_ms']['psao']:.2f} ms), "
+                  f"{b['ratio_gpu']:.3f} in {tree} (PSAO {b['gpu_ms']['psao']:.2f} ms): growth x{g:.3f}")
+        growth = float(np.median(growths))
+        raw = float(np.median([h["gpu_ms"]["psao"] / b["gpu_ms"]["psao"] for h, b in pairs]))
+        print(f"N={row['density']:g}: median growth x{growth:.3f} over {len(growths)} rounds "
+              f"(PSAO ms alone, not normalised by SSAO: x{raw:.3f})")
+        chart_against(pairs, growth, Path("out") / "bench_render" / f"against_N{row['density']:g}.png", tree)
+        v.check(f"N={row['density']:g} PSAO/SSAO ratio growth against {tree} (median of {len(growths)} interleaved rounds)",
+                growth, "<=", MAX_GROWTH)
 
 
 def build_grid(scene, density: float, bake: bool, rays: int):
@@ -165,6 +207,28 @@ def chart(rows, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def chart_against(pairs, growth: float, path: Path, tree: Path) -> None:
+    """PSAO/SSAO of both trees in each round, and the median growth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(pairs))
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    ax.bar(x - 0.2, [b["ratio_gpu"] for _, b in pairs], 0.4, label=f"baseline ({tree.name})")
+    ax.bar(x + 0.2, [h["ratio_gpu"] for h, _ in pairs], 0.4, label="this tree")
+    ax.set_xticks(x, [f"round {k + 1}\nx{h['ratio_gpu'] / b['ratio_gpu']:.2f}" for k, (h, b) in enumerate(pairs)])
+    ax.set_ylabel("PSAO / SSAO GPU time")
+    ax.set_title(f"N={pairs[0][0]['density']:g}: median growth x{growth:.2f} (limit x{MAX_GROWTH})")
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    print(f"chart: {path}")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scene", default="builtin:courtyard")
@@ -179,9 +243,18 @@ def main(argv=None) -> int:
     p.add_argument("--chart", default="out/bench_render/bench_render.png")
     p.add_argument("--json", action="store_true")
     p.add_argument("--against", type=Path, default=None, metavar="TREE",
-                   help="also run this benchmark from another checkout first and judge the ratio's growth against it")
+                   help="run this tree and another checkout, interleaved, and judge the ratio's growth against it")
+    p.add_argument("--rounds", type=int, default=3, help="--against: runs of each tree (median of the paired growths)")
     args = p.parse_args(argv)
-    baseline = run_against(args.against, list(sys.argv[1:] if argv is None else argv)) if args.against else None
+    if args.against is not None:
+        if args.rounds < 1:
+            raise SystemExit("bench_render: --rounds must be at least 1")
+        here, base = run_against(args.against, args.rounds, list(sys.argv[1:] if argv is None else argv))
+        v = Verdicts("bench_render")
+        worst = float(np.median([run["worst_ratio"] for run in here]))
+        v.check(f"worst PSAO/SSAO GPU time ratio over N={args.densities} (median of {args.rounds} runs)", worst, "<=", TARGET_RATIO)
+        judge_against(args.against, here, base, v)
+        return v.exit_code()
 
     from psao_client.render.output import parse_size
     from psao_client.render.views import path_matrices, path_times
@@ -203,12 +276,6 @@ def main(argv=None) -> int:
     print(f"ratio max/min over N {spread:.2f}")
     v = Verdicts("bench_render")
     v.check(f"worst PSAO/SSAO GPU time ratio over N={args.densities}", worst, "<=", TARGET_RATIO)
-    if baseline is not None:
-        for row, base in zip(rows, baseline["rows"]):
-            growth = row["ratio_gpu"] / base["ratio_gpu"]
-            print(f"N={row['density']:g}: PSAO/SSAO {row['ratio_gpu']:.3f} here, {base['ratio_gpu']:.3f} in {args.against} "
-                  f"(PSAO {row['gpu_ms']['psao']:.2f} vs {base['gpu_ms']['psao']:.2f} ms): growth x{growth:.3f}")
-            v.check(f"N={row['density']:g} PSAO/SSAO ratio growth against {args.against}", growth, "<=", MAX_GROWTH)
     chart(rows, Path(args.chart), f"{scene.name} {size[0]}x{size[1]}: PSAO vs SSAO-{args.ssao_samples}")
     print(f"chart: {args.chart}")
     if args.json:
