@@ -86,15 +86,17 @@ def watch(scene, serve_args: list[str], marks: list[float], until_snapshots: int
         port = int(m.group(1)) if m else None
     listening_s = time.perf_counter() - started
     shown: dict = {"mirror": None}
-    result: dict = {"listening_s": listening_s, "snapshots_s": [], "snapshot_cells": [], "captured": {}}
+    result: dict = {"listening_s": listening_s, "snapshots_s": [], "snapshot_cells": [], "captured": {},
+                    "at_snapshots": []}
+
+    def copy(mirror) -> dict:
+        return {k: np.array(getattr(mirror, k), copy=True) for k in ("instances", "buckets", "cells")}
 
     def on_snapshot(mirror):
         result["snapshots_s"].append(time.perf_counter() - started)
         result["snapshot_cells"].append(int(mirror.allocated_cells()))
+        result["at_snapshots"].append(copy(mirror))
         shown["mirror"] = mirror  # a new connection's mirror is shown once its snapshot is complete
-
-    def copy(mirror) -> dict:
-        return {k: np.array(getattr(mirror, k), copy=True) for k in ("instances", "buckets", "cells")}
 
     client = MirrorClient(f"ws://127.0.0.1:{port}", scene_hash_bytes(scene.content_hash()),
                           camera=scene_camera_feed(scene), on_snapshot=on_snapshot)
@@ -135,17 +137,21 @@ def chart(r: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    pts = [(m, v) for m, v in r["progressive_psnr_at_s"].items() if v is not None]
-    ax.plot([m for m, _ in pts], [v for _, v in pts], "o-", label="psao serve --progressive (client's view)")
+    pts = sorted([(m, v) for m, v in r["progressive_psnr_at_s"].items() if v is not None]
+                 + list(zip(r["progressive_snapshots_s"], r["progressive_psnr_at_snapshots"])))
+    # what the client shows holds until the next sample: a step at each snapshot and mark
+    ax.step([m for m, _ in pts], [v for _, v in pts], "-", where="post", color="C0")
+    ax.plot([m for m, _ in pts], [v for _, v in pts], "o", color="C0", label="psao serve --progressive (client's view)")
     full_s, full_db = r["plain_first_snapshot_s"], r["full_bake_psnr_db"]
-    end = max([full_s, *r["progressive_psnr_at_s"]]) * 1.05
-    ax.plot([full_s, end], [full_db, full_db], "r-", lw=2, label=f"plain psao serve: full {r['rays']}-ray bake")
+    end = max([x for x in (full_s, *r["progressive_psnr_at_s"]) if np.isfinite(x)]) * 1.05
+    if np.isfinite(full_s):
+        ax.plot([full_s, end], [full_db, full_db], "r-", lw=2, label=f"plain psao serve: full {r['rays']}-ray bake")
+        ax.axvline(full_s, color="r", ls="--", label=f"plain serve first snapshot {full_s:.1f} s")
     ax.axvline(r["progressive_first_snapshot_s"], color="g", ls=":",
                label=f"--progressive first snapshot {r['progressive_first_snapshot_s']:.2f} s")
     if r.get("progressive_full_grid_s"):
         ax.axvline(r["progressive_full_grid_s"], color="b", ls=":",
                    label=f"--progressive full grid {r['progressive_full_grid_s']:.1f} s")
-    ax.axvline(full_s, color="r", ls="--", label=f"plain serve first snapshot {full_s:.1f} s")
     ax.set(xlabel="seconds since psao serve started", ylabel=f"PSNR vs {r['ref_rays']}-ray AO at probes, dB",
            title=f"courtyard N={r['density']:g}: run time against error", xlim=(0, end))
     ax.legend(fontsize=7, loc="lower right")
@@ -184,10 +190,12 @@ def main(argv=None) -> int:
          "progressive_first_snapshot_s": snaps[0] if snaps else float("nan"),
          "progressive_full_grid_s": snaps[1] if len(snaps) > 1 else None,
          "progressive_snapshot_cells": prog["snapshot_cells"], "grid_replacements": prog["grid_replacements"],
-         "progressive_psnr_at_s": at}
+         "progressive_psnr_at_s": at, "progressive_snapshots_s": snaps,
+         "progressive_psnr_at_snapshots": [psnr(st, probes, truth) for st in prog["at_snapshots"]]}
     print(f"--progressive: listening {prog['listening_s']:.2f} s, first snapshot {r['progressive_first_snapshot_s']:.2f} s "
           f"({prog['snapshot_cells'][0] if snaps else 0:,} cells), full grid "
-          f"{r['progressive_full_grid_s'] or float('nan'):.1f} s after start", flush=True)
+          f"{r['progressive_full_grid_s'] or float('nan'):.1f} s after start; PSNR at each snapshot "
+          + ", ".join(f"{db:.2f} dB" for db in r["progressive_psnr_at_snapshots"]), flush=True)
     if args.skip_plain:
         r.update(plain_first_snapshot_s=float("nan"), full_bake_psnr_db=float("nan"))
     else:

@@ -16,10 +16,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from psao_scene.model import Scene
-from psao_server.sampling import resolve_density
 from psao_server.settings import BakeSettings, GapFillSettings
+
+if TYPE_CHECKING:  # psao_scene imports trimesh (a second): `psao serve --help` does without it
+    from psao_scene.model import Scene
 
 log = logging.getLogger("psao.serve")
 
@@ -41,6 +43,8 @@ def coarse_bake_settings(full: BakeSettings, first_points: int, rays: int) -> Ba
 def wants_coarse_grid(scene: Scene, full: BakeSettings, settings: ProgressiveSettings) -> bool:
     """True when the full bake's estimated points exceed the coarse grid's by settings.min_ratio (ConfigError
     here, before anything is baked, when the full bake is over its point limit)."""
+    from psao_server.sampling import resolve_density
+
     if settings.first_points <= 0:
         return False
     _, estimate = resolve_density(scene, full.sampling(), full.min_points)
