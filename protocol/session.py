@@ -30,6 +30,7 @@ import numpy as np
 from . import messages as m
 from .codecs import (
     PAPER_ZSTD,
+    OWN_STREAM_ZSTD,
     STREAM_ZSTD,
     Codec,
     FrameCodec,
@@ -139,7 +140,8 @@ class ServerConfig:
     layout: Layout = Layout.PACKED
     zstd: ZstdSettings = PAPER_ZSTD  # per-message zstd
     limits: Limits = DEFAULT_LIMITS
-    stream_zstd: ZstdSettings = STREAM_ZSTD  # zstd streams: a connection's own and the shared ones
+    stream_zstd: ZstdSettings = STREAM_ZSTD  # the shared zstd stream (compressed once for many)
+    own_stream_zstd: ZstdSettings = OWN_STREAM_ZSTD  # a connection's own zstd stream (compressed per client)
 
     def codec_preference(self) -> list[Codec]:
         prefs = [self.codec]
@@ -258,7 +260,7 @@ class ServerSession:
         if codec is None:
             raise CodecError(f"no common codec: client accepts {sorted(c.name for c in accepted)}")
         self.codec = codec
-        self._compress = (StreamCompressor(cfg.stream_zstd) if codec == Codec.ZSTD_STREAM
+        self._compress = (StreamCompressor(cfg.own_stream_zstd) if codec == Codec.ZSTD_STREAM
                           else FrameCodec(codec, cfg.zstd))
         self.state = ServerState.OPEN
         self.may_edit = may_edit
@@ -271,7 +273,7 @@ class ServerSession:
         if self.codec is None:
             raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the handshake")
         if self._compress is None:  # back from a shared stream: a fresh stream of our own starts a frame
-            self._compress = StreamCompressor(self.config.stream_zstd)
+            self._compress = StreamCompressor(self.config.own_stream_zstd)
         self.on_shared = False
         return self.traffic.sent(m.frame(msg.TYPE, self.codec, self._compress.compress(msg.serialize())))
 

@@ -5,7 +5,7 @@ stream (protocol.session.SharedStream) whose extended view holds every dirty cel
 behind, get the tick's changes as one Update encoded once for all of them (`SharePlan.encode` in a
 worker thread, then `deliver` puts the same bytes in each one's outbox). Every other client gets the
 dirty sets in its pending sets, and its own sender streams what lies in its view on its own zstd stream
-(small, protocol.codecs.STREAM_ZSTD), leaving cells outside its view pending.
+(protocol.codecs.OWN_STREAM_ZSTD: small, and a fast level), leaving cells outside its view pending.
 
 A client joins the shared stream when it is in sync (its snapshot done, nothing pending; an Update of
 its own that is still being encoded or sent goes out first, as it was read first) at a tick where the shared stream starts a new frame; the stream restarts for

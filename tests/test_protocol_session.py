@@ -388,3 +388,14 @@ def test_a_connection_joins_a_shared_stream_only_where_a_frame_starts():
     shared.restart()
     with pytest.raises(UnexpectedMessage, match="zstd-stream"):
         frame_server.shared(shared.update(2, 0.2, g.delta(b, c, np.arange(3))))
+
+
+def test_own_streams_use_the_fast_level_and_the_shared_stream_the_papers():
+    """A connection's own zstd stream is compressed per client (OWN_STREAM_ZSTD, a fast level); the shared
+    one once for many (STREAM_ZSTD, the paper's level 15). Both decode on the same client stream."""
+    from protocol.codecs import OWN_STREAM_ZSTD, STREAM_ZSTD
+
+    cfg = ServerConfig(HASH)
+    assert cfg.own_stream_zstd == OWN_STREAM_ZSTD and cfg.stream_zstd == STREAM_ZSTD
+    assert OWN_STREAM_ZSTD.level < STREAM_ZSTD.level == 15
+    assert OWN_STREAM_ZSTD.window_log == STREAM_ZSTD.window_log  # same history a decoder keeps
