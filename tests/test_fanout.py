@@ -204,3 +204,33 @@ def test_cell_places_kept_across_ticks_equal_places_worked_out_anew():
         fresh = CellPlaces(grid, np.arange(len(grid.cells)), transforms)
         np.testing.assert_array_equal(kept.centres, fresh.centres)
         np.testing.assert_array_equal(kept.reach, fresh.reach)
+        np.testing.assert_array_equal(kept.xyz, fresh.xyz)
+        np.testing.assert_array_equal(kept.slack, fresh.slack)
+
+
+def test_in_view_is_the_plane_test_of_every_cell():
+    """CellPlaces.in_view against its definition, cell by cell: in when every plane's signed distance of
+    the centre is >= -(distance margin + reach); a slot with no place (free) is always in."""
+    from psao_server.selection import camera_planes
+    from psao_server.sendview import CellPlaces
+    from psao_server.settings import ViewSettings
+
+    grid = TwoSides.grid(2000)
+    rng = np.random.default_rng(5)
+    pos = np.column_stack([rng.uniform(-20, 20, 300), np.zeros(300), rng.uniform(-2.5, 2.5, 300)])
+    grid.insert_points(0, pos, np.tile(np.float32([0, 1, 0]), (300, 1)), np.full(300, 128, np.uint32))
+    places = CellPlaces(grid, np.arange(len(grid.cells)), np.tile(np.eye(4), (1, 1, 1)))
+    view = ViewSettings()
+    from psao_scene.camera import look_at, perspective
+
+    for eye, target in [((0, 1, 0), (5, 1, 0)), ((0, 1, 0), (-5, 1, 0)), ((3, 4, -8), (0, 0, 0))]:
+        planes = camera_planes(look_at(np.array(eye, float), np.array(target, float)), perspective(60.0, 1.5, 0.05, 100.0),
+                               view.fov_margin)
+        want = np.array([not np.isfinite(c).all()
+                         or all(float(p[:3] @ c + p[3]) >= -(view.distance_margin + r) for p in planes)
+                         for c, r in zip(places.centres, places.reach)])
+        rows = np.sort(rng.choice(len(want), len(want) // 2, replace=False))
+        assert 0 < want.sum() < len(want)  # the camera leaves some cells out, keeps others
+        np.testing.assert_array_equal(places.in_view(planes, view), want)
+        np.testing.assert_array_equal(places.in_view(planes, view, rows), want[rows])
+        assert places.in_view(None, view, rows).all()
