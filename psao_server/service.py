@@ -579,7 +579,10 @@ class Service:
         if len(b) == limits.max_buckets_per_message or len(c) == limits.max_cells_per_message:
             client.wake.set()  # more than one message's worth: go again right away
         t_encode = time.perf_counter()
-        data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
+        if len(b) + len(c) <= self.settings.fanout.inline_rows:
+            data = session.update(self.tick, self.time, delta)
+        else:
+            data = await asyncio.to_thread(session.update, self.tick, self.time, delta)
         self.counters.encode_seconds += time.perf_counter() - t_encode
         self.counters.cells_sent += len(c)
         self.counters.buckets_sent += len(b)

@@ -180,6 +180,9 @@ class FanoutSettings:
     view: ViewSettings = field(default_factory=ViewSettings)  # the extended view (the tick's selection uses the same)
     join_interval: float = 1.0  # seconds between restarts of the shared stream for clients waiting to join
     max_queued: int = 4  # shared Updates waiting in a client's outbox before it leaves the shared stream
+    # rows (buckets + cells): a client's own Update of at most this many is encoded on the event loop (well
+    # under a millisecond), a bigger one in a worker thread; the thread hop costs more than a small encode
+    inline_rows: int = 2048
 
 
 @dataclass

@@ -171,3 +171,52 @@ def test_ticks_go_on_while_every_default_worker_is_busy():
             await task
 
     assert asyncio.run(asyncio.wait_for(main(), HANG_S)) >= 5
+
+
+def test_small_own_updates_do_not_wait_for_a_worker_thread():
+    """A client off the shared stream (per-message zstd never shares) gets small Updates of its own encoded
+    on the loop: with every default worker busy it still receives them, and its mirror stays exact."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from protocol.codecs import Codec
+    from protocol.updates import state_digest
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        loop.set_default_executor(ThreadPoolExecutor(2))
+        release = threading.Event()
+        service, stop, task, url = await start(ServeSettings(port=0, tick_hz=50, stats_interval=1e9))
+        client = MirrorClient(url, HASH, codecs={Codec.ZSTD})
+        run = asyncio.create_task(client.run())
+        blockers = []
+        try:
+            while client.stats.snapshot_seconds is None:
+                await asyncio.sleep(0.01)
+            blockers = [loop.run_in_executor(None, release.wait) for _ in range(2)]
+            updates = client.stats.updates
+            while client.stats.updates < updates + 5:
+                await asyncio.sleep(0.01)
+            stop_edits = service.tick_fn
+            service.tick_fn = None  # hold still, then compare the whole state
+            held = service.tick
+            while service.tick < held + 2 or any(c.pending_anything() or c.busy for c in service.registry):
+                await asyncio.sleep(0.01)
+            while client.stats.messages < next(iter(service.registry)).messages_sent:
+                await asyncio.sleep(0.01)
+            g, mirror = service.grid, client.mirror
+            same = (state_digest(g.instances, g.buckets, g.cells, service.transforms())
+                    == state_digest(mirror.instances, mirror.buckets, mirror.cells, mirror.transforms))
+            service.tick_fn = stop_edits
+            return client.stats.updates - updates, same
+        finally:
+            release.set()
+            await asyncio.gather(*blockers)
+            client.stop()
+            run.cancel()
+            await asyncio.gather(run, return_exceptions=True)
+            stop.set()
+            await task
+
+    updates, same = asyncio.run(asyncio.wait_for(main(), HANG_S))
+    assert updates >= 5 and same
