@@ -269,7 +269,7 @@ class Grid:
                 mine = np.flatnonzero(self.cell_instance == inst)
                 if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
                     kept[sel] = self._refill_instance(inst, mine, slots[sel], idx[sel], new_local_pos[sel],
-                                                      new_normals[sel])
+                                                      new_normals[sel], cell, inside, keys)
                     stay[sel] = True  # done
                     continue
             s_sel = sel[same]
@@ -290,18 +290,22 @@ class Grid:
                                                back=side[sel] != 0)
         return kept
 
-    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals) -> np.ndarray:
-        """Move every point of instance `inst` (cells `mine`; the points at slots/idx) by clearing its cells
-        and buckets and inserting them all anew, ids, AO and sides kept. The freed slots are taken again
-        first, so the pool does not grow. Returns the kept mask of the moved points."""
-        s, k = np.nonzero(self.point_id[mine] != NO_POINT)
-        s = mine[s]
-        where = np.searchsorted(s * gf.POINTS_PER_CELL + k, slots * gf.POINTS_PER_CELL + idx)  # (s, k) row-major: sorted
-        pos, nrm = self.point_local[s, k], self.point_normal[s, k]
-        pos[where], nrm[where] = new_local_pos, new_normals
-        ids, ao = self.point_id[s, k], self.cells[s, k] & np.uint32(0xFF)
-        back = (self.cells[s, gf.KEY_WORD] & gf.BACK_BIT) != 0
+    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals, cell, inside, keys) -> np.ndarray:
+        """Move every point of instance `inst` (cells `mine`; the points at slots/idx, every one of them, to
+        new_local_pos / new_normals, whose cells, inside mask and keys with their side bit are given) by
+        clearing its cells and buckets and placing them all anew, ids, AO and sides kept. Returns the kept
+        mask of the moved points.
+
+        The result is exactly what insert_points would make of the cleared instance with its points read
+        in (slot, index) order, computed in one sorted pass instead of its rounds: a key's points in that
+        order fill its cells 7 at a time (at most KEY_CELLS cells); the cells' bucket entries go by round
+        (a key's first cell, then its second, ...) and key, as long as the bucket has room (a key whose
+        cell finds none loses that cell's points and the rest); slots are taken lowest first in the order
+        round, bucket, key; bucket entries end sorted by key, then round."""
+        P, E = gf.POINTS_PER_CELL, gf.BUCKET_ENTRIES
         rec = self.instances[inst]
+        n = len(slots)
+        ids, ao = self.point_id[slots, idx], self.cells[slots, idx] & np.uint32(0xFF)
         rows = slice(int(rec["bucket_offset"]), int(rec["bucket_offset"] + rec["bucket_count"]))
         before = self.buckets[rows].copy()
         self.buckets[rows] = gf.EMPTY
@@ -310,10 +314,72 @@ class Grid:
         self.cell_instance[mine] = -1
         self.dirty_cells[mine] = True
         self.free_slots.extend(mine[::-1].tolist())  # lowest last: _allocate_slots takes them first
-        self.stats.inserted -= len(s)  # a move, not new points
-        kept = self.insert_points(inst, pos, nrm, ao, ids, back=back)
+        kept = np.zeros(n, dtype=bool)
+        pts = np.flatnonzero(inside)
+        self.stats.dropped_outside += n - len(pts)
+        self.stats.inserted -= n  # a move, not new points
+        if len(pts) == 0:
+            self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
+            return kept
+        # the points by key, then by their place before (slot, index): insert_points' stable order
+        order = pts[np.argsort((keys[pts].astype(np.int64) << 32) | (slots[pts] * P + idx[pts]))]
+        sk = keys[order]
+        start = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
+        count = np.diff(np.append(start, len(sk)))
+        rank = np.arange(len(sk)) - np.repeat(start, count)
+        key_of = np.repeat(np.arange(len(start)), count)  # each sorted point's key number
+        ukeys, ucell = sk[start], cell[order[start]]
+        ubucket = gf.bucket_index(ucell[:, 0], ucell[:, 1], ucell[:, 2], rec["dims"], int(rec["bucket_offset"]),
+                                  int(rec["bucket_count"])).astype(np.int64)
+        # the cells each key asks for: (key, round j), j < KEY_CELLS
+        ncell = np.minimum((count + P - 1) // P, gf.KEY_CELLS)
+        pair_start = np.cumsum(ncell) - ncell
+        pk = np.repeat(np.arange(len(start)), ncell)
+        pj = np.arange(len(pk)) - np.repeat(pair_start, ncell)
+        pb = ubucket[pk]
+        # bucket entries by round, then key: a pair fits while its bucket has entries left
+        by_bucket = np.lexsort((ukeys[pk], pj, pb))
+        sb = pb[by_bucket]
+        first = np.flatnonzero(np.concatenate([[True], sb[1:] != sb[:-1]]))
+        in_bucket = np.arange(len(sb)) - np.repeat(first, np.diff(np.append(first, len(sb))))
+        fits = np.zeros(len(pk), dtype=bool)
+        fits[by_bucket] = in_bucket < E
+        nfit = np.bincount(pk[fits], minlength=len(start))  # a prefix of each key's rounds (later rounds rank later)
+        # slots, lowest first, in the order round, bucket, key
+        placed = np.flatnonzero(fits)
+        placed = placed[np.lexsort((ukeys[pk[placed]], pb[placed], pj[placed]))]
+        pair_slot = np.full(len(pk), -1, np.int64)
+        pair_slot[placed] = self._allocate_slots(len(placed))
+        fresh = pair_slot[placed]
+        self.cells[fresh] = gf.FREE_CELL
+        self.cells[fresh, gf.KEY_WORD] = ukeys[pk[placed]]
+        self.cell_instance[fresh] = inst
+        self.dirty_cells[fresh] = True
+        # bucket rows: entries sorted by key, then round
+        placed = placed[np.lexsort((pj[placed], ukeys[pk[placed]], pb[placed]))]
+        b = pb[placed]
+        first = np.flatnonzero(np.concatenate([[True], b[1:] != b[:-1]]))
+        entry = np.arange(len(b)) - np.repeat(first, np.diff(np.append(first, len(b))))
+        self.buckets[b, entry, 0] = ukeys[pk[placed]]
+        self.buckets[b, entry, 1] = pair_slot[placed].astype(np.uint32)
+        self.dirty_buckets[b] = True
+        # the points
+        j = rank // P
+        ok = j < nfit[key_of]
+        self.stats.dropped_bucket_full += int((~ok & (nfit[key_of] < ncell[key_of])).sum())
+        self.stats.dropped_cell_full += int((~ok & (nfit[key_of] == ncell[key_of])).sum())
+        go = order[ok]
+        pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
+        pidx = rank[ok] % P
+        frac = gf.grid_coords(new_local_pos[go], rec["origin"], rec["cell_size"]) - cell[go]
+        self.cells[pslot, pidx] = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[go]), ao[go])
+        self.point_local[pslot, pidx] = new_local_pos[go]
+        self.point_normal[pslot, pidx] = new_normals[go]
+        self.point_id[pslot, pidx] = ids[go]
+        kept[go] = True
+        self.stats.inserted += len(go)
         self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
-        return kept[where]
+        return kept
 
     # ------------------------------------------------------------------ internals
     def _buckets_of(self, inst: int, cell_xyz: np.ndarray) -> np.ndarray:
