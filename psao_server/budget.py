@@ -127,6 +127,9 @@ class RefineQueue:
         self.unoccluded = np.zeros(n, np.float32)
         self.old_rays = np.zeros(n, np.float32)  # the estimate from before the change, as so many rays
         self.old_unoccluded = np.zeros(n, np.float32)
+        # fresh rays up to which the kept estimate blends in: as many as it stands for after a change (it
+        # was measured around other geometry), the whole ray set for a few-ray first grid (same geometry)
+        self.old_until = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
         # the ids with done < slices, sorted: kept up to date by every change of `done`, so finding the
         # waiting points costs in proportion to them, not to the scene
@@ -150,7 +153,8 @@ class RefineQueue:
     def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
         """The bake's AO (its quantised value stands for the mean of its rays): with at least the target's
         rays it is the converged history; with fewer (a few-ray first grid) it is an estimate of its own
-        ray set, standing in for `rays` rays until as many fresh slices have come."""
+        ray set of the same geometry, standing in for `rays` rays beside the fresh slices until the point
+        holds its whole target set (then that set's AO alone, as a full bake gives)."""
         vis = codes.astype(np.float32) / 255.0
         if rays >= self.target:
             self.rays[ids], self.done[ids] = self.target, self.slices
@@ -160,6 +164,7 @@ class RefineQueue:
             self._now_waiting(ids)
             self.rays[ids], self.done[ids], self.unoccluded[ids] = 0, 0, 0.0
             self.old_rays[ids], self.old_unoccluded[ids] = rays, vis * rays
+            self.old_until[ids] = self.target
 
     def reset(self, ids: np.ndarray, now: float) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already."""
@@ -170,6 +175,7 @@ class RefineQueue:
             kept = np.minimum(total, min(self.keep, self.target))
             self.old_unoccluded[ids] = unocc / np.maximum(total, 1) * kept
             self.old_rays[ids] = kept
+        self.old_until[ids] = self.old_rays[ids]
         self._now_waiting(ids)
         self.rays[ids] = 0
         self.done[ids] = 0
@@ -203,11 +209,11 @@ class RefineQueue:
         return pw.quantise_ao(unocc / total)
 
     def _blend(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(rays, unoccluded rays) of the current estimate: the fresh rays, plus the kept estimate from
-        before the last change until as many fresh rays as it stands for have come, and never beyond the
-        target (a point with its whole ray set shows that set's AO alone)."""
+        """(rays, unoccluded rays) of the current estimate: the fresh rays, plus the kept estimate until
+        old_until fresh rays have come, and never beyond the target (a point with its whole ray set shows
+        that set's AO alone)."""
         fresh_r, fresh_u = self.rays[ids].astype(np.float32), self.unoccluded[ids]
-        with_old = (fresh_r < self.old_rays[ids]) & (self.done[ids] < self.slices)
+        with_old = (fresh_r < self.old_until[ids]) & (self.done[ids] < self.slices)
         total = fresh_r + np.where(with_old, self.old_rays[ids], 0.0)
         unocc = fresh_u + np.where(with_old, self.old_unoccluded[ids], 0.0)
         return total, unocc

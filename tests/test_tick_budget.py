@@ -232,3 +232,18 @@ def test_waiting_set_follows_every_change_of_the_history():
         q.add(picked, rng.uniform(0, 1, len(picked)).astype(np.float32), 4, float(step), slices=int(rng.integers(1, 3)))
     eligible = rng.uniform(size=n) < 0.5
     np.testing.assert_array_equal(q.waiting(eligible), np.flatnonzero(eligible & (q.done < q.slices)))
+
+
+def test_few_ray_first_grid_blends_until_the_whole_ray_set():
+    """A few-ray first grid (same geometry) stays in the estimate beside the fresh slices until the point
+    holds its whole target set, which then alone gives its AO (as a full bake would)."""
+    q = RefineQueue(1, target_rays=32, slices=4)
+    ids = np.array([0])
+    q.seed_from_codes(ids, np.array([255]), 8)  # 8 rays, all unoccluded
+    code = q.add(ids, np.array([0.0]), 8, 1.0)
+    assert code[0] == pw.quantise_ao(np.array([8 / 16]))[0]
+    code = q.add(ids, np.array([0.0]), 8, 2.0)  # 16 fresh rays, still with the first grid's 8
+    assert code[0] == pw.quantise_ao(np.array([8 / 24]))[0]
+    q.add(ids, np.array([0.0]), 8, 3.0)
+    code = q.add(ids, np.array([0.0]), 8, 4.0)  # the whole set: the first grid's rays are gone
+    assert code[0] == 0 and len(q.waiting(np.ones(1, bool))) == 0
