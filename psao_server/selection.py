@@ -226,7 +226,7 @@ class NearCache:
     """static_points_near over time: the same answer, found among a candidate set kept per mover.
 
     A mover's reach changes a little from tick to tick, so the block index is queried for its reach
-    grown by `margin` (world units), and the candidates (ids, positions and normals, gathered once into
+    grown by `margin` (world units; up to four times that for a mover that moves farther per tick), and the candidates (ids, positions and normals, gathered once into
     contiguous arrays) serve every following tick whose reach stays inside that grown box. Each tick
     then tests only those candidates (in a reach box, may see the mover's sphere now or before), never
     the block index or the whole point set."""
@@ -237,14 +237,21 @@ class NearCache:
         self.ao_distance = float(ao_distance)
         self.margin = float(margin)
         self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, candidate indices, positions, normals)
+        self._last: dict[int, tuple] = {}  # mover -> its reach (lo, hi) at the last call
         self.queries = 0  # block-index queries made (each a cache refill)
 
     def _candidates(self, i: int, boxes: list[tuple[np.ndarray, np.ndarray]]) -> tuple:
         lo = np.min([b[0] for b in boxes], axis=0)
         hi = np.max([b[1] for b in boxes], axis=0)
         held = self._held.get(i)
+        last = self._last.get(i)
+        self._last[i] = lo, hi
         if held is None or np.any(lo < held[0]) or np.any(hi > held[1]):
-            q = (lo - self.margin, hi + self.margin)
+            # grown by the margin, or by a few of the mover's last steps when it moves farther per tick
+            # (a slow tick rate): the candidates then still serve several ticks
+            step = 0.0 if last is None else float(max(np.abs(lo - last[0]).max(), np.abs(hi - last[1]).max()))
+            grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
+            q = (lo - grow, hi + grow)
             idx = np.sort(self.index.query_box(q))
             # coordinates as rows (3, P): the tests below run on contiguous 1-D arrays
             held = self._held[i] = (q[0], q[1], idx, np.ascontiguousarray(self.index.positions[idx].T),
@@ -274,7 +281,3 @@ class NearCache:
                 keep[sel[~see]] = False
             parts.append(idx[keep])
         return sorted_union(parts)
-
-    def forget(self) -> None:
-        """Drop every candidate set (the index or the normals changed)."""
-        self._held.clear()

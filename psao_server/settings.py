@@ -194,7 +194,8 @@ class TickSettings:
     view: ViewSettings = field(default_factory=ViewSettings)
     tracer: str = BakeSettings.tracer  # back-end name
     workers: int = BakeSettings.workers  # tracer processes, 0 = all cores
-    block: float = 0.0  # world units of the static-point block index; 0 = the AO distance
+    block: float = 0.0  # world units of the static-point block index; 0 = a quarter of the AO distance (a box
+    # query then gathers few points outside the box)
     near_margin: float = 0.25  # share of the AO distance a mover's reach is grown by when its nearby static
     # points are gathered (selection.NearCache): they serve the following ticks until it moves that far
     fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)

@@ -189,7 +189,8 @@ class ServerTick:
     def _index_static(self) -> None:
         """The static points' ids, their block index for box queries and their normals."""
         self.static_ids = np.flatnonzero(np.isin(self.inst_of, self.kinds.static) & self.tracked)
-        block = self.settings.block or self.scene.ao_distance
+        self.moving_point = np.isin(self.inst_of, self.kinds.moving)  # points whose world place follows a frame
+        block = self.settings.block or 0.25 * self.scene.ao_distance
         self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
         self.static_normals = self.world_nrm[self.static_ids].astype(np.float64)
         self.near_cache = NearCache(self.block_index, self.static_normals, self.scene.ao_distance,
@@ -391,15 +392,14 @@ class ServerTick:
         if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
             key = (self.queue.rays[waiting] > 0) * 2e9 + (self.queue.waiting_since[waiting] - now)
             waiting = np.sort(waiting[np.argpartition(key, limit - 1)[:limit]])
-        pos, nrm = self.world_points(frame, waiting)
-        visible = in_any_view(pos, self.cameras, self.settings.view.distance_margin)
+        visible = in_any_view(self.world_positions(frame, waiting), self.cameras, self.settings.view.distance_margin)
         chosen = self.queue.pick(waiting, visible, k)
         t_sel = time.perf_counter()
         codes = np.zeros(0, np.uint32)
         if len(chosen):
-            at = np.searchsorted(waiting, chosen)
+            pos, nrm = self.world_points(frame, chosen)
             self.pose_tracer(frame)
-            vis = self._trace(pos[at], nrm[at], chosen, round_settings, self.queue.done[chosen])
+            vis = self._trace(pos, nrm, chosen, round_settings, self.queue.done[chosen])
             codes = self.queue.add(chosen, vis, round_settings.rays_traced, time.perf_counter())
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)
@@ -505,16 +505,28 @@ class ServerTick:
             parts.append(ids[self.tracked[ids]])
         return sorted_union(parts)
 
+    def _moving_groups(self, ids: np.ndarray):
+        """(instance, positions in ids) of the moving instances' points among `ids`."""
+        at = np.flatnonzero(self.moving_point[ids])
+        if len(at) == 0:
+            return
+        inst = self.inst_of[ids[at]]
+        for i in np.unique(inst).tolist():
+            yield i, at[inst == i]
+
     def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions (P, 3) float64 and normals (P, 3) float32 of points `ids` in `frame`."""
-        pos = self.world_pos[ids].copy()
-        nrm = self.world_nrm[ids].copy()
-        inst = self.inst_of[ids]
-        for i in self.kinds.moving:
-            sel = np.flatnonzero(inst == i)
-            if len(sel):
-                pos[sel], nrm[sel] = to_world_points(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
+        pos, nrm = self.world_pos[ids], self.world_nrm[ids]  # (fancy indexing: copies)
+        for i, sel in self._moving_groups(ids):
+            pos[sel], nrm[sel] = to_world_points(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
         return pos, nrm
+
+    def world_positions(self, frame: Frame, ids: np.ndarray) -> np.ndarray:
+        """World positions (P, 3) float64 of points `ids` in `frame` (world_points without the normals)."""
+        pos = self.world_pos[ids]
+        for i, sel in self._moving_groups(ids):
+            pos[sel] = affine(self.local_pos[ids[sel]], frame.transforms[i])
+        return pos
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
         """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
