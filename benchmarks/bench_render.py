@@ -7,12 +7,14 @@ rendered once as warm-up, then each AO pass is timed on the same G-buffer with G
 with wall time bracketed by ctx.finish(). Target: PSAO <= 1.5x SSAO (AO + blur), flat in N.
 
 `--against TREE` judges this tree's AO pass against another checkout's (e.g. an older commit made with
-`git worktree add /tmp/before COMMIT`): both trees run this benchmark, same arguments, in child processes
-(each its own code, shaders and grid build), interleaved for `--rounds` rounds (A B, B A, A B, ...), and
-the growth of the PSAO/SSAO ratio at each N is the median over rounds of this tree's ratio over the other
-tree's in the same round (target: at most MAX_GROWTH, +15%). Each run's PSAO is normalised by its own SSAO
-measured on the same frames at the same time, and the pairs are run back to back, so the machine's load
-drifting during the benchmark cancels out; the median keeps one disturbed round from deciding.
+`git worktree add /tmp/before COMMIT`): this file's measuring code runs in child processes on each tree's
+own modules (renderer, shaders, grid build; PYTHONPATH=TREE), interleaved for `--rounds` rounds (A B,
+B A, A B, ...). A run's figure is the median over its frames x repeats of PSAO's GPU time over SSAO's
+timed right next to it, so load that changes during a run cancels out pair by pair; the growth at each N
+is the median over rounds of this tree's figure over the other tree's in the same round (target: at most
+MAX_GROWTH, +15%), so one disturbed round does not decide. Process CPU time per pass (llvmpipe renders
+on the CPU, in this process's threads) is printed beside it as a cross-check that preemption by other
+processes does not count in.
 
     .venv/bin/python -m benchmarks.bench_render [--densities 64,256,1024] [--frames 4] [--bake] [--against TREE [--rounds 3]]
 """
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -47,17 +50,18 @@ def child_argv(argv: list[str]) -> list[str]:
 
 
 def run_child(tree: Path, args: list[str], label: str, chart_path: Path) -> dict:
-    """This benchmark run from `tree` (its own code, its own shaders): its --json result."""
-    cmd = [sys.executable, "-m", "benchmarks.bench_render", *args, "--json", "--chart", str(chart_path)]
-    print(f"{label} from {tree}: {' '.join(cmd[1:])}", flush=True)
-    proc = subprocess.run(cmd, cwd=tree, capture_output=True, text=True)
+    """This file's benchmark run on `tree`'s modules (its renderer, shaders and grid build): its --json result."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), *args, "--json", "--chart", str(chart_path)]
+    print(f"{label} on {tree}: {' '.join(cmd[1:])}", flush=True)
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    proc = subprocess.run(cmd, cwd=tree, capture_output=True, text=True, env=env)
     for line in proc.stdout.splitlines()[:-1]:
         if line.startswith("N="):
             print(f"  [{label}] {line}", flush=True)
     last = proc.stdout.strip().splitlines()[-1:] or [""]
     if not last[0].startswith("{"):
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-        raise SystemExit(f"bench_render: the {label} run in {tree} failed: {tail}")
+        raise SystemExit(f"bench_render: the {label} run on {tree} failed: {tail}")
     return json.loads(last[0])
 
 
@@ -76,17 +80,19 @@ def run_against(tree: Path, rounds: int, argv: list[str]) -> tuple[list[dict], l
 
 
 def judge_against(tree: Path, here: list[dict], base: list[dict], v) -> None:
-    """Per N: the median over rounds of this tree's PSAO/SSAO ratio over the baseline's in the same round."""
+    """Per N: the median over rounds of this tree's paired PSAO/SSAO figure over the baseline's in the same
+    round; the same for process CPU time, printed."""
     for i, row in enumerate(here[0]["rows"]):
         pairs = [(h["rows"][i], b["rows"][i]) for h, b in zip(here, base)]
-        growths = [h["ratio_gpu"] / b["ratio_gpu"] for h, b in pairs]
+        growths = [h["ratio_pairs"] / b["ratio_pairs"] for h, b in pairs]
         for k, ((h, b), g) in enumerate(zip(pairs, growths)):
-            print(f"N={row['density']:g} round {k + 1}: PSAO/SSAO {h['ratio_gpu']:.3f} here (PSAO {h['gpu_ms']['psao']:.2f} ms), "
-                  f"{b['ratio_gpu']:.3f} in {tree} (PSAO {b['gpu_ms']['psao']:.2f} ms): growth x{g:.3f}")
+            print(f"N={row['density']:g} round {k + 1}: PSAO/SSAO {h['ratio_pairs']:.3f} here (PSAO {h['gpu_ms']['psao']:.2f} ms), "
+                  f"{b['ratio_pairs']:.3f} on {tree} (PSAO {b['gpu_ms']['psao']:.2f} ms): growth x{g:.3f}")
         growth = float(np.median(growths))
+        cpu = float(np.median([h["ratio_cpu"] / b["ratio_cpu"] for h, b in pairs]))
         raw = float(np.median([h["gpu_ms"]["psao"] / b["gpu_ms"]["psao"] for h, b in pairs]))
-        print(f"N={row['density']:g}: median growth x{growth:.3f} over {len(growths)} rounds "
-              f"(PSAO ms alone, not normalised by SSAO: x{raw:.3f})")
+        print(f"N={row['density']:g}: median growth x{growth:.3f} over {len(growths)} rounds (cross-checks: "
+              f"CPU-time PSAO/SSAO x{cpu:.3f}, PSAO GPU ms alone x{raw:.3f})")
         chart_against(pairs, growth, Path("out") / "bench_render" / f"against_N{row['density']:g}.png", tree)
         v.check(f"N={row['density']:g} PSAO/SSAO ratio growth against {tree} (median of {len(growths)} interleaved rounds)",
                 growth, "<=", MAX_GROWTH)
@@ -96,11 +102,14 @@ def build_grid(scene, density: float, bake: bool, rays: int):
     from protocol import pointword as pw
     from psao_server.bake import build_scene_grid
     from psao_server.points import generate_points, instance_seed
-    from psao_server.settings import PointSettings
+    try:
+        from psao_server.settings import BakeSettings, PointSettings
+    except ImportError:  # checkouts from before settings.py (an --against baseline)
+        from psao_server.bake import BakeSettings
+        from psao_server.points import PointSettings
 
     if bake:
         from psao_server.bake import bake_scene
-        from psao_server.settings import BakeSettings
 
         result = bake_scene(scene, BakeSettings(density=density, rays=rays), show_progress=False)
         result.tracer.close()
@@ -115,20 +124,23 @@ def build_grid(scene, density: float, bake: bool, rays: int):
     return grid
 
 
-def time_pass(ctx, timer, name, fn, wall: dict):
+def time_pass(ctx, timer, name, fn, wall: dict, cpu: dict):
     ctx.finish()
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     with timer.measure(name):
         fn()
     ctx.finish()
     wall.setdefault(name, []).append((time.perf_counter() - start) * 1e3)
+    cpu.setdefault(name, []).append((time.process_time() - start_cpu) * 1e3)
 
 
 def measure(renderer, views, repeats: int) -> dict:
-    """Median GPU and wall ms per pass over all frames x repeats; passes alternate order per frame."""
+    """Median GPU, wall and process CPU ms per pass over all frames x repeats (passes alternate order per
+    frame), and the medians of PSAO over SSAO timed right next to each other (GPU timer, process CPU)."""
     ctx, timer = renderer.ctx, renderer.timer
     gpu: dict[str, list[float]] = {}
     wall: dict[str, list[float]] = {}
+    cpu: dict[str, list[float]] = {}
     for view, proj in views:
         renderer.submit(view, proj)  # warm-up and G-buffer of this frame
         timer.collect()
@@ -136,11 +148,14 @@ def measure(renderer, views, repeats: int) -> dict:
             passes = [("psao", renderer.psao.run),
                       ("ssao", lambda: (renderer.ssao.run_occlusion(view, proj), renderer.ssao.run_blur()))]
             for name, fn in passes[:: 1 if rep % 2 == 0 else -1]:
-                time_pass(ctx, timer, name, fn, wall)
+                time_pass(ctx, timer, name, fn, wall, cpu)
             for name, ms in timer.collect().items():
                 gpu.setdefault(name, []).append(ms)
     return {"gpu_ms": {k: float(np.median(v)) for k, v in gpu.items()},
-            "wall_ms": {k: float(np.median(v)) for k, v in wall.items()}}
+            "wall_ms": {k: float(np.median(v)) for k, v in wall.items()},
+            "cpu_ms": {k: float(np.median(v)) for k, v in cpu.items()},
+            "ratio_pairs": float(np.median(np.array(gpu["psao"]) / np.array(gpu["ssao"]))),
+            "ratio_cpu": float(np.median(np.array(cpu["psao"]) / np.array(cpu["ssao"])))}
 
 
 def run_density(scene, density, args, views, size):
@@ -184,7 +199,8 @@ def format_row(r) -> str:
     g, w = r["gpu_ms"], r["wall_ms"]
     return (f"N={r['density']:>6g} points={r['points']:>9,} cells={r['cells']:>8,} holes={r['holes']:.2%} | "
             f"GPU ms: psao {g['psao']:7.2f} ssao {g['ssao']:7.2f} ratio {r['ratio_gpu']:.2f} | "
-            f"wall ms: psao {w['psao']:7.2f} ssao {w['ssao']:7.2f} ratio {r['ratio_wall']:.2f}")
+            f"wall ms: psao {w['psao']:7.2f} ssao {w['ssao']:7.2f} ratio {r['ratio_wall']:.2f} | "
+            f"paired ratio GPU {r['ratio_pairs']:.2f} CPU {r['ratio_cpu']:.2f}")
 
 
 def chart(rows, path: Path, title: str) -> None:
@@ -235,7 +251,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="640x360")
     p.add_argument("--densities", default="64,256,1024")
     p.add_argument("--frames", type=int, default=4, help="frames along the camera path")
-    p.add_argument("--repeats", type=int, default=3, help="timed repetitions of each pass per frame")
+    p.add_argument("--repeats", type=int, default=5, help="timed repetitions of each pass per frame")
     p.add_argument("--ssao-samples", type=int, default=16)
     p.add_argument("--bake", action="store_true", help="trace real AO (slow) instead of a synthetic field")
     p.add_argument("--rays", type=int, default=64)
