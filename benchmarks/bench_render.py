@@ -9,8 +9,9 @@ with wall time bracketed by ctx.finish(). Target: PSAO <= 1.5x SSAO (AO + blur),
 `--against TREE` judges this tree's AO pass against another checkout's (e.g. an older commit made with
 `git worktree add /tmp/before COMMIT`): this file's measuring code runs in child processes on each tree's
 own modules (renderer, shaders, grid build; PYTHONPATH=TREE), interleaved for `--rounds` rounds (A B,
-B A, A B, ...). A run's figure is the median over its frames x repeats of PSAO's GPU time over SSAO's
-timed right next to it, so load that changes during a run cancels out pair by pair; the growth at each N
+B A, A B, ...). A run's figure is PSAO's GPU time over SSAO's timed right next to it (median over a
+frame's repeats, geometric mean over frames), so load that changes during a run cancels out pair by
+pair; the growth at each N
 is the median over rounds of this tree's figure over the other tree's in the same round (target: at most
 MAX_GROWTH, +15%), so one disturbed round does not decide. Process CPU time per pass (llvmpipe renders
 on the CPU, in this process's threads) is printed beside it as a cross-check that preemption by other
@@ -136,26 +137,35 @@ def time_pass(ctx, timer, name, fn, wall: dict, cpu: dict):
 
 def measure(renderer, views, repeats: int) -> dict:
     """Median GPU, wall and process CPU ms per pass over all frames x repeats (passes alternate order per
-    frame), and the medians of PSAO over SSAO timed right next to each other (GPU timer, process CPU)."""
+    frame), and PSAO over SSAO timed right next to each other (GPU timer, process CPU): the median over a
+    frame's repeats, then the geometric mean over frames (frames differ in their ratio, so one median over
+    all of them would jump between frames)."""
     ctx, timer = renderer.ctx, renderer.timer
     gpu: dict[str, list[float]] = {}
     wall: dict[str, list[float]] = {}
     cpu: dict[str, list[float]] = {}
+    paired: dict[str, list[float]] = {"gpu": [], "cpu": []}
     for view, proj in views:
         renderer.submit(view, proj)  # warm-up and G-buffer of this frame
         timer.collect()
+        frame_gpu: dict[str, list[float]] = {}
+        frame_cpu: dict[str, list[float]] = {}
         for rep in range(repeats):
             passes = [("psao", renderer.psao.run),
                       ("ssao", lambda: (renderer.ssao.run_occlusion(view, proj), renderer.ssao.run_blur()))]
             for name, fn in passes[:: 1 if rep % 2 == 0 else -1]:
-                time_pass(ctx, timer, name, fn, wall, cpu)
+                time_pass(ctx, timer, name, fn, wall, frame_cpu)
             for name, ms in timer.collect().items():
-                gpu.setdefault(name, []).append(ms)
+                frame_gpu.setdefault(name, []).append(ms)
+        for store, frame, key in ((gpu, frame_gpu, "gpu"), (cpu, frame_cpu, "cpu")):
+            for name, values in frame.items():
+                store.setdefault(name, []).extend(values)
+            paired[key].append(float(np.median(np.array(frame["psao"]) / np.array(frame["ssao"]))))
     return {"gpu_ms": {k: float(np.median(v)) for k, v in gpu.items()},
             "wall_ms": {k: float(np.median(v)) for k, v in wall.items()},
             "cpu_ms": {k: float(np.median(v)) for k, v in cpu.items()},
-            "ratio_pairs": float(np.median(np.array(gpu["psao"]) / np.array(gpu["ssao"]))),
-            "ratio_cpu": float(np.median(np.array(cpu["psao"]) / np.array(cpu["ssao"])))}
+            "ratio_pairs": float(np.exp(np.mean(np.log(paired["gpu"])))),
+            "ratio_cpu": float(np.exp(np.mean(np.log(paired["cpu"]))))}
 
 
 def run_density(scene, density, args, views, size):
