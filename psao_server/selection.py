@@ -41,9 +41,14 @@ def frustum_planes(view: np.ndarray, proj: np.ndarray, fov_margin: float = 0.0) 
 
 def in_frustum(points: np.ndarray, planes: np.ndarray, distance_margin: float = 0.0) -> np.ndarray:
     """Bool (P,): points whose signed distance to every plane is >= -distance_margin."""
-    # einsum, not `@`: OpenBLAS threads on a (P, 3) x (3, 5) product are ~10x slower on busy cores
-    d = np.einsum("pj,kj->pk", np.asarray(points, np.float64), planes[:, :3]) + planes[:, 3]
-    return (d >= -distance_margin).all(axis=1)
+    # One multiply-add pass per plane over the coordinates: no `@` (OpenBLAS threads on a (P, 3) x (3, 5)
+    # product are ~10x slower on busy cores) and no einsum (4x slower than this for a (P, 3) x (3, 5) product)
+    p = np.asarray(points, np.float64)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    inside = np.ones(len(p), dtype=bool)
+    for a, b, c, d in planes:
+        inside &= x * a + y * b + z * c + d >= -distance_margin
+    return inside
 
 
 def camera_planes(view, proj, fov_margin: float) -> np.ndarray | None:
