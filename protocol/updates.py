@@ -253,39 +253,47 @@ def _leading_counts(used: np.ndarray, filler_ok: np.ndarray) -> np.ndarray:
 _PACKED_LENGTHS = struct.Struct("<III")  # bytes of the varint sections: transform ids, bucket ids, cell slots
 
 
-def _encode_packed(d: GridDelta) -> bytes:
-    head = _COUNTS.pack(Layout.PACKED, d.cell_capacity, len(d.transform_ids), len(d.bucket_ids), len(d.cell_slots))
-    t_ids, b_ids, c_ids = gaps_encode(d.transform_ids), gaps_encode(d.bucket_ids), gaps_encode(d.cell_slots)
-
+def _packed_buckets(d: GridDelta) -> list[bytes]:
+    """The bucket sections: ids, leading counts, canonical entries' keys and slots, raw buckets."""
+    if not len(d.bucket_ids):  # every section empty (an Update that changes cells only)
+        return [b""] * 5
     keys, slots = d.buckets[:, :, 0], d.buckets[:, :, 1]
     b_used = keys != EMPTY
     b_count = _leading_counts(b_used, (keys == EMPTY) & (slots == EMPTY))
     b_canon = b_count != RAW
     b_sel = b_used & b_canon[:, None]
+    raw = planes(d.buckets[~b_canon]) if not b_canon.all() else b""
+    return [gaps_encode(d.bucket_ids), b_count.tobytes(), planes(keys[b_sel]), planes(slots[b_sel]), raw]
 
+
+def _packed_cells(d: GridDelta) -> list[bytes]:
+    """The cell sections: slots, leading counts, keys, canonical points' fields, raw cells."""
+    if not len(d.cell_slots):
+        return [b""] * 7
     points = d.cells[:, :POINTS_PER_CELL]
     p_used = (points & ALLOCATED_BIT) != 0
     c_count = _leading_counts(p_used, points == 0)
     c_canon = c_count != RAW
-    p = points[p_used & c_canon[:, None]]
-    parts = [
-        head,
-        _PACKED_LENGTHS.pack(len(t_ids), len(b_ids), len(c_ids)),
-        t_ids,
-        planes(d.transforms),
-        b_ids,
-        b_count.tobytes(),
-        planes(keys[b_sel]),
-        planes(slots[b_sel]),
-        planes(d.buckets[~b_canon]),
-        c_ids,
+    all_canon = bool(c_canon.all())
+    p = points[p_used if all_canon else p_used & c_canon[:, None]]
+    return [
+        gaps_encode(d.cell_slots),
         c_count.tobytes(),
         planes(d.cells[:, KEY_WORD]),
         planes(((p >> 16) & 0x7FFF).astype(np.uint16)),  # 3 x 5-bit position
         ((p >> 8) & 0xFF).astype(np.uint8).tobytes(),  # octahedral normal
         (p & 0xFF).astype(np.uint8).tobytes(),  # AO
-        planes(points[~c_canon]),
+        b"" if all_canon else planes(points[~c_canon]),
     ]
+
+
+def _encode_packed(d: GridDelta) -> bytes:
+    head = _COUNTS.pack(Layout.PACKED, d.cell_capacity, len(d.transform_ids), len(d.bucket_ids), len(d.cell_slots))
+    t_ids = gaps_encode(d.transform_ids)
+    b_ids, *bucket_rest = _packed_buckets(d)
+    c_ids, *cell_rest = _packed_cells(d)
+    parts = [head, _PACKED_LENGTHS.pack(len(t_ids), len(b_ids), len(c_ids)), t_ids, planes(d.transforms),
+             b_ids, *bucket_rest, c_ids, *cell_rest]
     return b"".join(parts)
 
 

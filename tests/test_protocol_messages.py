@@ -218,6 +218,18 @@ def test_random_deltas_roundtrip_exactly(layout):
 
 
 @pytest.mark.parametrize("layout", list(Layout))
+def test_canonical_and_cell_only_deltas_roundtrip_exactly(layout):
+    """The usual Update: cells only (no bucket changed), every record canonical (no raw section)."""
+    rng = np.random.default_rng(9)
+    for nb in (0, 3):
+        d = _random_delta(rng, nb=nb + 2, nc=120)  # its first 2 buckets and cells are the raw ones
+        d = GridDelta(d.cell_capacity, d.transform_ids, d.transforms, d.bucket_ids[2:], d.buckets[2:],
+                      d.cell_slots[2:], d.cells[2:])
+        back, _ = decode_delta(Reader(encode_delta(d, layout), "t"))
+        assert back.equals(d)
+
+
+@pytest.mark.parametrize("layout", list(Layout))
 def test_delta_truncation_and_garbage_rejected(layout):
     data = encode_delta(_random_delta(np.random.default_rng(2)), layout)
     for cut in (1, 7, len(data) // 2, len(data) - 1):
