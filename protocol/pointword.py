@@ -45,15 +45,15 @@ def dequantise_cell_fraction(q: np.ndarray) -> np.ndarray:
 def oct_encode(normals: np.ndarray) -> np.ndarray:
     """Unit normals (..., 3) -> 8-bit octahedral codes (u high nibble, v low nibble), uint32."""
     n = np.asarray(normals, dtype=np.float64)
-    l1 = np.abs(n).sum(axis=-1, keepdims=True)
+    x, y, z = n[..., 0], n[..., 1], n[..., 2]  # per component: no reduction along the short last axis
+    l1 = np.abs(x) + np.abs(y) + np.abs(z)
     l1 = np.where(l1 > 0, l1, 1.0)
-    p = n / l1
-    u, v, z = p[..., 0], p[..., 1], p[..., 2]
-    # Lower hemisphere folds over the diagonals; sign(0) counts as +1 so the fold is total.
-    su = np.where(u >= 0, 1.0, -1.0)
-    sv = np.where(v >= 0, 1.0, -1.0)
-    fu = np.where(z < 0, (1.0 - np.abs(v)) * su, u)
-    fv = np.where(z < 0, (1.0 - np.abs(u)) * sv, v)
+    u, v = x / l1, y / l1
+    # Lower hemisphere (z / l1 < 0, i.e. z < 0) folds over the diagonals; sign(0) counts as +1 (-0.0 + 0.0
+    # is +0.0) so the fold is total.
+    low = z < 0
+    fu = np.where(low, np.copysign(1.0 - np.abs(v), u + 0.0), u)
+    fv = np.where(low, np.copysign(1.0 - np.abs(u), v + 0.0), v)
     qu = np.clip(np.rint(fu * OCT_LEVELS_HALF) + OCT_LEVELS_HALF, 0, 2 * OCT_LEVELS_HALF).astype(np.uint32)
     qv = np.clip(np.rint(fv * OCT_LEVELS_HALF) + OCT_LEVELS_HALF, 0, 2 * OCT_LEVELS_HALF).astype(np.uint32)
     return (qu << 4) | qv

@@ -259,14 +259,21 @@ class Grid:
         insts = self.cell_instance[slots]
         side = self.cells[slots, gf.KEY_WORD] & gf.BACK_BIT
         stay = np.zeros(len(slots), dtype=bool)
+        found = []
         for inst in np.unique(insts).tolist():
             sel = np.flatnonzero(insts == inst)
-            rec = self.instances[inst]
             cell, inside = self.cell_of(inst, new_local_pos[sel])
+            rec = self.instances[inst]
             keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
-            same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
-            if 2 * int(same.sum()) < len(sel):
-                mine = np.flatnonzero(self.cell_instance == inst)
+            found.append((inst, sel, cell, inside, keys, inside & (keys == self.cells[slots[sel], gf.KEY_WORD])))
+        # the cells of the instances most of whose moved points leave their cells, in one pass over the pool
+        leaving = np.zeros(len(self.instances) + 1, dtype=bool)  # index -1 (a free cell) stays False
+        leaving[[f[0] for f in found if 2 * int(f[5].sum()) < len(f[1])]] = True
+        cells_of = np.flatnonzero(leaving[self.cell_instance]) if leaving.any() else np.zeros(0, np.int64)
+        for inst, sel, cell, inside, keys, same in found:
+            rec = self.instances[inst]
+            if leaving[inst]:
+                mine = cells_of[self.cell_instance[cells_of] == inst]
                 if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
                     kept[sel] = self._refill_instance(inst, mine, slots[sel], idx[sel], new_local_pos[sel],
                                                       new_normals[sel], cell, inside, keys)

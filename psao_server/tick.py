@@ -419,8 +419,12 @@ class ServerTick:
         if len(plan.moved):
             self._check_locations(plan.moved)
             go = plan.moved[self.slot[plan.moved] >= 0]
-            self.grid.move_points(self.slot[go], self.index[go], self.local_pos[go], self.local_nrm[go])
-            self._relocate_instances(self.kinds.skinned)
+            was = self.slot[go]
+            self.grid.move_points(was, self.index[go], self.local_pos[go], self.local_nrm[go])
+            # where they are now: in their old cells (moved in place), or in a cell the move marked dirty
+            # (re-inserted, or shifted there by compaction); the moved ones the grid could not keep are parked
+            self.slot[go], self.index[go] = -1, -1
+            self._relocate_cells(np.union1d(was, np.flatnonzero(self.grid.dirty_cells)))
         changed = self._store(plan.ids, plan.codes)
         seconds_grid = self.stats_grid_s = time.perf_counter() - g0
         self.last_frame = plan.frame

@@ -33,6 +33,31 @@ def test_six_axis_normals_round_trip_exactly():
     np.testing.assert_array_equal(pw.oct_decode(pw.oct_encode(axes)), axes)
 
 
+def oct_encode_reference(normals):
+    """The octahedral code as written out in DESIGN.md: divide by the L1 norm, fold the lower hemisphere."""
+    n = np.asarray(normals, dtype=np.float64)
+    l1 = np.abs(n).sum(axis=-1, keepdims=True)
+    p = n / np.where(l1 > 0, l1, 1.0)
+    u, v, z = p[..., 0], p[..., 1], p[..., 2]
+    su, sv = np.where(u >= 0, 1.0, -1.0), np.where(v >= 0, 1.0, -1.0)
+    fu = np.where(z < 0, (1.0 - np.abs(v)) * su, u)
+    fv = np.where(z < 0, (1.0 - np.abs(u)) * sv, v)
+    h = pw.OCT_LEVELS_HALF
+    qu = np.clip(np.rint(fu * h) + h, 0, 2 * h).astype(np.uint32)
+    qv = np.clip(np.rint(fv * h) + h, 0, 2 * h).astype(np.uint32)
+    return (qu << 4) | qv
+
+
+def test_oct_encode_equals_reference_also_on_signed_zeros():
+    rng = np.random.default_rng(4)
+    n = rng.normal(size=(200_000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    signed = np.array([[s0 * a, s1 * b, s2 * c] for s0 in (1.0, -1.0) for s1 in (1.0, -1.0) for s2 in (1.0, -1.0)
+                       for a, b, c in ((0.0, 0.0, 1.0), (0.0, 0.6, 0.8), (0.6, 0.0, 0.8), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))])
+    for normals in (n, n.astype(np.float32), signed, signed[3]):
+        np.testing.assert_array_equal(pw.oct_encode(normals), oct_encode_reference(normals))
+
+
 def test_random_normals_within_quantisation_bound():
     rng = np.random.default_rng(0)
     n = rng.normal(size=(2_000_000, 3))

@@ -249,3 +249,19 @@ def test_grid_edited_behind_the_ticks_back(make_tick):
         assert np.abs(stored_codes(tick, ids) - full).max() <= tick.settings.threshold
     finally:
         tick.close()
+
+
+def test_point_locations_after_skinned_moves_match_a_full_scan(make_tick):
+    # after each tick the tick's (slot, index) of every point is what a scan of the whole grid finds:
+    # moved points, points shifted by compaction, and parked ones (not in the grid)
+    tick, bake = make_tick("robots")
+    try:
+        for t in (0.05, 0.1, 0.4, 0.41, 1.3):
+            s = tick(bake.grid, t)
+            assert s.moved > 0
+            slot, index = tick.slot.copy(), tick.index.copy()
+            tick._relocate_all()
+            np.testing.assert_array_equal(slot, tick.slot)
+            np.testing.assert_array_equal(index, tick.index)
+    finally:
+        tick.close()
