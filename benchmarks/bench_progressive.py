@@ -196,6 +196,9 @@ def main(argv=None) -> int:
           f"({prog['snapshot_cells'][0] if snaps else 0:,} cells), full grid "
           f"{r['progressive_full_grid_s'] or float('nan'):.1f} s after start; PSNR at each snapshot "
           + ", ".join(f"{db:.2f} dB" for db in r["progressive_psnr_at_snapshots"]), flush=True)
+    live = [ln for ln in prog["log"].splitlines() if "ticks/s" in ln]
+    if live:  # the server's own live statistics near the end: how fast it refined
+        print("--progressive server, last live line: " + live[-1].split("psao serve: ", 1)[-1], flush=True)
     if args.skip_plain:
         r.update(plain_first_snapshot_s=float("nan"), full_bake_psnr_db=float("nan"))
     else:

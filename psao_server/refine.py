@@ -1,6 +1,6 @@
-"""Refinement of static points on a Dask cluster, beside the server tick.
+"""Refinement of static points on a Dask cluster or on this machine's bake tracer, beside the server tick.
 
-`psao serve --progressive --cluster ...` bakes with a few rays per point and refines to `--rays` while
+`psao serve --progressive [--cluster ...]` bakes with a few rays per point and refines to `--rays` while
 serving. The tick refines in its own time budget, one slice of each point's target ray set per round; a
 `ClusterRefiner` adds the cluster's workers: it takes batches of waiting static points that have no slice
 yet, traces each point's whole target ray set (the bake's rays and seed) in one go on the cluster
@@ -15,11 +15,16 @@ While a batch is out its points are left out of the tick's own picks (`busy`), s
 A point whose neighbourhood changes meanwhile (a mover came near: the tick resets its history) is
 `forget`-ed: its batch's answer for it is dropped when it comes back, and it waits again.
 Per-tick work (60 Hz) stays local: a Dask task costs milliseconds of scheduling.
+
+Without a cluster, `BackgroundTracer` gives the bake's own (Embree) tracer the same interface: its batches
+run one after another on a thread of their own, in the tracer's worker processes, so a scene at rest is
+refined at the tracer's full speed rather than within the ticks' budget alone.
 """
 from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,7 +105,7 @@ class ClusterRefiner:
             try:
                 vis = b.pending.result()
             except TracerError as exc:  # the points wait again: the tick or a later batch traces them
-                log.warning("cluster refinement batch failed (%s): its %d points wait again", exc, len(b.ids))
+                log.warning("refinement batch failed (%s): its %d points wait again", exc, len(b.ids))
                 self.stale[b.ids] = False
                 continue
             keep = ~self.stale[b.ids]
@@ -145,9 +150,58 @@ class ClusterRefiner:
             self.submitted += 1
 
     def close(self) -> None:
-        log.info("cluster refinement: %d batches sent, %d points refined, %d answers dropped (moved meanwhile)",
+        log.info("refinement beside the ticks: %d batches sent, %d points refined, %d answers dropped (moved meanwhile)",
                  self.submitted, self.points_done, self.points_dropped)
         for b in self.batches:
             b.pending.cancel()
         self.batches = []
         self.tracer.close()
+
+
+class BackgroundTracer:
+    """A local tracer (e.g. the bake's Embree tracer) behind the part of DaskTracer's interface that
+    ClusterRefiner uses: set_geometry, set_dynamic, start (-> done, result, cancel), threads, close. Every
+    call runs in order on one thread of its own, so a pose set between batches applies to the next one."""
+
+    threads = 1  # one batch traces at a time (in the tracer's worker processes)
+
+    def __init__(self, tracer):
+        self.tracer = tracer
+        self._thread = ThreadPoolExecutor(1, thread_name_prefix="refine")
+
+    def set_geometry(self, static_vertices, static_faces, rigid) -> None:
+        def geometry():
+            self.tracer.set_static(static_vertices, static_faces)
+            self.tracer.set_rigid(rigid)
+        self._thread.submit(geometry).result()
+
+    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+        self._thread.submit(self.tracer.set_dynamic, vertices, faces, rigid_transforms)
+
+    def start(self, positions, normals, point_ids, settings: TraceSettings) -> "LocalPending":
+        return LocalPending(self._thread.submit(self.tracer.visibility, positions, normals, point_ids, settings))
+
+    def close(self) -> None:
+        self._thread.shutdown(wait=True, cancel_futures=True)
+        self.tracer.close()
+
+
+class LocalPending:
+    """A batch submitted by BackgroundTracer.start: poll done(), then take result()."""
+
+    def __init__(self, future: Future):
+        self.future = future
+
+    def done(self) -> bool:
+        return self.future.done()
+
+    def result(self) -> np.ndarray:
+        try:
+            return self.future.result()
+        except TracerError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a failed batch is reported like a cluster's
+            raise TracerError(f"the refinement trace failed: {type(exc).__name__}: {exc}") from None
+
+    def cancel(self) -> None:
+        self.future.cancel()

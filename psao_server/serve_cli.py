@@ -139,16 +139,16 @@ def _ticking(args, bake_with: BakeSettings, scene=None):
     bake = bake_scene(scene, dataclasses.replace(bake_with, rays=bake_rays))
     # The bake's AO counts as that many rays of every point's history: with --rays it is converged, with
     # --progressive the ticks' spare budget refines it.
-    # The tick traces here (a Dask task's scheduling does not fit a tick); with --progressive --cluster the
-    # bake's cluster also refines waiting static points, in batches, beside the ticks.
+    # The tick traces here (a Dask task's scheduling does not fit a tick); with --progressive the bake's
+    # tracer (its cluster with --cluster) also refines waiting static points, in batches, beside the ticks.
     settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True,
                             tracer="embree" if args.tracer == "dask" else args.tracer, workers=args.workers)
     if not args.animate:
         settings.fit_grid = False
     refiner = None
-    if args.progressive and bake_with.cluster is not None:
-        from psao_server.refine import ClusterRefiner
-        refiner = ClusterRefiner(bake.tracer)
+    if args.progressive:  # the bake's tracer (a cluster's, or local worker processes) refines beside the ticks
+        from psao_server.refine import BackgroundTracer, ClusterRefiner
+        refiner = ClusterRefiner(bake.tracer if bake_with.cluster is not None else BackgroundTracer(bake.tracer))
     # closes the bake's tracer (unless the refiner keeps its cluster), starts its own
     tick = ServerTick(bake, settings, close_bake_tracer=refiner is None, refiner=refiner)
     if not args.animate:

@@ -18,6 +18,7 @@ distributed = pytest.importorskip("distributed")
 
 from protocol.updates import state_digest  # noqa: E402
 from serving import HANG_S, server_url, wait_for_log  # noqa: E402
+from tracing import full_trace  # noqa: E402
 from psao_scene import load_scene  # noqa: E402
 from psao_server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
 from psao_server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
@@ -214,7 +215,7 @@ def test_cli_serve_progressive_refines_on_the_cluster(cluster, tmp_path, capsys)
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    refined = re.search(r"cluster refinement: (\d+) batches sent, (\d+) points refined", err.read_text())
+    refined = re.search(r"refinement beside the ticks: (\d+) batches sent, (\d+) points refined", err.read_text())
     assert refined and int(refined.group(2)) > 0, err.read_text()
     server = [json.loads(line)["digest"] for line in digests.read_text().splitlines()]
     assert client["mirror_digest"] == server[-1]
@@ -262,14 +263,7 @@ def test_cluster_refines_static_points_as_a_local_trace_would(cluster):
         assert refiner.points_done == len(merged) and refiner.points_dropped == 50
 
         # the same rays traced here: static scene, rigid movers at the frame's pose, the target ray set
-        local = make_tracer("embree", scene_center(scene), workers=1)
-        local.set_static(*tick.animator.static_geometry())
-        local.set_rigid([(scene.meshes[scene.instances[i].mesh].vertices, scene.meshes[scene.instances[i].mesh].faces)
-                         for i in tick.kinds.rigid])
-        local.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[tick.kinds.rigid])
-        pos, nrm = tick.world_points(frame, merged)
-        vis = local.visibility(pos, nrm, merged, TraceSettings(rays=32, ao_distance=scene.ao_distance, seed=SEED))
-        local.close()
+        vis = full_trace(tick, frame, merged, 32, SEED)
         got = tick.grid.cells[tick.slot[merged], tick.index[merged]] & np.uint32(0xFF)
         np.testing.assert_array_equal(got, pw.quantise_ao(vis))
         assert (tick.queue.done[merged] == tick.queue.slices).all()

@@ -16,6 +16,7 @@ from psao_scene import load_scene
 from psao_server.progressive import ProgressiveSettings, coarse_bake_settings, wants_coarse_grid
 from psao_server.settings import BakeSettings
 from serving import HANG_S, server_url
+from tracing import full_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -82,3 +83,40 @@ def test_progressive_start_replaces_the_coarse_grid_and_mirrors_stay_exact(tmp_p
     pairs = [(server[(d["conn"], d["seq"])], d["digest"]) for d in mine if (d["conn"], d["seq"]) in server]
     assert all(a == b for a, b in pairs)
     assert len({d["conn"] for d in mine if (d["conn"], d["seq"]) in server}) == 2  # compared on both grids
+
+
+def test_local_refiner_brings_every_static_point_to_its_full_trace():
+    """--progressive without a cluster: the bake's own tracer refines waiting static points in batches on a
+    thread of its own beside the ticks; once nothing waits, every static point holds exactly the AO of a full
+    trace of its target ray set (as a full bake gives)."""
+    import numpy as np
+
+    from protocol import pointword as pw
+    from psao_server.bake import bake_scene
+    from psao_server.budget import BudgetSettings
+    from psao_server.refine import BackgroundTracer, ClusterRefiner, RefineSettings
+    from psao_server.settings import TickSettings
+    from psao_server.tick import ServerTick
+
+    scene = load_scene("builtin:courtyard")
+    bake = bake_scene(scene, BakeSettings(density=8, rays=8, seed=5, workers=1), show_progress=False)
+    refiner = ClusterRefiner(BackgroundTracer(bake.tracer), RefineSettings(batch_points=2000))
+    settings = TickSettings(rays=32, seed=5, budget=BudgetSettings(round_rays=8, budget_ms=0.1), selection=True,
+                            workers=1, fit_grid=False)
+    tick = ServerTick(bake, settings, close_bake_tracer=False, refiner=refiner)
+    try:
+        static = refiner.static
+        for _ in range(10_000):
+            if not len(tick.queue.waiting(static)) and not refiner.batches:
+                break
+            assert refiner.wait(HANG_S)
+            tick.apply(tick.prepare(0.0))
+        assert not len(tick.queue.waiting(static)) and refiner.points_done > 0
+        ids = np.flatnonzero(static & tick.present())
+        vis = full_trace(tick, tick.animator.frame(0.0), ids, 32, 5)
+        got = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & np.uint32(0xFF)).astype(np.int64)
+        # a code within the tick's write threshold of the stored one is not written (noise kept off the wire)
+        off = np.abs(got - pw.quantise_ao(vis).astype(np.int64))
+        assert off.max() <= settings.threshold, (ids[off > settings.threshold], got[off > settings.threshold])
+    finally:
+        tick.close()

@@ -103,8 +103,8 @@ def test_animated_server_keeps_mirror_exact(tmp_path):
 
 
 def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
-    """--progressive: the first grid is traced with --tick-rays, the ticks refine it towards --rays
-    (writing the improvements into the grid the service streams); the client's mirror is exact and the queue
+    """--progressive: the first grid is traced with --tick-rays, the ticks and the bake's tracer beside them
+    refine it towards --rays (writing the improvements into the grid the service streams); the client's mirror is exact and the queue
     only shrinks (nothing moves). How far the refinement got when the client connects depends on the
     machine: the snapshot is what is sure to come."""
     log, pairs, ticks, _ = serve_with_client(tmp_path, ["builtin:cornell", "--progressive", "--density", "32", "--rays", "16",
@@ -114,7 +114,8 @@ def test_progressive_server_streams_a_few_ray_grid_then_refines_it(tmp_path):
     assert len(pairs) >= 1 and all(a == b for a, b in pairs)
     queue = [t["queue"] for t in ticks]
     assert queue[0] > 0 and all(b <= a for a, b in zip(queue, queue[1:]))
-    assert all(t["traced"] > 0 for t in ticks if t["queue"] > 0) and sum(t["changed"] for t in ticks) > 0
+    # a tick whose waiting points are all out on the refiner (the bake's tracer, beside the ticks) traces none
+    assert sum(t["traced"] for t in ticks) > 0 and sum(t["changed"] for t in ticks) > 0
 
 
 def test_serve_port_taken():

@@ -110,24 +110,28 @@ class _Scenes:
         return hit
 
 
-_RAYS = None  # per process: Warp ray buffers, or False when Warp is unavailable
+# Per thread (so per process too): Warp ray buffers, or False when Warp is unavailable. Two tracers of one
+# process may trace at once on different threads (the server tick's, and its refiner's on a thread of its
+# own), and one set of buffers would hand each the other's rays.
+_RAYS = threading.local()
 
 
 def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
     """Origins and directions of directions.py, (P * K', 3) each, for the slice of each point's ray set
     that starts at `first` (one int or one per point); through the compiled Warp kernel when Warp is
     present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
-    global _RAYS
-    if _RAYS is None:
+    rays = getattr(_RAYS, "buffers", None)
+    if rays is None:
         try:
             from psao_server.tracer.kernels import RayBuffers
-            _RAYS = RayBuffers()
+            rays = RayBuffers()
         except ImportError:
-            _RAYS = False
-    if _RAYS is False:
+            rays = False
+        _RAYS.buffers = rays
+    if rays is False:
         dirs = cosine_directions(ids, nrm, s.rays, s.seed, first, s.slices).reshape(-1, 3)
         return np.repeat(ray_origins(pos, nrm, s.ao_distance), len(dirs) // max(len(pos), 1), axis=0), dirs
-    return _RAYS.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance, first, s.slices)
+    return rays.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance, first, s.slices)
 
 
 def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
