@@ -232,7 +232,8 @@ class NearCache:
 
     A mover's reach changes a little from tick to tick, so the block index is queried for its reach
     grown by `margin` (world units; up to four times that for a mover that moves farther per tick), and the candidates (ids, positions and normals, gathered once into
-    contiguous arrays) serve every following tick whose reach stays inside that grown box. Each tick
+    contiguous arrays; with the movers' spheres, only those within a ball that bounds every point that may
+    see them) serve every following tick whose reach stays inside that grown box and ball. Each tick
     then tests only those candidates (in a reach box, may see the mover's sphere now or before), never
     the block index or the whole point set."""
 
@@ -241,40 +242,54 @@ class NearCache:
         self.normals = np.asarray(normals, np.float64)
         self.ao_distance = float(ao_distance)
         self.margin = float(margin)
-        self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, candidate indices, positions, normals)
+        self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, ball centre, radius, candidate indices,
+        # positions (3, P), normals (3, P))
         self._last: dict[int, tuple] = {}  # mover -> its reach (lo, hi) at the last call
         self.queries = 0  # block-index queries made (each a cache refill)
 
-    def _candidates(self, i: int, boxes: list[tuple[np.ndarray, np.ndarray]]) -> tuple:
+    def _candidates(self, i: int, boxes: list[tuple[np.ndarray, np.ndarray]], spheres: list) -> tuple:
         lo = np.min([b[0] for b in boxes], axis=0)
         hi = np.max([b[1] for b in boxes], axis=0)
         held = self._held.get(i)
         last = self._last.get(i)
         self._last[i] = lo, hi
-        if held is None or np.any(lo < held[0]) or np.any(hi > held[1]):
+        # a point that may see a sphere (c, r) is within r + ao of c, so within R of the held ball's
+        # centre while |c - centre| + r + ao <= R: the ball bounds the candidates as well as the box
+        ball_ok = held is not None and all(float(np.linalg.norm(c - held[2])) + r + self.ao_distance <= held[3]
+                                           for c, r in spheres)
+        if not ball_ok or np.any(lo < held[0]) or np.any(hi > held[1]):
             # grown by the margin, or by a few of the mover's last steps when it moves farther per tick
             # (a slow tick rate): the candidates then still serve several ticks
             step = 0.0 if last is None else float(max(np.abs(lo - last[0]).max(), np.abs(hi - last[1]).max()))
             grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
             q = (lo - grow, hi + grow)
-            idx = np.sort(self.index.query_box(q))
+            idx = self.index.query_box(q)
+            centre, radius = 0.5 * (lo + hi), np.inf
+            if spheres:
+                centre = spheres[0][0]
+                radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres) + self.ao_distance + grow
+                d = self.index.positions[idx] - centre
+                # (slack: the per-tick test's own rounding must never reach past the ball)
+                idx = idx[np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2]
+            idx = np.sort(idx)
             # coordinates as rows (3, P): the tests below run on contiguous 1-D arrays
-            held = self._held[i] = (q[0], q[1], idx, np.ascontiguousarray(self.index.positions[idx].T),
+            held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, idx,
+                                    np.ascontiguousarray(self.index.positions[idx].T),
                                     np.ascontiguousarray(self.normals[idx].T))
             self.queries += 1
-        return held
+        return held[4:]
 
     def near(self, reach: dict, motion: MotionInput) -> np.ndarray:
         """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
         normals, ao_distance)."""
         parts = []
         for i, boxes in reach.items():
-            _, _, idx, pos, nrm = self._candidates(i, boxes)
+            spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
+            idx, pos, nrm = self._candidates(i, boxes, spheres)
             keep = np.zeros(len(idx), dtype=bool)
             for lo, hi in boxes:
                 keep |= ((pos[0] >= lo[0]) & (pos[0] <= hi[0]) & (pos[1] >= lo[1]) & (pos[1] <= hi[1])
                          & (pos[2] >= lo[2]) & (pos[2] <= hi[2]))
-            spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
             if spheres:
                 sel = np.flatnonzero(keep)
                 p, n = pos[:, sel], nrm[:, sel]
