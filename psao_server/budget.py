@@ -167,7 +167,12 @@ class RefineQueue:
             self.old_until[ids] = self.target
 
     def reset(self, ids: np.ndarray, now: float) -> None:
-        """The geometry around `ids` changed: their history is void; they wait from now unless they waited already."""
+        """The geometry around `ids` changed: their history is void; they wait from now unless they waited already.
+        Points with no fresh rays since their last reset (and no more kept rays than keep_rays) are left as
+        they are: a reset again changes nothing for them (a mover's neighbourhood is reset every tick it moves, so this keeps the cost to the points
+        traced since)."""
+        cap = min(self.keep, self.target) if self.keep else np.inf
+        ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)]
         fresh = ids[self.rays[ids] >= self.target]
         self.waiting_since[fresh] = now
         if self.keep:

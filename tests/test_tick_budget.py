@@ -247,3 +247,25 @@ def test_few_ray_first_grid_blends_until_the_whole_ray_set():
     q.add(ids, np.array([0.0]), 8, 3.0)
     code = q.add(ids, np.array([0.0]), 8, 4.0)  # the whole set: the first grid's rays are gone
     assert code[0] == 0 and len(q.waiting(np.ones(1, bool))) == 0
+
+
+def test_reset_again_without_new_rays_changes_nothing():
+    rng = np.random.default_rng(2)
+    n = 300
+    q = RefineQueue(n, target_rays=32, keep_rays=24, slices=4)
+    q.seed_from_codes(np.arange(0, n, 3), rng.integers(0, 256, len(range(0, n, 3))).astype(np.uint32), 32)
+    q.seed_from_codes(np.arange(1, n, 3), rng.integers(0, 256, len(range(1, n, 3))).astype(np.uint32), 16)
+    picked = np.arange(0, n, 7)
+    q.add(picked, rng.uniform(0, 1, len(picked)).astype(np.float32), 8, 1.0)
+    ids = np.arange(n)
+    q.reset(ids, 2.0)
+    assert (q.rays == 0).all() and (q.done == 0).all() and (q.old_rays <= 24).all()
+    state = [a.copy() for a in (q.rays, q.done, q.unoccluded, q.old_rays, q.old_unoccluded, q.waiting_since)]
+    q.reset(ids, 3.0)
+    for before, after in zip(state, (q.rays, q.done, q.unoccluded, q.old_rays, q.old_unoccluded, q.waiting_since)):
+        np.testing.assert_array_equal(before, after)
+    # a few-ray estimate standing for more rays than keep_rays is capped at the first reset
+    q2 = RefineQueue(1, target_rays=64, keep_rays=8, slices=8)
+    q2.seed_from_codes(np.array([0]), np.array([128], np.uint32), 16)
+    q2.reset(np.array([0]), 1.0)
+    assert q2.old_rays[0] == 8
