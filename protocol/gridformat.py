@@ -52,6 +52,11 @@ T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
 # times this, and where those have none either, the 3x3x3 block around the fragment's cell with that radius
 # (every point within one cell, s >= 2 r, lies in it).
 FALLBACK_SCALE = 2.0
+# The 3x3x3 ring answers only where nothing else did, mostly on small faces at sharp edges whose points all
+# went to their neighbours: it keeps eq. 3's tangent-plane test but takes points whose normal is up to
+# 120 degrees from the fragment's (cosine > RING_T_N), the faces across such an edge, rather than AO = 1.
+# The back of a thin wall (cosine near -1) still does not count.
+RING_T_N = -0.5
 
 FREE_CELL = np.array([0] * POINTS_PER_CELL + [0xFFFFFFFF], dtype=np.uint32)
 EMPTY_BUCKET = np.full((BUCKET_ENTRIES, 2), 0xFFFFFFFF, dtype=np.uint32)

@@ -7,7 +7,8 @@ cells of the entries right after it with the same key (a key holding more than 7
 KEY_CELLS consecutive entries of its bucket), weights max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or
 (n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), and the weighted mean. Where all weights are 0, the same
 block's points with radius R = FALLBACK_SCALE * r; where those have none either, the 3x3x3 block
-floor(g) + {-1,0,1}^3 with radius R, and 1 where that finds no weight. Positions are in grid units (one
+floor(g) + {-1,0,1}^3 with radius R and the normal threshold RING_T_N instead of T_n, and 1 where that
+finds no weight. Positions are in grid units (one
 cell = 1), as the shader computes them: g = (x - origin) / cell_size, a point's offset from the fragment
 (cell + (q + 0.5) / 32) - g. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
@@ -52,7 +53,7 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
 
 def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
     """[(AO, weight sum)] of the 2x2x2 block at radius r and at FALLBACK_SCALE * r, or (ring) of the 3x3x3
-    block around the fragment's cell at FALLBACK_SCALE * r."""
+    block around the fragment's cell at FALLBACK_SCALE * r with the normal threshold RING_T_N."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
@@ -61,7 +62,7 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     dims = rec["dims"].astype(np.int64)
     g = ((x - origin) / s[:, None]).astype(np.float32)
     if ring:
-        radii = [wide]
+        radii, t_n = [wide], gf.RING_T_N
         cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
     else:
         radii = [r, wide]

@@ -11,7 +11,8 @@ from psao_server.grid import Grid
 def brute_force(grid: Grid, inst, x, n_x):
     """eq. 2-4 over ALL decoded points of the instance, no grid lookup; where no point has weight, the
     points of the 2x2x2 block around x with the radius times FALLBACK_SCALE, and where none of those
-    has weight, all points with that radius (the 3x3x3 ring holds every point within it)."""
+    has weight, all points with that radius and the normal threshold RING_T_N (the 3x3x3 ring holds every
+    point within it)."""
     rec = grid.instances[inst]
     slots = np.flatnonzero(grid.cell_instance == inst)
     words = grid.cells[slots, : gf.POINTS_PER_CELL]
@@ -28,9 +29,10 @@ def brute_force(grid: Grid, inst, x, n_x):
         dist = np.linalg.norm(d, axis=1)
         cosd = np.where(dist > 0, (n_p * d).sum(1) / np.where(dist > 0, dist, 1), 0)
         counts = ((n_p @ ni) > T_N) & (cosd ** 2 < T_D)
+        ring = ((n_p @ ni) > gf.RING_T_N) & (cosd ** 2 < T_D)
         block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
         in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
-        for radius, among in ((r, counts), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, counts)):
+        for radius, among in ((r, counts), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, ring)):
             w = np.where(among, np.maximum(0, (radius - dist) / radius), 0)
             if w.sum() > 0:
                 break
@@ -123,3 +125,26 @@ def test_back_side_points_are_ignored():
     _, w_wrong = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(100, int), x,
                                 np.tile([0, 0, 1.0], (100, 1)), back=ones)
     assert np.all(w_wrong == 0)
+
+
+def test_ring_takes_the_face_across_a_sharp_edge_but_not_a_surface_facing_away():
+    """Points only on a floor (normal +z) of one instance. Probes on a wall standing on it (normal +x) near
+    the edge find no point passing eq. 3's normal test in the 2x2x2 block; the ring's looser threshold
+    (RING_T_N) takes the floor's points there, as brute force does. Probes under the floor (normal -z)
+    face its points exactly away and find nothing."""
+    rng = np.random.default_rng(7)
+    m = 4000
+    p = np.column_stack([rng.random(m), rng.random(m), np.zeros(m)])
+    grid = Grid.build([(p, np.tile([0, 0, 1.0], (m, 1)), 0.01, 0)])
+    t = grid.point_table()
+    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
+    r = float(grid.instances[0]["radius"])
+    k = 200
+    wall = np.column_stack([np.full(k, 0.5), rng.random(k) * 0.8 + 0.1, rng.random(k) * 0.5 * r])
+    under = np.column_stack([rng.random(k) * 0.8 + 0.1, rng.random(k) * 0.8 + 0.1, np.zeros(k)])
+    x = np.vstack([wall, under])
+    n = np.vstack([np.tile([1.0, 0, 0], (k, 1)), np.tile([0, 0, -1.0], (k, 1))]).astype(np.float32)
+    ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(2 * k, int), x, n)
+    assert np.all(((t.local_normal @ [1.0, 0, 0]) <= T_N))  # eq. 3 alone would leave every wall probe a hole
+    assert (wsum[:k] > 0).mean() > 0.9 and np.all(wsum[k:] == 0) and np.all(ao[k:] == 1.0)
+    np.testing.assert_allclose(ao, brute_force(grid, 0, x.astype(np.float32), n), atol=2e-5)

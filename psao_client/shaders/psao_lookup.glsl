@@ -44,18 +44,18 @@ float psao_point_ao(uint word) {
 }
 
 // Paper eq. 3: whether a point at offset d from the fragment (dist2 = |d|^2), normal np, counts for the
-// fragment normal nx. The tangent-plane test (n_p . d / |d|)^2 < T_d is written without the division:
-// (n_p . d)^2 < T_d |d|^2, true at d = 0.
-bool psao_passes(vec3 d, float dist2, vec3 np, vec3 nx) {
+// fragment normal nx, normal threshold t_n (T_n; the ring's PSAO_RING_T_N). The tangent-plane test
+// (n_p . d / |d|)^2 < T_d is written without the division: (n_p . d)^2 < T_d |d|^2, true at d = 0.
+bool psao_passes(vec3 d, float dist2, vec3 np, vec3 nx, float t_n) {
     float c = dot(np, d);
-    return dot(np, nx) > PSAO_T_N && (c * c < PSAO_T_D * dist2 || dist2 == 0.0);
+    return dot(np, nx) > t_n && (c * c < PSAO_T_D * dist2 || dist2 == 0.0);
 }
 
-// Adds the allocated points of the cell in `slot` (cell coordinates c) to acc = (weight sum, weighted AO)
-// at radius radii.x, then the same at radius radii.y. Everything is in grid units (one cell = 1): cg is
+// Adds the allocated points of the cell in `slot` (cell coordinates c) that pass eq. 3 (normal threshold
+// t_n) to acc = (weight sum, weighted AO) at radius radii.x, then the same at radius radii.y. Everything is in grid units (one cell = 1): cg is
 // the cell's first position step relative to the fragment's grid coordinate, so a point's offset from
 // the fragment is one multiply-add of its 5-bit codes. Paper eq. 2: weight max(0, (r - d) / r).
-void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, inout vec4 acc) {
+void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, float t_n, inout vec4 acc) {
     uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
     uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
     uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
@@ -66,7 +66,7 @@ void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, inout vec4 acc) {
         uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
         vec3 d = cg + vec3(q) * (1.0 / PSAO_POSITION_LEVELS);
         float dist2 = dot(d, d);
-        if (dist2 >= outer2 || !psao_passes(d, dist2, psao_point_normal(word), nx)) continue;
+        if (dist2 >= outer2 || !psao_passes(d, dist2, psao_point_normal(word), nx, t_n)) continue;
         vec2 w = max(vec2(0.0), (radii - sqrt(dist2)) / radii);
         float ao = psao_point_ao(word);
         acc += vec4(w.x, w.x * ao, w.y, w.y * ao);
@@ -79,7 +79,7 @@ void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, inout vec4 acc) {
 // so the scan stops at the key's first entry (or at EMPTY: used entries come first) and the cells are
 // read from there while the next entry has the same key. The next entry is often in the texel the scan
 // already holds; the loop's second pass runs only where some fragment's key goes on.
-void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx, vec2 radii, inout vec4 acc) {
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx, vec2 radii, float t_n, inout vec4 acc) {
     uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
     uint key = psao_cell_key(c, inst.dims);
     if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
@@ -95,7 +95,7 @@ void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx
     vec3 cg = vec3(c) + 0.5 / PSAO_POSITION_LEVELS - g;
     uint slot = (e & 1u) == 0u ? pair.y : pair.w;
     for (int k = 0; k < PSAO_KEY_CELLS; ++k) {
-        psao_accumulate(slot, cg, nx, radii, acc);
+        psao_accumulate(slot, cg, nx, radii, t_n, acc);
         e += 1u;
         if (e == PSAO_BUCKET_ENTRIES) break;
         if ((e & 1u) == 0u) pair = psao_fetch(u_psao_buckets, base + (e >> 1u));
@@ -117,7 +117,8 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 //   2. where that has no weight, the same block's points with radius R = PSAO_FALLBACK_SCALE * r. Both
 //      sums come from one pass over the block, so this costs no extra cell reads;
 //   3. where that has none either, the 3x3x3 block floor(g) + {-1,0,1}^3 (every point within one cell,
-//      s >= R, of x) with radius R. Only groups of fragments holding such a fragment run these 27 cells.
+//      s >= R, of x) with radius R and eq. 3's normal threshold loosened to PSAO_RING_T_N (the faces across
+//      a sharp edge). Only groups of fragments holding such a fragment run these 27 cells.
 // Returns (AO, weight sum of the step that answered); AO is 1 when even step 3 finds no weight. `back`:
 // the fragment shows the back side of a double-sided surface (the G-buffer flipped its normal), so only
 // back-side cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided
@@ -133,12 +134,13 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     float reach = radii.y * 1.001;
     float reach2 = reach * reach;
     vec4 acc = vec4(0.0);  // (weight sum, weighted AO) at radius r, then at R
+    float t_n = PSAO_T_N;  // eq. 3's normal threshold; the ring's for step 3
     int side = 2;          // the block's edge in cells: 2, then 3 for step 3
     ivec3 o = ivec3(0);    // the cell's offset in the block
     for (int i = 0; i < 8 + 27; ++i) {
         ivec3 c = base + o;
         if (all(greaterThanEqual(c, ivec3(0))) && all(lessThan(c, dims)) && psao_cell_distance2(g, vec3(c)) <= reach2)
-            psao_accumulate_cell(inst, uvec3(c), back, g, nx, radii, acc);
+            psao_accumulate_cell(inst, uvec3(c), back, g, nx, radii, t_n, acc);
         o.x += 1;
         if (o.x == side) { o.x = 0; o.y += 1; }
         if (o.y == side) { o.y = 0; o.z += 1; }
@@ -148,6 +150,7 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
             side = 3;
             o = ivec3(0);
             radii = radii.yy;
+            t_n = PSAO_RING_T_N;
         }
     }
     if (acc.x > 0.0) return vec2(acc.y / acc.x, acc.x);
