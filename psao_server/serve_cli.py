@@ -319,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
         transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
     service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
-                      on_scene_edit=getattr(tick, "edit", None), scene_blob=scene_blob(scene))
+                      on_scene_edit=getattr(tick, "edit", None), scene_blob=lambda: scene_blob(scene))
     full = None
     if coarse is not None:
         from psao_server.progressive import BackgroundBake

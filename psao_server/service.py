@@ -107,13 +107,15 @@ class Service:
     run on a thread of their own, so a tick never queues behind the clients' own encodes (which run on the
     loop's default executor, one per client). `transforms()` gives the instance
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
-    connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob)
+    connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob, or a
+    function giving it, called on a worker thread at the first SceneRequest: compressing a scene takes a while)
     answers SceneRequest; without it a SceneRequest is refused."""
 
     def __init__(self, grid, scene_hash: bytes, settings: ServeSettings, tick: TickFn | None = None,
                  transforms: Callable[[], np.ndarray] | None = None,
                  on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
-                 on_cameras: Callable[[list], None] | None = None, scene_blob: bytes | None = None):
+                 on_cameras: Callable[[list], None] | None = None,
+                 scene_blob: bytes | Callable[[], bytes] | None = None):
         settings.check()
         self.scene_blob = scene_blob
         self.grid = grid
@@ -378,6 +380,10 @@ class Service:
     async def _send_scene(self, ws, session: ServerSession, event: SceneRequested) -> None:
         if self.scene_blob is None:
             raise ProtocolError("this server does not send its scene")
+        if callable(self.scene_blob):  # made once, on a worker thread; requests meanwhile wait for the same bytes
+            self.scene_blob = asyncio.ensure_future(asyncio.to_thread(self.scene_blob))
+        if isinstance(self.scene_blob, asyncio.Future):
+            self.scene_blob = await asyncio.shield(self.scene_blob)
         for data in session.scene_data(event.request, self.scene_blob):
             await ws.send(data)
             self.counters.bytes_out += len(data)

@@ -162,13 +162,16 @@ def test_http_allow_list_serves_only_page_files():
 
 
 
-async def _serve_scene(scene, fn):
+async def _serve_scene(scene, fn, made: list | None = None):
+    """Serve a small grid with `scene` to send, its blob made on the first request as psao serve does (each
+    making appended to `made`)."""
     from test_streaming_service import make_grid  # a small real grid
 
     from protocol.session import scene_hash_bytes
     h = scene_hash_bytes(scene.content_hash())
+    made = [] if made is None else made
     service = Service(make_grid(200), h, ServeSettings(port=0, tick_hz=30, stats_interval=1e9),
-                      scene_blob=scene_blob(scene))
+                      scene_blob=lambda: made.append(1) or scene_blob(scene))
     stop, ready = asyncio.Event(), asyncio.Event()
     task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
     await ready.wait()
@@ -184,7 +187,8 @@ def test_client_without_a_scene_takes_the_servers():
 
     async def use(port):
         url = f"ws://127.0.0.1:{port}"
-        got, h, nbytes = await fetch_scene(url)
+        (got, h, nbytes), again = await asyncio.gather(fetch_scene(url), fetch_scene(url))
+        assert again[1:] == (h, nbytes)
         stats = await asyncio.wait_for(MirrorClient(url, h).run(frames=0), HANG_S)
 
         def get(path):
@@ -197,7 +201,9 @@ def test_client_without_a_scene_takes_the_servers():
                                                                  "/%2e%2e/Makefile", "/vendor%2Ffzstd.js")])
         return got, h, nbytes, stats, http
 
-    h, (got, sent_hash, nbytes, stats, http) = asyncio.run(_serve_scene(scene, use))
+    made = []
+    h, (got, sent_hash, nbytes, stats, http) = asyncio.run(_serve_scene(scene, use, made))
+    assert made == [1]  # made once, for both requests
     assert sent_hash == h and nbytes == len(scene_blob(scene)) and stats.messages >= 2
     assert [m.name for m in got.meshes] == [m.name for m in scene.meshes]
     assert np.allclose(got.meshes[0].vertices, scene.meshes[0].vertices, atol=1e-6)
