@@ -172,7 +172,8 @@ class RefineQueue:
         they are: a reset again changes nothing for them (a mover's neighbourhood is reset every tick it moves, so this keeps the cost to the points
         traced since)."""
         cap = min(self.keep, self.target) if self.keep else np.inf
-        ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)]
+        ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)
+                  | (self.old_until[ids] > self.old_rays[ids])]  # a first grid's estimate, now of other geometry
         fresh = ids[self.rays[ids] >= self.target]
         self.waiting_since[fresh] = now
         if self.keep:

@@ -247,6 +247,12 @@ def test_few_ray_first_grid_blends_until_the_whole_ray_set():
     q.add(ids, np.array([0.0]), 8, 3.0)
     code = q.add(ids, np.array([0.0]), 8, 4.0)  # the whole set: the first grid's rays are gone
     assert code[0] == 0 and len(q.waiting(np.ones(1, bool))) == 0
+    # reset before any fresh ray (a mover came near): the first grid's estimate is of other geometry now and
+    # blends only until as many fresh rays as it stands for have come
+    q = RefineQueue(1, target_rays=32, keep_rays=24, slices=4)
+    q.seed_from_codes(ids, np.array([255]), 8)
+    q.reset(ids, 1.0)
+    assert q.add(ids, np.array([0.0]), 8, 2.0)[0] == 0
 
 
 def test_reset_again_without_new_rays_changes_nothing():
