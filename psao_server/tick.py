@@ -424,7 +424,9 @@ class ServerTick:
             # where they are now: in their old cells (moved in place), or in a cell the move marked dirty
             # (re-inserted, or shifted there by compaction); the moved ones the grid could not keep are parked
             self.slot[go], self.index[go] = -1, -1
-            self._relocate_cells(np.union1d(was, np.flatnonzero(self.grid.dirty_cells)))
+            look = self.grid.dirty_cells.copy()
+            look[was] = True
+            self._relocate_cells(np.flatnonzero(look))
         changed = self._store(plan.ids, plan.codes)
         seconds_grid = self.stats_grid_s = time.perf_counter() - g0
         self.last_frame = plan.frame
