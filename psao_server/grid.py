@@ -207,10 +207,11 @@ class Grid:
             fits = ok_cell & (idx < gf.POINTS_PER_CELL)
             pts, pslot, idx = order[fits], slots[cell_of_point[fits]], idx[fits]
             frac = gf.grid_coords(local_pos[pts], rec["origin"], rec["cell_size"]) - cell[pts]
-            self.cells[pslot, idx] = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals[pts]), ao_code[pts])
-            self.point_local[pslot, idx] = local_pos[pts]
-            self.point_normal[pslot, idx] = normals[pts]
-            self.point_id[pslot, idx] = point_ids[pts]
+            _scatter(self.cells, pslot, idx, pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals[pts]),
+                                                           ao_code[pts]))
+            _scatter(self.point_local, pslot, idx, local_pos[pts])
+            _scatter(self.point_normal, pslot, idx, normals[pts])
+            _scatter(self.point_id, pslot, idx, point_ids[pts])
             self.dirty_cells[pslot] = True
             kept[pts] = True
             self.stats.inserted += len(pts)
@@ -283,10 +284,10 @@ class Grid:
             frac = gf.grid_coords(new_local_pos[s_sel], rec["origin"], rec["cell_size"]) - cell[same]
             words = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[s_sel]), ao[s_sel])
             changed = words != self.cells[slots[s_sel], idx[s_sel]]
-            self.cells[slots[s_sel], idx[s_sel]] = words
+            _scatter(self.cells, slots[s_sel], idx[s_sel], words)
             self.dirty_cells[slots[s_sel][changed]] = True
-            self.point_local[slots[s_sel], idx[s_sel]] = new_local_pos[s_sel]
-            self.point_normal[slots[s_sel], idx[s_sel]] = new_normals[s_sel]
+            _scatter(self.point_local, slots[s_sel], idx[s_sel], new_local_pos[s_sel])
+            _scatter(self.point_normal, slots[s_sel], idx[s_sel], new_normals[s_sel])
             stay[s_sel] = True
         leave = np.flatnonzero(~stay)
         if len(leave):
@@ -379,10 +380,11 @@ class Grid:
         pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
         pidx = rank[ok] % P
         frac = gf.grid_coords(new_local_pos[go], rec["origin"], rec["cell_size"]) - cell[go]
-        self.cells[pslot, pidx] = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[go]), ao[go])
-        self.point_local[pslot, pidx] = new_local_pos[go]
-        self.point_normal[pslot, pidx] = new_normals[go]
-        self.point_id[pslot, pidx] = ids[go]
+        _scatter(self.cells, pslot, pidx, pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[go]),
+                                                        ao[go]))
+        _scatter(self.point_local, pslot, pidx, new_local_pos[go])
+        _scatter(self.point_normal, pslot, pidx, new_normals[go])
+        _scatter(self.point_id, pslot, pidx, ids[go])
         kept[go] = True
         self.stats.inserted += len(go)
         self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
@@ -530,6 +532,15 @@ class Grid:
         grid._compact_buckets(np.arange(len(grid.buckets)))  # files written before buckets were kept sorted
         grid.stats = InsertStats()
         return grid, scene_hash, meta
+
+
+def _scatter(arr: np.ndarray, slots: np.ndarray, idx: np.ndarray, values: np.ndarray) -> None:
+    """arr[slots, idx] = values, through a flat view of the first two axes where arr is C-contiguous (numpy
+    scatters rows of one flat index several times faster than pairs of indices)."""
+    if arr.flags.c_contiguous:
+        arr.reshape((-1,) + arr.shape[2:])[slots * arr.shape[1] + idx] = values
+    else:
+        arr[slots, idx] = values
 
 
 def _count_cells(pos: np.ndarray, rec: np.ndarray, back=None) -> int:
