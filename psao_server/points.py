@@ -20,7 +20,6 @@ from scipy.spatial import cKDTree
 
 from psao_scene.model import Mesh, Scene
 from psao_server.errors import ConfigError
-from psao_server.points_elim import eliminate_csr
 from psao_server.settings import PointSettings
 
 _HEX = 2.0 * np.sqrt(3.0)  # area of the hexagonal cell per sample is _HEX * r^2 for Poisson radius r
@@ -116,6 +115,8 @@ def eliminate(positions: np.ndarray, normals: np.ndarray, area: float, keep: int
     """Bool mask of the `keep` samples that survive weighted sample elimination on a surface of `area`."""
     if keep >= len(positions):  # nothing to eliminate (spawn ratio 1): the neighbour graph would go unused
         return np.ones(len(positions), bool)
+    from psao_server.points_elim import eliminate_csr  # imports Warp (half a second): not before it is needed
+
     d_max, d_min = elimination_radii(area, len(positions), keep, settings)
     offsets, nbrs, w = neighbour_graph(positions, normals, d_max, d_min, settings.alpha, settings.normal_cos_min)
     return eliminate_csr(offsets, nbrs, w, keep)

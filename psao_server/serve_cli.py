@@ -165,6 +165,7 @@ def _coarse_first(args, bake_with: BakeSettings):
     from psao_scene import load_scene
     from psao_server.bake import bake_scene
     from psao_server.progressive import coarse_bake_settings, wants_coarse_grid
+    from psao_server.tracer.embree import numpy_rays
 
     if (not args.progressive or args.allow_edits or bake_with.cluster is not None or args.grid is not None
             or args.test_edits):
@@ -175,7 +176,8 @@ def _coarse_first(args, bake_with: BakeSettings):
     scene = load_scene(args.scene)
     if not wants_coarse_grid(scene, bake_with, ProgressiveSettings(first_points=args.first_points)):
         return None
-    coarse = bake_scene(scene, coarse_bake_settings(bake_with, args.first_points, budget.round_rays))
+    with numpy_rays():  # its trace stays in this process and thread (workers=1): no Warp import before listening
+        coarse = bake_scene(scene, coarse_bake_settings(bake_with, args.first_points, budget.round_rays))
     coarse.tracer.close()
     logging.getLogger("psao.serve").info(
         "coarse first grid of %s: %d points with %d rays in %.1f s; the full grid (N=%s) is baked behind it",

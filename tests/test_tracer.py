@@ -133,6 +133,26 @@ def test_warp_ray_kernel_matches_numpy_reference():
     np.testing.assert_array_equal(o, np.repeat(ray_origins(p, n, 2.0), 64, axis=0))
 
 
+def test_numpy_rays_within_the_context_only():
+    """numpy_rays(): this thread's rays from numpy (the Warp kernel's directions within float rounding), the
+    Warp kernel again after it."""
+    from psao_server.tracer import embree
+
+    rng = np.random.default_rng(4)
+    n = rng.normal(size=(200, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = rng.normal(scale=10, size=(200, 3)).astype(np.float32)
+    ids = np.arange(200)
+    s = TraceSettings(rays=16, ao_distance=2.0, seed=1)
+    with embree.numpy_rays():
+        o, d = embree._chunk_rays(p, n, ids, s, 0)
+        assert embree._RAYS.buffers is False
+    np.testing.assert_allclose(d, cosine_directions(ids, n, 16, 1).reshape(-1, 3), atol=0)
+    assert getattr(embree._RAYS, "buffers", None) is not False
+    o2, d2 = embree._chunk_rays(p, n, ids, s, 0)
+    np.testing.assert_allclose(d2, d, atol=2e-5)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("rays,slices", [(32, 4), (24, 5)])
 def test_slices_of_one_ray_set_add_up_to_its_full_trace(backend, rays, slices):
