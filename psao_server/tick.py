@@ -152,6 +152,8 @@ class ServerTick:
     # ------------------------------------------------------------------ set-up
     def _init_points(self, bake: BakeResult) -> None:
         self.ids_of = scene_point_ids(bake.pointsets)  # per instance: the id of each point of its PointSet
+        # (consecutive per instance: the tick takes an instance's rows as a slice)
+        assert all(np.array_equal(ids, np.arange(ids[0], ids[0] + len(ids))) for ids in self.ids_of if len(ids))
         n = sum(len(ps) for ps in bake.pointsets)
         self.inst_of = np.zeros(n, np.int64)
         self.local_pos = np.zeros((n, 3))
@@ -461,9 +463,11 @@ class ServerTick:
             mesh = self.scene.meshes[self.scene.instances[i].mesh]
             pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
             ids = self.ids_of[i]
-            change = np.any(pos != self.local_pos[ids], axis=1) | np.any(nrm != self.local_nrm[ids], axis=1)
-            self.local_pos[ids], self.local_nrm[ids] = pos, nrm
-            moved.append(ids[change & (self.slot[ids] >= 0)])
+            mine = slice(int(ids[0]), int(ids[-1]) + 1) if len(ids) else slice(0, 0)  # consecutive ids: views
+            dp, dn = pos != self.local_pos[mine], nrm != self.local_nrm[mine]
+            change = dp[:, 0] | dp[:, 1] | dp[:, 2] | dn[:, 0] | dn[:, 1] | dn[:, 2]
+            self.local_pos[mine], self.local_nrm[mine] = pos, nrm
+            moved.append(ids[change & (self.slot[mine] >= 0)])
         return np.concatenate(moved) if moved else np.zeros(0, np.int64)
 
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
