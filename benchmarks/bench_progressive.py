@@ -214,7 +214,6 @@ def main(argv=None) -> int:
               f"{'%.2f dB' % plain_db if plain_db is not None else 'no snapshot yet'} |")
     print(f"plain serve: first snapshot {r['plain_first_snapshot_s']:.1f} s after start, "
           f"{r['full_bake_psnr_db']:.2f} dB from then on")
-    (args.out / "progressive.json").write_text(json.dumps(r, indent=1))
     chart(r, args.out / "progressive_start.png")
     print(f"chart: {args.out / 'progressive_start.png'}")
     v.check(f"courtyard N={args.density:g} psao serve --progressive: seconds from start to the client's first snapshot",
@@ -222,10 +221,14 @@ def main(argv=None) -> int:
     v.record("the coarse grid was replaced by the full grid while the client watched", prog["grid_replacements"] == 1
              and len(snaps) >= 2 and prog["snapshot_cells"][0] < prog["snapshot_cells"][1],
              f"{prog['grid_replacements']} replacements, cells per snapshot {prog['snapshot_cells']}")
-    last = at[marks[-1]]
-    v.check(f"PSNR of the client's view at {marks[-1]:g} s minus at the first mark with a snapshot, dB (refinement "
-            "improves it)", (last if last is not None else float("nan"))
-            - next((x for x in at.values() if x is not None), float("nan")), ">", 0.0)
+    # the run ends after the last mark and the full grid's snapshot: what the client shows then against its
+    # first snapshot (a mark may fall before the full grid arrives on a slow machine)
+    r["progressive_psnr_at_end_db"] = psnr(prog["final"], probes, truth) if "final" in prog else float("nan")
+    first = r["progressive_psnr_at_snapshots"][0] if r["progressive_psnr_at_snapshots"] else float("nan")
+    print(f"--progressive at the end of its run: {r['progressive_psnr_at_end_db']:.2f} dB (first snapshot {first:.2f} dB)")
+    v.check("PSNR of the client's view at the end of the --progressive run minus at its first snapshot, dB (the full "
+            "grid and its refinement improve it)", r["progressive_psnr_at_end_db"] - first, ">", 0.0)
+    (args.out / "progressive.json").write_text(json.dumps(r, indent=1))
     return v.exit_code()
 
 
