@@ -28,7 +28,7 @@ log = logging.getLogger("psao.serve")
 
 @dataclass
 class ProgressiveSettings:
-    first_points: int = 20_000  # points of the coarse first grid; 0: no coarse grid, the full grid comes first
+    first_points: int = 12_000  # points of the coarse first grid; 0: no coarse grid, the full grid comes first
     # The coarse grid is worth it only when the full grid is this many times larger (else it comes soon anyway).
     min_ratio: float = 4.0
 
