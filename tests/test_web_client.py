@@ -196,6 +196,32 @@ def test_refused_token_lost_server_and_resync(browser, tmp_path):
     check_digests(log, server, least=1)
 
 
+def test_page_follows_a_grid_replacement(browser, tmp_path):
+    """`serve --progressive`: the page streams the coarse first grid, is closed with GRID_REPLACED_CLOSE when
+    the full grid is ready, reconnects at once (not as a lost server) and mirrors the full grid exactly."""
+    server = Server(tmp_path, "builtin:courtyard", "--progressive", "--density", "16", "--rays", "8",
+                    "--tick-rays", "2", "--first-points", "2000", "--tick-hz", "10", "--no-cull")
+    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1", wait_until="commit")
+        wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
+        wait_page(page, "window.psao.gridReplacements === 1 && window.psao.connection === 2 && "
+                        "window.psao.state === 'streaming' && window.psao.updates >= 2")
+        shot(page, tmp_path, "replaced_grid", canvas_only=True)
+        assert page.evaluate("window.psao.reconnects") == 0  # a replacement is not a lost server
+        log = page.evaluate("window.psao.digestLog")
+    finally:
+        page.close()
+        server.stop()
+    assert not errors
+    assert "grid replaced" in server.err.read_text()
+    check_digests(log, server, least=2)
+    ref = server.server_digests()
+    assert len({d["conn"] for d in log if (d["conn"], d["seq"]) in ref}) == 2  # compared on both grids
+
+
 def refusal(port: int, data: bytes) -> tuple[m.Error, int]:
     """Send one raw message as a websocket client would; the server's Error reply and its close code."""
     from websockets.exceptions import ConnectionClosed
