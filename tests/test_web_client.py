@@ -133,17 +133,23 @@ def check_digests(log: list, server: Server, least: int) -> None:
     assert all(ref[(d["conn"], d["seq"])] == d["digest"] for d in both)
 
 
+def open_page(browser, server: Server):
+    """A page on the server's web client with digests on, and the list its script errors go to."""
+    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1", wait_until="commit")
+    return page, errors
+
+
 @pytest.mark.parametrize("spec, serve_args, name", [
     ("builtin:courtyard", ["--density", "4", "--rays", "8", "--test-edits", "20", "--tick-hz", "10"], "courtyard"),
     ("builtin:robots", ["--density", "8", "--rays", "4", "--animate", "--tick-rays", "4", "--tick-hz", "5"], "robots"),
 ])
 def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec, serve_args, name):
     server = Server(tmp_path, spec, *serve_args)
-    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page, errors = open_page(browser, server)
     try:
-        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1", wait_until="commit")
         wait_page(page, "!!(window.psao && window.psao.setCamera)")
         page.evaluate("([v, p]) => window.psao.setCamera(v, p)", fixed_camera(spec))
         wait_page(page, "window.psao.state === 'streaming' && window.psao.updates >= 3 && window.psao.frames >= 1")
@@ -201,11 +207,8 @@ def test_page_follows_a_grid_replacement(browser, tmp_path):
     the full grid is ready, reconnects at once (not as a lost server) and mirrors the full grid exactly."""
     server = Server(tmp_path, "builtin:courtyard", "--progressive", "--density", "16", "--rays", "8",
                     "--tick-rays", "2", "--first-points", "2000", "--tick-hz", "10", "--no-cull")
-    page = browser.new_page(viewport={"width": W + 40, "height": H + 40})
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page, errors = open_page(browser, server)
     try:
-        page.goto(f"http://127.0.0.1:{server.port}/?width={W}&height={H}&digests=1", wait_until="commit")
         wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
         wait_page(page, "window.psao.gridReplacements === 1 && window.psao.connection === 2 && "
                         "window.psao.state === 'streaming' && window.psao.updates >= 2")
