@@ -2,12 +2,11 @@
 
 Instances are independent (each seeded by points.instance_seed), so the result equals
 points.generate_scene_points's, array for array; on two cores a large scene's points take about half the
-time. Workers are forked (they inherit the scene) and each builds its own buried-surface test, since an
-Embree device does not survive a fork.
+time. Workers come from the Embree tracer's fork server (tracer.embree.worker_context: Embree's threads
+do not survive a plain fork), get the scene pickled and each builds its own buried-surface test.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
 import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -17,6 +16,7 @@ import numpy as np
 from psao_scene.model import Scene
 from psao_server.points import PointSet, instance_points, triangle_areas
 from psao_server.settings import PointSettings
+from psao_server.tracer.embree import worker_context
 
 _JOB: tuple | None = None  # (scene, settings, buried test or None) in a worker
 
@@ -44,7 +44,7 @@ def generate_scene_points_parallel(scene: Scene, settings: PointSettings, worker
     area = [float(triangle_areas(scene.meshes[i.mesh].vertices @ np.asarray(i.transform)[:3, :3].T,
                                  scene.meshes[i.mesh].faces).sum()) for i in scene.instances]
     out: list[PointSet | None] = [None] * n
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init,
+    with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_init,
                              initargs=(os.getpid(), scene, settings, skip_buried)) as pool:
         futures = [pool.submit(_one, k) for k in sorted(range(n), key=lambda k: -area[k])]
         for done, f in enumerate(as_completed(futures), 1):

@@ -165,13 +165,45 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
 _WORKER: _Scenes | None = None
 
 
+def worker_context():
+    """The multiprocessing context of every worker pool that uses Embree: forkserver. Embree runs on TBB,
+    whose worker threads and locks do not survive a fork: a process forked while the parent's TBB threads
+    were busy (an in-process trace or scene build a moment before) waits forever on a lock held by a thread
+    it does not have. Workers forked from the fork server, which never touches Embree, start clean; the
+    server preloads this module and the Warp ray kernels (tracer/forkserver_preload.py), so a worker starts
+    with them loaded."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["psao_server.tracer.forkserver_preload"])
+    return ctx
+
+
+def load_ray_kernels() -> None:
+    """Load this thread's ray maker now (the Warp kernels, compiled on first use), not in the first trace."""
+    _chunk_rays(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), np.zeros(1, np.int64),
+                TraceSettings(rays=1), 0)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except FileNotFoundError:
+        return False
+    except OSError:  # no /proc here: ask the kernel
+        try:
+            os.kill(pid, 0)
+            return True
+        except ProcessLookupError:
+            return False
+
+
 def _die_with(parent: int) -> None:
-    """End this worker when `parent` dies, even by kill -9 (nothing else would: the pool's own shutdown
-    never runs). The kernel's PR_SET_PDEATHSIG fires when the thread that forked us ends, and the pool may
-    fork from a short-lived thread, so a daemon thread watches our parent pid instead."""
+    """End this worker when `parent` (the process that made the pool, not the fork server that forked us)
+    dies, even by kill -9: nothing else would, the pool's own shutdown never runs. A daemon thread watches."""
 
     def watch():
-        while os.getppid() == parent:
+        while _alive(parent):
             time.sleep(0.25)
         os._exit(1)
 
@@ -272,13 +304,9 @@ class EmbreeTracer(Tracer):
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
-            # Load (and on first use compile) the Warp kernels once here, so forked workers inherit them.
-            _chunk_rays(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), np.zeros(1, np.int64), TraceSettings(rays=1), 0)
-            # fork: workers need nothing but numpy and embreex, and unlike spawn it does not re-run the
-            # caller's __main__ (scripts without a main guard would recurse). Callers create the pool
-            # (warm_up) before starting threads or event loops.
+            load_ray_kernels()  # compiled here on first use, once, before the fork server loads them too
             # ProcessPoolExecutor rather than Pool: a dead worker raises BrokenProcessPool instead of hanging.
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=worker_context(),
                                              initializer=_worker_init,
                                              initargs=(os.getpid(), *self._static, self._rigid))
         return self._pool
