@@ -26,7 +26,7 @@ from psao_server.settings import BakeSettings, GridSettings, PointSettings, Prob
 from psao_server.tracer import Tracer, make_tracer
 
 # A bake estimated at this many points or more generates its instances' points in `workers` processes
-# (forking them costs about a tenth of a second; below this the points take little longer than that).
+# (below this the points take little longer than starting the processes and sending them the scene).
 PARALLEL_POINTS = 100_000
 
 

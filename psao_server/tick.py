@@ -204,7 +204,7 @@ class ServerTick:
         self.tracer = make_tracer(s.tracer, scene_center(self.scene), **kwargs)
         self._load_tracer()
         if hasattr(self.tracer, "warm_up"):
-            self.tracer.warm_up()  # forks the workers: before any thread or event loop starts
+            self.tracer.warm_up()  # starts the workers now: their start-up is not counted in a tick
 
     def _load_tracer(self) -> None:
         """The tracer's static scene and its rigid movers (built once and posed per tick; only deforming
