@@ -206,12 +206,7 @@ class Grid:
             idx = used[cell_of_point] + rank
             fits = ok_cell & (idx < gf.POINTS_PER_CELL)
             pts, pslot, idx = order[fits], slots[cell_of_point[fits]], idx[fits]
-            frac = gf.grid_coords(local_pos[pts], rec["origin"], rec["cell_size"]) - cell[pts]
-            _scatter(self.cells, pslot, idx, pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals[pts]),
-                                                           ao_code[pts]))
-            _scatter(self.point_local, pslot, idx, local_pos[pts])
-            _scatter(self.point_normal, pslot, idx, normals[pts])
-            _scatter(self.point_id, pslot, idx, point_ids[pts])
+            self._write_points(pslot, idx, rec, cell[pts], local_pos[pts], normals[pts], ao_code[pts], point_ids[pts])
             self.dirty_cells[pslot] = True
             kept[pts] = True
             self.stats.inserted += len(pts)
@@ -379,18 +374,22 @@ class Grid:
         go = order[ok]
         pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
         pidx = rank[ok] % P
-        frac = gf.grid_coords(new_local_pos[go], rec["origin"], rec["cell_size"]) - cell[go]
-        _scatter(self.cells, pslot, pidx, pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[go]),
-                                                        ao[go]))
-        _scatter(self.point_local, pslot, pidx, new_local_pos[go])
-        _scatter(self.point_normal, pslot, pidx, new_normals[go])
-        _scatter(self.point_id, pslot, pidx, ids[go])
+        self._write_points(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
         kept[go] = True
         self.stats.inserted += len(go)
         self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
         return kept
 
     # ------------------------------------------------------------------ internals
+    def _write_points(self, pslot, idx, rec, cell, local_pos, normals, ao_code, ids) -> None:
+        """Pack points (instance-local positions in `cell`, unit normals, AO codes) and store them with their
+        ids at (cell slot, entry)."""
+        frac = gf.grid_coords(local_pos, rec["origin"], rec["cell_size"]) - cell
+        _scatter(self.cells, pslot, idx, pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(normals), ao_code))
+        _scatter(self.point_local, pslot, idx, local_pos)
+        _scatter(self.point_normal, pslot, idx, normals)
+        _scatter(self.point_id, pslot, idx, ids)
+
     def _buckets_of(self, inst: int, cell_xyz: np.ndarray) -> np.ndarray:
         rec = self.instances[inst]
         c = np.asarray(cell_xyz).reshape(-1, 3)
