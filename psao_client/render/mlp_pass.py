@@ -1,8 +1,8 @@
 """MLP AO baking (Erra et al., "Ambient occlusion baking via a feed-forward neural network"), per fragment.
 
-One network per rigid object (scene instance): 16 object-space normals (48 inputs) -> tanh H0 -> tanh H1
--> linear AO, the paper's NN-32x16 by default. It is trained (`psao train mlp`) on the normals of the 16
-nearest AO points around each point of the instance's baked grid; at run time all 16 inputs get the
+One network per rigid object (scene instance): 16 object-space normals (48 inputs) -> tanh (MLP_H0 wide)
+-> tanh (MLP_H1 wide) -> linear AO, the paper's NN-32x16 by default. It is trained (`psao train mlp`) on
+the normals of the 16 nearest AO points around each point of the instance's baked grid; at run time all 16 inputs get the
 fragment's own normal, as the paper does, so AO is a function of the object-space normal alone. The
 weights file is the whole payload a client needs: bytes = its float32 weights.
 """
@@ -55,7 +55,7 @@ def mlp_numpy(arrays: dict[str, np.ndarray], instance: np.ndarray, local_normal:
 
 
 def pack_rows(arrays: dict[str, np.ndarray]) -> np.ndarray:
-    """(n_instances, texels, 4) float32: per instance the folded W0 (3 x H0), b0, W1, b1, W2, b2."""
+    """(n_instances, texels, 4) float32: per instance the folded W0 (3 x MLP_H0), b0, W1, b1, W2, b2."""
     w0 = np.asarray(arrays["W0"], np.float64)
     n, _, h0 = w0.shape
     folded = w0.reshape(n, MLP_NORMALS, 3, h0).sum(axis=1)

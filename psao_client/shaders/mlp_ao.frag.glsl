@@ -2,8 +2,8 @@
 // AO baking with a feed-forward network (Erra et al.): one small network per rigid object maps the
 // object-space normal to AO. The network is trained on 16 normals around each point; at run time the
 // paper feeds the fragment's own normal to all 16 inputs, so the first layer's 16 weight blocks are
-// summed into one 3 x H0 block on upload (psao_client/render/mlp_pass.py packs the texture).
-// Row `instance` of u_weights: W0 (3 x H0, row-major), b0, W1 (H0 x H1), b1, W2 (H1), b2.
+// summed into one 3 x MLP_H0 block on upload (psao_client/render/mlp_pass.py packs the texture).
+// Row `instance` of u_weights: W0 (3 x MLP_H0, row-major), b0, W1 (MLP_H0 x MLP_H1), b1, W2 (MLP_H1), b2.
 #ifndef MLP_H0
 #define MLP_H0 32
 #endif
