@@ -68,6 +68,7 @@ class Frame:
     seconds_skinning: float = 0.0
     skinned_vertices: np.ndarray | None = None  # (V, 3) world, skinned instances merged (None: none)
     skinned_faces: np.ndarray | None = None  # (F, 3) int64
+    skinned_parts: list[int] = field(default_factory=list)  # vertices of each skinned instance in skinned_vertices
 
 
 def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -152,7 +153,7 @@ class SceneAnimator:
                 mesh_vertices[m] = np.array(self.skinner.vertices(m, t), np.float64)
         seconds_skinning = time.perf_counter() - t0
         bounds, spheres, verts, faces, base = {}, {}, [], [], 0
-        skinned_v, skinned_f, skinned_base = [], [], 0
+        skinned_v, skinned_f, skinned_base, skinned_parts = [], [], 0, []
         for i in self.kinds.moving:
             inst = self.scene.instances[i]
             mesh = self.scene.meshes[inst.mesh]
@@ -164,13 +165,14 @@ class SceneAnimator:
             base += len(w)
             if inst.mesh in mesh_vertices:
                 skinned_v.append(w)
+                skinned_parts.append(len(w))
                 skinned_f.append(mesh.faces + skinned_base)
                 skinned_base += len(w)
         dv = np.concatenate(verts) if verts else np.zeros((0, 3))
         df = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
         sv = np.concatenate(skinned_v) if skinned_v else None
         sf = np.concatenate(skinned_f) if skinned_f else np.zeros((0, 3), np.int64)
-        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning, sv, sf)
+        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning, sv, sf, skinned_parts)
 
 
 # ---------------------------------------------------------------------------------- skinned points

@@ -241,7 +241,8 @@ class ServerTick:
 
     def pose_tracer(self, frame: Frame) -> None:
         """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
-        self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid])
+        self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid],
+                                frame.skinned_parts)
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
         """The tracer's visibility (with `slice_of`, the given slice of each point's ray set); a worker

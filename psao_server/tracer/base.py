@@ -39,9 +39,12 @@ class Tracer:
         triangles (merge_rigid) for back-ends that rebuild their moving scene every tick anyway."""
         self._rigid_meshes = [(np.asarray(v, np.float64), np.asarray(f, np.int64)) for v, f in meshes]
 
-    def set_dynamic(self, vertices: np.ndarray, faces: np.ndarray, rigid_transforms: np.ndarray | None = None) -> None:
-        """The moving part of the scene now: world triangles that deform (None: none) and the 4x4
-        local-to-world transforms of the set_rigid meshes (None: leave them out)."""
+    def set_dynamic(self, vertices: np.ndarray, faces: np.ndarray, rigid_transforms: np.ndarray | None = None,
+                    parts=None) -> None:
+        """The moving part of the scene now: world triangles that deform (None: none), optionally the vertex
+        count of each separately deforming piece of them (`parts`, consecutive; a back-end may keep one
+        acceleration structure per piece and refit it), and the 4x4 local-to-world transforms of the
+        set_rigid meshes (None: leave them out)."""
         raise NotImplementedError
 
     def merge_rigid(self, vertices, faces, rigid_transforms) -> tuple[np.ndarray | None, np.ndarray]:

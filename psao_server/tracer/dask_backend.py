@@ -281,7 +281,7 @@ class DaskTracer(Tracer):
         if by_spec:
             self._spec_digest = digest
 
-    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+    def set_dynamic(self, vertices, faces, rigid_transforms=None, parts=None) -> None:
         self._poses = recentre_poses(rigid_transforms, self.center)
         if (vertices is None or len(faces) == 0) and self._dynamic[1] is None:
             return  # nothing deforms, as before: the workers keep what they built

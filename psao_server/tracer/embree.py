@@ -1,8 +1,8 @@
 """Embree back-end (embreex): occlusion queries limited to the AO distance, spread over processes.
 
 embreex holds the GIL while it traces, so threads do not scale; each worker process keeps its own
-Embree scenes (the static one built once at start, the dynamic one rebuilt when its version changes)
-and traces whole chunks of points: directions are generated in the worker, only positions, normals and
+Embree scenes (the static one built once at start, the deforming one refitted when its version changes,
+embree_refit.py) and traces whole chunks of points: directions are generated in the worker, only positions, normals and
 ids travel, and only one float per point comes back.
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
 from psao_server.tracer.base import Tracer, recentre, recentre_poses
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
+from psao_server.tracer.embree_refit import RefitMesh
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
     from embreex import rtcore, rtcore_scene
@@ -34,13 +35,17 @@ except ImportError as exc:  # pragma: no cover - embreex is a hard dependency he
 _DEVICE = None  # one Embree device per process: every scene built here shares it
 
 
-def _build_scene(vertices: np.ndarray, faces: np.ndarray):
+def _device():
     global _DEVICE
-    if len(faces) == 0:
-        return None
     if _DEVICE is None:
         _DEVICE = rtcore.EmbreeDevice()
-    scene = rtcore_scene.EmbreeScene(_DEVICE)
+    return _DEVICE
+
+
+def _build_scene(vertices: np.ndarray, faces: np.ndarray):
+    if len(faces) == 0:
+        return None
+    scene = rtcore_scene.EmbreeScene(_device())
     TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
     return scene
 
@@ -75,7 +80,7 @@ class _Rigid:
 
 class _Scenes:
     """The Embree scenes of one process: static (built once), rigid movers (built once, posed per call)
-    and the deforming rest (rebuilt per version)."""
+    and the deforming rest (per version: refitted while its triangles stay the same, else rebuilt)."""
 
     def __init__(self, static_vertices, static_faces, rigid=()):
         self.static = _build_scene(static_vertices, static_faces)
@@ -83,12 +88,22 @@ class _Scenes:
         self.rigid_poses = None
         self.dynamic = None
         self.dynamic_version = -1
+        self._refit: RefitMesh | None = None
 
-    def update_dynamic(self, version, vertices, faces, rigid_poses=None):
+    def update_dynamic(self, version, vertices, faces, rigid_poses=None, parts=None):
+        """The deforming triangles of `version` (vertices None: none; `parts`: vertex counts of its
+        separately moving pieces, see RefitMesh) and the rigid movers' poses."""
         if version != self.dynamic_version:
-            self.dynamic = _build_scene(vertices, faces) if vertices is not None else None
+            self.dynamic = self._deforming(vertices, faces, parts) if vertices is not None else None
             self.dynamic_version = version
         self.rigid_poses = rigid_poses
+
+    def _deforming(self, vertices, faces, parts):
+        if self._refit is not None and self._refit.same_mesh(vertices, faces, parts):
+            self._refit.move(vertices)
+            return self._refit.scene
+        self._refit = RefitMesh.build(vertices, faces, _device(), parts)
+        return self._refit.scene if self._refit is not None else _build_scene(vertices, faces)
 
     def occluded(self, origins, dirs, tmax) -> np.ndarray:
         """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
@@ -219,8 +234,8 @@ def _worker_init(parent, static_vertices, static_faces, rigid):
 
 
 def _worker_trace(job):
-    version, dyn_v, dyn_f, poses, pos, nrm, ids, s, first = job
-    _WORKER.update_dynamic(version, dyn_v, dyn_f, poses)
+    version, dyn_v, dyn_f, parts, poses, pos, nrm, ids, s, first = job
+    _WORKER.update_dynamic(version, dyn_v, dyn_f, poses, parts)
     return _trace_chunk(_WORKER, pos, nrm, ids, s, first)
 
 
@@ -257,7 +272,7 @@ class EmbreeTracer(Tracer):
         self.center = np.asarray(center, np.float64)
         self.workers = workers or os.cpu_count() or 1
         self._static = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
-        self._dynamic = (None, None)
+        self._dynamic = (None, None, None)  # deforming vertices, faces, parts
         self._dynamic_version = 0
         self._rigid: list = []
         self._poses = None
@@ -279,15 +294,15 @@ class EmbreeTracer(Tracer):
         self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in meshes]
         self._local = _Scenes(*self._static, self._rigid)
 
-    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+    def set_dynamic(self, vertices, faces, rigid_transforms=None, parts=None) -> None:
         self._poses = recentre_poses(rigid_transforms, self.center)
-        # The deforming part is rebuilt (in every worker) only when it is really given anew.
+        # The deforming part is refitted (in every process that traces it) only when it is given anew.
         if vertices is None or len(faces) == 0:
             if self._dynamic[0] is None:
                 return
-            self._dynamic = (None, None)
+            self._dynamic = (None, None, None)
         else:
-            self._dynamic = (self._recentre(vertices), np.asarray(faces, np.int32))
+            self._dynamic = (self._recentre(vertices), np.asarray(faces, np.int32), parts)
         self._dynamic_version += 1
         # The in-process scenes catch up lazily, when a small call traces here rather than in the workers.
 
@@ -329,9 +344,10 @@ class EmbreeTracer(Tracer):
         jobs = self._jobs(positions, normals, point_ids, settings,
                           None if slice_of is None else np.asarray(slice_of, np.int64))
         if pool is None:
-            self._local.update_dynamic(self._dynamic_version, *self._dynamic, self._poses)
+            dyn_v, dyn_f, parts = self._dynamic
+            self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, parts)
         try:
-            results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[4:]) for job in jobs)
+            results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[5:]) for job in jobs)
             for vis, cpu_query, cpu_total in results:
                 out.append(vis)
                 self.account.add(len(vis) * settings.rays_traced, cpu_query, cpu_total)

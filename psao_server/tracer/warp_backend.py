@@ -46,7 +46,7 @@ class WarpTracer(Tracer):
     def set_static(self, vertices, faces) -> None:
         self._static = self._mesh(vertices, faces)
 
-    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
+    def set_dynamic(self, vertices, faces, rigid_transforms=None, parts=None) -> None:
         vertices, faces = self.merge_rigid(vertices, faces, rigid_transforms)
         self._dynamic = self._mesh(vertices, faces) if vertices is not None else None
 
