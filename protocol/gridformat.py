@@ -48,6 +48,11 @@ HASH_Z = 31
 # Paper eq. 3: a point counts at a fragment only if n_p . n_x > T_N and (n_p . (p - x) / |p - x|)^2 < T_D.
 T_N = 0.1  # normal threshold (cosine; paper value)
 T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
+# The first step (radius r) also asks n_p . n_x > FIRST_T_N (within about 26 degrees): near a crease or a
+# small face the points of the other face differ in AO more than anything within r on the same face, and
+# eq. 3's T_N = 0.1 lets them in. Where this leaves no weight, the wider step takes eq. 3 as the paper has
+# it, so no fragment loses its points to this test. On Sponza's probes it cuts the MAE by about a tenth.
+FIRST_T_N = 0.9
 # Where eq. 2-4 find no weight in the 2x2x2 block, the lookup takes the block's points with the radius
 # times this, and where those have none either, the 3x3x3 block around the fragment's cell with that radius
 # (every point within one cell, s >= 2 r, lies in it).

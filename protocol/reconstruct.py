@@ -5,8 +5,9 @@ It reads exactly the arrays the client holds (instances, buckets, cells) and doe
 hash -> bucket -> linear scan for the key's first entry -> the allocated points of its cell and of the
 cells of the entries right after it with the same key (a key holding more than 7 points owns up to
 KEY_CELLS consecutive entries of its bucket), weights max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or
-(n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), and the weighted mean. Where all weights are 0, the same
-block's points with radius R = FALLBACK_SCALE * r; where those have none either, the 3x3x3 block
+(n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), and at radius r also when n_p . n_x <= FIRST_T_N, and the
+weighted mean. Where all weights are 0, the same block's points with radius R = FALLBACK_SCALE * r and
+eq. 3 alone; where those have none either, the 3x3x3 block
 floor(g) + {-1,0,1}^3 with radius R and the normal threshold RING_T_N instead of T_n, and 1 where that
 finds no weight. Positions are in grid units (one
 cell = 1), as the shader computes them: g = (x - origin) / cell_size, a point's offset from the fragment
@@ -52,8 +53,9 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
 
 
 def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
-    """[(AO, weight sum)] of the 2x2x2 block at radius r and at FALLBACK_SCALE * r, or (ring) of the 3x3x3
-    block around the fragment's cell at FALLBACK_SCALE * r with the normal threshold RING_T_N."""
+    """[(AO, weight sum)] of the 2x2x2 block at radius r (normal threshold FIRST_T_N too) and at
+    FALLBACK_SCALE * r, or (ring) of the 3x3x3 block around the fragment's cell at FALLBACK_SCALE * r with
+    the normal threshold RING_T_N."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
@@ -62,10 +64,11 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     dims = rec["dims"].astype(np.int64)
     g = ((x - origin) / s[:, None]).astype(np.float32)
     if ring:
-        radii, t_n = [wide], gf.RING_T_N
+        t_n = gf.RING_T_N
+        radii = [(wide, t_n)]
         cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
     else:
-        radii = [r, wide]
+        radii = [(r, np.float32(gf.FIRST_T_N)), (wide, t_n)]  # (radius, the step's normal threshold)
         cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
     inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
     c = np.where(inside[..., None], cell, 0)
@@ -109,9 +112,10 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     passes = (ndot > t_n) & ((ddot * ddot < np.float32(t_d) * dist2) | (dist2 == 0)) & allocated
     ao_vals = pw.dequantise_ao(aocode)
     out = []
-    for radius in radii:
+    for radius, step_t_n in radii:
         rk = radius[mi][:, None]
-        w = np.where(passes, np.maximum(np.float32(0.0), (rk - dist) / rk), np.float32(0.0)).astype(np.float32)
+        counts = passes & (ndot > step_t_n)
+        w = np.where(counts, np.maximum(np.float32(0.0), (rk - dist) / rk), np.float32(0.0)).astype(np.float32)
         wsum = np.bincount(mi, weights=w.sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
         num = np.bincount(mi, weights=(w * ao_vals).sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
         ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)

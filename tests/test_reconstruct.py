@@ -9,8 +9,9 @@ from psao_server.grid import Grid
 
 
 def brute_force(grid: Grid, inst, x, n_x):
-    """eq. 2-4 over ALL decoded points of the instance, no grid lookup; where no point has weight, the
-    points of the 2x2x2 block around x with the radius times FALLBACK_SCALE, and where none of those
+    """eq. 2-4 over ALL decoded points of the instance whose normal also passes FIRST_T_N, no grid lookup;
+    where no point has weight, the points of the 2x2x2 block around x passing eq. 3 with the radius times
+    FALLBACK_SCALE, and where none of those
     has weight, all points with that radius and the normal threshold RING_T_N (the 3x3x3 ring holds every
     point within it)."""
     rec = grid.instances[inst]
@@ -32,7 +33,7 @@ def brute_force(grid: Grid, inst, x, n_x):
         ring = ((n_p @ ni) > gf.RING_T_N) & (cosd ** 2 < T_D)
         block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
         in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
-        for radius, among in ((r, counts), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, ring)):
+        for radius, among in ((r, counts & ((n_p @ ni) > gf.FIRST_T_N)), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, ring)):
             w = np.where(among, np.maximum(0, (radius - dist) / radius), 0)
             if w.sum() > 0:
                 break
@@ -148,3 +149,22 @@ def test_ring_takes_the_face_across_a_sharp_edge_but_not_a_surface_facing_away()
     assert np.all(((t.local_normal @ [1.0, 0, 0]) <= T_N))  # eq. 3 alone would leave every wall probe a hole
     assert (wsum[:k] > 0).mean() > 0.9 and np.all(wsum[k:] == 0) and np.all(ao[k:] == 1.0)
     np.testing.assert_allclose(ao, brute_force(grid, 0, x.astype(np.float32), n), atol=2e-5)
+
+
+def test_first_step_keeps_the_other_face_of_a_crease_out():
+    """A floor (AO 1) meeting a wall (AO 0): floor probes within r of the wall take only the floor's
+    points (the wall's normal fails FIRST_T_N though it passes eq. 3's T_N), so they read 1, not a blend."""
+    rng = np.random.default_rng(11)
+    m = 3000
+    floor = np.column_stack([rng.random(m), rng.random(m) * 0.5 + 0.5, np.zeros(m)])
+    wall = np.column_stack([rng.random(m), np.full(m, 0.5), rng.random(m) * 0.5])
+    up, side = np.tile([0, 0, 1.0], (m, 1)), np.tile([0, 0.6, 0.8], (m, 1))  # 53 degrees apart: cos 0.8
+    grid = Grid.build([(np.vstack([floor, wall]), np.vstack([up, side]), 0.01, 0)])
+    t = grid.point_table()
+    grid.set_ao(t.slot, t.index, np.where(t.local_normal[:, 1] > 0.1, 0, 255))
+    r = float(grid.instances[0]["radius"])
+    x = np.column_stack([rng.random(200) * 0.8 + 0.1, 0.5 + rng.random(200) * 0.5 * r, np.full(200, 1e-4)])
+    ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(200, int), x, np.tile([0, 0, 1.0], (200, 1)))
+    assert gf.T_N < 0.8 < gf.FIRST_T_N
+    found = wsum > 0
+    assert found.mean() > 0.9 and np.all(ao[found] == 1.0)

@@ -43,19 +43,21 @@ float psao_point_ao(uint word) {
     return float(word & PSAO_CODE_MASK) / PSAO_AO_LEVELS;
 }
 
-// Paper eq. 3: whether a point at offset d from the fragment (dist2 = |d|^2), normal np, counts for the
-// fragment normal nx, normal threshold t_n (T_n; the ring's PSAO_RING_T_N). The tangent-plane test
-// (n_p . d / |d|)^2 < T_d is written without the division: (n_p . d)^2 < T_d |d|^2, true at d = 0.
-bool psao_passes(vec3 d, float dist2, vec3 np, vec3 nx, float t_n) {
+// Paper eq. 3: whether a point at offset d from the fragment (dist2 = |d|^2), normal np, counts for a
+// fragment whose normal has ndot = n_p . n_x, normal threshold t_n (T_n; the ring's PSAO_RING_T_N). The
+// tangent-plane test (n_p . d / |d|)^2 < T_d is written without the division: (n_p . d)^2 < T_d |d|^2,
+// true at d = 0.
+bool psao_passes(vec3 d, float dist2, vec3 np, float ndot, float t_n) {
     float c = dot(np, d);
-    return dot(np, nx) > t_n && (c * c < PSAO_T_D * dist2 || dist2 == 0.0);
+    return ndot > t_n && (c * c < PSAO_T_D * dist2 || dist2 == 0.0);
 }
 
 // Adds the allocated points of the cell in `slot` (cell coordinates c) that pass eq. 3 (normal threshold
-// t_n) to acc = (weight sum, weighted AO) at radius radii.x, then the same at radius radii.y. Everything is in grid units (one cell = 1): cg is
+// t_n.y) to acc = (weight sum, weighted AO) at radius radii.x, counting there only those whose normal
+// also passes t_n.x, then at radius radii.y. Everything is in grid units (one cell = 1): cg is
 // the cell's first position step relative to the fragment's grid coordinate, so a point's offset from
 // the fragment is one multiply-add of its 5-bit codes. Paper eq. 2: weight max(0, (r - d) / r).
-void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, float t_n, inout vec4 acc) {
+void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, vec2 t_n, inout vec4 acc) {
     uvec4 lo = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot);
     uvec4 hi = psao_fetch(u_psao_cells, PSAO_CELL_TEXELS * slot + 1u);
     uint words[PSAO_POINTS_PER_CELL] = uint[PSAO_POINTS_PER_CELL](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z);
@@ -66,8 +68,11 @@ void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, float t_n, inout v
         uvec3 q = uvec3(word >> PSAO_SHIFT_X, word >> PSAO_SHIFT_Y, word >> PSAO_SHIFT_Z) & PSAO_POSITION_MASK;
         vec3 d = cg + vec3(q) * (1.0 / PSAO_POSITION_LEVELS);
         float dist2 = dot(d, d);
-        if (dist2 >= outer2 || !psao_passes(d, dist2, psao_point_normal(word), nx, t_n)) continue;
+        vec3 np = psao_point_normal(word);
+        float ndot = dot(np, nx);
+        if (dist2 >= outer2 || !psao_passes(d, dist2, np, ndot, t_n.y)) continue;
         vec2 w = max(vec2(0.0), (radii - sqrt(dist2)) / radii);
+        if (ndot <= t_n.x) w.x = 0.0;
         float ao = psao_point_ao(word);
         acc += vec4(w.x, w.x * ao, w.y, w.y * ao);
     }
@@ -79,7 +84,7 @@ void psao_accumulate(uint slot, vec3 cg, vec3 nx, vec2 radii, float t_n, inout v
 // so the scan stops at the key's first entry (or at EMPTY: used entries come first) and the cells are
 // read from there while the next entry has the same key. The next entry is often in the texel the scan
 // already holds; the loop's second pass runs only where some fragment's key goes on.
-void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx, vec2 radii, float t_n, inout vec4 acc) {
+void psao_accumulate_cell(PsaoInstance inst, uvec3 c, bool back, vec3 g, vec3 nx, vec2 radii, vec2 t_n, inout vec4 acc) {
     uint base = (inst.bucket_offset + (psao_cell_hash(c, inst.dims) & (inst.bucket_count - 1u))) * PSAO_BUCKET_TEXELS;
     uint key = psao_cell_key(c, inst.dims);
     if (back && (inst.flags & PSAO_FLAG_DOUBLE_SIDED) != 0u) key |= PSAO_BACK_BIT;
@@ -113,9 +118,10 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 
 // Paper eq. 4 at local position x (normal nx) of instance `inst_id`, with two fallbacks where it finds no
 // weight (a gap in the sampling wider than r, a small face whose points went to its neighbours):
-//   1. the 2x2x2 block floor(g - 0.5) + {0,1}^3 with radius r (the paper's lookup);
-//   2. where that has no weight, the same block's points with radius R = PSAO_FALLBACK_SCALE * r. Both
-//      sums come from one pass over the block, so this costs no extra cell reads;
+//   1. the 2x2x2 block floor(g - 0.5) + {0,1}^3 with radius r (the paper's lookup), counting only points
+//      whose normal is within PSAO_FIRST_T_N of the fragment's (not the other face at a crease);
+//   2. where that has no weight, the same block's points with radius R = PSAO_FALLBACK_SCALE * r and
+//      eq. 3 alone. Both sums come from one pass over the block, so this costs no extra cell reads;
 //   3. where that has none either, the 3x3x3 block floor(g) + {-1,0,1}^3 (every point within one cell,
 //      s >= R, of x) with radius R and eq. 3's normal threshold loosened to PSAO_RING_T_N (the faces across
 //      a sharp edge). Only groups of fragments holding such a fragment run these 27 cells.
@@ -134,7 +140,7 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
     float reach = radii.y * 1.001;
     float reach2 = reach * reach;
     vec4 acc = vec4(0.0);  // (weight sum, weighted AO) at radius r, then at R
-    float t_n = PSAO_T_N;  // eq. 3's normal threshold; the ring's for step 3
+    vec2 t_n = vec2(PSAO_FIRST_T_N, PSAO_T_N);  // normal thresholds (step 1, eq. 3); the ring's for step 3
     int side = 2;          // the block's edge in cells: 2, then 3 for step 3
     ivec3 o = ivec3(0);    // the cell's offset in the block
     for (int i = 0; i < 8 + 27; ++i) {
@@ -150,7 +156,7 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
             side = 3;
             o = ivec3(0);
             radii = radii.yy;
-            t_n = PSAO_RING_T_N;
+            t_n = vec2(PSAO_RING_T_N);
         }
     }
     if (acc.x > 0.0) return vec2(acc.y / acc.x, acc.x);
