@@ -12,8 +12,11 @@ declare a raw block of 390,821 bytes, over zstd's 128 KiB block maximum.
 
 Decompression never trusts a declared size: a zstd frame whose header declares more than the cap is
 refused before anything is decoded; otherwise the input is fed in small pieces and decoding stops as
-soon as the output passes the cap (a decompression bomb costs at most the cap plus a few MiB). A
-payload with bytes after its frame is refused, too.
+soon as the output passes the cap (a decompression bomb costs at most the cap plus a few MiB). A ZSTD
+payload may hold several whole frames back to back (a sender that compressed parts of a message apart
+sends them so, and each part's bytes can be shared by many messages); the cap holds for all of them
+together, and bytes after the last frame that are not a whole frame are refused. An LZ4 payload is
+one frame: bytes after it are refused.
 """
 from __future__ import annotations
 
@@ -29,7 +32,7 @@ from .limits import DEFAULT_LIMITS, Limits
 
 class Codec(IntEnum):
     NONE = 0
-    ZSTD = 1  # one zstd frame per message, content size in the frame header
+    ZSTD = 1  # one or more zstd frames per message (contents concatenated), content sizes in the frame headers
     LZ4 = 2  # one lz4 frame per message, content size in the frame header
     ZSTD_STREAM = 3  # one zstd frame per connection, a flushed block per message
 
@@ -130,8 +133,9 @@ class StreamCompressor:
         return self._obj.compress(payload) + self._obj.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK)
 
 
-def _zstd_bounded(dobj, data: bytes, cap: int, limits: Limits, what: str) -> bytes:
-    """Feed `data` to a zstd decompressobj in small pieces; stop as soon as the output passes `cap`."""
+def _zstd_bounded(dobj, data: bytes, cap: int, limits: Limits, what: str) -> _Frame:
+    """Feed `data` to a zstd decompressobj in small pieces; stop as soon as the output passes `cap`, or
+    where the frame ends (the bytes after it are counted, not fed)."""
     out: list[bytes] = []
     total = 0
     piece = limits.decompress_piece_bytes
@@ -144,12 +148,37 @@ def _zstd_bounded(dobj, data: bytes, cap: int, limits: Limits, what: str) -> byt
                 if total > cap:
                     raise LimitError(f"{what}: decompressed payload exceeds the limit of {cap} bytes")
                 out.append(chunk)
+            if dobj.eof:
+                return _Frame(b"".join(out), len(dobj.unused_data) + max(0, len(data) - i - piece))
     except zstandard.ZstdError as exc:
         raise CodecError(f"{what}: corrupt zstd data ({exc})") from None
-    return b"".join(out)
+    return _Frame(b"".join(out), 0)
 
 
-def _decompress_zstd_frame(data: bytes, cap: int, limits: Limits) -> bytes:
+@dataclass
+class _Frame:
+    data: bytes
+    unused: int  # bytes after the frame
+
+
+def _decompress_zstd_frames(data: bytes, cap: int, limits: Limits) -> bytes:
+    """A ZSTD payload: one or more whole zstd frames, back to back; their contents concatenated (as
+    RFC 8878 decoders read consecutive frames). The cap holds for the total."""
+    out: list[bytes] = []
+    total = 0
+    view = memoryview(data)
+    while True:
+        part = _decompress_zstd_frame(view, cap - total, limits)
+        out.append(part.data)
+        total += len(part.data)
+        if not part.unused:
+            return b"".join(out)
+        view = view[len(view) - part.unused:]
+        if not starts_frame(view):
+            raise CodecError(f"zstd payload: {len(view)} bytes after the frame that are not a zstd frame")
+
+
+def _decompress_zstd_frame(data, cap: int, limits: Limits) -> _Frame:
     try:
         declared = zstandard.frame_content_size(data)
     except zstandard.ZstdError as exc:
@@ -158,14 +187,12 @@ def _decompress_zstd_frame(data: bytes, cap: int, limits: Limits) -> bytes:
         raise LimitError(f"zstd payload declares {declared} bytes, over the limit of {cap}")
     dctx = zstandard.ZstdDecompressor(max_window_size=limits.zstd_max_window_bytes)
     dobj = dctx.decompressobj()
-    out = _zstd_bounded(dobj, data, cap, limits, "zstd payload")
+    frame = _zstd_bounded(dobj, data, cap, limits, "zstd payload")
     if not dobj.eof:
         raise CodecError("zstd payload: truncated frame")
-    if dobj.unused_data:
-        raise CodecError(f"zstd payload: {len(dobj.unused_data)} bytes after the frame")
-    if declared >= 0 and declared != len(out):
-        raise CodecError(f"zstd payload: frame declares {declared} bytes but holds {len(out)}")
-    return out
+    if declared >= 0 and declared != len(frame.data):
+        raise CodecError(f"zstd payload: frame declares {declared} bytes but holds {len(frame.data)}")
+    return frame
 
 
 def _decompress_lz4_frame(data: bytes, cap: int) -> bytes:
@@ -194,7 +221,7 @@ def decompress_frame(codec: Codec, data: bytes, cap: int, limits: Limits = DEFAU
             raise LimitError(f"payload of {len(data)} bytes exceeds the limit of {cap}")
         return bytes(data)
     if codec == Codec.ZSTD:
-        return _decompress_zstd_frame(data, cap, limits)
+        return _decompress_zstd_frames(data, cap, limits)
     if codec == Codec.LZ4:
         return _decompress_lz4_frame(data, cap)
     raise CodecError(f"codec {codec!r} needs a stream decoder")
@@ -216,7 +243,7 @@ class StreamDecompressor:
             self._obj = self._dctx.decompressobj()
             self.restarts += 1
         self.messages += 1
-        out = _zstd_bounded(self._obj, data, cap, self.limits, "zstd stream")
+        out = _zstd_bounded(self._obj, data, cap, self.limits, "zstd stream").data
         if self._obj.eof:  # the server never ends the frame: a finished frame is malformed input
             raise CodecError("zstd stream: frame ended; the stream must stay open for the connection")
         return out

@@ -35,7 +35,7 @@ from .codecs import Codec
 from .errors import ErrorCode, HeaderError, LimitError, PayloadError  # noqa: F401 (ErrorCode: the codes of Error)
 from .gridformat import INSTANCE_DTYPE
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
-from .updates import GridDelta, Layout, Reader, decode_delta, encode_delta
+from .updates import GridDelta, Layout, Reader, decode_delta, decode_delta_parts, encode_delta
 
 MAGIC = b"PSAO"
 PROTOCOL_VERSION = 1
@@ -222,6 +222,10 @@ _UPDATE = struct.Struct("<Qd")  # tick, server time (s)
 
 @dataclass
 class Update:
+    """Tick, server time, then one or more grid deltas (parts) for disjoint indices, which together are
+    the Update's delta (protocol.updates.union_of_parts). `serialize` writes one part; a sender that
+    has parts encoded apart appends more (`encode_delta` of each) or, compressed, more zstd frames."""
+
     TYPE = MessageType.UPDATE
     tick: int
     server_time: float
@@ -235,7 +239,7 @@ class Update:
     def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Update":
         r = Reader(payload, "Update")
         tick, server_time = r.unpack(_UPDATE)
-        delta, layout = decode_delta(r, limits)
+        delta, layout = decode_delta_parts(r, limits)
         return cls(tick, server_time, delta, layout)
 
 

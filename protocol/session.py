@@ -4,8 +4,10 @@ A session turns one received websocket message (bytes) into one event, and messa
 bytes; it owns the connection's codec state (its own zstd stream) and checks that messages come in an
 order the protocol allows. A `SharedStream` encodes an Update once for many server sessions: a session
 takes its bytes (`ServerSession.shared`) and from then on is on that stream until it sends a message of
-its own again, which starts its own stream anew (protocol.codecs: a message that begins a frame). It does no I/O, so it is tested without sockets; the asyncio server and client
-are thin loops around it.
+its own again, which starts its own stream anew (protocol.codecs: a message that begins a frame).
+`SharedParts` compresses parts of Updates once, each a zstd frame, so that connections whose Updates
+differ share most of their bytes (`ServerSession.update_of_parts`: a ZSTD message of several frames).
+It does no I/O, so it is tested without sockets; the asyncio server and client are thin loops around it.
 
 Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
          (in AWAIT_HELLO one SceneRequest is answered with SceneData; the state stays AWAIT_HELLO)
@@ -46,7 +48,7 @@ from .errors import (CodecError, EditError, HeaderError, LimitError, PayloadErro
                      RemoteError, UnexpectedMessage)
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
 from .scenefile import SceneFile
-from .updates import GridDelta, Layout
+from .updates import GridDelta, Layout, encode_delta
 
 
 def error_code_for(exc: ProtocolError) -> m.ErrorCode:
@@ -188,6 +190,7 @@ class ServerSession:
         self.may_edit = False
         self._compress = None  # FrameCodec, or StreamCompressor (None while on a shared stream)
         self.on_shared = False  # the last grid message came from a SharedStream
+        self.accepted: frozenset = frozenset()  # the codecs the client's Hello offered
         self.scene_requests = 0
 
     # ------------------------------------------------------------------ inbound
@@ -260,6 +263,7 @@ class ServerSession:
         if codec is None:
             raise CodecError(f"no common codec: client accepts {sorted(c.name for c in accepted)}")
         self.codec = codec
+        self.accepted = accepted
         self._compress = (StreamCompressor(cfg.own_stream_zstd) if codec == Codec.ZSTD_STREAM
                           else FrameCodec(codec, cfg.zstd))
         self.state = ServerState.OPEN
@@ -287,6 +291,18 @@ class ServerSession:
         self.on_shared = True
         self._compress = None
         return self.traffic.sent(data)
+
+    def takes_parts(self) -> bool:
+        """Whether this connection may be sent Updates made of shared parts (its client decodes ZSTD)."""
+        return self.state == ServerState.OPEN and Codec.ZSTD in self.accepted
+
+    def update_of_parts(self, frames: list[bytes]) -> bytes:
+        """An Update made of parts compressed apart (SharedParts): a head frame, then any part frames, as
+        one ZSTD message. It leaves the connection's own stream as it was (the client decodes a ZSTD
+        message without touching its stream decoder)."""
+        if not self.takes_parts():
+            raise UnexpectedMessage("an Update of parts needs an open connection whose client decodes zstd")
+        return self.traffic.sent(m.frame(m.MessageType.UPDATE, Codec.ZSTD, b"".join(frames)))
 
     def welcome(self, connection_id: int, tick_hz: float, n_buckets: int, cell_capacity: int,
                 instances: np.ndarray) -> bytes:
@@ -343,6 +359,22 @@ class SharedStream:
         self.messages += 1
         self.frame_start = False
         return m.frame(msg.TYPE, Codec.ZSTD_STREAM, self._compress.compress(msg.serialize()))
+
+
+class SharedParts:
+    """Parts of Updates, each compressed once as a zstd frame of its own (per-message settings), that
+    many connections' Updates share: a connection's Update is a head (tick, server time and a first
+    delta) and any number of part frames, for disjoint indices (ServerSession.update_of_parts)."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        self._frames = FrameCodec(Codec.ZSTD, config.zstd)
+
+    def head(self, tick: int, server_time: float, delta: GridDelta) -> bytes:
+        return self._frames.compress(m.Update(tick, server_time, delta, self.config.layout).serialize())
+
+    def part(self, delta: GridDelta) -> bytes:
+        return self._frames.compress(encode_delta(delta, self.config.layout))
 
 
 # -------------------------------------------------------------------------------------------------- client

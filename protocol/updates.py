@@ -3,7 +3,8 @@
 A `GridDelta` is what one message changes in the mirror: the cell capacity, some instance transforms,
 whole buckets (global index + 8 (key, slot) entries) and whole cells (slot + 8 words), indices sorted
 and unique. Applying it is a plain assignment, so a mirror that applies every delta in order equals
-the server for everything sent.
+the server for everything sent. An Update may carry several deltas (parts) for disjoint indices, made
+apart and sent together; they read as their union (`decode_delta_parts`).
 
 PLAIN is the paper's layout: counts, then indices and words as raw little-endian uint32.
 
@@ -126,6 +127,9 @@ class Reader:
 
     def rest(self) -> memoryview:
         return self.take(len(self.view) - self.pos)
+
+    def at_end(self) -> bool:
+        return self.pos == len(self.view)
 
     def done(self) -> None:
         if self.pos != len(self.view):
@@ -354,6 +358,48 @@ def encode_delta(delta: GridDelta, layout: Layout = Layout.PACKED) -> bytes:
 def decode_delta(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta, Layout]:
     """Read a grid delta from the rest of a payload (both layouts); counts are checked before any array
     is allocated and the delta is checked structurally."""
+    delta, layout = _decode_one(r, limits)
+    r.done()
+    return delta, layout
+
+
+def decode_delta_parts(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta, Layout]:
+    """Read one or more grid deltas (parts) filling the rest of a payload, as an Update carries them, and
+    give their union (`union_of_parts`). Every part is read and checked as a delta of its own."""
+    delta, layout = _decode_one(r, limits)
+    parts = [delta]
+    while not r.at_end():
+        part, part_layout = _decode_one(r, limits)
+        if part_layout != layout:
+            raise PayloadError(f"grid delta parts in layouts {layout.name} and {part_layout.name}")
+        parts.append(part)
+    return union_of_parts(parts, limits), layout
+
+
+def union_of_parts(parts: list[GridDelta], limits: Limits = DEFAULT_LIMITS) -> GridDelta:
+    """The one delta that several parts make together. Parts share the cell capacity and change disjoint
+    transforms, buckets and cells (so the order they are applied in does not matter); the union is checked
+    like any delta (limits count every part's rows together)."""
+    if len(parts) == 1:
+        return parts[0]
+    capacity = parts[0].cell_capacity
+    if any(p.cell_capacity != capacity for p in parts):
+        raise PayloadError("grid delta parts with different cell capacities")
+    out = {}
+    for ids_name, rows_name in (("transform_ids", "transforms"), ("bucket_ids", "buckets"), ("cell_slots", "cells")):
+        ids = np.concatenate([getattr(p, ids_name) for p in parts])
+        rows = np.concatenate([getattr(p, rows_name) for p in parts])
+        order = np.argsort(ids, kind="stable")
+        ids = ids[order]
+        if len(ids) > 1 and not np.all(ids[1:] > ids[:-1]):
+            raise PayloadError(f"grid delta parts overlap: a {ids_name.split('_')[0]} index in two parts")
+        out[ids_name], out[rows_name] = ids, rows[order]
+    delta = GridDelta(capacity, **out)
+    delta.check(limits)
+    return delta
+
+
+def _decode_one(r: Reader, limits: Limits) -> tuple[GridDelta, Layout]:
     layout, capacity, k, nb, nc = r.unpack(_COUNTS)
     _check_counts(capacity, k, nb, nc, limits)
     if layout == Layout.PLAIN:
@@ -362,7 +408,6 @@ def decode_delta(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta,
         delta = _decode_packed(r, capacity, k, nb, nc)
     else:
         raise PayloadError(f"unknown grid delta layout {layout}")
-    r.done()
     delta.check(limits)
     return delta, Layout(layout)
 

@@ -88,7 +88,11 @@ class Client:
     streaming: bool = False  # the snapshot has been sent: Updates may follow
     shared: bool = False  # on the shared stream: its Updates come through `outbox` only
     busy: bool = False  # its sender is building or sending an Update of its own
+    takes_parts: bool = False  # its client decodes Updates made of shared parts (ZSTD)
+    on_parts: bool = False  # its Updates come as shared parts (fanout.plan_parts), through `outbox` only
+    caught_up_with: object = None  # the view planes its pending cells were last looked at for (plan_parts)
     outbox: deque = field(default_factory=deque)  # shared Update bytes waiting to be sent, in order
+    in_flight: int = 0  # shared Updates planned for it and still being encoded (they reach `outbox` in order)
     assigned: int = 0  # messages made for this connection so far (Welcome is message 0)
     messages_sent: int = 0
     updates_sent: int = 0
@@ -107,7 +111,10 @@ class Client:
             self.pending_cells = np.concatenate([self.pending_cells, np.zeros(capacity - n, dtype=bool)])
 
     def mark(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
+        """Pending for its own sender, which takes over from shared parts."""
         self._fit(capacity)
+        self.on_parts = False
+        self.caught_up_with = None
         self.pending_buckets[bucket_ids] = True
         self.pending_cells[cell_slots] = True
         self.wake.set()

@@ -1,18 +1,28 @@
-"""Compress once, send to many: a tick's changes as one shared Update, or into each client's pending sets.
+"""Compress once, send to many: a tick's changes as one shared Update, as Updates made of shared parts,
+or into each client's pending sets.
 
 Every tick the service hands the grid's dirty buckets and cells here (`plan`). Clients on the shared
 stream (protocol.session.SharedStream) whose extended view holds every dirty cell, and who are not
-behind, get the tick's changes as one Update encoded once for all of them (`SharePlan.encode` in a
-worker thread, then `deliver` puts the same bytes in each one's outbox). Every other client gets the
-dirty sets in its pending sets, and its own sender streams what lies in its view on its own zstd stream
-(protocol.codecs.OWN_STREAM_ZSTD: small, and a fast level), leaving cells outside its view pending.
+behind, get the tick's changes as one Update encoded once for all of them (`SharePlan.encode` on the
+encode thread, then `deliver` puts the same bytes in each one's outbox).
+
+Clients off the shared stream whose views keep cells back (culling), when there are at least
+`parts_from` of them, get Updates made of shared parts (`plan_parts`): the tick's dirty cells are grouped
+into world-space tiles, each tile is compressed once as a zstd frame (protocol.session.SharedParts), and
+a client's Update is a head frame (tick, moved transforms, dirty buckets: shared by every client in step,
+else its own) and the frames of the tiles that hold a cell of its extended view; the other dirty cells
+stay pending for it, and pending cells that its moved camera now sees go in a part of its own.
+
+Every other client gets the dirty sets in its pending sets, and its own sender streams what lies in its
+view on its own zstd stream (protocol.codecs.OWN_STREAM_ZSTD: small, and a fast level), leaving cells
+outside its view pending.
 
 A client joins the shared stream when it is in sync (its snapshot done, nothing pending; an Update of
-its own that is still being encoded or sent goes out first, as it was read first) at a tick where the shared stream starts a new frame; the stream restarts for
-waiting clients at most once per `join_interval` (a restart costs every member one message without
-history). A member leaves it when the tick's dirty cells reach outside its view (culling) or when
-`max_queued` shared messages wait in its outbox (a slow reader): from then on its own sender takes over,
-after the queued messages.
+its own that is still being encoded or sent goes out first, as it was read first) at a tick where the
+shared stream starts a new frame; the stream restarts for waiting clients at most once per
+`join_interval` (a restart costs every member one message without history). A member leaves it when the
+tick's dirty cells reach outside its view (culling) or when `max_queued` shared messages wait for it (a
+slow reader): from then on its own sender takes over, after the queued messages.
 """
 from __future__ import annotations
 
@@ -20,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.session import ServerConfig, SharedStream
+from protocol.session import ServerConfig, SharedParts, SharedStream
+from protocol.updates import GridDelta
 
 from .clients import Client, read_delta
 from .sendview import CellPlaces, client_planes
@@ -35,6 +46,10 @@ class FanoutCounters:
     joins: int = 0
     leaves_view: int = 0  # members that left because the tick's cells reached outside their view
     leaves_slow: int = 0  # members that left with max_queued messages waiting
+    part_updates: int = 0  # Updates made of shared parts (one per client and tick)
+    parts_encoded: int = 0  # tile parts compressed (each once, for every client whose view holds the tile)
+    parts_sent: int = 0  # tile parts in those Updates
+    catch_ups: int = 0  # Updates of parts that also carried a client's own part (cells come into its view)
 
 
 @dataclass
@@ -46,18 +61,79 @@ class SharePlan:
     server_time: float
     delta: object  # GridDelta
     members: list[Client]
+    restart: bool  # the stream starts a new frame at this Update (clients join)
 
     def encode(self) -> bytes:
+        """The Update's bytes (on the encode thread: every use of the stream's compressor is there, in order)."""
+        if self.restart:
+            self.stream.restart()
         return self.stream.update(self.tick, self.server_time, self.delta)
+
+
+@dataclass
+class PartsRecipe:
+    """One client's Update of this tick: the shared head or its own, the tiles it gets, its own part."""
+
+    client: Client
+    own_head: GridDelta | None  # None: the shared head
+    tiles: np.ndarray  # indices into PartsPlan.tile_deltas
+    own_part: GridDelta | None  # cells that came into its view since they changed
+    drained: bool  # nothing left pending afterwards: its mirror then equals the server
+
+    def cells(self, plan: "PartsPlan") -> int:
+        """Cell rows its Update carries."""
+        own = len(self.own_part.cell_slots) if self.own_part is not None else 0
+        return own + sum(len(plan.tile_deltas[int(t)].cell_slots) for t in self.tiles)
+
+
+@dataclass
+class PartsPlan:
+    """One tick's Updates of shared parts: the content (read when planned) and who gets which parts."""
+
+    parts: SharedParts
+    tick: int
+    server_time: float
+    head: GridDelta
+    tile_deltas: dict[int, GridDelta]  # the tiles some client gets, by tile index
+    recipes: list[PartsRecipe]
+
+    def encode(self) -> list[list[bytes]]:
+        """Every recipe's frames: the shared head and tiles are compressed once, own pieces per client."""
+        tiles = {t: self.parts.part(d) for t, d in self.tile_deltas.items()}
+        shared_head = None
+        out = []
+        for r in self.recipes:
+            if r.own_head is None:
+                shared_head = shared_head or self.parts.head(self.tick, self.server_time, self.head)
+                frames = [shared_head]
+            else:
+                frames = [self.parts.head(self.tick, self.server_time, r.own_head)]
+            frames += [tiles[int(t)] for t in r.tiles]
+            if r.own_part is not None:
+                frames.append(self.parts.part(r.own_part))
+            out.append(frames)
+        return out
+
+
+@dataclass
+class Parts:
+    """An Update of parts waiting in a client's outbox: its frames (ServerSession.update_of_parts)."""
+
+    frames: list[bytes]
 
 
 class Fanout:
     def __init__(self, config: ServerConfig, settings: FanoutSettings):
         self.settings = settings
+        self.config_limits = config.limits
         self.stream = SharedStream(config)
+        self.shared_messages = 0  # Updates planned for the shared stream
         self.sent_transforms: np.ndarray | None = None  # what the shared stream's members were last sent
         self.last_restart = -np.inf
         self.counters = FanoutCounters()
+        self.parts = SharedParts(config)
+        self.head_transforms: np.ndarray | None = None  # what the last shared head brought its clients to
+        self._tile_size: float | None = None  # world units of a tile's side
         self._places: CellPlaces | None = None  # every slot's place, kept across ticks
         self._placed_with: np.ndarray | None = None  # the transforms it holds
         self._stale = np.zeros(0, np.int64)  # slots changed since (the ticks' dirty cells)
@@ -86,6 +162,129 @@ class Fanout:
         self._stale = np.zeros(0, np.int64)
         return self._places
 
+    def tile_size(self, places: CellPlaces) -> float:
+        """A tile's side: the extent of the placed cells over settings.tiles_per_axis (fixed once known)."""
+        if self._tile_size is None:
+            known = np.isfinite(places.centres).all(axis=1)
+            if not known.any():
+                return 1.0
+            c = places.centres[known]
+            self._tile_size = max(float((c.max(axis=0) - c.min(axis=0)).max()) / self.settings.tiles_per_axis, 1e-6)
+        return self._tile_size
+
+    def takes_parts(self, c: Client) -> bool:
+        """A client whose Updates may be made of shared parts now: streaming, its client decodes zstd, off
+        the shared stream, not sending an Update of its own, and not behind (a short outbox)."""
+        return (c.takes_parts and c.streaming and not c.shared and not c.busy
+                and len(c.outbox) + c.in_flight < self.settings.max_queued)
+
+    def plan_parts(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray,
+                   transforms: np.ndarray, tick: int, server_time: float) -> PartsPlan | None:
+        """This tick's changes for `clients` (each takes_parts) as Updates of shared parts: the dirty cells
+        grouped by world-space tile, each tile compressed once for every client whose extended view holds
+        any of its cells; the dirty cells outside a client's view stay pending for it, and pending cells
+        that came into its view (its camera moved) go in a part of its own. Reads the grid (on the loop)."""
+        limits = self.config_limits
+        capacity = len(grid.cells)
+        if (len(bucket_ids) > limits.max_buckets_per_message or len(cell_slots) > limits.max_cells_per_message // 2):
+            for c in clients:  # a tick this big goes out through the clients' own senders, in several messages
+                c.mark(bucket_ids, cell_slots, capacity)
+            return None
+        now_t = np.ascontiguousarray(transforms, np.float32)
+        places = self.places(grid, now_t) if self.settings.cull else None
+        slots = np.sort(np.asarray(cell_slots, np.int64))
+        # tiles: dirty cells sorted by tile, `starts` where each tile's run begins
+        if places is not None and len(slots):
+            size = self.tile_size(places)
+            centre = places.centres[slots]
+            known = np.isfinite(centre).all(axis=1)
+            cell = np.where(known[:, None], np.floor(np.nan_to_num(centre) / size), 0).astype(np.int64)
+            key = ((cell[:, 0] & 0x1FFFFF) << 42) | ((cell[:, 1] & 0x1FFFFF) << 21) | (cell[:, 2] & 0x1FFFFF)
+            key = np.where(known, key, -1)
+            order = np.argsort(key, kind="stable")
+            _, starts = np.unique(key[order], return_index=True)
+        else:
+            order = np.arange(len(slots))
+            starts = np.zeros(1 if len(slots) else 0, np.int64)
+        sorted_slots = slots[order]
+        counts = np.diff(np.append(starts, len(slots)))
+        ends = starts + counts
+        dirty = np.zeros(capacity, bool)
+        dirty[slots] = True
+        if self.head_transforms is None or self.head_transforms.shape != now_t.shape:
+            tids = np.arange(len(now_t), dtype=np.uint32)
+        else:
+            a = self.head_transforms.reshape(len(now_t), -1).view(np.uint32)
+            tids = np.flatnonzero(np.any(a != now_t.reshape(len(now_t), -1).view(np.uint32), axis=1)).astype(np.uint32)
+        head = read_delta(grid, now_t, tids, bucket_ids, [])
+        head_transforms = now_t.copy()
+        recipes = []
+        for c in clients:
+            c._fit(capacity)
+            planes = self.planes(c)
+            if planes is None or not len(slots):
+                visible = np.ones(len(starts), bool)
+            else:
+                inside = places.in_view(planes, self.settings.view, slots)[order]
+                visible = np.logical_or.reduceat(inside, starts)
+            tiles = np.flatnonzero(visible)
+            hidden = sorted_slots[np.repeat(~visible, counts)]
+            c.on_parts = True
+            c.pending_cells[slots] = False  # what is sent now carries the latest content; the rest is marked again
+            own_part = None
+            if c.pending_cells.any() and (planes is not c.caught_up_with or c.caught_up_with is None):
+                own_part = self._catch_up(c, grid, now_t, places, planes, dirty, capacity)
+            c.pending_cells[hidden] = True
+            if c.sent_transforms is self.head_transforms and self.head_transforms is not None \
+                    and not c.pending_buckets.any():
+                own_head = None
+            else:
+                c.pending_buckets[bucket_ids] = True
+                b = np.flatnonzero(c.pending_buckets)[: limits.max_buckets_per_message]
+                c.pending_buckets[b] = False
+                own_head = read_delta(grid, now_t, c.changed_transforms(now_t), b, [])
+            c.sent_transforms = head_transforms
+            if own_head is None and not (len(tids) or len(bucket_ids) or len(tiles) or own_part is not None):
+                continue  # nothing for it this tick
+            recipes.append(PartsRecipe(c, own_head, tiles, own_part, not c.pending_anything()))
+        self.head_transforms = head_transforms
+        if not recipes:
+            return None
+        used = np.unique(np.concatenate([r.tiles for r in recipes])).astype(np.int64)
+        rows = grid.cells[sorted_slots]  # one gather; a tile's cells are a run of it (slots ascending in each)
+        tile_deltas = {int(t): GridDelta(capacity, cell_slots=sorted_slots[starts[t]:ends[t]],
+                                         cells=rows[starts[t]:ends[t]]) for t in used}
+        return PartsPlan(self.parts, tick, server_time, head, tile_deltas, recipes)
+
+    def _catch_up(self, c: Client, grid, transforms: np.ndarray, places, planes, dirty: np.ndarray,
+                  capacity: int) -> GridDelta | None:
+        """The client's pending cells now in its view (none of this tick's: they go in tiles), as its own
+        part; looked at again only when its camera moves, or at once when a message could not hold them."""
+        limits = self.config_limits
+        cand = np.flatnonzero(c.pending_cells & ~dirty)
+        if places is not None and planes is not None and len(cand):
+            cand = cand[places.in_view(planes, self.settings.view, cand)]
+        room = limits.max_cells_per_message // 2
+        c.caught_up_with = planes if len(cand) <= room else None
+        cand = cand[:room]
+        if not len(cand):
+            return None
+        c.pending_cells[cand] = False
+        self.counters.catch_ups += 1
+        return read_delta(grid, transforms, [], [], cand)
+
+    def deliver_parts(self, plan: PartsPlan, frames: list[list[bytes]]) -> list[tuple[PartsRecipe, int]]:
+        """Put each client's Update of parts in its outbox; returns (recipe, message index) per client."""
+        out = []
+        for r, f in zip(plan.recipes, frames):
+            r.client.outbox.append(Parts(f))
+            r.client.wake.set()
+            self.counters.part_updates += 1
+            self.counters.parts_sent += len(r.tiles)
+            out.append((r, r.client.next_seq()))
+        self.counters.parts_encoded += len(plan.tile_deltas)
+        return out
+
     def in_view(self, client: Client, grid, transforms: np.ndarray):
         """`slots -> bool` for take_pending, or None when the client sees every cell."""
         planes = self.planes(client)
@@ -94,40 +293,57 @@ class Fanout:
         return lambda slots: self.places(grid, transforms).in_view(planes, self.settings.view, slots)
 
     def plan(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray, transforms: np.ndarray,
-             tick: int, server_time: float, now: float) -> SharePlan | None:
-        """Decide who gets this tick's changes shared; mark them pending for everyone else. Reads the grid
-        (on the loop, before anything else may change it)."""
+             tick: int, server_time: float, now: float) -> tuple[SharePlan | None, list[Client]]:
+        """Decide who gets this tick's changes on the shared stream, and who in Updates of shared parts
+        (returned, for plan_parts: when at least settings.parts_from clients may take them); mark them
+        pending for everyone else. Reads the grid (on the loop, before anything else may change it)."""
+        others: list[Client] = []
+        share = self._plan_stream(clients, grid, bucket_ids, cell_slots, transforms, tick, server_time, now, others)
+        parted = [c for c in others if self.takes_parts(c)]
+        if len(parted) < self.settings.parts_from:
+            parted = []
+        for c in others:
+            if not (parted and self.takes_parts(c)):
+                c.mark(bucket_ids, cell_slots, len(grid.cells))
+        return share, parted
+
+    def _plan_stream(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray,
+                     transforms: np.ndarray, tick: int, server_time: float, now: float,
+                     others: list[Client]) -> SharePlan | None:
+        """The shared stream's members this tick (the rest are put in `others`)."""
         capacity = len(grid.cells)
         changed_rows = bool(len(bucket_ids) or len(cell_slots))
         self._stale = np.union1d(self._stale, cell_slots)  # their places may have changed
         members, joiners = [], []
         for c in clients:
+            may_join = (not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
+                        and not c.pending_anything())
+            if not (c.shared or may_join):  # (the view test below is the costly part: only where it decides)
+                others.append(c)
+                continue
             planes = self.planes(c)
             sees_all = True
             if planes is not None and len(cell_slots):
                 sees_all = bool(self.places(grid, transforms).in_view(planes, self.settings.view, cell_slots).all())
             if c.shared:
-                if sees_all and len(c.outbox) < self.settings.max_queued:
+                if sees_all and len(c.outbox) + c.in_flight < self.settings.max_queued:
                     members.append(c)
                     continue
                 c.shared = False
                 self.counters.leaves_view += not sees_all
                 self.counters.leaves_slow += sees_all
-            elif (sees_all and c.stream_codec and c.streaming and not c.outbox and not c.pending_anything()
-                  and (changed_rows or len(c.changed_transforms(transforms)))):  # a scene at rest sends nothing
+            elif (sees_all and (changed_rows or len(c.changed_transforms(transforms)))):  # a scene at rest sends nothing
                 joiners.append(c)
                 continue
-            c.mark(bucket_ids, cell_slots, capacity)
+            others.append(c)
         restart = bool(joiners) and (not members or now - self.last_restart >= self.settings.join_interval)
         if restart:
-            self.stream.restart()
             self.last_restart = now
-            self.counters.restarts += self.stream.messages > 0
+            self.counters.restarts += self.shared_messages > 0
             self.counters.joins += len(joiners)
             members += joiners
         else:
-            for c in joiners:
-                c.mark(bucket_ids, cell_slots, capacity)
+            others.extend(joiners)
         if not members:
             return None
         now_t = np.ascontiguousarray(transforms, np.float32)
@@ -142,7 +358,9 @@ class Fanout:
         for c in members:
             c.shared = True
             c.sent_transforms = self.sent_transforms
-        return SharePlan(self.stream, tick, server_time, read_delta(grid, now_t, tids, bucket_ids, cell_slots), members)
+        self.shared_messages += 1
+        return SharePlan(self.stream, tick, server_time, read_delta(grid, now_t, tids, bucket_ids, cell_slots), members,
+                         restart)
 
     def deliver(self, plan: SharePlan, data: bytes) -> list[tuple[Client, int]]:
         """Put the encoded Update in every member's outbox; returns (client, message index) per member.

@@ -56,7 +56,7 @@ from protocol.updates import state_digest
 from . import webpage
 from .clients import Client, Registry, SnapshotPlan, read_delta
 from .errors import ConfigError
-from .fanout import Fanout
+from .fanout import Fanout, Parts
 from .settings import ServeSettings
 from .tick_summary import TickSummary
 
@@ -103,9 +103,9 @@ class Counters:
 class Service:
     """`tick(grid, t)` runs at the tick rate; a tick object with `prepare(t)` and `apply(plan)` (the
     server tick of psao_server.tick) runs its prepare in a worker thread (it writes no grid, so senders
-    keep reading the grid meanwhile) and its apply on the loop. The prepare and the shared Update's encode
-    run on a thread of their own, so a tick never queues behind the clients' own encodes (which run on the
-    loop's default executor, one per client). `transforms()` gives the instance
+    keep reading the grid meanwhile) and its apply on the loop. The prepare runs on a thread of its own and
+    the shared Updates' encodes on another (the next tick's prepare goes on meanwhile), so a tick never
+    queues behind the clients' own encodes (which run on the loop's default executor, one per client). `transforms()` gives the instance
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
     connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob, or a
     function giving it, called on a worker thread at the first SceneRequest: compressing a scene takes a while)
@@ -148,7 +148,9 @@ class Service:
         self._live: dict[int, tuple] = {}  # client id -> (reader, writer) tasks of a client being served
         self._replaced: set[int] = set()  # clients whose connection ends because the grid was replaced
         self.grids_replaced = 0
-        self._tick_thread: ThreadPoolExecutor | None = None  # the tick's prepare and the shared encode (run)
+        self._tick_thread: ThreadPoolExecutor | None = None  # the tick's prepare (run)
+        self._encode_thread: ThreadPoolExecutor | None = None  # the shared Updates' encodes, one tick after another
+        self._delivery: asyncio.Task | None = None  # the last tick's encode and delivery
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None,
@@ -171,6 +173,7 @@ class Service:
             if ready:
                 ready(self.port)
             self._tick_thread = ThreadPoolExecutor(1, thread_name_prefix="psao-tick")
+            self._encode_thread = ThreadPoolExecutor(1, thread_name_prefix="psao-encode")
             ticker = asyncio.create_task(self._tick_loop(stop))
             stopper = asyncio.create_task(stop.wait())
             await asyncio.wait({ticker, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -178,7 +181,10 @@ class Service:
             if ticker.done():
                 ticker.result()  # a tick that raised is a bug: let it out
             ticker.cancel()
+            if self._delivery is not None:
+                self._delivery.cancel()
             self._tick_thread.shutdown(wait=False, cancel_futures=True)
+            self._encode_thread.shutdown(wait=False, cancel_futures=True)
             await self._say_goodbye()
         if self._digests:
             self._digests.close()
@@ -258,20 +264,57 @@ class Service:
             await asyncio.sleep(next_at - now)
 
     async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:
-        """The tick's changes: one Update encoded once for the clients on the shared stream, pending for the rest."""
-        share = self.fanout.plan(list(self.registry), self.grid, bucket_ids, cell_slots, self.transforms(), self.tick,
-                                 self.time, time.perf_counter())
-        if share is None:
+        """The tick's changes: one Update encoded once for the clients on the shared stream, Updates of
+        shared parts for the clients off it (when several are), pending for the rest. The plan reads the
+        grid now; the encode runs on the encode thread while the next tick goes on, and the Updates reach
+        the outboxes in tick order (a receiver sends nothing of its own meanwhile: Client.in_flight)."""
+        if self._delivery is not None and self._delivery.done():
+            self._delivery.result()  # an encode that raised is a bug: let it out
+        transforms = self.transforms()
+        share, parted = self.fanout.plan(list(self.registry), self.grid, bucket_ids, cell_slots, transforms,
+                                         self.tick, self.time, time.perf_counter())
+        parts = (self.fanout.plan_parts(parted, self.grid, bucket_ids, cell_slots, transforms, self.tick, self.time)
+                 if parted else None)
+        if share is None and parts is None:
             return
-        digest = self._state_digest() if self._digests else None  # the state the Update brings them to
-        t_encode = time.perf_counter()
-        data = await self._on_tick_thread(share.encode)
-        self.counters.encode_seconds += time.perf_counter() - t_encode
-        for client, seq in self.fanout.deliver(share, data):
-            self.counters.cells_sent += len(cell_slots)
-            self.counters.buckets_sent += len(bucket_ids)
-            if digest is not None and not client.pending_anything():
-                self._write_digest(client, seq, digest)
+        drained = (share is not None and any(not c.pending_anything() for c in share.members)) or (
+            parts is not None and any(r.drained for r in parts.recipes))
+        digest = self._state_digest() if self._digests and drained else None  # the state the Updates bring them to
+        receivers = (share.members if share else []) + ([r.client for r in parts.recipes] if parts else [])
+        for c in receivers:
+            c.in_flight += 1
+
+        def encode():
+            t0 = time.perf_counter()
+            out = (share.encode() if share else None, parts.encode() if parts else None)
+            return out, time.perf_counter() - t0
+
+        encoded = asyncio.get_running_loop().run_in_executor(self._encode_thread, encode)
+        self._delivery = asyncio.create_task(self._deliver(self._delivery, encoded, share, parts, digest,
+                                                           len(bucket_ids), len(cell_slots)))
+
+    async def _deliver(self, previous, encoded, share, parts, digest, n_buckets: int, n_cells: int) -> None:
+        """Put one tick's encoded Updates in the receivers' outboxes, after the previous tick's."""
+        if previous is not None:
+            await previous
+        (data, frames), seconds = await encoded
+        self.counters.encode_seconds += seconds
+        if share is not None:
+            for client in share.members:
+                client.in_flight -= 1
+            for client, seq in self.fanout.deliver(share, data):
+                self.counters.cells_sent += n_cells
+                self.counters.buckets_sent += n_buckets
+                if digest is not None and not client.pending_anything():
+                    self._write_digest(client, seq, digest)
+        if parts is not None:
+            for recipe in parts.recipes:
+                recipe.client.in_flight -= 1
+            for recipe, seq in self.fanout.deliver_parts(parts, frames):
+                self.counters.cells_sent += recipe.cells(parts)
+                self.counters.buckets_sent += len((recipe.own_head or parts.head).bucket_ids)
+                if digest is not None and recipe.drained:
+                    self._write_digest(recipe.client, seq, digest)
 
     async def _on_tick_thread(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self._tick_thread, fn, *args)
@@ -292,7 +335,9 @@ class Service:
                       bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry),
                       shared_members=sum(cl.shared for cl in self.registry),
                       shared_updates=self.fanout.counters.shared_updates,
-                      shared_sends=self.fanout.counters.shared_sends)
+                      shared_sends=self.fanout.counters.shared_sends,
+                      part_updates=self.fanout.counters.part_updates, parts_encoded=self.fanout.counters.parts_encoded,
+                      parts_sent=self.fanout.counters.parts_sent)
         self.last_tick_stats = record
         self.summary.add(record)
         if self._stats_out:
@@ -362,7 +407,7 @@ class Service:
                 log.info("connection from %s closed before Hello", peer)
             return
         client = Client(peer, len(self.grid.buckets), len(self.grid.cells),
-                        stream_codec=event.codec == Codec.ZSTD_STREAM)
+                        stream_codec=event.codec == Codec.ZSTD_STREAM, takes_parts=session.takes_parts())
         self._connections.add(ws)
         try:
             await self._serve_client(ws, session, client, event.codec)
@@ -556,13 +601,15 @@ class Service:
         client.streaming = True
         while True:
             if client.outbox:  # shared Updates, in order, before anything of its own
-                await self._send(ws, client, session.shared(client.outbox.popleft()))
+                item = client.outbox.popleft()
+                data = (session.update_of_parts(item.frames) if isinstance(item, Parts) else session.shared(item))
+                await self._send(ws, client, data)
                 client.updates_sent += 1
                 self.counters.updates_out += 1
                 continue
             await client.wake.wait()
             client.wake.clear()
-            if not (client.shared or client.outbox):
+            if not (client.shared or client.on_parts or client.outbox or client.in_flight):
                 client.busy = True
                 try:
                     await self._send_own_update(ws, session, client)

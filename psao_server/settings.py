@@ -183,6 +183,8 @@ class FanoutSettings:
     # rows (buckets + cells): a client's own Update of at most this many is encoded on the event loop (well
     # under a millisecond), a bigger one in a worker thread; the thread hop costs more than a small encode
     inline_rows: int = 2048
+    parts_from: int = 2  # clients off the shared stream from which their Updates are made of shared parts
+    tiles_per_axis: int = 8  # the parts' world-space tiles: the placed cells' extent over this, per side
 
 
 @dataclass

@@ -138,6 +138,7 @@ def test_cells_outside_a_clients_view_wait_until_it_turns_around(tmp_path):
 
             def quiet():  # everything in its view sent and received; what is left pending lies outside it
                 if not (hook.done >= hook.ticks and not server_client.busy and not server_client.outbox
+                        and not server_client.in_flight
                         and client.stats.messages == server_client.messages_sent
                         and not server_client.pending_buckets.any()):
                     return False
@@ -158,7 +159,7 @@ def test_cells_outside_a_clients_view_wait_until_it_turns_around(tmp_path):
                           far_side=bool(len(pending)) and all(_cell_x(grid, s) > 0 for s in pending))
             looking["x"] = 10.0
             await until(lambda: not server_client.pending_anything() and not server_client.busy
-                        and client.stats.messages == server_client.messages_sent, "the turned client drained")
+                        and not server_client.in_flight and client.stats.messages == server_client.messages_sent, "the turned client drained")
             after = state_digest(grid.instances, grid.buckets, grid.cells, service.transforms())
             mine = state_digest(mirror.instances, mirror.buckets, mirror.cells, mirror.transforms)
         finally:
@@ -234,3 +235,74 @@ def test_in_view_is_the_plane_test_of_every_cell():
         np.testing.assert_array_equal(places.in_view(planes, view), want)
         np.testing.assert_array_equal(places.in_view(planes, view, rows), want[rows])
         assert places.in_view(None, view, rows).all()
+
+
+def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):
+    """Three clients, two looking at -x and one at +x, while ticks change cells on both sides: their
+    Updates are made of tiles compressed once (a tile goes to every client whose view holds it), what
+    lies outside a client's view waits for it, and after they all turn around every mirror equals the
+    server's state; every digest the server logged for them matches the client's."""
+    hook = TwoSides(ticks=0)
+    sides = [-10.0, -10.0, 10.0]
+
+    async def scenario():
+        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9, digest_log=tmp_path / "server.jsonl")
+        service, stop, task, url = await start(TwoSides.grid(), settings, hook)
+        looking = list(sides)
+        clients = [MirrorClient(url, HASH, camera=lambda t, k=k: camera_towards(looking[k]),
+                                digest_log=tmp_path / f"c{k}.jsonl", digest_every=1) for k in range(3)]
+        runs = [asyncio.create_task(c.run()) for c in clients]
+
+        def on_server(c):
+            return next((s for s in service.registry if s.id == c.stats.connection_id), None)
+
+        def settled(c):
+            s = on_server(c)
+            return (s is not None and not s.busy and not s.in_flight and not s.outbox and c.stats.messages == s.messages_sent
+                    and not s.pending_buckets.any())
+
+        try:
+            await until(lambda: all(c.stats.snapshot_seconds is not None and on_server(c) is not None
+                                    and on_server(c).camera is not None for c in clients), "snapshots and cameras")
+            hook.ticks = hook.done + 30
+
+            def quiet():
+                if hook.done < hook.ticks or not all(settled(c) for c in clients):
+                    return False
+                for c in clients:
+                    s = on_server(c)
+                    in_view = service.fanout.in_view(s, service.grid, service.transforms())
+                    if in_view(np.flatnonzero(s.pending_cells)).any():
+                        return False
+                return True
+
+            await until(quiet, "the edits sent")
+            grid = service.grid
+            before = []
+            for c in clients:
+                pending = np.flatnonzero(on_server(c).pending_cells)
+                kept = np.zeros(len(grid.cells), bool)
+                kept[pending] = True
+                before.append(dict(pending=len(pending), exact_elsewhere=c.mirror.cells[~kept].tobytes()
+                                   == grid.cells[~kept].tobytes(), on_parts=on_server(c).on_parts))
+            counters = service.fanout.counters
+            shared = (counters.parts_encoded, counters.parts_sent, counters.part_updates)
+            looking[:] = [-x for x in sides]
+            await until(lambda: all(settled(c) and not on_server(c).pending_anything() for c in clients),
+                        "the turned clients drained")
+            server = state_digest(grid.instances, grid.buckets, grid.cells, service.transforms())
+            mirrors = [state_digest(c.mirror.instances, c.mirror.buckets, c.mirror.cells, c.mirror.transforms)
+                       for c in clients]
+        finally:
+            for r in runs:
+                r.cancel()
+            await asyncio.gather(*runs, return_exceptions=True)
+            stop.set()
+            await task
+        return before, shared, server, mirrors
+
+    before, (encoded, sent, updates), server, mirrors = asyncio.run(scenario())
+    assert all(b["on_parts"] and b["exact_elsewhere"] and b["pending"] > 20 for b in before)
+    assert updates >= 3 * 30 - 10 and sent > encoded > 0  # the two clients looking the same way shared tiles
+    assert mirrors == [server] * 3
+    assert_digests_equal(tmp_path, ["c0", "c1", "c2"], at_least=1)

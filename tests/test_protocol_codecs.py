@@ -116,3 +116,27 @@ def test_stream_codec_is_not_a_frame_codec():
         FrameCodec(Codec.ZSTD_STREAM)
     with pytest.raises(CodecError):
         decompress_frame(Codec.ZSTD_STREAM, b"", CAP)
+
+
+# b"ab" and b"cd", each a whole zstd frame (magic, header with the content size, one raw block)
+FRAME_AB = bytes.fromhex("28b52ffd20021100006162")
+FRAME_CD = bytes.fromhex("28b52ffd20021100006364")
+
+
+def test_zstd_payload_of_several_frames_is_their_contents_concatenated():
+    assert decompress_frame(Codec.ZSTD, FRAME_AB + FRAME_CD, CAP) == b"abcd"
+    ab, cd = (zstandard.ZstdCompressor(level=3).compress(p) for p in (b"ab", b"cd"))
+    assert (ab, cd) == (FRAME_AB, FRAME_CD)
+    assert decompress_frame(Codec.ZSTD, ab + cd, CAP) == b"abcd"
+    assert decompress_frame(Codec.ZSTD, ab + cd + ab, CAP) == b"abcdab"
+    with pytest.raises(CodecError, match="after the frame"):
+        decompress_frame(Codec.ZSTD, ab + cd + b"junk", CAP)
+    with pytest.raises(CodecError, match="truncated"):
+        decompress_frame(Codec.ZSTD, ab + cd[:-2], CAP)
+
+
+def test_zstd_cap_holds_for_all_frames_together():
+    part = FrameCodec(Codec.ZSTD).compress(bytes(CAP // 2 + 1))
+    assert len(decompress_frame(Codec.ZSTD, part, CAP)) == CAP // 2 + 1
+    with pytest.raises(LimitError):
+        decompress_frame(Codec.ZSTD, part + part, CAP)

@@ -290,3 +290,49 @@ def test_fuzzed_payloads_raise_protocol_errors_only():
             msg.parse(_mutate(rng, msg.serialize()))
         except ProtocolError:
             pass
+
+
+def _parts_payload():
+    """An Update of two parts, PLAIN: part 1 moves instance 1, part 2 writes cell slot 5."""
+    t = np.eye(4, dtype=np.float32)
+    part1 = GridDelta(8, np.array([1], np.uint32), t[None])
+    cell = np.arange(1, 9, dtype=np.uint32)[None]
+    part2 = GridDelta(8, cell_slots=np.array([5], np.uint32), cells=cell)
+    return m.Update(3, 0.5, part1, Layout.PLAIN).serialize() + encode_delta(part2, Layout.PLAIN), part1, part2
+
+
+def test_update_of_parts_bytes_and_union():
+    payload, part1, part2 = _parts_payload()
+    identity = "0000803f" + "00000000" * 4 + "0000803f" + "00000000" * 4 + "0000803f" + "00000000" * 4 + "0000803f"
+    assert payload.hex() == (
+        "0300000000000000" + "000000000000e03f"  # tick 3, server time 0.5
+        + "00" + "08000000" + "01000000" + "00000000" + "00000000"  # part 1: PLAIN, capacity 8, 1 transform
+        + "01000000" + identity
+        + "00" + "08000000" + "00000000" + "00000000" + "01000000"  # part 2: 1 cell
+        + "05000000" + "".join(f"{v:02x}000000" for v in range(1, 9)))
+    u = m.Update.parse(payload)
+    assert (u.tick, u.server_time) == (3, 0.5)
+    assert u.delta.transform_ids.tolist() == [1] and u.delta.cell_slots.tolist() == [5]
+    assert u.delta.cells.tolist() == part2.cells.tolist() and np.array_equal(u.delta.transforms, part1.transforms)
+
+
+def test_update_parts_are_sorted_into_one_delta():
+    cells = np.arange(24, dtype=np.uint32).reshape(3, 8)
+    a = GridDelta(16, cell_slots=np.array([2, 9], np.uint32), cells=cells[:2])
+    b = GridDelta(16, cell_slots=np.array([4], np.uint32), cells=cells[2:])
+    u = m.Update.parse(m.Update(1, 0.0, a).serialize() + encode_delta(b))
+    assert u.delta.cell_slots.tolist() == [2, 4, 9]
+    assert u.delta.cells.tolist() == [cells[0].tolist(), cells[2].tolist(), cells[1].tolist()]
+
+
+def test_update_parts_that_overlap_or_disagree_are_refused():
+    payload, part1, part2 = _parts_payload()
+    with pytest.raises(PayloadError, match="overlap"):
+        m.Update.parse(payload + encode_delta(part2, Layout.PLAIN))
+    other = GridDelta(9, cell_slots=np.array([6], np.uint32), cells=part2.cells)
+    with pytest.raises(PayloadError, match="capacities"):
+        m.Update.parse(payload + encode_delta(other, Layout.PLAIN))
+    with pytest.raises(PayloadError, match="layouts"):
+        m.Update.parse(payload + encode_delta(GridDelta(8), Layout.PACKED))
+    with pytest.raises(PayloadError):
+        m.Update.parse(payload + b"\x00")  # a part cut short

@@ -278,3 +278,45 @@ def test_old_page_and_bad_scene_requests_are_refused_while_a_page_streams(browse
         old.close()
         server.stop()
     check_digests(log, server, least=after + 3)
+
+
+def test_page_decodes_updates_made_of_parts(browser, tmp_path):
+    """The page's decoder reads an Update of several parts (as the server sends clients whose views
+    differ: tiles compressed apart, several zstd frames in one message) as their union, as
+    protocol.messages.Update.parse does, and refuses parts that overlap."""
+    from protocol.codecs import Codec, FrameCodec
+    from protocol.updates import GridDelta, Layout, encode_delta
+
+    cells = (np.arange(24, dtype=np.uint32).reshape(3, 8) * 7919) & 0x7FFFFFFF
+    t = np.eye(4, dtype=np.float32)[None] * 2
+    parts = [GridDelta(16, np.array([1], np.uint32), t, cell_slots=np.array([2, 9], np.uint32), cells=cells[:2]),
+             GridDelta(16, cell_slots=np.array([4], np.uint32), cells=cells[2:])]
+    payload = m.Update(5, 0.25, parts[0], Layout.PACKED).serialize() + encode_delta(parts[1], Layout.PACKED)
+    frames = b"".join(FrameCodec(Codec.ZSTD).compress(p) for p in (payload[:30], payload[30:]))
+    overlap = payload + encode_delta(parts[1], Layout.PACKED)
+    want = m.Update.parse(payload).delta
+    server = Server(tmp_path, "builtin:courtyard", "--density", "4", "--rays", "4")
+    page = browser.new_page()
+    try:
+        page.goto(f"http://127.0.0.1:{server.port}/wire.js", wait_until="commit")
+        got = page.evaluate("""async ([frames, overlap]) => {
+            const w = await import("/wire.js");
+            const { decompress } = await import("/vendor/fzstd.js");
+            const bytes = (hex) => Uint8Array.from(hex.match(/../g), (h) => parseInt(h, 16));
+            const p = new w.Reader(decompress(bytes(frames)), "payload");
+            const tick = p.u64(), time = p.f64();
+            const d = w.decodeDeltaParts(p);
+            let refused = "";
+            try { const q = new w.Reader(bytes(overlap), "payload"); q.u64(); q.f64(); w.decodeDeltaParts(q); }
+            catch (e) { refused = e.message; }
+            return { tick, time, ids: [...d.transformIds], transforms: [...d.transforms], slots: [...d.cellSlots],
+                     cells: [...d.cells], refused };
+        }""", [frames.hex(), overlap.hex()])
+    finally:
+        page.close()
+        server.stop()
+    assert (got["tick"], got["time"]) == (5, 0.25)
+    assert got["ids"] == want.transform_ids.tolist() and got["transforms"] == want.transforms.reshape(-1).tolist()
+    assert got["slots"] == [2, 4, 9] == want.cell_slots.tolist()
+    assert got["cells"] == want.cells.reshape(-1).tolist()
+    assert "overlap" in got["refused"]

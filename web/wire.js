@@ -210,23 +210,74 @@ function sortedUnique(ids, what) {
   for (let i = 1; i < ids.length; i++) if (ids[i] <= ids[i - 1]) throw new ProtocolError(`${what} indices are not sorted and unique`);
 }
 
-// The rest of a Snapshot/Update payload -> { capacity, transformIds, transforms, bucketIds, buckets, cellSlots, cells }.
-export function decodeDelta(r) {
+// One grid delta from the payload, checked -> { layout, capacity, transformIds, transforms, bucketIds, buckets, cellSlots, cells }.
+function decodeOne(r) {
   const layout = r.u8();
-  const d = { capacity: r.u32(), k: r.u32(), nb: r.u32(), nc: r.u32() };
+  const d = { layout, capacity: r.u32(), k: r.u32(), nb: r.u32(), nc: r.u32() };
   const L = C.LIMITS;
   if (d.capacity > L.max_cell_capacity || d.k > L.max_instances || d.nb > L.max_buckets_per_message || d.nc > L.max_cells_per_message)
     throw new ProtocolError("grid delta: a count is over its limit");
   if (layout === C.Layout.PACKED) decodePacked(r, d);
   else if (layout === C.Layout.PLAIN) decodePlain(r, d);
   else throw new ProtocolError(`unknown grid delta layout ${layout}`);
-  r.done();
+  checkDelta(d);
+  return d;
+}
+
+function checkDelta(d) {
   sortedUnique(d.transformIds, "transform");
   sortedUnique(d.bucketIds, "bucket");
   sortedUnique(d.cellSlots, "cell");
+  const L = C.LIMITS;
+  if (d.k > L.max_instances || d.nb > L.max_buckets_per_message || d.nc > L.max_cells_per_message)
+    throw new ProtocolError("grid delta: a count is over its limit");
   if (d.nc && d.cellSlots[d.nc - 1] >= d.capacity) throw new ProtocolError("cell slot outside the capacity");
   for (const v of d.transforms) if (!Number.isFinite(v)) throw new ProtocolError("instance transform with NaN or infinity");
+}
+
+// The rest of a Snapshot payload: one grid delta.
+export function decodeDelta(r) {
+  const d = decodeOne(r);
+  r.done();
   return d;
+}
+
+// The rest of an Update payload: one or more grid deltas (parts) for disjoint indices, as their union
+// (protocol.updates.union_of_parts).
+export function decodeDeltaParts(r) {
+  const parts = [decodeOne(r)];
+  while (r.pos < r.b.length) {
+    const d = decodeOne(r);
+    if (d.layout !== parts[0].layout) throw new ProtocolError("grid delta parts in different layouts");
+    parts.push(d);
+  }
+  return unionOfParts(parts);
+}
+
+function unionOfParts(parts) {
+  if (parts.length === 1) return parts[0];
+  const capacity = parts[0].capacity;
+  if (parts.some((p) => p.capacity !== capacity)) throw new ProtocolError("grid delta parts with different cell capacities");
+  const u = { layout: parts[0].layout, capacity };
+  const kinds = [["transformIds", "transforms", 16, Float32Array, "k"], ["bucketIds", "buckets", 2 * C.BUCKET_ENTRIES, Uint32Array, "nb"],
+                 ["cellSlots", "cells", C.CELL_WORDS, Uint32Array, "nc"]];
+  for (const [idsName, rowsName, w, Rows, count] of kinds) {
+    const n = parts.reduce((a, p) => a + p[idsName].length, 0);
+    const owner = [];
+    for (const p of parts) for (let i = 0; i < p[idsName].length; i++) owner.push([p[idsName][i], p, i]);
+    owner.sort((a, b) => a[0] - b[0]);
+    const ids = new Uint32Array(n), rows = new Rows(n * w);
+    owner.forEach(([id, p, i], j) => {
+      if (j && id === ids[j - 1]) throw new ProtocolError(`grid delta parts overlap: ${idsName} ${id} in two parts`);
+      ids[j] = id;
+      rows.set(p[rowsName].subarray(i * w, (i + 1) * w), j * w);
+    });
+    u[idsName] = ids;
+    u[rowsName] = rows;
+    u[count] = n;
+  }
+  checkDelta(u);
+  return u;
 }
 
 // ------------------------------------------------------------------------------------------ session
@@ -334,7 +385,7 @@ export class ClientSession {
     if (this.state === State.STREAMING && type === T.UPDATE) {
       this.payloadBytes += payload.length;
       const tick = p.u64(), serverTime = p.f64();
-      const delta = decodeDelta(p);
+      const delta = decodeDeltaParts(p);
       this.decodeMs = performance.now() - t0;
       return { kind: "update", tick, serverTime, delta };
     }
