@@ -24,6 +24,25 @@ from psao_server.errors import GridError
 from psao_server.settings import GridSettings
 
 NO_POINT = -1
+USE_KERNELS = True  # move_points' per-point work in Warp kernels (grid_kernels.py) where Warp imports; numpy else
+
+
+def _kernels():
+    """The grid's Warp kernels module, or None (turned off, or no Warp): the numpy code is the reference."""
+    if not USE_KERNELS:
+        return None
+    try:
+        from psao_server import grid_kernels
+    except ImportError:
+        return None
+    return grid_kernels
+
+
+def load_kernels() -> None:
+    """Compile and load move_points' kernels now (where they are used), not in the first move."""
+    kernels = _kernels()
+    if kernels is not None:
+        kernels.load()
 
 
 @dataclass
@@ -256,12 +275,17 @@ class Grid:
         side = self.cells[slots, gf.KEY_WORD] & gf.BACK_BIT
         stay = np.zeros(len(slots), dtype=bool)
         found = []
+        kernels = _kernels()
         for inst in np.unique(insts).tolist():
             sel = np.flatnonzero(insts == inst)
-            cell, inside = self.cell_of(inst, new_local_pos[sel])
             rec = self.instances[inst]
+            old_keys = self.cells[slots[sel], gf.KEY_WORD]
+            if kernels is not None:
+                found.append((inst, sel, *kernels.locate(new_local_pos[sel], rec, side[sel], old_keys)))
+                continue
+            cell, inside = self.cell_of(inst, new_local_pos[sel])
             keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
-            found.append((inst, sel, cell, inside, keys, inside & (keys == self.cells[slots[sel], gf.KEY_WORD])))
+            found.append((inst, sel, cell, inside, keys, inside & (keys == old_keys)))
         # the cells of the instances most of whose moved points leave their cells, in one pass over the pool
         leaving = np.zeros(len(self.instances) + 1, dtype=bool)  # index -1 (a free cell) stays False
         leaving[[f[0] for f in found if 2 * int(f[5].sum()) < len(f[1])]] = True
@@ -272,7 +296,7 @@ class Grid:
                 mine = cells_of[self.cell_instance[cells_of] == inst]
                 if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
                     kept[sel] = self._refill_instance(inst, mine, slots[sel], idx[sel], new_local_pos[sel],
-                                                      new_normals[sel], cell, inside, keys)
+                                                      new_normals[sel], cell, inside, keys, ids[sel], ao[sel])
                     stay[sel] = True  # done
                     continue
             s_sel = sel[same]
@@ -293,9 +317,11 @@ class Grid:
                                                back=side[sel] != 0)
         return kept
 
-    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals, cell, inside, keys) -> np.ndarray:
-        """Move every point of instance `inst` (cells `mine`; the points at slots/idx, every one of them, to
-        new_local_pos / new_normals, whose cells, inside mask and keys with their side bit are given) by
+    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals, cell, inside, keys,
+                         ids, ao) -> np.ndarray:
+        """Move every point of instance `inst` (cells `mine`; the points at slots/idx, every one of them, with
+        their ids and AO codes, to new_local_pos / new_normals, whose cells, inside mask and keys with their
+        side bit are given) by
         clearing its cells and buckets and placing them all anew, ids, AO and sides kept. Returns the kept
         mask of the moved points.
 
@@ -308,7 +334,6 @@ class Grid:
         P, E = gf.POINTS_PER_CELL, gf.BUCKET_ENTRIES
         rec = self.instances[inst]
         n = len(slots)
-        ids, ao = self.point_id[slots, idx], self.cells[slots, idx] & np.uint32(0xFF)
         rows = slice(int(rec["bucket_offset"]), int(rec["bucket_offset"] + rec["bucket_count"]))
         before = self.buckets[rows].copy()
         self.buckets[rows] = gf.EMPTY
@@ -374,7 +399,9 @@ class Grid:
         go = order[ok]
         pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
         pidx = rank[ok] % P
-        self._write_points(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
+        kernels = _kernels()
+        write = self._write_points if kernels is None else lambda *a: kernels.write_points(self, *a)
+        write(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
         kept[go] = True
         self.stats.inserted += len(go)
         self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))

@@ -52,7 +52,7 @@ from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, bounds_of,
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, measure_tracer
 from psao_server.errors import ConfigError, TracerError
-from psao_server.grid import NO_POINT, Grid
+from psao_server.grid import NO_POINT, Grid, load_kernels
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
                                    rigid_in_company, sorted_union)
 from psao_server.settings import TickSettings, TraceSettings
@@ -179,6 +179,8 @@ class ServerTick:
         self.stale = np.zeros(n, dtype=bool)
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
+        if self.skinned:
+            load_kernels()  # skinned points move through the grid every tick
         # static points: world positions and normals once, and a block index for box queries
         self.world_pos = np.zeros((n, 3))
         self.world_nrm = np.zeros((n, 3), np.float32)
