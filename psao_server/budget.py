@@ -44,6 +44,8 @@ class BudgetSettings:
     # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
     # showing one round's noise; 0 = forget at once
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
+    scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
+    # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
 
 
@@ -114,9 +116,25 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
     return len(ids) * trace_settings.rays / max(big - small, 0.5 * big, 1e-6), small
 
 
+HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,
+REFINING_S = 2e9  # a point that holds rays since its last reset
+
+
+def first_by_key(ids: np.ndarray, key: np.ndarray, k: int) -> np.ndarray:
+    """The `k` ids of smallest key, in key order (ties: as given)."""
+    if k <= 0:
+        return ids[:0]
+    if len(ids) > k:
+        part = np.argpartition(key, k - 1)[:k]
+        return ids[part[np.argsort(key[part], kind="stable")]]
+    return ids[np.argsort(key, kind="stable")]
+
+
 class RefineQueue:
     """Per point: rays accumulated since the last reset, unoccluded rays among them, slices of the target
     ray set traced, and since when the point waits (perf_counter seconds)."""
+
+    compact_min = 1024  # dead entries the waiting list may hold before it is compacted
 
     def __init__(self, n: int, target_rays: int, keep_rays: int = 0, slices: int = 1):
         self.target = int(target_rays)
@@ -131,24 +149,58 @@ class RefineQueue:
         # was measured around other geometry), the whole ray set for a few-ray first grid (same geometry)
         self.old_until = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
-        # the ids with done < slices, sorted: kept up to date by every change of `done`, so finding the
-        # waiting points costs in proportion to them, not to the scene
-        self._waiting = np.arange(n, dtype=np.int64)
+        # the waiting ids (done < slices), sorted, with "dead" entries (done reached slices since) removed
+        # in bulk once they are a quarter of the list: finding the waiting points, or the next window of
+        # them, costs in proportion to them, and a finished round does not rewrite the whole list
+        self._list = np.arange(n, dtype=np.int64)
+        self._listed = np.ones(n, bool)  # id is in _list (waiting or dead)
+        self._dead = 0  # entries of _list that no longer wait
+        self.count = n  # points waiting
+        self._cursors = [0, 0]  # per sweep (0: the tick's, 1: a refiner's), where its next part starts in _list
 
     def _now_waiting(self, ids: np.ndarray) -> None:
         """`ids` join the waiting set (called before their done is set to 0)."""
-        new = np.sort(ids[self.done[ids] >= self.slices])
+        new = np.unique(ids[self.done[ids] >= self.slices])
+        if len(new) == 0:
+            return
+        self.count += len(new)
+        listed = self._listed[new]
+        self._dead -= int(listed.sum())  # dead entries come back to life
+        new = new[~listed]
         if len(new):
-            new = new[np.concatenate([[True], new[1:] != new[:-1]])]
-            merged = np.concatenate([self._waiting, new])
+            self._listed[new] = True
+            at = self._at()
+            merged = np.concatenate([self._list, new])
             merged.sort(kind="stable")  # two sorted runs: a linear merge
-            self._waiting = merged
+            self._list = merged
+            self._move_cursors(at)
 
-    def _maybe_done(self, ids: np.ndarray) -> None:
-        """`ids` whose done grew leave the waiting set once they hold every slice."""
-        if len(ids) and np.any(self.done[ids] >= self.slices):
-            w = self._waiting
-            self._waiting = w[self.done[w] < self.slices]
+    def _finished(self, ids: np.ndarray, before: np.ndarray) -> None:
+        """`ids` (distinct) whose done grew from `before`: those now holding every slice stop waiting."""
+        gone = int(((before < self.slices) & (self.done[ids] >= self.slices)).sum())
+        if gone == 0:
+            return
+        self.count -= gone
+        self._dead += gone
+        if self._dead > max(len(self._list) // 4, self.compact_min):
+            self._compact()
+
+    def _compact(self) -> None:
+        w = self._list
+        alive = self.done[w] < self.slices
+        at = self._at()
+        self._listed[w[~alive]] = False
+        self._list = w[alive]
+        self._dead = 0
+        self._move_cursors(at)
+
+    def _at(self) -> list:
+        """The id each sweep's cursor is at (None: at the end)."""
+        return [self._list[c] if c < len(self._list) else None for c in self._cursors]
+
+    def _move_cursors(self, at: list) -> None:
+        """Cursors to the same ids in a changed list (or the first id after them)."""
+        self._cursors = [0 if a is None else int(np.searchsorted(self._list, a)) for a in at]
 
     def seed_from_codes(self, ids: np.ndarray, codes: np.ndarray, rays: int) -> None:
         """The bake's AO (its quantised value stands for the mean of its rays): with at least the target's
@@ -157,14 +209,20 @@ class RefineQueue:
         holds its whole target set (then that set's AO alone, as a full bake gives)."""
         vis = codes.astype(np.float32) / 255.0
         if rays >= self.target:
+            before = self.done[ids]
             self.rays[ids], self.done[ids] = self.target, self.slices
             self.unoccluded[ids] = vis * self.target
-            self._maybe_done(ids)
+            self._finished(ids, before)
         else:
             self._now_waiting(ids)
             self.rays[ids], self.done[ids], self.unoccluded[ids] = 0, 0, 0.0
             self.old_rays[ids], self.old_unoccluded[ids] = rays, vis * rays
             self.old_until[ids] = self.target
+
+    def first_grid(self, ids: np.ndarray) -> np.ndarray:
+        """Bool per id: holds only a few-ray first grid's estimate (seed_from_codes), no slice of its own
+        and no change around it since."""
+        return (self.done[ids] == 0) & (self.old_until[ids] > self.old_rays[ids])
 
     def reset(self, ids: np.ndarray, now: float) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already.
@@ -173,7 +231,7 @@ class RefineQueue:
         traced since)."""
         cap = min(self.keep, self.target) if self.keep else np.inf
         ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)
-                  | (self.old_until[ids] > self.old_rays[ids])]  # a first grid's estimate, now of other geometry
+                  | (self.old_until[ids] > self.old_rays[ids])]  # a first grid's estimate (now of other geometry)
         fresh = ids[self.rays[ids] >= self.target]
         self.waiting_since[fresh] = now
         if self.keep:
@@ -187,29 +245,55 @@ class RefineQueue:
         self.done[ids] = 0
         self.unoccluded[ids] = 0.0
 
-    def waiting(self, eligible: np.ndarray) -> np.ndarray:
-        """Ids (sorted) of eligible points whose history is short of the target."""
-        w = self._waiting
-        return w[eligible[w] & (self.done[w] < self.slices)]
+    def waiting(self, eligible: np.ndarray | None = None) -> np.ndarray:
+        """Ids (sorted) of (eligible) points whose history is short of the target."""
+        w = self._list
+        return w[self.done[w] < self.slices] if eligible is None else w[eligible[w] & (self.done[w] < self.slices)]
+
+    def exclude(self, ids: np.ndarray) -> None:
+        """`ids` never wait (points the grid does not hold)."""
+        before = self.done[ids]
+        self.done[ids] = self.slices
+        self._finished(ids, before)
+
+    def candidates(self, limit: int, sweep: int = 0) -> np.ndarray:
+        """Ids (sorted) of waiting points to choose from: all of them while the list holds at most `limit`,
+        else the next `limit` entries of a sweep over the list (wrapping; `sweep` 0 is the tick's, 1 a
+        refiner's), so a long queue (a first grid being refined) costs a bounded amount per tick and every
+        waiting point is looked at once a sweep."""
+        w = self._list
+        if len(w) > limit:
+            start = self._cursors[sweep]
+            end = start + limit
+            part = w[start:end]
+            if end > len(w):  # wrap: the beginning of the list, before the part
+                end -= len(w)
+                part = np.concatenate([w[:end], part])
+            self._cursors[sweep] = end
+            w = part
+        return w[self.done[w] < self.slices]
 
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int) -> np.ndarray:
         """The first `k` of `ids` in priority order (visible, reset, oldest)."""
-        if len(ids) <= k:
-            order = np.lexsort((self.waiting_since[ids], self.rays[ids] > 0, ~visible))
-            return ids[order]
-        key = ((~visible).astype(np.float64) * 4e9 + (self.rays[ids] > 0) * 2e9
-               + (self.waiting_since[ids] - self.waiting_since[ids].min()))
-        first = np.argpartition(key, k - 1)[:k]
-        return ids[first[np.argsort(key[first], kind="stable")]]
+        if len(ids) == 0:
+            return ids
+        return first_by_key(ids, self.key(ids, visible, float(self.waiting_since[ids].min())), k)
+
+    def key(self, ids: np.ndarray, visible: np.ndarray, base: float) -> np.ndarray:
+        """Priority key of `ids` (smaller first): HIDDEN_S if out of every view, plus REFINING_S if the point
+        holds rays since its last reset, plus its wait start less `base`. (select_kernels.priority_kernel
+        computes the same in one pass, with the views.)"""
+        return ((~visible) * HIDDEN_S + (self.rays[ids] > 0) * REFINING_S) + (self.waiting_since[ids] - base)
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:
-        """Accumulate one round (each point's slice `done`, of `rays` rays; or `slices` slices at once, e.g.
+        """Accumulate, for distinct `ids`, one round (each point's slice `done`, of `rays` rays; or `slices` slices at once, e.g.
         the whole target set traced in one call); returns the AO codes of the running means. Points still
         short of the target keep waiting (their wait restarts now, so others get their turn)."""
         self.unoccluded[ids] += np.rint(visibility.astype(np.float32) * rays)  # a count: exact in float32
         self.rays[ids] += rays
+        before = self.done[ids]
         self.done[ids] += slices
-        self._maybe_done(ids)
+        self._finished(ids, before)
         self.waiting_since[ids] = now
         total, unocc = self._blend(ids)
         return pw.quantise_ao(unocc / total)

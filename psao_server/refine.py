@@ -2,8 +2,9 @@
 
 `psao serve --progressive [--cluster ...]` bakes with a few rays per point and refines to `--rays` while
 serving. The tick refines in its own time budget, one slice of each point's target ray set per round; a
-`ClusterRefiner` adds the cluster's workers: it takes batches of waiting static points that have no slice
-yet, traces each point's whole target ray set (the bake's rays and seed) in one go on the cluster
+`ClusterRefiner` adds the cluster's workers: it takes batches of the static points that hold only the
+first grid's estimate (RefineQueue.first_grid; the tick leaves those to it and keeps the points reset by a
+change, which it reaches sooner), those in a client's view first, traces each point's whole target ray set (the bake's rays and seed) in one go on the cluster
 (DaskTracer.start, so the tick never waits for it) and, when a batch comes back, adds it to the points'
 history as all their slices at once (RefineQueue.add): a refined point then holds exactly the AO of a full
 local trace, as one the tick refined does. The tick writes the codes into the grid with its own.
@@ -30,7 +31,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao_server.errors import TracerError
-from psao_server.selection import in_any_view
 from psao_server.settings import TraceSettings
 
 log = logging.getLogger("psao.refine")
@@ -40,6 +40,7 @@ log = logging.getLogger("psao.refine")
 class RefineSettings:
     batch_points: int = 16384  # points per batch (one task each without tiles)
     batches_per_thread: int = 2  # batches in flight per worker thread of the cluster
+    scan: int = 4  # waiting points looked at per point sent (a part of a sweep over the queue)
 
 
 @dataclass
@@ -126,25 +127,23 @@ class ClusterRefiner:
         if room <= 0:
             return
         queue = tick.queue
-        waiting = queue.waiting(self.static & ~self.busy)
-        waiting = waiting[queue.done[waiting] == 0]  # partly refined points: the tick has their next slices
+        k = room * self.settings.batch_points
+        # a part of the queue (a bounded cost on the tick's thread; every waiting point comes up once a sweep):
+        # the first grid's static points (the tick has the others: partly refined, or reset by a change)
+        waiting = queue.candidates(self.settings.scan * k, sweep=1)
+        waiting = waiting[self.static[waiting] & ~self.busy[waiting] & queue.first_grid(waiting)]
         if len(waiting) == 0:
             return
-        k = min(len(waiting), room * self.settings.batch_points)
-        limit = 4 * k
-        if len(waiting) > limit:  # the longest-waiting part only (the view test costs per point)
-            waiting = np.sort(waiting[np.argpartition(queue.waiting_since[waiting], limit - 1)[:limit]])
-        pos, nrm = tick.world_points(frame, waiting)
-        chosen = queue.pick(waiting, in_any_view(pos, tick.cameras, tick.settings.view.distance_margin), k)
+        chosen = tick.pick(frame, waiting, min(len(waiting), k))  # those in a client's view first
         if self.posed_at != frame.t:  # the movers where the tick sees them now
             self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[tick.kinds.rigid])
             self.posed_at = frame.t
-        at = np.searchsorted(waiting, chosen)
+        pos, nrm = tick.world_points(frame, chosen)
         # the whole target ray set of each point: the bake's rays and seed, as the tick's slices add up to
         s = TraceSettings(rays=queue.target, ao_distance=tick.scene.ao_distance, seed=tick.settings.seed)
         for i in range(0, len(chosen), self.settings.batch_points):
-            part = at[i:i + self.settings.batch_points]
-            ids = chosen[i:i + self.settings.batch_points]
+            part = slice(i, i + self.settings.batch_points)
+            ids = chosen[part]
             self.batches.append(_Batch(ids, s.rays, s.seed, self.tracer.start(pos[part], nrm[part], ids, s)))
             self.busy[ids] = True
             self.submitted += 1

@@ -234,8 +234,8 @@ class NearCache:
     grown by `margin` (world units; up to four times that for a mover that moves farther per tick), and the candidates (ids, positions and normals, gathered once into
     contiguous arrays; with the movers' spheres, only those within a ball that bounds every point that may
     see them) serve every following tick whose reach stays inside that grown box and ball. Each tick
-    then tests only those candidates (in a reach box, may see the mover's sphere now or before), never
-    the block index or the whole point set."""
+    then tests only those candidates (in a reach box, may see the mover's sphere now or before: one pass
+    of select_kernels.near_kernel), never the block index or the whole point set."""
 
     def __init__(self, index: BlockIndex, normals: np.ndarray, ao_distance: float, margin: float):
         self.index = index
@@ -243,7 +243,7 @@ class NearCache:
         self.ao_distance = float(ao_distance)
         self.margin = float(margin)
         self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, ball centre, radius, candidate indices,
-        # positions (3, P), normals (3, P))
+        # select_kernels.NearTest over their positions and normals)
         self._last: dict[int, tuple] = {}  # mover -> its reach (lo, hi) at the last call
         self.queries = 0  # block-index queries made (each a cache refill)
 
@@ -272,10 +272,9 @@ class NearCache:
                 # (slack: the per-tick test's own rounding must never reach past the ball)
                 idx = idx[np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2]
             idx = np.sort(idx)
-            # coordinates as rows (3, P): the tests below run on contiguous 1-D arrays
+            from psao_server.select_kernels import NearTest  # (Warp: imported when something first moves)
             held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, idx,
-                                    np.ascontiguousarray(self.index.positions[idx].T),
-                                    np.ascontiguousarray(self.normals[idx].T))
+                                    NearTest(self.index.positions[idx], self.normals[idx]))
             self.queries += 1
         return held[4:]
 
@@ -285,19 +284,7 @@ class NearCache:
         parts = []
         for i, boxes in reach.items():
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
-            idx, pos, nrm = self._candidates(i, boxes, spheres)
-            keep = np.zeros(len(idx), dtype=bool)
-            for lo, hi in boxes:
-                keep |= ((pos[0] >= lo[0]) & (pos[0] <= hi[0]) & (pos[1] >= lo[1]) & (pos[1] <= hi[1])
-                         & (pos[2] >= lo[2]) & (pos[2] <= hi[2]))
-            if spheres:
-                sel = np.flatnonzero(keep)
-                p, n = pos[:, sel], nrm[:, sel]
-                see = np.zeros(len(sel), dtype=bool)
-                for c, r in spheres:  # may_see_sphere, on rows
-                    d0, d1, d2 = c[0] - p[0], c[1] - p[1], c[2] - p[2]
-                    see |= ((d0 * d0 + d1 * d1 + d2 * d2 <= (r + self.ao_distance) ** 2)
-                            & (d0 * n[0] + d1 * n[1] + d2 * n[2] >= -r))
-                keep[sel[~see]] = False
+            idx, test = self._candidates(i, boxes, spheres)
+            keep = test(boxes, spheres, self.ao_distance).view(bool)
             parts.append(idx[keep])
         return sorted_union(parts)

@@ -215,8 +215,9 @@ class TickSettings:
                 raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
             if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
                 raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
-            if b.round_rays < 1 or b.min_points < 1:
-                raise ConfigError(f"round rays and min points must be >= 1, got {b.round_rays}, {b.min_points}")
+            if b.round_rays < 1 or b.min_points < 1 or b.scan_points < 1:
+                raise ConfigError(f"round rays, min points and scan points must be >= 1, got {b.round_rays}, "
+                                  f"{b.min_points}, {b.scan_points}")
             if self.rays % min(b.round_rays, self.rays):
                 raise ConfigError(f"round rays ({b.round_rays}) must divide the tick's rays ({self.rays}): each round "
                                   "traces one equal slice of the target ray set")

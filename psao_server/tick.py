@@ -50,7 +50,7 @@ from protocol.errors import EditError
 from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, bounds_of, grid_for_animation, skinned_point_bounds,
                                  to_world_points, affine)
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
-from psao_server.budget import RefineQueue, TraceBudget, measure_tracer
+from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid, load_kernels
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
@@ -140,6 +140,7 @@ class ServerTick:
             self.last_frame = None
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
+        self._priority = None  # select_kernels.PriorityKey, made at the first pick
         if self.settings.budget is not None:
             self._init_budget(bake)
         self.refiner = refiner
@@ -220,6 +221,7 @@ class ServerTick:
         belongs to a known time, and the tracer's speed measured once on a few points."""
         self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays,
                                  self._round_settings().slices)
+        self.queue.exclude(np.flatnonzero(~self.tracked))
         ids = np.flatnonzero(self.present())
         if self.last_frame is not None:
             codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)
@@ -390,15 +392,13 @@ class ServerTick:
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
         refined = self._refine(changed, frame)
-        # parked skinned points too: a trace re-inserts them; not those the refiner has out
-        eligible = self.tracked if self.refiner is None else self.tracked & ~self.refiner.busy
-        waiting = all_waiting = self.queue.waiting(eligible)
-        limit = max(16 * k, 20000)
-        if len(waiting) > limit:  # look at the most urgent part only (the view test costs per point)
-            key = (self.queue.rays[waiting] > 0) * 2e9 + (self.queue.waiting_since[waiting] - now)
-            waiting = np.sort(waiting[np.argpartition(key, limit - 1)[:limit]])
-        visible = in_any_view(self.world_positions(frame, waiting), self.cameras, self.settings.view.distance_margin)
-        chosen = self.queue.pick(waiting, visible, k)
+        # the waiting points (all, or the next part of a sweep over a long queue) and those just reset; parked
+        # skinned points too (a trace re-inserts them), not those the refiner has out
+        looked = sorted_union([self.queue.candidates(max(16 * k, self.settings.budget.scan_points)), changed])
+        looked = looked[self.tracked[looked] & (self.queue.done[looked] < self.queue.slices)]
+        if self.refiner is not None:  # the refiner takes the first grid's static points (it traces them faster)
+            looked = looked[~self.refiner.busy[looked] & ~(self.refiner.static[looked] & self.queue.first_grid(looked))]
+        chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
         codes = np.zeros(0, np.uint32)
         if len(chosen):
@@ -408,14 +408,28 @@ class ServerTick:
             codes = self.queue.add(chosen, vis, round_settings.rays_traced, time.perf_counter())
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)
-        # the queue after this round, from the waiting set alone (no pass over every point)
-        still = all_waiting[self.queue.done[all_waiting] < self.queue.slices]
-        out = 0 if self.refiner is None else int(self.refiner.busy.sum())  # waiting too, on the refiner
-        self._queue_now = (len(still) + out, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
+        # the queue after this round (points out on the refiner wait too); the oldest wait among the points
+        # looked at (all of them unless the queue is longer than a sweep's part)
+        still = looked[self.queue.done[looked] < self.queue.slices]
+        self._queue_now = (self.queue.count, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
         if len(refined[0]):  # stored with this tick's own
             chosen, codes = np.concatenate([chosen, refined[0]]), np.concatenate([codes, refined[1]])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s())
+
+    def pick(self, frame: Frame, waiting: np.ndarray, k: int) -> np.ndarray:
+        """RefineQueue.pick of `k` of `waiting` with their visibility in the clients' extended views at
+        `frame`, in one compiled pass over them (select_kernels.priority_kernel)."""
+        if len(waiting) == 0:
+            return waiting
+        from psao_server.select_kernels import PriorityKey  # (Warp: imported at the first pick)
+        if self._priority is None:
+            self._priority = PriorityKey()
+        planes = None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
+        key = self._priority(waiting, self.world_pos, self.local_pos, self.inst_of, self.moving_point, frame.transforms,
+                             planes, self.settings.view.distance_margin, self.queue.rays, self.queue.waiting_since,
+                             float(self.queue.waiting_since[waiting].min()))
+        return first_by_key(waiting, key, k)
 
     def apply(self, plan: "TickPlan") -> TickStats:
         """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on
@@ -533,13 +547,6 @@ class ServerTick:
         for i, sel in self._moving_groups(ids):
             pos[sel], nrm[sel] = to_world_points(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
         return pos, nrm
-
-    def world_positions(self, frame: Frame, ids: np.ndarray) -> np.ndarray:
-        """World positions (P, 3) float64 of points `ids` in `frame` (world_points without the normals)."""
-        pos = self.world_pos[ids]
-        for i, sel in self._moving_groups(ids):
-            pos[sel] = affine(self.local_pos[ids[sel]], frame.transforms[i])
-        return pos
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
         """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""

@@ -132,6 +132,38 @@ def test_priority_visible_then_reset_then_oldest():
     assert list(q.pick(ids, visible, 2)) == [2, 0]
 
 
+def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
+    # the tick's pick (select_kernels.priority_kernel: world positions, views, key in one pass) against
+    # RefineQueue.key of in_any_view of world_points, over moving and static points, none/one/two views
+    from psao_client.connection import scene_camera_feed
+    from psao_server.select_kernels import PriorityKey
+    from psao_server.selection import camera_planes, in_any_view
+
+    tick = budgeted_tick("courtyard", 16, bake_rays=4, rays=8, round_rays=4, min_points=64)
+    try:
+        feed = scene_camera_feed(tick.scene)
+        rng = np.random.default_rng(3)
+        for k, t in enumerate((0.3, 1.1, 2.7)):
+            tick(tick.grid, t)
+            frame = tick.last_frame
+            ids = np.sort(rng.choice(len(tick.tracked), 5000, replace=False))
+            ids = ids[tick.tracked[ids]]
+            assert tick.moving_point[ids].any() and not tick.moving_point[ids].all()
+            views = [[], [feed(t)], [feed(t), feed(t + 2.0)]][k]
+            tick.set_cameras(views)
+            planes = np.stack(tick.cameras) if tick.cameras else None
+            margin = tick.settings.view.distance_margin
+            base = float(tick.queue.waiting_since[ids].min())
+            got = PriorityKey()(ids, tick.world_pos, tick.local_pos, tick.inst_of, tick.moving_point, frame.transforms,
+                                planes, margin, tick.queue.rays, tick.queue.waiting_since, base)
+            visible = in_any_view(tick.world_points(frame, ids)[0], tick.cameras, margin)
+            assert 0 < visible.sum() and (k == 0 or not visible.all())
+            np.testing.assert_array_equal(got, tick.queue.key(ids, visible, base))
+        assert camera_planes(np.full((4, 4), np.nan), np.eye(4), 0.0) is None  # such a view: tick passes planes=None
+    finally:
+        tick.close()
+
+
 @pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("tick_hz", 0.0),
                                          ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3)])
 def test_bad_budget_settings_are_refused(field, value):
@@ -221,11 +253,16 @@ def test_waiting_set_follows_every_change_of_the_history():
     rng = np.random.default_rng(3)
     n = 500
     q = RefineQueue(n, target_rays=16, keep_rays=4, slices=4)
+    q.compact_min = 8  # compacted often, as a long queue is
     every = np.ones(n, bool)
     q.seed_from_codes(np.arange(0, n, 2), rng.integers(0, 256, n // 2).astype(np.uint32), 16)
     q.seed_from_codes(np.arange(1, n, 4), rng.integers(0, 256, len(range(1, n, 4))).astype(np.uint32), 4)
     for step in range(60):
         np.testing.assert_array_equal(q.waiting(every), np.flatnonzero(q.done < q.slices))
+        assert q.count == np.count_nonzero(q.done < q.slices)
+        # a sweep in parts of 37 looks at every waiting point
+        seen = np.unique(np.concatenate([q.candidates(37) for _ in range(-(-len(q._list) // 37))]))
+        np.testing.assert_array_equal(seen, q.waiting())
         q.reset(rng.choice(n, rng.integers(0, 40), replace=True), float(step))
         w = q.waiting(every)
         picked = np.unique(rng.choice(w, min(len(w), 60), replace=False)) if len(w) else w

@@ -1,0 +1,175 @@
+"""Warp CPU kernels of the tick's select stage: the per-candidate tests of selection.py in one pass.
+
+`near_kernel` is selection.NearCache's per-tick test (inside one of a mover's reach boxes, and able to
+see its bounding sphere now or before: selection.may_see_sphere) over a mover's gathered candidates;
+`priority_kernel` is the budgeted tick's priority key over the waiting points (budget.RefineQueue.pick),
+with each point's world position and its test against the clients' extended views (selection.in_frustum)
+computed on the way. Both compute in float64 with the numpy versions' formulas; tests/test_selection.py
+and tests/test_budget.py check them equal to those.
+
+Numpy would make ~30 passes over each array (one per comparison and logical operation), each with its
+own temporary; at a 60 Hz tick over tens of thousands of candidates those passes were most of the tick.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from psao_server.budget import HIDDEN_S, REFINING_S
+
+wp.config.quiet = True
+HIDDEN = wp.constant(HIDDEN_S)
+REFINING = wp.constant(REFINING_S)
+
+
+@wp.func
+def in_box(p: wp.vec3d, lo: wp.vec3d, hi: wp.vec3d) -> bool:
+    return (p[0] >= lo[0] and p[0] <= hi[0] and p[1] >= lo[1] and p[1] <= hi[1]
+            and p[2] >= lo[2] and p[2] <= hi[2])
+
+
+@wp.func
+def may_see(p: wp.vec3d, n: wp.vec3d, c: wp.vec3d, r: wp.float64, ao: wp.float64) -> bool:
+    d0 = c[0] - p[0]
+    d1 = c[1] - p[1]
+    d2 = c[2] - p[2]
+    reach = r + ao
+    return (d0 * d0 + d1 * d1 + d2 * d2 <= reach * reach) and (d0 * n[0] + d1 * n[1] + d2 * n[2] >= -r)
+
+
+@wp.kernel
+def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.float64),
+                keep: wp.array(dtype=wp.uint8)):
+    # q: box 0 lo, hi, box 1 lo, hi (12), sphere 0 centre, radius, sphere 1 centre, radius (8), AO distance,
+    # boxes, spheres. One thread loops over every point: a CPU launch runs its threads one after another,
+    # and each thread is a call that copies the arguments.
+    lo0 = wp.vec3d(q[0], q[1], q[2])
+    hi0 = wp.vec3d(q[3], q[4], q[5])
+    lo1 = wp.vec3d(q[6], q[7], q[8])
+    hi1 = wp.vec3d(q[9], q[10], q[11])
+    c0 = wp.vec3d(q[12], q[13], q[14])
+    r0 = q[15]
+    c1 = wp.vec3d(q[16], q[17], q[18])
+    r1 = q[19]
+    ao = q[20]
+    boxes = int(q[21])
+    spheres = int(q[22])
+    for j in range(pos.shape[0]):
+        p = pos[j]
+        inside = in_box(p, lo0, hi0)
+        if boxes > 1 and not inside:
+            inside = in_box(p, lo1, hi1)
+        if inside and spheres > 0:
+            n = nrm[j]
+            see = may_see(p, n, c0, r0, ao)
+            if spheres > 1 and not see:
+                see = may_see(p, n, c1, r1, ao)
+            inside = see
+        keep[j] = wp.uint8(1) if inside else wp.uint8(0)
+
+
+class NearTest:
+    """near_kernel over one candidate set (positions and normals (P, 3) float64, kept alive here), its
+    launch recorded once: a call writes the boxes and spheres into the launch's parameter array."""
+
+    def __init__(self, positions: np.ndarray, normals: np.ndarray):
+        self._pos_np = np.ascontiguousarray(positions, np.float64)
+        self._nrm_np = np.ascontiguousarray(normals, np.float64)
+        self.keep = np.zeros(len(self._pos_np), np.uint8)
+        self.q = np.zeros(23, np.float64)
+        self._launch = wp.launch(near_kernel, dim=1, device="cpu", record_cmd=True, inputs=[
+            wp.array(self._pos_np, dtype=wp.vec3d, device="cpu", copy=False),
+            wp.array(self._nrm_np, dtype=wp.vec3d, device="cpu", copy=False),
+            wp.array(self.q, dtype=wp.float64, device="cpu", copy=False),
+            wp.array(self.keep, dtype=wp.uint8, device="cpu", copy=False)])
+
+    def __call__(self, boxes: list[tuple[np.ndarray, np.ndarray]], spheres: list[tuple[np.ndarray, float]],
+                 ao_distance: float) -> np.ndarray:
+        """Bool-like uint8 (P,): inside one of `boxes` (1 or 2) and, with spheres (at most 2), able to see one."""
+        if not 1 <= len(boxes) <= 2 or len(spheres) > 2:
+            raise ValueError(f"near_kernel tests 1 or 2 boxes and up to 2 spheres, not {len(boxes)} and {len(spheres)}")
+        if len(self.keep) == 0:
+            return self.keep
+        q = self.q
+        for k, (lo, hi) in enumerate(boxes):
+            q[6 * k:6 * k + 3], q[6 * k + 3:6 * k + 6] = lo, hi
+        for k, (c, r) in enumerate(spheres):
+            q[12 + 4 * k:15 + 4 * k], q[15 + 4 * k] = c, r
+        q[20:23] = ao_distance, len(boxes), len(spheres)
+        self._launch.launch()
+        return self.keep
+
+
+@wp.kernel
+def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3d), local: wp.array(dtype=wp.vec3d),
+                    instance: wp.array(dtype=wp.int64), moving: wp.array(dtype=wp.bool),
+                    transforms: wp.array(dtype=wp.mat44d), planes: wp.array(dtype=wp.vec4d), cameras: int,
+                    margin: wp.float64, rays: wp.array(dtype=wp.int32), since: wp.array(dtype=wp.float64),
+                    base: wp.float64, key: wp.array(dtype=wp.float64)):
+    for j in range(ids.shape[0]):
+        i = ids[j]
+        p = world[i]
+        if moving[i]:  # selection's world_positions: the local position through its transform
+            m = transforms[instance[i]]
+            q = local[i]
+            p = wp.vec3d(m[0, 0] * q[0] + m[0, 1] * q[1] + m[0, 2] * q[2] + m[0, 3],
+                         m[1, 0] * q[0] + m[1, 1] * q[1] + m[1, 2] * q[2] + m[1, 3],
+                         m[2, 0] * q[0] + m[2, 1] * q[1] + m[2, 2] * q[2] + m[2, 3])
+        seen = cameras == 0  # no view known: every point counts as visible
+        for c in range(cameras):
+            inside = True
+            for k in range(5):
+                pl = planes[c * 5 + k]
+                if p[0] * pl[0] + p[1] * pl[1] + p[2] * pl[2] + pl[3] < -margin:
+                    inside = False
+            if inside:
+                seen = True
+        tier = wp.float64(0.0)
+        if not seen:
+            tier = wp.float64(HIDDEN)
+        if rays[i] > 0:
+            tier = tier + wp.float64(REFINING)
+        key[j] = tier + (since[i] - base)
+
+
+class Arrays:
+    """Warp views (no copies) of numpy arrays, made again only when an array is replaced."""
+
+    def __init__(self):
+        self._held: dict[str, tuple] = {}
+
+    def __call__(self, name: str, arr: np.ndarray, dtype) -> "wp.array":
+        held = self._held.get(name)
+        if held is None or held[0] is not arr:
+            held = self._held[name] = (arr, wp.array(arr, dtype=dtype, device="cpu", copy=False))
+        return held[1]
+
+
+class PriorityKey:
+    """priority_kernel over a tick's point arrays: world positions of static points, local positions
+    (moving points), instance and moving flag per point id."""
+
+    def __init__(self):
+        self.views = Arrays()
+
+    def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
+                 moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
+                 rays: np.ndarray, since: np.ndarray, base: float) -> np.ndarray:
+        """Priority key (float64, per id; smaller first): RefineQueue.key with each point's visibility
+        in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible)."""
+        ids = np.ascontiguousarray(ids, np.int64)
+        key = np.empty(len(ids), np.float64)
+        if len(ids) == 0:
+            return key
+        v = self.views
+        cams = 0 if planes is None else len(planes)
+        flat = np.zeros((1, 4)) if cams == 0 else np.ascontiguousarray(planes, np.float64).reshape(-1, 4)
+        wp.launch(priority_kernel, dim=1, device="cpu", inputs=[
+            wp.array(ids, dtype=wp.int64, device="cpu", copy=False),
+            v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
+            v("moving", moving, wp.bool),
+            wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
+            wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin),
+            v("rays", rays, wp.int32), v("since", since, wp.float64), wp.float64(base),
+            wp.array(key, dtype=wp.float64, device="cpu", copy=False)])
+        return key
