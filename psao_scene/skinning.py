@@ -147,6 +147,58 @@ class SceneSkinner:
                                                        device=self.device)
         return self._deformers[mesh_index].deform(mesh.skin.skinning_matrices(t))[0]
 
+@wp.kernel
+def surface_points_kernel(vertices: wp.array(dtype=wp.vec3d), corners: wp.array(dtype=wp.vec3i),
+                          bary: wp.array(dtype=wp.vec3d), side: wp.array(dtype=wp.float64),
+                          rest_nrm: wp.array(dtype=wp.vec3d),
+                          out_pos: wp.array(dtype=wp.vec3d), out_nrm: wp.array(dtype=wp.vec3f)):
+    # surface_points for one point, with SurfacePoints' side and fallback: the triangle's unit normal times
+    # the point's side, or its rest normal where the skinned triangle has none
+    i = wp.tid()
+    c = corners[i]
+    a = vertices[c[0]]
+    b = vertices[c[1]]
+    d = vertices[c[2]]
+    w = bary[i]
+    out_pos[i] = a * w[0] + b * w[1] + d * w[2]
+    n = wp.cross(b - a, d - a)
+    n = n / wp.max(wp.length(n), wp.float64(1e-300))
+    if wp.length(n) > wp.float64(0.5):
+        n = n * side[i]
+    else:
+        n = rest_nrm[i]
+    out_nrm[i] = wp.vec3f(wp.float32(n[0]), wp.float32(n[1]), wp.float32(n[2]))
+
+
+class SurfacePoints:
+    """Points fixed to triangles of a mesh whose vertices move (skinned AO points): positions and unit normals
+    for new vertices in one kernel pass. The points' triangles, barycentrics, sides (+1 / -1: the normal
+    along or against the triangle's) and rest normals (kept where a triangle is skinned flat) are uploaded
+    once; the outputs are buffers reused by every call. surface_points() is the numpy reference."""
+
+    def __init__(self, faces: np.ndarray, face_index: np.ndarray, bary: np.ndarray, side: np.ndarray,
+                 rest_nrm: np.ndarray, device: str | None = "cpu"):
+        self.device = d = wp.get_device(device)
+        self.count = len(face_index)
+        corners = np.asarray(faces, np.int64)[np.asarray(face_index, np.int64)]
+        self.corners = wp.array(np.ascontiguousarray(corners, np.int32), dtype=wp.vec3i, device=d)
+        self.bary = wp.array(np.ascontiguousarray(bary, np.float64), dtype=wp.vec3d, device=d)
+        self.side = wp.array(np.ascontiguousarray(side, np.float64), dtype=wp.float64, device=d)
+        self.rest_nrm = wp.array(np.ascontiguousarray(rest_nrm, np.float64), dtype=wp.vec3d, device=d)
+        self.out_pos = wp.empty(self.count, dtype=wp.vec3d, device=d)
+        self.out_nrm = wp.empty(self.count, dtype=wp.vec3f, device=d)
+
+    def follow(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (P, 3) float64 and unit normals (P, 3) float32 on the mesh with `vertices`: views of
+        the output buffers, valid until the next call."""
+        if self.count:
+            v = wp.array(np.ascontiguousarray(vertices, np.float64), dtype=wp.vec3d, device=self.device, copy=False)
+            wp.launch(surface_points_kernel, dim=self.count, device=self.device,
+                      inputs=[v, self.corners, self.bary, self.side, self.rest_nrm], outputs=[self.out_pos, self.out_nrm])
+        return (self.out_pos.numpy().reshape(-1, 3)[: self.count],
+                self.out_nrm.numpy().reshape(-1, 3)[: self.count])
+
+
 def surface_points(vertices: np.ndarray, faces: np.ndarray, face_index: np.ndarray,
                    bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points at barycentrics `bary` of triangles `face_index` of a (skinned) vertex array, and the unit

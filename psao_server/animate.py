@@ -24,7 +24,7 @@ import numpy as np
 from protocol import gridformat as gf
 from psao_scene.rigid import instance_transform
 from psao_scene.model import Scene
-from psao_scene.skinning import SceneSkinner, surface_points
+from psao_scene.skinning import SceneSkinner, SurfacePoints, surface_points
 from psao_server.bake import scene_world_geometry
 from psao_server.grid import Grid
 from psao_server.points import PointSet
@@ -193,7 +193,14 @@ class SkinnedPoints:
         return cls(faces, np.asarray(ps.barycentrics, np.float64), side, np.asarray(ps.normals, np.float64))
 
     def follow(self, mesh_faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local positions (P, 3) float64 and unit normals (P, 3) float32 on the deformed mesh."""
+        """Local positions (P, 3) float64 and unit normals (P, 3) float32 on the deformed mesh (the mesh's
+        faces must be the same every call): Warp's SurfacePoints, valid until the next call."""
+        if getattr(self, "_kernel", None) is None:
+            self._kernel = SurfacePoints(mesh_faces, self.faces, self.bary, self.side, self.rest_normals)
+        return self._kernel.follow(vertices)
+
+    def follow_numpy(self, mesh_faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """follow() in numpy (the reference the kernel is tested against)."""
         pos, n = surface_points(vertices, mesh_faces, self.faces, self.bary)
         ok = np.linalg.norm(n, axis=1) > 0.5  # a triangle skinned flat keeps the point's rest normal
         nrm = np.where(ok[:, None], n * self.side[:, None], self.rest_normals)

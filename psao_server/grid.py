@@ -400,8 +400,10 @@ class Grid:
         pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
         pidx = rank[ok] % P
         kernels = _kernels()
-        write = self._write_points if kernels is None else lambda *a: kernels.write_points(self, *a)
-        write(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
+        if kernels is None:
+            self._write_points(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
+        else:
+            kernels.write_points(self, pslot, pidx, rec, cell, new_local_pos, new_normals, ao, ids, rows=go)
         kept[go] = True
         self.stats.inserted += len(go)
         self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))

@@ -101,27 +101,29 @@ def locate_kernel(pos: wp.array(dtype=wp.vec3d), origin: wp.vec3d, cell_size: wp
 
 
 @wp.kernel
-def write_points_kernel(slot: wp.array(dtype=wp.int64), index: wp.array(dtype=wp.int64), cell: wp.array(dtype=wp.vec3i),
-                        pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3f), ao: wp.array(dtype=wp.uint32),
-                        ids: wp.array(dtype=wp.int64), origin: wp.vec3d, cell_size: wp.float64,
+def write_points_kernel(slot: wp.array(dtype=wp.int64), index: wp.array(dtype=wp.int64), rows: wp.array(dtype=wp.int64),
+                        cell: wp.array(dtype=wp.vec3i), pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3f),
+                        ao: wp.array(dtype=wp.uint32), ids: wp.array(dtype=wp.int64), origin: wp.vec3d, cell_size: wp.float64,
                         out_cells: wp.array2d(dtype=wp.uint32), out_local: wp.array2d(dtype=wp.vec3d),
                         out_normal: wp.array2d(dtype=wp.vec3f), out_id: wp.array2d(dtype=wp.int64)):
-    # Grid._write_points: pointword.pack_point of the quantised position, oct code and AO
+    # Grid._write_points: pointword.pack_point of the quantised position, oct code and AO; point i is row
+    # rows[i] of the per-point inputs (no gathered copies of them)
     i = wp.tid()
     s = int(slot[i])
     k = int(index[i])
-    p = pos[i]
-    c = cell[i]
+    r = int(rows[i])
+    p = pos[r]
+    c = cell[r]
     word = (ALLOCATED
             | ((position_code(p[2], origin[2], cell_size, c[2]) & POSITION_MASK) << SHIFT_Z)
             | ((position_code(p[1], origin[1], cell_size, c[1]) & POSITION_MASK) << SHIFT_Y)
             | ((position_code(p[0], origin[0], cell_size, c[0]) & POSITION_MASK) << SHIFT_X)
-            | ((oct_code(nrm[i]) & CODE_MASK) << SHIFT_NORMAL)
-            | (ao[i] & CODE_MASK))
+            | ((oct_code(nrm[r]) & CODE_MASK) << SHIFT_NORMAL)
+            | (ao[r] & CODE_MASK))
     out_cells[s, k] = word
     out_local[s, k] = p
-    out_normal[s, k] = nrm[i]
-    out_id[s, k] = ids[i]
+    out_normal[s, k] = nrm[r]
+    out_id[s, k] = ids[r]
 
 
 def _record(rec) -> tuple:
@@ -152,14 +154,17 @@ def locate(positions: np.ndarray, rec, side: np.ndarray, old_key: np.ndarray):
     return cell.astype(np.int64), inside.view(bool), key, same.view(bool)
 
 
-def write_points(grid, slots, index, rec, cell, positions, normals, ao, ids) -> None:
-    """Grid._write_points in one kernel pass, into the grid's own arrays."""
+def write_points(grid, slots, index, rec, cell, positions, normals, ao, ids, rows=None) -> None:
+    """Grid._write_points in one kernel pass, into the grid's own arrays; with `rows`, point i is row
+    rows[i] of cell, positions, normals, ao and ids (Grid._write_points(..., cell[rows], positions[rows], ...))."""
     n = len(slots)
     if n == 0:
         return
+    rows = np.arange(n) if rows is None else rows
     origin, size, _ = _record(rec)
     wp.launch(write_points_kernel, dim=n, device="cpu",
-              inputs=[_in(slots, wp.int64, np.int64), _in(index, wp.int64, np.int64), _in(cell, wp.vec3i, np.int32),
+              inputs=[_in(slots, wp.int64, np.int64), _in(index, wp.int64, np.int64), _in(rows, wp.int64, np.int64),
+                      _in(cell, wp.vec3i, np.int32),
                       _in(positions, wp.vec3d, np.float64), _in(normals, wp.vec3f, np.float32), _in(ao, wp.uint32, np.uint32),
                       _in(ids, wp.int64, np.int64), origin, size],
               outputs=[wp.array(grid.cells, dtype=wp.uint32, device="cpu", copy=False),

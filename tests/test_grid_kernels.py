@@ -103,3 +103,19 @@ def test_moves_with_and_without_kernels_leave_the_same_grid(monkeypatch):
         for name in GRID_STATE:
             np.testing.assert_array_equal(getattr(kernel, name), getattr(numpy_grid, name), err_msg=f"step {step}: {name}")
         assert kernel.free_slots == numpy_grid.free_slots and kernel.stats == numpy_grid.stats
+
+
+def test_written_rows_equal_gathered_points(record):
+    """write_points(..., rows=r) writes what write_points of the gathered rows writes."""
+    rng = np.random.default_rng(3)
+    a, b = Grid(np.array([record]), 500), Grid(np.array([record]), 500)
+    pos = record["origin"].astype(np.float64) + rng.random((4000, 3)) * 0.3
+    with np.errstate(invalid="ignore"):
+        cell, _ = a.cell_of(0, pos)
+    nrm, ao, ids = awkward_normals(4000, rng), rng.integers(0, 256, 4000).astype(np.uint32), rng.integers(0, 1 << 40, 4000)
+    rows = rng.permutation(4000)[:3000]
+    slots, idx = rng.permutation(500).repeat(7)[:3000], np.tile(np.arange(7), 500)[:3000]
+    grid_kernels.write_points(a, slots, idx, record, cell, pos, nrm, ao, ids, rows=rows)
+    grid_kernels.write_points(b, slots, idx, record, cell[rows], pos[rows], nrm[rows], ao[rows], ids[rows])
+    for name in ("cells", "point_local", "point_normal", "point_id"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
