@@ -167,8 +167,9 @@ def _decompress_zstd_frames(data: bytes, cap: int, limits: Limits) -> bytes:
     out: list[bytes] = []
     total = 0
     view = memoryview(data)
+    dctx = zstandard.ZstdDecompressor(max_window_size=limits.zstd_max_window_bytes)
     while True:
-        part = _decompress_zstd_frame(view, cap - total, limits)
+        part = _decompress_zstd_frame(dctx, view, cap - total, limits)
         out.append(part.data)
         total += len(part.data)
         if not part.unused:
@@ -178,14 +179,13 @@ def _decompress_zstd_frames(data: bytes, cap: int, limits: Limits) -> bytes:
             raise CodecError(f"zstd payload: {len(view)} bytes after the frame that are not a zstd frame")
 
 
-def _decompress_zstd_frame(data, cap: int, limits: Limits) -> _Frame:
+def _decompress_zstd_frame(dctx, data, cap: int, limits: Limits) -> _Frame:
     try:
         declared = zstandard.frame_content_size(data)
     except zstandard.ZstdError as exc:
         raise CodecError(f"zstd payload: not a zstd frame ({exc})") from None
     if declared > cap:  # -1 means not declared: the bounded feed below still caps it
         raise LimitError(f"zstd payload declares {declared} bytes, over the limit of {cap}")
-    dctx = zstandard.ZstdDecompressor(max_window_size=limits.zstd_max_window_bytes)
     dobj = dctx.decompressobj()
     frame = _zstd_bounded(dobj, data, cap, limits, "zstd payload")
     if not dobj.eof:

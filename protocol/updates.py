@@ -158,15 +158,14 @@ def _encode_plain(d: GridDelta) -> bytes:
     return head + b"".join(np.ascontiguousarray(p).astype(p.dtype.newbyteorder("<")).tobytes() for p in parts)
 
 
-def _decode_plain(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDelta:
-    return GridDelta(
-        cell_capacity=capacity,
-        transform_ids=r.array("<u4", k),
-        transforms=r.array("<f4", 16 * k).reshape(k, 4, 4),
-        bucket_ids=r.array("<u4", nb),
-        buckets=r.array("<u4", nb * 2 * BUCKET_ENTRIES).reshape(nb, BUCKET_ENTRIES, 2),
-        cell_slots=r.array("<u4", nc),
-        cells=r.array("<u4", nc * CELL_WORDS).reshape(nc, CELL_WORDS),
+def _decode_plain(r: Reader, capacity: int, k: int, nb: int, nc: int) -> _Part:
+    return _Part(
+        capacity,
+        r.array("<u4", k),
+        r.array("<f4", 16 * k).reshape(k, 4, 4),
+        r.array("<u4", nb),
+        r.array("<u4", nb * 2 * BUCKET_ENTRIES).reshape(nb, BUCKET_ENTRIES, 2),
+        (r.array("<u4", nc), r.array("<u4", nc * CELL_WORDS).reshape(nc, CELL_WORDS)),
     )
 
 
@@ -224,8 +223,36 @@ def gaps_encode(sorted_ids: np.ndarray) -> bytes:
 
 
 def gaps_decode(data, count: int, what: str) -> np.ndarray:
+    if count == 0 and not len(data):
+        return _empty_u32(0)
     ids = np.cumsum(varint_decode(data, count, what).astype(np.int64) + 1) - 1
     if count and ids[-1] > 0xFFFFFFFF:
+        raise PayloadError(f"{what}: index beyond 32 bits")
+    return ids.astype(np.uint32)
+
+
+def gaps_decode_parts(datas: list, counts: list[int], what: str) -> np.ndarray:
+    """Several sections as gaps_encode writes them (each its own run of ids, `counts[i]` of them) -> all
+    their ids, in order, decoded at once; each section must hold exactly its count."""
+    if len(datas) == 1:
+        return gaps_decode(datas[0], counts[0], what)
+    lengths = np.array([len(d) for d in datas], np.int64)
+    n = np.asarray(counts, np.int64)
+    b = np.frombuffer(b"".join(datas), np.uint8)
+    full = lengths > 0
+    ends = (b < 0x80).astype(np.int64)
+    per = np.zeros(len(datas), np.int64)
+    if b.size:
+        per[full] = np.add.reduceat(ends, (np.cumsum(lengths) - lengths)[full])
+    if not (np.array_equal(per, n) and ends[np.cumsum(lengths)[full] - 1].all()):
+        raise PayloadError(f"{what}: a varint section does not hold exactly its count of values")
+    if not b.size:
+        return _empty_u32(0)
+    total = np.cumsum(varint_decode(b, int(n.sum()), what).astype(np.int64) + 1)
+    starts = np.cumsum(n) - n  # each section's first value
+    base = np.where(starts > 0, total[np.maximum(starts - 1, 0)], 0)
+    ids = total - np.repeat(base, n) - 1
+    if ids.max() > 0xFFFFFFFF:
         raise PayloadError(f"{what}: index beyond 32 bits")
     return ids.astype(np.uint32)
 
@@ -313,11 +340,18 @@ def _read_counts(r: Reader, n: int, most: int, what: str) -> np.ndarray:
     return counts
 
 
-def _decode_packed(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDelta:
+def _decode_packed(r: Reader, capacity: int, k: int, nb: int, nc: int) -> _Part:
     lt, lb, lc = r.unpack(_PACKED_LENGTHS)
     transform_ids = gaps_decode(r.take(lt), k, "transform ids")
-    transforms = unplanes(r, "<f4", 16 * k).reshape(k, 4, 4)
+    transforms = unplanes(r, "<f4", 16 * k).reshape(k, 4, 4) if k else np.zeros((0, 4, 4), np.float32)
+    bucket_ids, buckets = _decode_packed_buckets(r, lb, nb)
+    return _Part(capacity, transform_ids, transforms, bucket_ids, buckets, _read_packed_cells(r, lc, nc))
 
+
+def _decode_packed_buckets(r: Reader, lb: int, nb: int) -> tuple[np.ndarray, np.ndarray]:
+    if nb == 0:  # every section empty (as _packed_buckets writes it): nothing to read but the empty varints
+        gaps_decode(r.take(lb), 0, "bucket ids")
+        return _empty_u32(0), _empty_u32(0, BUCKET_ENTRIES, 2)
     bucket_ids = gaps_decode(r.take(lb), nb, "bucket ids")
     b_count = _read_counts(r, nb, BUCKET_ENTRIES, "bucket")
     b_canon = b_count != RAW
@@ -328,24 +362,64 @@ def _decode_packed(r: Reader, capacity: int, k: int, nb: int, nc: int) -> GridDe
     buckets[:, :, 1][b_sel] = unplanes(r, "<u4", n_entries)
     n_raw = int((~b_canon).sum())
     buckets[~b_canon] = unplanes(r, "<u4", n_raw * 2 * BUCKET_ENTRIES).reshape(n_raw, BUCKET_ENTRIES, 2)
+    return bucket_ids, buckets
 
-    cell_slots = gaps_decode(r.take(lc), nc, "cell slots")
-    c_count = _read_counts(r, nc, POINTS_PER_CELL, "cell")
-    c_canon = c_count != RAW
+
+@dataclass
+class _CellSections:
+    """A packed delta's cell sections, read (slots and counts checked) and not yet put together, so that
+    the cells of several parts are put together at once (`_assemble_cells`)."""
+
+    slot_gaps: memoryview  # the slots' varint section (decoded with the other parts': gaps_decode_parts)
+    n: int  # cells
+    counts: np.ndarray
+    keys: memoryview  # 4 byte planes of nc key words
+    pos: memoryview  # 2 byte planes of n_points position fields
+    normal: memoryview
+    ao: memoryview
+    raw: memoryview  # 4 byte planes of the raw cells' points
+
+
+def _read_packed_cells(r: Reader, lc: int, nc: int) -> _CellSections:
+    slot_gaps = r.take(lc)
+    c_count = _read_counts(r, nc, POINTS_PER_CELL, "cell") if nc else np.zeros(0, np.uint8)
+    canon = c_count != RAW
+    n_points, n_raw = int(c_count[canon].sum()), int(nc - canon.sum())
+    keys = r.take(4 * nc)
+    pos = r.take(2 * n_points)
+    return _CellSections(slot_gaps, nc, c_count, keys, pos, r.take(n_points), r.take(n_points),
+                         r.take(4 * POINTS_PER_CELL * n_raw))
+
+
+def _planes_of(parts: list[memoryview], itemsize: int, dtype) -> np.ndarray:
+    """Byte planes written part by part (planes()) -> the values of all parts, in order."""
+    rows = [np.frombuffer(p, np.uint8).reshape(itemsize, -1) for p in parts]
+    joined = rows[0] if len(rows) == 1 else np.concatenate(rows, axis=1)
+    return np.ascontiguousarray(joined.T).view(np.dtype(dtype).newbyteorder("<")).reshape(-1).astype(dtype)
+
+
+def _assemble_cells(sections: list[_CellSections]) -> tuple[np.ndarray, np.ndarray]:
+    """(cell slots, cells) of one or more parts' cell sections, in part order."""
+    one = len(sections) == 1
+    slots = gaps_decode_parts([s.slot_gaps for s in sections], [s.n for s in sections], "cell slots")
+    c_count = sections[0].counts if one else np.concatenate([s.counts for s in sections])
+    nc = len(slots)
     cells = np.zeros((nc, CELL_WORDS), dtype=np.uint32)
-    cells[:, KEY_WORD] = unplanes(r, "<u4", nc)
+    if not nc:
+        return slots, cells
+    c_canon = c_count != RAW
+    cells[:, KEY_WORD] = _planes_of([s.keys for s in sections], 4, np.uint32)
     p_sel = _expand_leading(np.where(c_canon, c_count, 0), POINTS_PER_CELL)
-    n_points = int(p_sel.sum())
-    pos = unplanes(r, "<u2", n_points).astype(np.uint32)
-    normal = r.array(np.uint8, n_points).astype(np.uint32)
-    ao = r.array(np.uint8, n_points).astype(np.uint32)
+    pos = _planes_of([s.pos for s in sections], 2, np.uint16).astype(np.uint32)
+    normal = np.frombuffer(b"".join(s.normal for s in sections), np.uint8).astype(np.uint32)
+    ao = np.frombuffer(b"".join(s.ao for s in sections), np.uint8).astype(np.uint32)
     if np.any(pos > 0x7FFF):
         raise PayloadError("cell: position field above 15 bits")
     points = cells[:, :POINTS_PER_CELL]
     points[p_sel] = ALLOCATED_BIT | (pos << 16) | (normal << 8) | ao
-    n_raw = int((~c_canon).sum())
-    points[~c_canon] = unplanes(r, "<u4", n_raw * POINTS_PER_CELL).reshape(n_raw, POINTS_PER_CELL)
-    return GridDelta(capacity, transform_ids, transforms, bucket_ids, buckets, cell_slots, cells)
+    if not c_canon.all():
+        points[~c_canon] = _planes_of([s.raw for s in sections], 4, np.uint32).reshape(-1, POINTS_PER_CELL)
+    return slots, cells
 
 
 # ------------------------------------------------------------------------------------------- public API
@@ -355,61 +429,96 @@ def encode_delta(delta: GridDelta, layout: Layout = Layout.PACKED) -> bytes:
     return _encode_plain(delta) if layout == Layout.PLAIN else _encode_packed(delta)
 
 
+@dataclass
+class _Part:
+    """One grid delta as read: its cells as (slots, cells), or as packed sections not yet put together."""
+
+    capacity: int
+    transform_ids: np.ndarray
+    transforms: np.ndarray
+    bucket_ids: np.ndarray
+    buckets: np.ndarray
+    cells: tuple | _CellSections
+
+
 def decode_delta(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta, Layout]:
     """Read a grid delta from the rest of a payload (both layouts); counts are checked before any array
     is allocated and the delta is checked structurally."""
-    delta, layout = _decode_one(r, limits)
+    part, layout = _read_part(r, limits)
     r.done()
-    return delta, layout
+    return _union([part], limits), layout
 
 
 def decode_delta_parts(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[GridDelta, Layout]:
     """Read one or more grid deltas (parts) filling the rest of a payload, as an Update carries them, and
-    give their union (`union_of_parts`). Every part is read and checked as a delta of its own."""
-    delta, layout = _decode_one(r, limits)
-    parts = [delta]
+    give their union (`union_of_parts`). Every part is checked as a delta of its own would be; the cells
+    of all parts are put together at once (a part costs little more than its bytes)."""
+    part, layout = _read_part(r, limits)
+    parts = [part]
     while not r.at_end():
-        part, part_layout = _decode_one(r, limits)
+        part, part_layout = _read_part(r, limits)
         if part_layout != layout:
             raise PayloadError(f"grid delta parts in layouts {layout.name} and {part_layout.name}")
         parts.append(part)
-    return union_of_parts(parts, limits), layout
+    return _union(parts, limits), layout
 
 
 def union_of_parts(parts: list[GridDelta], limits: Limits = DEFAULT_LIMITS) -> GridDelta:
     """The one delta that several parts make together. Parts share the cell capacity and change disjoint
     transforms, buckets and cells (so the order they are applied in does not matter); the union is checked
     like any delta (limits count every part's rows together)."""
-    if len(parts) == 1:
-        return parts[0]
-    capacity = parts[0].cell_capacity
-    if any(p.cell_capacity != capacity for p in parts):
+    return _union([_Part(p.cell_capacity, p.transform_ids, p.transforms, p.bucket_ids, p.buckets,
+                         (p.cell_slots, p.cells)) for p in parts], limits)
+
+
+def _union(parts: list[_Part], limits: Limits) -> GridDelta:
+    capacity = parts[0].capacity
+    if any(p.capacity != capacity for p in parts):
         raise PayloadError("grid delta parts with different cell capacities")
+    if isinstance(parts[0].cells, _CellSections):
+        slots, cells = _assemble_cells([p.cells for p in parts])
+    else:
+        slots, cells = (np.concatenate([p.cells[i] for p in parts]) for i in (0, 1))
+    kinds = {"transform": ([p.transform_ids for p in parts], [p.transforms for p in parts]),
+             "bucket": ([p.bucket_ids for p in parts], [p.buckets for p in parts])}
     out = {}
-    for ids_name, rows_name in (("transform_ids", "transforms"), ("bucket_ids", "buckets"), ("cell_slots", "cells")):
-        ids = np.concatenate([getattr(p, ids_name) for p in parts])
-        rows = np.concatenate([getattr(p, rows_name) for p in parts])
-        order = np.argsort(ids, kind="stable")
-        ids = ids[order]
-        if len(ids) > 1 and not np.all(ids[1:] > ids[:-1]):
-            raise PayloadError(f"grid delta parts overlap: a {ids_name.split('_')[0]} index in two parts")
-        out[ids_name], out[rows_name] = ids, rows[order]
-    delta = GridDelta(capacity, **out)
+    for what, (ids, rows) in kinds.items():
+        out[what] = _sorted_union(what, [len(i) for i in ids], np.concatenate(ids), np.concatenate(rows))
+    sizes = [p.cells.n if isinstance(p.cells, _CellSections) else len(p.cells[0]) for p in parts]
+    slots, cells = _sorted_union("cell", sizes, slots, cells)
+    delta = GridDelta(capacity, *out["transform"], *out["bucket"], slots, cells)
     delta.check(limits)
     return delta
 
 
-def _decode_one(r: Reader, limits: Limits) -> tuple[GridDelta, Layout]:
+def _sorted_union(what: str, sizes: list[int], ids: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parts' ids (each part's sorted and unique, as in any delta; `sizes` ids each) and rows,
+    concatenated -> sorted by id; an id in two parts is refused."""
+    if len(sizes) == 1 or len(ids) < 2:
+        return ids, rows
+    rising = ids[1:] > ids[:-1]
+    starts = np.cumsum(sizes)[:-1]
+    starts = starts[(starts > 0) & (starts < len(ids))]
+    rising[starts - 1] = True  # a part may begin below the previous one's end
+    if not rising.all():
+        raise PayloadError(f"{what} indices are not sorted and unique")
+    order = np.argsort(ids, kind="stable")
+    ids = ids[order]
+    if not np.all(ids[1:] > ids[:-1]):
+        raise PayloadError(f"grid delta parts overlap: a {what} index in two parts")
+    return ids, rows[order]
+
+
+def _read_part(r: Reader, limits: Limits) -> tuple[_Part, Layout]:
     layout, capacity, k, nb, nc = r.unpack(_COUNTS)
     _check_counts(capacity, k, nb, nc, limits)
     if layout == Layout.PLAIN:
-        delta = _decode_plain(r, capacity, k, nb, nc)
+        part = _decode_plain(r, capacity, k, nb, nc)
     elif layout == Layout.PACKED:
-        delta = _decode_packed(r, capacity, k, nb, nc)
+        part = _decode_packed(r, capacity, k, nb, nc)
     else:
         raise PayloadError(f"unknown grid delta layout {layout}")
-    delta.check(limits)
-    return delta, Layout(layout)
+    return part, Layout(layout)
 
 
 def state_digest(instances: np.ndarray, buckets: np.ndarray, cells: np.ndarray, transforms: np.ndarray) -> str:

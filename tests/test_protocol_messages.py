@@ -336,3 +336,39 @@ def test_update_parts_that_overlap_or_disagree_are_refused():
         m.Update.parse(payload + encode_delta(GridDelta(8), Layout.PACKED))
     with pytest.raises(PayloadError):
         m.Update.parse(payload + b"\x00")  # a part cut short
+
+
+def test_gaps_of_several_sections_decode_as_each_alone():
+    from protocol.updates import gaps_decode_parts
+
+    rng = np.random.default_rng(7)
+    runs = [np.sort(rng.choice(1 << 31, n, replace=False)) for n in (5, 0, 1, 300, 0, 17)]
+    datas = [gaps_encode(r) for r in runs]
+    got = gaps_decode_parts(datas, [len(r) for r in runs], "ids")
+    assert got.tolist() == np.concatenate(runs).tolist()
+    with pytest.raises(PayloadError):
+        gaps_decode_parts(datas, [4, 1, 1, 300, 0, 17], "ids")  # a value counted in the wrong section
+    with pytest.raises(PayloadError):
+        gaps_decode_parts([datas[0][:-1], datas[0][-1:] + datas[2]], [5, 1], "ids")  # a varint split between
+
+
+def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone():
+    from protocol.updates import union_of_parts
+
+    rng = np.random.default_rng(11)
+    slots = rng.permutation(5000)[:400].astype(np.uint32)
+    parts = []
+    for k, chunk in enumerate(np.array_split(slots, 9)):
+        cells = np.zeros((len(chunk), 8), np.uint32)
+        used = rng.integers(0, 8, len(chunk))
+        for i, u in enumerate(used):
+            cells[i, :u] = (1 << 31) | rng.integers(0, 1 << 23, u)
+        cells[:, 7] = rng.integers(0, 1 << 30, len(chunk))
+        if k == 3:
+            cells[0, 5] = 7  # a cell outside the packed form (sent raw)
+        order = np.argsort(chunk)
+        parts.append(GridDelta(5000, cell_slots=chunk[order], cells=cells[order]))
+    payload = m.Update(2, 1.0, parts[0]).serialize() + b"".join(encode_delta(p) for p in parts[1:])
+    got = m.Update.parse(payload).delta
+    assert got.equals(union_of_parts(parts))
+    assert got.cell_slots.tolist() == sorted(slots.tolist())
