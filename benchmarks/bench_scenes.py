@@ -14,6 +14,7 @@ Targets per scene and scale: recon_mae < 0.02, holes < 0.1 %, dropped < 0.5 %, P
 > GTAO.
 
     python -m benchmarks.bench_scenes [--scales 1,4] [--scenes builtin:cornell,...] [--out out/bench_scenes]
+        [--maps [--maps-view EX,EY,EZ:TX,TY,TZ --maps-size 960x540]]
 """
 from __future__ import annotations
 
@@ -67,7 +68,10 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     refs = reference_images(scene, frames, ReferenceSettings(spp=cfg["spp"]), show_progress=False)
     rows = score_frames(frames, refs, methods)
     if cfg.get("maps"):
-        save_maps(res.grid, frames[0], refs[0], Path(cfg["maps"]) / f"maps_{scene.name}_x{scale:g}.png")
+        frame, ref = frames[0], refs[0]
+        if cfg.get("maps_view"):  # the error map from a camera of its own instead of the first scored frame
+            frame, ref = view_frame(scene, res.grid, cfg["maps_view"], tuple(cfg["maps_size"]), cfg["spp"])
+        save_maps(res.grid, frame, ref, Path(cfg["maps"]) / f"maps_{scene.name}_x{scale:g}.png")
     s = res.stats
     return {
         "scene": scene.name, "spec": spec, "scale": scale, "density": density, "points": s["points_kept"],
@@ -76,6 +80,31 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
         **{f"psnr_{m}": mean_scores(rows, m).psnr for m in methods},
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+
+
+def parse_view(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """'EX,EY,EZ:TX,TY,TZ' -> (eye, target) in world units."""
+    parts = [tuple(float(v) for v in part.split(",")) for part in text.split(":")]  # ValueError on a non-number
+    if len(parts) != 2 or any(len(p) != 3 for p in parts) or parts[0] == parts[1]:
+        raise ValueError(f"wants two different 3D points EX,EY,EZ:TX,TY,TZ, got {text!r}")
+    return parts[0], parts[1]
+
+
+def view_frame(scene, grid, view: str, size: tuple[int, int], spp: int):
+    """PSAO's frame and the RTAO reference from one camera (--maps-view), at `size`."""
+    import numpy as np
+
+    from psao_client.render.views import near_far
+    from psao_eval.quality import FramePose, QualityRenderer, reference_images
+    from psao_eval.reference import ReferenceSettings
+    from psao_scene.camera import ORBIT_FOV_Y, look_at, perspective
+
+    eye, target = (np.array(v, np.float64) for v in parse_view(view))
+    near, far = near_far(scene, eye)
+    pose = FramePose(0, 0.0, look_at(eye, target), perspective(ORBIT_FOV_Y, size[0] / size[1], near, far))
+    with QualityRenderer(scene, size, methods=("psao",)) as qr:
+        frame = qr.render(grid, [pose], timing_repeats=1)[0]
+    return frame, reference_images(scene, [frame], ReferenceSettings(spp=spp), show_progress=False)[0]
 
 
 def save_maps(grid, frame, ref, path: Path) -> None:
@@ -181,6 +210,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("out") / "bench_scenes")
     ap.add_argument("--maps", action="store_true", help="also save maps_SCENE_xSCALE.png per scene (holes, error map)")
+    ap.add_argument("--maps-view", default=None, metavar="EX,EY,EZ:TX,TY,TZ",
+                    help="--maps from this camera (eye and target, world units) instead of the first scored frame")
+    ap.add_argument("--maps-size", default="960x540", help="--maps-view frame size")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
@@ -190,6 +222,13 @@ def main(argv=None) -> int:
     w, h = (int(v) for v in args.size.split("x"))
     cfg = {"rays": args.rays, "probes": args.probes, "probe_rays": args.probe_rays, "spp": args.spp,
            "size": [w, h], "frames": args.frames, "maps": str(args.out) if args.maps else None}
+    if args.maps_view is not None:
+        try:  # one line and exit 2 before any bake
+            parse_view(args.maps_view)
+            mw, mh = (int(v) for v in args.maps_size.split("x"))
+        except ValueError as exc:
+            ap.error(f"--maps-view / --maps-size: {exc}")
+        cfg.update(maps_view=args.maps_view, maps_size=[mw, mh])
     print(f"bake {args.rays or 'default'} rays/point; {args.probes} probes x {args.probe_rays} rays; RTAO {args.spp} spp, "
           f"{args.frames} frames at {w}x{h} along each scene's camera path (default orbit where it has none)")
     print(HEADER, flush=True)
