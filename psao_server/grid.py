@@ -276,15 +276,18 @@ class Grid:
         stay = np.zeros(len(slots), dtype=bool)
         found = []
         kernels = _kernels()
-        for inst in np.unique(insts).tolist():
-            sel = np.flatnonzero(insts == inst)
+        groups = np.flatnonzero(np.bincount(insts, minlength=len(self.instances)))  # the instances (no sort)
+        for inst in groups.tolist():
+            one = len(groups) == 1  # (a deforming instance on its own: no gathered copies)
+            sel = np.arange(len(slots)) if one else np.flatnonzero(insts == inst)
+            mine_pos, mine_side = (new_local_pos, side) if one else (new_local_pos[sel], side[sel])
             rec = self.instances[inst]
-            old_keys = self.cells[slots[sel], gf.KEY_WORD]
+            old_keys = self.cells[slots if one else slots[sel], gf.KEY_WORD]
             if kernels is not None:
-                found.append((inst, sel, *kernels.locate(new_local_pos[sel], rec, side[sel], old_keys)))
+                found.append((inst, sel, *kernels.locate(mine_pos, rec, mine_side, old_keys)))
                 continue
-            cell, inside = self.cell_of(inst, new_local_pos[sel])
-            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
+            cell, inside = self.cell_of(inst, mine_pos)
+            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | mine_side
             found.append((inst, sel, cell, inside, keys, inside & (keys == old_keys)))
         # the cells of the instances most of whose moved points leave their cells, in one pass over the pool
         leaving = np.zeros(len(self.instances) + 1, dtype=bool)  # index -1 (a free cell) stays False
@@ -295,8 +298,9 @@ class Grid:
             if leaving[inst]:
                 mine = cells_of[self.cell_instance[cells_of] == inst]
                 if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
-                    kept[sel] = self._refill_instance(inst, mine, slots[sel], idx[sel], new_local_pos[sel],
-                                                      new_normals[sel], cell, inside, keys, ids[sel], ao[sel])
+                    take = (lambda a: a) if len(found) == 1 else (lambda a: a[sel])  # noqa: E731
+                    kept[sel] = self._refill_instance(inst, mine, take(slots), take(idx), take(new_local_pos),
+                                                      take(new_normals), cell, inside, keys, take(ids), take(ao))
                     stay[sel] = True  # done
                     continue
             s_sel = sel[same]
