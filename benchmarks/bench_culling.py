@@ -136,7 +136,8 @@ async def run(args) -> int:
         server_side = {by_id[s.id][0]: s for s in service.registry if s.id in by_id}
 
         def quiet(keys):
-            return all(not server_side[k].busy and not server_side[k].outbox and not server_side[k].wake.is_set()
+            return all(not server_side[k].busy and not server_side[k].outbox and not server_side[k].in_flight
+                       and not (server_side[k].wake.is_set() and not server_side[k].on_parts)
                        and clients[k].stats.messages == server_side[k].messages_sent for k in keys)
 
         held = service.tick

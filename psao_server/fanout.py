@@ -136,7 +136,7 @@ class Fanout:
         self._tile_size: float | None = None  # world units of a tile's side
         self._places: CellPlaces | None = None  # every slot's place, kept across ticks
         self._placed_with: np.ndarray | None = None  # the transforms it holds
-        self._stale = np.zeros(0, np.int64)  # slots changed since (the ticks' dirty cells)
+        self._stale = np.zeros(0, bool)  # per slot: changed since (the ticks' dirty cells)
 
     def planes(self, client: Client) -> np.ndarray | None:
         """The client's extended frustum, or None when it sees everything (no culling, no usable camera)."""
@@ -153,13 +153,13 @@ class Fanout:
             self._places = CellPlaces(grid, np.arange(len(grid.cells)), t)
         else:
             moved = np.flatnonzero(np.any(self._placed_with.reshape(len(t), -1) != t.reshape(len(t), -1), axis=1))
-            rows = self._stale
+            rows = np.flatnonzero(self._stale)
             if len(moved):
                 rows = np.union1d(rows, np.flatnonzero(np.isin(grid.cell_instance, moved)))
             if len(rows):
                 self._places.refresh(grid, rows, t)
         self._placed_with = t.copy()
-        self._stale = np.zeros(0, np.int64)
+        self._stale[:] = False
         return self._places
 
     def tile_size(self, places: CellPlaces) -> float:
@@ -313,7 +313,9 @@ class Fanout:
         """The shared stream's members this tick (the rest are put in `others`)."""
         capacity = len(grid.cells)
         changed_rows = bool(len(bucket_ids) or len(cell_slots))
-        self._stale = np.union1d(self._stale, cell_slots)  # their places may have changed
+        if len(self._stale) < capacity:
+            self._stale = np.concatenate([self._stale, np.zeros(capacity - len(self._stale), bool)])
+        self._stale[cell_slots] = True  # their places may have changed
         members, joiners = [], []
         for c in clients:
             may_join = (not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight

@@ -246,7 +246,8 @@ def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):
     sides = [-10.0, -10.0, 10.0]
 
     async def scenario():
-        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9, digest_log=tmp_path / "server.jsonl")
+        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9, digest_log=tmp_path / "server.jsonl",
+                                 fanout=FanoutSettings(parts_from=2))
         service, stop, task, url = await start(TwoSides.grid(), settings, hook)
         looking = list(sides)
         clients = [MirrorClient(url, HASH, camera=lambda t, k=k: camera_towards(looking[k]),
