@@ -14,7 +14,8 @@ over the point ids, so it can never hold more entries than the scene has points.
 
 Priority (`pick`): points in some client's extended view before those outside it; among those, points
 whose history was reset (nothing traced since their neighbourhood changed) before points being refined;
-then the oldest waiting first.
+then the points whose AO changed most since they were last traced (estimates the resets give), the
+oldest waiting first where those are alike.
 
 `TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
 both fitted to the ticks' own traces (exponentially weighted least squares), so a busier machine gets
@@ -118,6 +119,8 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
 
 HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,
 REFINING_S = 2e9  # a point that holds rays since its last reset
+CHANGE_S = 100.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key
+MAX_CHANGE = 1000.0  # change estimates accumulate up to this
 
 
 def first_by_key(ids: np.ndarray, key: np.ndarray, k: int) -> np.ndarray:
@@ -149,6 +152,9 @@ class RefineQueue:
         # was measured around other geometry), the whole ray set for a few-ray first grid (same geometry)
         self.old_until = np.zeros(n, np.float32)
         self.waiting_since = np.full(n, time.perf_counter())
+        # how much the point's AO may have changed since it was last traced (the sum of the estimates the
+        # resets gave, e.g. selection.occlusion_change): the point changed most goes first
+        self.change = np.zeros(n, np.float32)
         # the waiting ids (done < slices), sorted, with "dead" entries (done reached slices since) removed
         # in bulk once they are a quarter of the list: finding the waiting points, or the next window of
         # them, costs in proportion to them, and a finished round does not rewrite the whole list
@@ -224,11 +230,13 @@ class RefineQueue:
         and no change around it since."""
         return (self.done[ids] == 0) & (self.old_until[ids] > self.old_rays[ids])
 
-    def reset(self, ids: np.ndarray, now: float) -> None:
+    def reset(self, ids: np.ndarray, now: float, change: np.ndarray | None = None) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already.
         Points with no fresh rays since their last reset (and no more kept rays than keep_rays) are left as
         they are: a reset again changes nothing for them (a mover's neighbourhood is reset every tick it moves, so this keeps the cost to the points
-        traced since)."""
+        traced since). `change`: per id, an estimate of how much its AO changed (added to `change`)."""
+        if change is not None:
+            self.change[ids] = np.minimum(self.change[ids] + change, MAX_CHANGE)
         cap = min(self.keep, self.target) if self.keep else np.inf
         ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)
                   | (self.old_until[ids] > self.old_rays[ids])]  # a first grid's estimate (now of other geometry)
@@ -281,9 +289,11 @@ class RefineQueue:
 
     def key(self, ids: np.ndarray, visible: np.ndarray, base: float) -> np.ndarray:
         """Priority key of `ids` (smaller first): HIDDEN_S if out of every view, plus REFINING_S if the point
-        holds rays since its last reset, plus its wait start less `base`. (select_kernels.priority_kernel
-        computes the same in one pass, with the views.)"""
-        return ((~visible) * HIDDEN_S + (self.rays[ids] > 0) * REFINING_S) + (self.waiting_since[ids] - base)
+        holds rays since its last reset, plus its wait start less `base`, less CHANGE_S per unit of
+        estimated change since its last trace. (select_kernels.priority_kernel computes the same in one
+        pass, with the views.)"""
+        return (((~visible) * HIDDEN_S + (self.rays[ids] > 0) * REFINING_S)
+                + ((self.waiting_since[ids] - base) - self.change[ids].astype(np.float64) * CHANGE_S))
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:
         """Accumulate, for distinct `ids`, one round (each point's slice `done`, of `rays` rays; or `slices` slices at once, e.g.
@@ -295,6 +305,7 @@ class RefineQueue:
         self.done[ids] += slices
         self._finished(ids, before)
         self.waiting_since[ids] = now
+        self.change[ids] = 0.0
         total, unocc = self._blend(ids)
         return pw.quantise_ao(unocc / total)
 

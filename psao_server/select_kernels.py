@@ -15,11 +15,12 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from psao_server.budget import HIDDEN_S, REFINING_S
+from psao_server.budget import CHANGE_S, HIDDEN_S, REFINING_S
 
 wp.config.quiet = True
 HIDDEN = wp.constant(HIDDEN_S)
 REFINING = wp.constant(REFINING_S)
+CHANGE = wp.constant(CHANGE_S)
 
 
 @wp.func
@@ -37,9 +38,23 @@ def may_see(p: wp.vec3d, n: wp.vec3d, c: wp.vec3d, r: wp.float64, ao: wp.float64
     return (d0 * d0 + d1 * d1 + d2 * d2 <= reach * reach) and (d0 * n[0] + d1 * n[1] + d2 * n[2] >= -r)
 
 
+@wp.func
+def occlusion(p: wp.vec3d, n: wp.vec3d, c: wp.vec3d, r: wp.float64, ao: wp.float64) -> wp.float64:
+    d0 = c[0] - p[0]
+    d1 = c[1] - p[1]
+    d2 = c[2] - p[2]
+    d = wp.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    o = wp.float64(0.0)
+    if d <= r:
+        o = wp.float64(1.0)
+    elif d <= r + ao:
+        o = wp.min(wp.float64(1.0), (r / d) * (r / d) * wp.max(wp.float64(0.0), (d0 * n[0] + d1 * n[1] + d2 * n[2]) / d))
+    return o
+
+
 @wp.kernel
 def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.float64),
-                keep: wp.array(dtype=wp.uint8)):
+                keep: wp.array(dtype=wp.uint8), change: wp.array(dtype=wp.float32)):
     # q: box 0 lo, hi, box 1 lo, hi (12), sphere 0 centre, radius, sphere 1 centre, radius (8), AO distance,
     # boxes, spheres. One thread loops over every point: a CPU launch runs its threads one after another,
     # and each thread is a call that copies the arguments.
@@ -66,6 +81,13 @@ def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q:
                 see = may_see(p, n, c1, r1, ao)
             inside = see
         keep[j] = wp.uint8(1) if inside else wp.uint8(0)
+        # selection.occlusion_change: how much the sphere's share of the point's hemisphere changed
+        dc = wp.float64(1.0)
+        if inside and spheres > 0:
+            dc = occlusion(p, nrm[j], c0, r0, ao)
+            if spheres > 1:
+                dc = wp.abs(dc - occlusion(p, nrm[j], c1, r1, ao))
+        change[j] = wp.float32(dc) if inside else wp.float32(0.0)
 
 
 class NearTest:
@@ -76,12 +98,14 @@ class NearTest:
         self._pos_np = np.ascontiguousarray(positions, np.float64)
         self._nrm_np = np.ascontiguousarray(normals, np.float64)
         self.keep = np.zeros(len(self._pos_np), np.uint8)
+        self.change = np.zeros(len(self._pos_np), np.float32)  # selection.occlusion_change where keep
         self.q = np.zeros(23, np.float64)
         self._launch = wp.launch(near_kernel, dim=1, device="cpu", record_cmd=True, inputs=[
             wp.array(self._pos_np, dtype=wp.vec3d, device="cpu", copy=False),
             wp.array(self._nrm_np, dtype=wp.vec3d, device="cpu", copy=False),
             wp.array(self.q, dtype=wp.float64, device="cpu", copy=False),
-            wp.array(self.keep, dtype=wp.uint8, device="cpu", copy=False)])
+            wp.array(self.keep, dtype=wp.uint8, device="cpu", copy=False),
+            wp.array(self.change, dtype=wp.float32, device="cpu", copy=False)])
 
     def __call__(self, boxes: list[tuple[np.ndarray, np.ndarray]], spheres: list[tuple[np.ndarray, float]],
                  ao_distance: float) -> np.ndarray:
@@ -105,7 +129,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     instance: wp.array(dtype=wp.int64), moving: wp.array(dtype=wp.bool),
                     transforms: wp.array(dtype=wp.mat44d), planes: wp.array(dtype=wp.vec4d), cameras: int,
                     margin: wp.float64, rays: wp.array(dtype=wp.int32), since: wp.array(dtype=wp.float64),
-                    base: wp.float64, key: wp.array(dtype=wp.float64)):
+                    change: wp.array(dtype=wp.float32), base: wp.float64, key: wp.array(dtype=wp.float64)):
     for j in range(ids.shape[0]):
         i = ids[j]
         p = world[i]
@@ -129,7 +153,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
             tier = wp.float64(HIDDEN)
         if rays[i] > 0:
             tier = tier + wp.float64(REFINING)
-        key[j] = tier + (since[i] - base)
+        key[j] = tier + ((since[i] - base) - wp.float64(change[i]) * wp.float64(CHANGE))
 
 
 class Arrays:
@@ -154,7 +178,7 @@ class PriorityKey:
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
-                 rays: np.ndarray, since: np.ndarray, base: float) -> np.ndarray:
+                 rays: np.ndarray, since: np.ndarray, change: np.ndarray, base: float) -> np.ndarray:
         """Priority key (float64, per id; smaller first): RefineQueue.key with each point's visibility
         in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible)."""
         ids = np.ascontiguousarray(ids, np.int64)
@@ -170,6 +194,6 @@ class PriorityKey:
             v("moving", moving, wp.bool),
             wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
             wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin),
-            v("rays", rays, wp.int32), v("since", since, wp.float64), wp.float64(base),
+            v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32), wp.float64(base),
             wp.array(key, dtype=wp.float64, device="cpu", copy=False)])
         return key

@@ -105,6 +105,20 @@ def sorted_union(parts: list[np.ndarray]) -> np.ndarray:
     return c[np.concatenate([[True], c[1:] != c[:-1]])] if len(c) else c
 
 
+def sum_by_index(parts: list[np.ndarray], values: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted_union(parts), the values of each index summed over the parts)."""
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.float32)
+    c = np.concatenate(parts)
+    v = np.concatenate(values).astype(np.float32)
+    order = np.argsort(c, kind="stable")
+    c, v = c[order], v[order]
+    if len(c) == 0:
+        return c, v
+    first = np.flatnonzero(np.concatenate([[True], c[1:] != c[:-1]]))
+    return c[first], np.add.reduceat(v, first)
+
+
 class BlockIndex:
     """Points (fixed world positions) sorted by a coarse world block, for box queries."""
 
@@ -167,6 +181,27 @@ def may_see_sphere(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, 
     dist2 = np.einsum("pi,pi->p", d, d)
     ahead = np.einsum("pi,pi->p", d, np.asarray(normals, np.float64))
     return (dist2 <= (radius + ao_distance) ** 2) & (ahead >= -radius)
+
+
+def occlusion_change(points: np.ndarray, normals: np.ndarray, spheres: list[tuple[np.ndarray, float]],
+                     ao_distance: float) -> np.ndarray:
+    """Float (P,): how much a mover's bounding sphere changed its share of each point's cosine-weighted
+    hemisphere, |o(now) - o(before)| with spheres [now, before] ([now]: o(now); none: 1, unknown), where
+    o = (r / d)^2 max(0, cos angle to the normal), 1 inside the sphere and 0 beyond the AO distance: a
+    cheap measure of how much the point's AO may have changed, for the order of re-tracing."""
+    if not spheres:
+        return np.ones(len(points))
+
+    def o(c, r):
+        d = np.asarray(c, np.float64) - points
+        dist = np.sqrt(np.einsum("pi,pi->p", d, d))
+        with np.errstate(all="ignore"):
+            cos = np.maximum(np.einsum("pi,pi->p", d, np.asarray(normals, np.float64)) / dist, 0.0)
+            v = np.minimum((r / dist) ** 2 * cos, 1.0)
+        return np.where(dist <= r, 1.0, np.where(dist <= r + ao_distance, v, 0.0))
+
+    now = o(*spheres[0])
+    return now if len(spheres) == 1 else np.abs(now - o(*spheres[1]))
 
 
 def reach_boxes(motion: MotionInput, ao_distance: float, merge_slack: float = 0.25) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
@@ -278,13 +313,15 @@ class NearCache:
             self.queries += 1
         return held[4:]
 
-    def near(self, reach: dict, motion: MotionInput) -> np.ndarray:
+    def near(self, reach: dict, motion: MotionInput) -> tuple[np.ndarray, np.ndarray]:
         """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
-        normals, ao_distance)."""
-        parts = []
+        normals, ao_distance), and per index the occlusion_change of the movers' spheres, summed over the
+        movers."""
+        parts, changes = [], []
         for i, boxes in reach.items():
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
             idx, test = self._candidates(i, boxes, spheres)
             keep = test(boxes, spheres, self.ao_distance).view(bool)
             parts.append(idx[keep])
-        return sorted_union(parts)
+            changes.append(test.change[keep])
+        return sum_by_index(parts, changes)

@@ -54,7 +54,7 @@ from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_t
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid, load_kernels
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
-                                   rigid_in_company, sorted_union)
+                                   rigid_in_company, sorted_union, sum_by_index)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.tracer import make_tracer
 
@@ -385,10 +385,10 @@ class ServerTick:
         the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
         now = t_anim
         if self.last_frame is None or not self.settings.selection:
-            changed = np.flatnonzero(self.tracked)
+            changed, change = np.flatnonzero(self.tracked), None
         else:
-            changed = self._motion_candidates(frame)
-        self.queue.reset(changed, now)
+            changed, change = self._motion_candidates(frame)
+        self.queue.reset(changed, now, change)
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
         refined = self._refine(changed, frame)
@@ -428,7 +428,7 @@ class ServerTick:
         planes = None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
         key = self._priority(waiting, self.world_pos, self.local_pos, self.inst_of, self.moving_point, frame.transforms,
                              planes, self.settings.view.distance_margin, self.queue.rays, self.queue.waiting_since,
-                             float(self.queue.waiting_since[waiting].min()))
+                             self.queue.change, float(self.queue.waiting_since[waiting].min()))
         return first_by_key(waiting, key, k)
 
     def apply(self, plan: "TickPlan") -> TickStats:
@@ -493,7 +493,7 @@ class ServerTick:
         candidates = self.tracked.copy()
         if self.settings.selection and self.last_frame is not None:
             candidates[:] = False
-            candidates[self._motion_candidates(frame)] = True
+            candidates[self._motion_candidates(frame)[0]] = True
         candidates |= self.stale
         ids = np.flatnonzero(candidates & self.tracked)
         pos, nrm = self.world_points(frame, ids)
@@ -513,24 +513,42 @@ class ServerTick:
                 out.append(i)
         return out
 
-    def _motion_candidates(self, frame: Frame) -> np.ndarray:
-        """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed.
-        Movers that stood still since then count as static boxes for the company test and select nothing
-        themselves. Costs in proportion to the points near movers (NearCache), not to the scene."""
+    def _motion_candidates(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed,
+        and per id an estimate of how much (static points: selection.occlusion_change of the movers'
+        spheres; a mover's own points: _mover_change). Movers that stood still since then count as static
+        boxes for the company test and select nothing themselves. Costs in proportion to the points near
+        movers (NearCache), not to the scene."""
         moved = self._moved_since(frame, self.last_frame)
         if not moved:
-            return np.zeros(0, np.int64)
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
         pick = lambda d: {i: d[i] for i in moved if i in d}  # noqa: E731
         motion = MotionInput(pick(frame.bounds), pick(self.last_frame.bounds),
                              [i for i in self.kinds.rigid if i in moved], [i for i in self.kinds.skinned if i in moved],
                              pick(frame.spheres), pick(self.last_frame.spheres))
         reach = reach_boxes(motion, self.scene.ao_distance)
-        parts = [self.static_ids[self.near_cache.near(reach, motion)]]  # static ids are tracked
+        near, change = self.near_cache.near(reach, motion)
+        parts, changes = [self.static_ids[near]], [change]  # static ids are tracked
         standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
         for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
             ids = self.ids_of[i]
             parts.append(ids[self.tracked[ids]])
-        return sorted_union(parts)
+            changes.append(np.full(len(parts[-1]), self._mover_change(i, frame), np.float32))
+        return sum_by_index(parts, changes)
+
+    def _mover_change(self, i: int, frame: Frame) -> float:
+        """How much the AO of a moving instance's own points may have changed since the last tick, on the
+        scale of selection.occlusion_change: half (a point's hemisphere half changed) once it has moved
+        by its bounding radius or turned a radian; a deforming mesh counts as that much."""
+        if i in self.kinds.skinned:
+            return 0.5
+        a, b = frame.transforms[i], self.last_frame.transforms[i]
+        (c, r), (c0, _) = frame.spheres[i], self.last_frame.spheres[i]
+        with np.errstate(all="ignore"):
+            turn = np.linalg.solve(b[:3, :3].T, a[:3, :3].T).T  # a b^-1: the rotation between the frames
+            angle = float(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0)))
+        step = float(np.linalg.norm(np.asarray(c) - np.asarray(c0))) / max(float(r), 1e-9)
+        return 0.5 * min(1.0, step + (angle if np.isfinite(angle) else 1.0))
 
     def _moving_groups(self, ids: np.ndarray):
         """(instance, positions in ids) of the moving instances' points among `ids`."""

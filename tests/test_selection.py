@@ -5,7 +5,8 @@ import pytest
 
 from psao_scene.camera import look_at, perspective
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view, in_box, in_frustum,
-                                   reach_boxes, rigid_in_company, sorted_union, static_points_near)
+                                   reach_boxes, rigid_in_company, sorted_union, static_points_near,
+                                   occlusion_change, sum_by_index)
 
 
 def random_points(n, seed=0, scale=20.0):
@@ -124,12 +125,29 @@ def test_near_cache_matches_static_points_near_over_a_motion():
     for motion in moving_spheres(rng, 40, 3, 0.1):
         reach = reach_boxes(motion, ao)
         want = np.flatnonzero(static_points_near(index, reach, motion, nrm, ao))
-        np.testing.assert_array_equal(cache.near(reach, motion), want)
+        got, change = cache.near(reach, motion)
+        np.testing.assert_array_equal(got, want)
+        # the change estimate: occlusion_change of each mover's spheres, summed over the movers that reach a point
+        expect = np.zeros(len(pts))
+        for i, boxes in reach.items():
+            sp = [s[i] for s in (motion.spheres_now, motion.spheres_before) if s and i in s]
+            mine = np.flatnonzero(static_points_near(index, {i: boxes}, motion, nrm, ao))
+            expect[mine] += occlusion_change(pts[mine], nrm[mine], sp, ao)
+        np.testing.assert_allclose(change, expect[want], rtol=1e-5, atol=1e-6)
+        assert (change > 0).any()
     assert 3 <= cache.queries < 40 * 3  # candidates are reused between ticks, refilled when a mover leaves them
     # without spheres: the boxes alone
     motion = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {}, [0], [])
     reach = reach_boxes(motion, ao)
-    np.testing.assert_array_equal(cache.near(reach, motion), np.flatnonzero(static_points_near(index, reach)))
+    got, change = cache.near(reach, motion)
+    np.testing.assert_array_equal(got, np.flatnonzero(static_points_near(index, reach)))
+    assert (change == 1).all()  # no spheres: the change is unknown, counted as whole
+
+
+def test_sum_by_index_sums_the_values_of_each_index():
+    ids, vals = sum_by_index([np.array([1, 4, 7]), np.array([], np.int64), np.array([0, 4])],
+                             [np.array([1.0, 2.0, 3.0]), np.array([]), np.array([5.0, 0.5])])
+    assert list(ids) == [0, 1, 4, 7] and list(vals) == [5.0, 1.0, 2.5, 3.0]
 
 
 def test_sorted_union_is_unique_of_the_parts():

@@ -155,7 +155,7 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
             margin = tick.settings.view.distance_margin
             base = float(tick.queue.waiting_since[ids].min())
             got = PriorityKey()(ids, tick.world_pos, tick.local_pos, tick.inst_of, tick.moving_point, frame.transforms,
-                                planes, margin, tick.queue.rays, tick.queue.waiting_since, base)
+                                planes, margin, tick.queue.rays, tick.queue.waiting_since, tick.queue.change, base)
             visible = in_any_view(tick.world_points(frame, ids)[0], tick.cameras, margin)
             assert 0 < visible.sum() and (k == 0 or not visible.all())
             np.testing.assert_array_equal(got, tick.queue.key(ids, visible, base))
