@@ -46,14 +46,15 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     from psao_scene import load_scene
     from psao_server.bake import bake_scene, reconstruction_error, sample_probes
     from psao_server.buried import visible_probes
-    from psao_server.settings import BakeSettings
+    from psao_server.settings import BakeSettings, GapFillSettings
     from psao_server.sampling import default_density
 
     scene = load_scene(spec)
     density = default_density(scene) * scale
     t0 = time.perf_counter()
     rays = {} if cfg["rays"] is None else {"rays": cfg["rays"]}
-    res = bake_scene(scene, BakeSettings(density=density, **rays), show_progress=False)
+    fill = GapFillSettings(passes=cfg.get("gap_fill", 0), first_step=cfg.get("gap_fill_first_step", False))
+    res = bake_scene(scene, BakeSettings(density=density, gap_fill=fill, **rays), show_progress=False)
     seconds = time.perf_counter() - t0
     probes = visible_probes(scene, sample_probes(scene, cfg["probes"]))
     try:
@@ -209,6 +210,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x180")
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("out") / "bench_scenes")
+    ap.add_argument("--gap-fill", type=int, default=0, metavar="PASSES", help="bake with gap fill rounds (default off)")
+    ap.add_argument("--gap-fill-first-step", action="store_true", help="gap fill where the lookup's first step finds nothing")
     ap.add_argument("--maps", action="store_true", help="also save maps_SCENE_xSCALE.png per scene (holes, error map)")
     ap.add_argument("--maps-view", default=None, metavar="EX,EY,EZ:TX,TY,TZ",
                     help="--maps from this camera (eye and target, world units) instead of the first scored frame")
@@ -221,7 +224,8 @@ def main(argv=None) -> int:
         return 0
     w, h = (int(v) for v in args.size.split("x"))
     cfg = {"rays": args.rays, "probes": args.probes, "probe_rays": args.probe_rays, "spp": args.spp,
-           "size": [w, h], "frames": args.frames, "maps": str(args.out) if args.maps else None}
+           "size": [w, h], "frames": args.frames, "maps": str(args.out) if args.maps else None,
+           "gap_fill": args.gap_fill, "gap_fill_first_step": args.gap_fill_first_step}
     if args.maps_view is not None:
         try:  # one line and exit 2 before any bake
             parse_view(args.maps_view)

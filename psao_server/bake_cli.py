@@ -28,6 +28,9 @@ def add_bake_arguments(p: argparse.ArgumentParser, density: bool = True) -> None
                    help="rounds of adding points where the client's lookup finds none (0: off)")
     p.add_argument("--gap-fill-ratio", type=float, default=default(BakeSettings, "gap_fill.ratio"), metavar="R",
                    help="random candidates per kept point and round for --gap-fill")
+    p.add_argument("--gap-fill-first-step", action="store_true",
+                   help="--gap-fill adds points also where the lookup's first step (radius r, normals within "
+                        "FIRST_T_N) finds none, not only where the whole lookup does (small faces at creases)")
     add_tracer_arguments(p)
     add_cluster_arguments(p)  # --cluster: the bake's trace on a Dask cluster
 
@@ -45,7 +48,8 @@ def bake_settings(args: argparse.Namespace) -> BakeSettings:
     points = sampling.bake_kwargs(args) if hasattr(args, "points") else {}
     settings = BakeSettings(**points, rays=args.rays, seed=args.seed, tracer=args.tracer, workers=args.workers,
                             spawn_ratio=args.spawn_ratio, cluster=cluster_settings(args),
-                            gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio))
+                            gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio,
+                                                     first_step=args.gap_fill_first_step))
     settings.check()  # a bad number fails before the scene loads
     return settings
 
@@ -57,7 +61,7 @@ def bake_arguments(settings: BakeSettings) -> list[str]:
     return [*points, "--max-points", f"{settings.max_points:g}", "--rays", str(settings.rays), "--seed", str(settings.seed),
             "--spawn-ratio", f"{settings.spawn_ratio:g}", "--gap-fill", str(settings.gap_fill.passes),
             "--gap-fill-ratio", f"{settings.gap_fill.ratio:g}", "--tracer", settings.tracer,
-            "--workers", str(settings.workers)]
+            "--workers", str(settings.workers), *(["--gap-fill-first-step"] if settings.gap_fill.first_step else [])]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,7 +10,13 @@ not cover and that lie inside the instance's grid (a full cell takes further cel
 to one per lookup radius and appends them to the instance's PointSet (on a double-sided instance every
 addition on both sides, flagged in PointSet.back). The caller rebuilds the grid after each pass.
 
-"Covered" is decided as the client decides it: a k-d tree over the grid's stored points as the client
+With `first_step` (GapFillSettings) a candidate is a gap already where the lookup's first step finds no
+point: none within r whose normal passes FIRST_T_N and eq. 3's tangent-plane test, so the lookup would
+answer there from its 2r step, a blend over the neighbouring faces (small faces at creases, narrow
+mouldings). That test runs on the decoded points alone (positions within r, no margins): it decides where
+the server adds points, not what the client computes.
+
+"Covered" is otherwise decided as the client decides it: a k-d tree over the grid's stored points as the client
 decodes them (quantised positions, octahedral normals) answers most candidates (a neighbour well inside
 r that passes the normal and tangent-plane tests of eq. 3 with a margin), and the rest go through
 protocol.reconstruct, the lookup's exact oracle (2x2x2 block, float32), so a candidate counts as a hole
@@ -25,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from protocol.gridformat import T_D, T_N
+from protocol.gridformat import FIRST_T_N, T_D, T_N
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import Grid
@@ -96,6 +102,28 @@ def _passes(tree, points_pos, points_nrm, pos, nrm, radius: float, k: int) -> np
     return ok.any(axis=1)
 
 
+def first_step_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
+                       radius: float) -> np.ndarray:
+    """Bool (C,): some point within `radius` of each candidate has a normal within FIRST_T_N of the
+    candidate's and passes eq. 3's tangent-plane test: the lookup's first step finds weight there."""
+    covered = np.zeros(len(pos), bool)
+    if len(points_pos) == 0 or len(pos) == 0:
+        return covered
+    tree = cKDTree(points_pos)
+    near = tree.query_ball_point(pos, radius, workers=-1)
+    cand = np.repeat(np.arange(len(pos)), [len(n) for n in near])
+    if len(cand) == 0:
+        return covered
+    pts = np.concatenate([np.asarray(n, np.int64) for n in near])
+    d_vec = points_pos[pts] - pos[cand]
+    dist2 = np.einsum("ij,ij->i", d_vec, d_vec)
+    ndot = np.einsum("ij,ij->i", points_nrm[pts], nrm[cand])
+    ddot = np.einsum("ij,ij->i", points_nrm[pts], d_vec)
+    ok = (ndot > FIRST_T_N) & ((ddot * ddot < T_D * dist2) | (dist2 == 0)) & (dist2 < radius * radius)
+    covered[cand[ok]] = True
+    return covered
+
+
 def decoded_points(grid: Grid, table, i: int) -> tuple[np.ndarray, np.ndarray]:
     """Local positions and normals of instance i's stored points as the client decodes them."""
     mine = np.flatnonzero(table.instance == i)
@@ -106,11 +134,14 @@ def decoded_points(grid: Grid, table, i: int) -> tuple[np.ndarray, np.ndarray]:
     return gf.decode_point_local(cell, qpos, rec["origin"], rec["cell_size"]), pw.oct_decode(ncode)
 
 
-def uncovered(grid: Grid, i: int, table, cand: Candidates, normal_sign: float) -> np.ndarray:
+def uncovered(grid: Grid, i: int, table, cand: Candidates, normal_sign: float, first_step: bool = False) -> np.ndarray:
     """Indices of candidates (with their normals times `normal_sign`) where instance i's lookup finds
-    no point: k-d pre-test, then the exact oracle on the rest."""
+    no point (`first_step`: where its first step finds none): k-d pre-test, then the exact oracle on the
+    rest."""
     nrm = cand.local_normal * np.float32(normal_sign)
     radius = float(grid.instances[i]["radius"])
+    if first_step:
+        return np.flatnonzero(~first_step_covered(*decoded_points(grid, table, i), cand.local_pos, nrm, radius))
     ok = kd_covered(*decoded_points(grid, table, i), cand.local_pos, nrm, radius)
     rest = np.flatnonzero(~ok)
     if len(rest) == 0:
@@ -154,7 +185,7 @@ def append_points(ps: PointSet, cand: Candidates, front: np.ndarray, back: np.nd
 
 
 def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.random.Generator,
-              ratio: float, spacing: float = 1.0, buried=None) -> tuple[list[PointSet], int]:
+              ratio: float, spacing: float = 1.0, buried=None, first_step: bool = False) -> tuple[list[PointSet], int]:
     """One round over every instance; returns the new point sets and how many points were added.
     `buried` (psao_server.buried.BuriedTest): candidates on buried surfaces are no gaps."""
     table = grid.point_table()
@@ -169,7 +200,7 @@ def fill_pass(scene: Scene, pointsets: list[PointSet], grid: Grid, rng: np.rando
         sides = [(1.0, False)] + ([(-1.0, True)] if double else [])
         picked = []
         for sign, _back in sides:
-            holes = uncovered(grid, i, table, cand, sign)
+            holes = uncovered(grid, i, table, cand, sign, first_step)
             holes = holes[grid.cell_of(i, cand.local_pos[holes])[1]]  # a full cell takes more cells of its key
             picked.append(holes[thin(cand.local_pos[holes], spacing * radius)])
         if sum(len(p) for p in picked) == 0:
@@ -190,7 +221,8 @@ def fill_gaps(scene: Scene, pointsets: list[PointSet], grid: Grid, build, settin
     # (cornell 0.185% against 0.100%: small holes the first round's candidates missed stay missed) for
     # little time saved (43 against 48 s on the courtyard).
     for k in range(settings.passes):
-        pointsets, added = fill_pass(scene, pointsets, grid, rng, settings.ratio, settings.spacing, buried)
+        pointsets, added = fill_pass(scene, pointsets, grid, rng, settings.ratio, settings.spacing, buried,
+                                     settings.first_step)
         if progress is not None:
             progress(k + 1, settings.passes)
         if added == 0:

@@ -87,6 +87,7 @@ class GapFillSettings:
     passes: int = 0  # candidate rounds; 0 = off (the paper's points only), 4 gets cornell under 0.1% holes
     ratio: float = 4.0  # candidates per kept point (per side) and pass
     spacing: float = 1.0  # added points are at least this many lookup radii apart (within one pass)
+    first_step: bool = False  # a gap is where the lookup's first step (radius r, FIRST_T_N) finds no point
     seed: int = 0x6A9F11
 
 
