@@ -11,8 +11,8 @@ clients added) and RSS. Memory per extra client is the RSS growth from the 1-cli
 clients added. The client processes run at a lower CPU priority (nice CLIENT_NICE): in a deployment the
 clients run on other machines, so here they stand in for remote machines and take only the CPU the
 server leaves; whether every client keeps up is checked (it stays connected, and the slowest client's
-updates/s is at least KEEP_UP of the server's ticks/s: an Update folds the ticks a client was not sent). Mirrors: the first client logs the digest of every
-`--digest-every`-th message (the others SPARSE_DIGESTS times more rarely) and checks it against the server's digest log (`--digest-log`) wherever
+updates/s is at least KEEP_UP of the server's ticks/s: an Update folds the ticks a client was not sent). Mirrors: each client logs the digest of every
+message the server logged one for (ServerDigests; `--digest-every k` also every k-th) and checks it against the server's digest log (`--digest-log`) wherever
 both exist (the server logs a digest after a message that leaves nothing pending for that client: with
 culling, a client whose view leaves cells behind has none; `--no-cull` sends every change). Output: `--out`/table.md, table.json and clients.png.
 
@@ -39,11 +39,34 @@ from benchmarks.verdicts import Verdicts
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_NICE = 10  # client processes' nice value: below the server (0), above other niced work on the machine
 KEEP_UP = 0.5  # the slowest client's updates/s over the server's ticks/s: at least every other tick's changes
-# A digest hashes the whole mirror (~25 MB at N=64, ~40 ms of a client process's CPU). Every client checking
-# every 8th message made the co-located client processes spend most of their CPU on checks and fall behind:
-# the first client (connected through every stage) checks every --digest-every-th message, the others
-# SPARSE_DIGESTS times more rarely.
-SPARSE_DIGESTS = 8
+SERVER_DIGESTS = "server_digests.jsonl"  # in the run's folder: the server's --digest-log
+
+
+class ServerDigests:
+    """The (connection, message) pairs the server logged a state digest for, read from its log as it grows.
+    The server writes a message's line before it sends the message, so when a client has a message, its
+    line (if any) is in the file. A digest hashes the whole mirror (~25 MB at N=64, ~40 ms of a client
+    process's CPU): clients work one out for exactly the messages the server vouches for, not for every
+    k-th message (which left the co-located client processes too little CPU to keep up)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.logged: set[tuple[int, int]] = set()
+        self._file = None
+        self._offset = 0
+
+    def __call__(self, conn: int, seq: int) -> bool:
+        if self._file is None and self.path.exists():
+            self._file = open(self.path, "rb")
+        if (conn, seq) not in self.logged and self._file is not None:
+            self._file.seek(self._offset)
+            data = self._file.read()
+            whole = data[: data.rfind(b"\n") + 1]  # a line being written is read next time
+            self._offset += len(whole)
+            for line in whole.splitlines():
+                d = json.loads(line)
+                self.logged.add((d["conn"], d["seq"]))
+        return (conn, seq) in self.logged
 
 
 def proc_stats(pid: int) -> tuple[float, int]:
@@ -81,6 +104,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
 
     scene = load_scene(scene_spec)
     feed = scene_camera_feed(scene)
+    vouched = ServerDigests(digest_dir / SERVER_DIGESTS)
     clients: list[MirrorClient] = []
     tasks = []
 
@@ -96,9 +120,10 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
             if k % hosts != host:
                 continue
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
-            every = digest_every if k == 0 else SPARSE_DIGESTS * digest_every
             c = MirrorClient(url, scene_hash_bytes(scene.content_hash()), camera=lambda t, s=shift: feed(t + s),
-                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0, digest_every=every)
+                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0,
+                             digest_if=(lambda conn, seq: seq % digest_every == 0 or vouched(conn, seq))
+                             if digest_every else vouched)
             clients.append(c)
             new.append(c)
             tasks.append(asyncio.create_task(c.run()))
@@ -215,8 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per stage")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--per-process", type=int, default=25, help="clients per client process")
-    p.add_argument("--digest-every", type=int, default=8, help="the first client logs the digest of every k-th "
-                   "message, the others of every (SPARSE_DIGESTS k)-th")
+    p.add_argument("--digest-every", type=int, default=0, help="clients log the digest of every message the server "
+                   "logged one for, and (k > 0) of every k-th message")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_clients")
     p.add_argument("--no-cull", action="store_true", help="serve with --no-cull (every client is sent every change)")
     p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "HOSTS", "EVERY"),
@@ -228,12 +253,12 @@ def main(argv: list[str] | None = None) -> int:
                                 int(host), int(hosts), int(every)))
         return 0
     counts = [int(c) for c in args.counts.split(",")]
-    if not counts or counts[0] < 1 or args.per_process < 1 or args.digest_every < 1:
-        print("bench_clients: error: counts, --per-process and --digest-every must be >= 1", file=sys.stderr)
+    if not counts or counts[0] < 1 or args.per_process < 1 or args.digest_every < 0:
+        print("bench_clients: error: counts and --per-process must be >= 1, --digest-every >= 0", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_clients_"))
-    stats, slog = work / "stats.jsonl", work / "server_digests.jsonl"
+    stats, slog = work / "stats.jsonl", work / SERVER_DIGESTS
     server = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--animate", "--density",
                                str(args.density), "--port", "0", "--max-clients", str(max(counts) + 8),
                                "--stats-json", str(stats), "--digest-log", str(slog)] + (["--no-cull"] if args.no_cull else []),

@@ -80,7 +80,8 @@ class MirrorClient:
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
                  limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
-                 tls_ca: Path | None = None, digest_every: int = 1):
+                 tls_ca: Path | None = None, digest_every: int = 1,
+                 digest_if: Callable[[int, int], bool] | None = None):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -92,6 +93,7 @@ class MirrorClient:
         self.read_delay = read_delay
         self.digest_log = digest_log
         self.digest_every = digest_every  # log every k-th Snapshot/Update digest (each hashes the whole mirror)
+        self.digest_if = digest_if  # else: (connection id, message index) -> log this one's digest
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
         self.camera_period = 1.0 / camera_hz
@@ -186,7 +188,8 @@ class MirrorClient:
                         await _cancel(renders)
                         renders = asyncio.create_task(self._render_frames(ws, session, frames))
                     if (digests and isinstance(event, (SnapshotReceived, UpdateReceived))
-                            and seq % self.digest_every == 0):
+                            and (self.digest_if(self.stats.connection_id, seq) if self.digest_if is not None
+                                 else seq % self.digest_every == 0)):
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                                   "digest": self.mirror.digest()}) + "\n")
                     seq += 1
