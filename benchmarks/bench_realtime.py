@@ -19,6 +19,7 @@ Progressive start (`psao serve --progressive`) has a benchmark of its own: bench
 The Warp CUDA tracer is not measured here unless --tracer warp is given on a machine with a GPU.
 
     .venv/bin/python -m benchmarks.bench_realtime [--parts tracer,grid,rate,quality] [--seconds 10]
+        [--rate-scenes courtyard-256,robots-256,robots-512,skinned]
         [--skinned ../shared/scenes/cesiumman/CesiumMan.glb] [--out out/bench_realtime]
 """
 from __future__ import annotations
@@ -36,6 +37,8 @@ PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
            "moving_loss_db": 1.0, "rest_loss_db": 0.5}
 SKINNED = "../shared/scenes/cesiumman/CesiumMan.glb"
+RATE_CASES = [("courtyard-256", "builtin:courtyard", 256.0), ("robots-256", "builtin:robots", 256.0),
+              ("robots-512", "builtin:robots", 512.0)]  # and "skinned": --skinned at --skinned-points
 
 
 def density_for(scene, points: float) -> float:
@@ -150,11 +153,12 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
 
     from benchmarks.served import serve_and_watch
 
-    cases = [("builtin:courtyard", 256.0), ("builtin:robots", 256.0), ("builtin:robots", 512.0)]
-    if Path(args.skinned).exists():
-        cases.append((args.skinned, density_for(load_scene(args.skinned), args.skinned_points)))
-    else:
-        print(f"skinned model {args.skinned} not found: its row is skipped")
+    cases = [(scene, density) for name, scene, density in RATE_CASES if name in args.rate_scenes]
+    if "skinned" in args.rate_scenes:
+        if Path(args.skinned).exists():
+            cases.append((args.skinned, density_for(load_scene(args.skinned), args.skinned_points)))
+        else:
+            print(f"skinned model {args.skinned} not found: its row is skipped")
     rows = []
     for scene, density in cases:
         run = serve_and_watch(scene, ["--animate", "--density", f"{density:g}", "--rays", str(args.serve_rays),
@@ -353,6 +357,9 @@ def main(argv=None) -> int:
     ap.add_argument("--grid-ticks", type=int, default=30)
     ap.add_argument("--seconds", type=float, default=10.0, help="measured window of each served run")
     ap.add_argument("--serve-rays", type=int, default=32, help="--rays of the served runs (bake and tick target)")
+    rate_names = [name for name, _, _ in RATE_CASES] + ["skinned"]
+    ap.add_argument("--rate-scenes", default=",".join(rate_names),
+                    help=f"comma list of the rate part's served runs ({', '.join(rate_names)})")
     ap.add_argument("--quality-density", type=float, default=64.0)
     ap.add_argument("--quality-rays", type=int, default=32)
     ap.add_argument("--round-rays", type=int, default=8)
@@ -364,6 +371,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/bench_realtime"))
     args = ap.parse_args(argv)
     args.tick_points = [int(x) for x in args.tick_points.split(",") if x]
+    args.rate_scenes = [x.strip() for x in args.rate_scenes.split(",") if x.strip()]
+    if any(x not in rate_names for x in args.rate_scenes):
+        ap.error(f"--rate-scenes: choose from {', '.join(rate_names)}")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     if any(p not in PARTS for p in parts):
         ap.error(f"--parts: choose from {', '.join(PARTS)}")
