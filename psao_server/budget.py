@@ -264,6 +264,11 @@ class RefineQueue:
         self.done[ids] = self.slices
         self._finished(ids, before)
 
+    @property
+    def listed(self) -> int:
+        """Entries of the waiting list (waiting points, and dead ones not yet removed): a sweep's length."""
+        return len(self._list)
+
     def candidates(self, limit: int, sweep: int = 0) -> np.ndarray:
         """Ids (sorted) of waiting points to choose from: all of them while the list holds at most `limit`,
         else the next `limit` entries of a sweep over the list (wrapping; `sweep` 0 is the tick's, 1 a

@@ -141,6 +141,7 @@ class ServerTick:
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
+        self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
         if self.settings.budget is not None:
             self._init_budget(bake)
         self.refiner = refiner
@@ -320,14 +321,15 @@ class ServerTick:
         with self._edits_lock:
             self._edits[int(instance)] = np.asarray(transform, np.float64).reshape(4, 4)
 
-    def _take_edits(self) -> None:
+    def _take_edits(self) -> bool:
         """Apply the scene edits received since the last tick (at the start of prepare: the tick's own
-        thread). Edited static instances become rigid movers: the tracer and the static index lose them."""
+        thread); whether there were any. Edited static instances become rigid movers: the tracer and the
+        static index lose them."""
         with self._edits_lock:
             edits, self._edits = self._edits, {}
         became_rigid = [i for i, m in edits.items() if self.animator.place(i, m)]
         if not became_rigid:
-            return
+            return bool(edits)
         log.info("scene edit: instance(s) %s now move; tracer rebuilt without them in its static scene", became_rigid)
         for i in became_rigid:
             self.static_boxes.pop(i, None)
@@ -339,6 +341,7 @@ class ServerTick:
         self._load_tracer()
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()
+        return True
 
     def transforms(self) -> np.ndarray:
         """(n_instances, 4, 4) float32 transforms of the last tick."""
@@ -357,8 +360,10 @@ class ServerTick:
         """Animate, select and trace at scene time t without writing the grid: it may run in a worker
         thread while the event loop reads the grid for sending. `apply` must follow before the next one."""
         t_start = time.perf_counter()
-        self._take_edits()
-        frame = self.animator.frame(t)
+        edited = self._take_edits()
+        last = self.last_frame
+        # the same time and no edit (a scene held at rest): the same frame, not worked out again
+        frame = last if last is not None and last.t == t and not edited else self.animator.frame(t)
         moved = self._deform(frame)
         t_anim = time.perf_counter()
         if self.budget is not None:
@@ -392,12 +397,7 @@ class ServerTick:
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
         refined = self._refine(changed, frame)
-        # the waiting points (all, or the next part of a sweep over a long queue) and those just reset; parked
-        # skinned points too (a trace re-inserts them), not those the refiner has out
-        looked = sorted_union([self.queue.candidates(max(16 * k, self.settings.budget.scan_points)), changed])
-        looked = looked[self.tracked[looked] & (self.queue.done[looked] < self.queue.slices)]
-        if self.refiner is not None:  # the refiner takes the first grid's static points (it traces them faster)
-            looked = looked[~self.refiner.busy[looked] & ~(self.refiner.static[looked] & self.queue.first_grid(looked))]
+        looked = self._looked_at(changed, max(16 * k, self.settings.budget.scan_points))
         chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
         codes = np.zeros(0, np.uint32)
@@ -416,6 +416,23 @@ class ServerTick:
             chosen, codes = np.concatenate([chosen, refined[0]]), np.concatenate([codes, refined[1]])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s())
+
+    def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
+        """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the
+        others, or the next `scan` of a sweep over a long queue; parked skinned points too (a trace
+        re-inserts them), not those the refiner has (out now, or the first grid's static points: it traces
+        them faster). Once a whole sweep found none, only a reset can make more: until then the queue is
+        not looked at (a first grid being refined costs the ticks nothing)."""
+        n_list = self.queue.listed
+        if len(changed) == 0 and self._swept_empty >= n_list:
+            return changed
+        part = self.queue.candidates(scan)
+        looked = sorted_union([part, changed])
+        looked = looked[self.tracked[looked] & (self.queue.done[looked] < self.queue.slices)]
+        if self.refiner is not None:
+            looked = looked[~self.refiner.busy[looked] & ~(self.refiner.static[looked] & self.queue.first_grid(looked))]
+        self._swept_empty = 0 if len(looked) or len(changed) else self._swept_empty + min(scan, n_list)
+        return looked
 
     def pick(self, frame: Frame, waiting: np.ndarray, k: int) -> np.ndarray:
         """RefineQueue.pick of `k` of `waiting` with their visibility in the clients' extended views at
