@@ -10,6 +10,8 @@ import argparse
 import asyncio
 import json
 import os
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -149,6 +151,9 @@ def run(args: argparse.Namespace, on_update=None) -> int:
         from psao_client.render.stream_render import make_render_callback
 
         renderer = make_render_callback(scene, args)
+    if threading.current_thread() is threading.main_thread():
+        # Ctrl-C ends the run with its report, also where SIGINT came in ignored (a script's background job)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     t0 = time.perf_counter()
     try:
         asyncio.run(client.run(frames=args.frames))

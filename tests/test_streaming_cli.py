@@ -5,6 +5,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -191,6 +192,32 @@ def test_client_unknown_camera_path(token_server):
     url, _, _ = token_server
     one_line_error(psao("client", url, "builtin:cornell", "--camera-path", "nope", "--frames", "1"),
                    "no camera path 'nope'")
+
+
+def test_client_ends_on_sigint_also_where_it_came_in_ignored(token_server, tmp_path):
+    """A `psao client` started as a script's background job (SIGINT ignored from its parent) still ends on
+    SIGINT with its report, as a benchmark stopping it expects."""
+    url, proc, _ = token_server
+    if proc.poll() is not None:
+        pytest.skip("server already stopped by an earlier test")
+    digest = tmp_path / "client.jsonl"
+    client = subprocess.Popen([sys.executable, "-m", "psao", "client", url, "builtin:cornell", "--token", "s3cret",
+                               "--json", "--digest-log", str(digest)], cwd=ROOT, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True,
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + HANG_S  # a hang limit, not a speed expectation
+        while not (digest.exists() and digest.read_text().strip()):
+            assert client.poll() is None and time.monotonic() < deadline, "client ended or never got its snapshot"
+            time.sleep(0.05)
+        client.send_signal(signal.SIGINT)
+        out, err = client.communicate(timeout=HANG_S)
+    finally:
+        if client.poll() is None:
+            client.kill()
+            client.wait()
+    assert client.returncode == 0, err
+    assert json.loads(out.strip().splitlines()[-1])["mirror_cells"] > 0
 
 
 def test_client_with_token_then_server_stops_on_sigint(token_server):
