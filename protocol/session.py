@@ -300,8 +300,9 @@ class ServerSession:
         """An Update made of parts compressed apart (SharedParts): a head frame, then any part frames, as
         one ZSTD message. It leaves the connection's own stream as it was (the client decodes a ZSTD
         message without touching its stream decoder)."""
-        if not self.takes_parts():
-            raise UnexpectedMessage("an Update of parts needs an open connection whose client decodes zstd")
+        # Gated like update(): by the handshake, not by a Bye heard meanwhile (parts already queued may go out)
+        if self.codec is None or Codec.ZSTD not in self.accepted:
+            raise UnexpectedMessage("an Update of parts needs a handshake whose client decodes zstd")
         return self.traffic.sent(m.frame(m.MessageType.UPDATE, Codec.ZSTD, b"".join(frames)))
 
     def welcome(self, connection_id: int, tick_hz: float, n_buckets: int, cell_capacity: int,

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zstandard
 
 from protocol import messages as m
 from protocol.codecs import Codec, codec_mask
@@ -150,6 +151,17 @@ def test_an_update_encoded_after_bye_still_encodes():
     server, client, _ = handshake()
     assert isinstance(server.receive(client.bye()), ByeReceived)
     data = server.update(1, 0.0, g.delta(np.zeros(0, np.uint32), np.zeros(0, np.uint32), []))
+    assert m.Header.parse(data, 1 << 20).type == m.MessageType.UPDATE
+
+
+def test_an_update_of_parts_queued_before_bye_still_encodes():
+    """Parts queued for a client before its Bye go out as an Update would (the peer ignores them); refusing
+    them closed the connection with a protocol error instead of the Bye's clean close."""
+    server, client, _ = handshake()
+    assert server.takes_parts()
+    assert isinstance(server.receive(client.bye()), ByeReceived)
+    assert not server.takes_parts()  # no new parts are planned for it
+    data = server.update_of_parts([zstandard.ZstdCompressor().compress(b"head")])
     assert m.Header.parse(data, 1 << 20).type == m.MessageType.UPDATE
 
 
