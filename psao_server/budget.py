@@ -19,7 +19,8 @@ oldest waiting first where those are alike.
 
 `TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
 both fitted to the ticks' own traces (exponentially weighted least squares), so a busier machine gets
-smaller batches. A budget below one point's cost still traces `min_points` (progress is always made); the
+smaller batches; while the recent calls are too alike in size to fit both, batches alternate a quarter
+above and below the estimate. A budget below one point's cost still traces `min_points` (progress is always made); the
 tick's statistics then show budget_used > 1.
 """
 from __future__ import annotations
@@ -50,6 +51,9 @@ class BudgetSettings:
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
 
 
+ALIKE = 0.1  # call sizes whose spread is below this share of their mean cannot separate rate and overhead
+
+
 class TraceBudget:
     """Points per tick from measured tracing speed."""
 
@@ -74,7 +78,19 @@ class TraceBudget:
         # An overhead beyond the budget is paid whenever anything is traced: then trace half a budget's
         # worth of rays on top of it, or the tick would crawl along at min_points.
         room = max(budget - self.overhead_s, 0.5 * budget)
-        return max(int(room * self.rays_per_second / max(rays_per_point, 1)), self.settings.min_points)
+        n = room * self.rays_per_second / max(rays_per_point, 1)
+        if self._alike():
+            # Calls of one size cannot tell the rate from the overhead: a rate believed too high would stay
+            # (its error taken for overhead) and every tick would trace past its budget. Batches a quarter
+            # larger and smaller in turn give the fit the spread it needs.
+            self._dither = -getattr(self, "_dither", -0.25)
+            n *= 1.0 + self._dither
+        return max(int(n), self.settings.min_points)
+
+    def _alike(self) -> bool:
+        """Whether the recent calls' sizes are too alike to fit rate and overhead apart (observe_trace)."""
+        m = getattr(self, "_moments", None)
+        return m is not None and m[2] - m[0] * m[0] <= (ALIKE * m[0]) ** 2
 
     def observe_trace(self, rays: int, seconds: float) -> None:
         """Learn from one trace call: seconds = overhead + rays / rate, fitted by exponentially weighted
@@ -88,7 +104,7 @@ class TraceBudget:
                                                                   (x, y, x * x, x * y))]
         mx, my, mxx, mxy = m
         var = mxx - mx * mx
-        if var > (0.1 * mx) ** 2:
+        if var > (ALIKE * mx) ** 2:
             slope = (mxy - mx * my) / var
             if slope > 0:
                 self.rays_per_second = max(1.0 / slope, 1e3)

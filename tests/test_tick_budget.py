@@ -207,6 +207,23 @@ def test_trace_budget_learns_rate_and_overhead_and_keeps_a_share_when_late():
     assert tiny.points(8) == 7
 
 
+def test_trace_budget_unlearns_a_rate_believed_too_high():
+    """Starting from a rate ten times the real one, the batches come down to the budget: calls of one size
+    alone would take the error for overhead and keep every tick five times over its budget."""
+    from psao_server.budget import TraceBudget
+
+    # (a first small call slower than half the budget: every batch is then "half a budget's worth" in size)
+    b = TraceBudget(BudgetSettings(tick_hz=60.0, round_rays=8), rays_per_second=2e7, overhead_s=6e-3)
+    real = lambda rays: 5e-4 + rays / 2e6  # noqa: E731  (the tracer: 0.5 ms a call, 2 Mrays/s)
+    spent = []
+    for _ in range(200):
+        rays = 8 * b.points(8)
+        spent.append(real(rays))
+        b.observe_trace(rays, spent[-1])
+    assert np.mean(spent[-20:]) == pytest.approx(b.budget_s(), rel=0.1)
+    assert b.rays_per_second == pytest.approx(2e6, rel=0.05)
+
+
 def test_skinned_instances_count_as_moved_between_frames():
     """Frames keep their own copy of the skinned vertices, so a deforming mesh is seen to move (and its
     points join the queue)."""
