@@ -121,7 +121,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
                 continue
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
             c = MirrorClient(url, scene_hash_bytes(scene.content_hash()), camera=lambda t, s=shift: feed(t + s),
-                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0,
+                             digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0, open_timeout=30.0,
                              digest_if=(lambda conn, seq: seq % digest_every == 0 or vouched(conn, seq))
                              if digest_every else vouched)
             clients.append(c)

@@ -81,7 +81,7 @@ class MirrorClient:
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
                  limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
                  tls_ca: Path | None = None, digest_every: int = 1,
-                 digest_if: Callable[[int, int], bool] | None = None):
+                 digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -89,6 +89,8 @@ class MirrorClient:
         self.on_frame = on_frame
         if not frame_hz > 0:
             raise ClientError(f"frame rate must be > 0, got {frame_hz}")
+        if not open_timeout > 0:
+            raise ClientError(f"open timeout must be > 0 seconds, got {open_timeout}")
         self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
@@ -96,6 +98,9 @@ class MirrorClient:
         self.digest_if = digest_if  # else: (connection id, message index) -> log this one's digest
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
+        # seconds for a connection's opening handshake; a busy server's is slow, and each retry throws away
+        # the work it had done on the abandoned one
+        self.open_timeout = open_timeout
         self.camera_period = 1.0 / camera_hz
         self.recv_buffer = recv_buffer  # small: the server feels a slow reader at once (tests, slow links)
         # wss://: the system's trusted certificates, or only those in tls_ca (a self-signed server)
@@ -156,8 +161,8 @@ class MirrorClient:
         extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
         if self.tls is not None and self.url.startswith("wss:"):
             extra["ssl"] = self.tls
-        async with connect(self.url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0,
-                           **extra) as ws:
+        async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
+                           open_timeout=self.open_timeout, **extra) as ws:
             await ws.send(session.hello())
             seq = 0
             updates_here = 0  # Updates on this connection
@@ -231,7 +236,7 @@ class MirrorClient:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.recv_buffer)
         sock.setblocking(False)
         try:
-            await asyncio.wait_for(asyncio.get_running_loop().sock_connect(sock, (uri.host, uri.port)), 5.0)
+            await asyncio.wait_for(asyncio.get_running_loop().sock_connect(sock, (uri.host, uri.port)), self.open_timeout)
         except BaseException:
             sock.close()
             raise
