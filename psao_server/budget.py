@@ -62,6 +62,8 @@ class TraceBudget:
         self.rays_per_second = max(float(rays_per_second), 1e3)
         self.overhead_s = max(float(overhead_s), 0.0)
         self.other_stages_s = 0.0  # animate + select + grid, averaged
+        self._moments: list[float] | None = None  # weighted means of rays, seconds, rays^2, rays*seconds
+        self._dither = -0.25  # share added to the next batch while the calls are alike (sign flips each time)
 
     def budget_s(self) -> float:
         s = self.settings
@@ -83,13 +85,13 @@ class TraceBudget:
             # Calls of one size cannot tell the rate from the overhead: a rate believed too high would stay
             # (its error taken for overhead) and every tick would trace past its budget. Batches a quarter
             # larger and smaller in turn give the fit the spread it needs.
-            self._dither = -getattr(self, "_dither", -0.25)
+            self._dither = -self._dither
             n *= 1.0 + self._dither
         return max(int(n), self.settings.min_points)
 
     def _alike(self) -> bool:
         """Whether the recent calls' sizes are too alike to fit rate and overhead apart (observe_trace)."""
-        m = getattr(self, "_moments", None)
+        m = self._moments
         return m is not None and m[2] - m[0] * m[0] <= (ALIKE * m[0]) ** 2
 
     def observe_trace(self, rays: int, seconds: float) -> None:
@@ -100,12 +102,10 @@ class TraceBudget:
         if rays <= 0 or not math.isfinite(seconds):
             return
         x, y = float(rays), float(seconds)
-        m = self._moments = [(1 - a) * v + a * w for v, w in zip(getattr(self, "_moments", [x, y, x * x, x * y]),
-                                                                  (x, y, x * x, x * y))]
-        mx, my, mxx, mxy = m
-        var = mxx - mx * mx
-        if var > (ALIKE * mx) ** 2:
-            slope = (mxy - mx * my) / var
+        new = (x, y, x * x, x * y)
+        mx, my, mxx, mxy = self._moments = [(1 - a) * v + a * w for v, w in zip(self._moments or new, new)]
+        if not self._alike():
+            slope = (mxy - mx * my) / (mxx - mx * mx)
             if slope > 0:
                 self.rays_per_second = max(1.0 / slope, 1e3)
         self.overhead_s = max(my - mx / self.rays_per_second, 0.0)
