@@ -136,7 +136,7 @@ class ClusterRefiner:
             return
         chosen = tick.pick(frame, waiting, min(len(waiting), k))  # those in a client's view first
         if self.posed_at != frame.t:  # the movers where the tick sees them now
-            self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[tick.kinds.rigid])
+            tick.pose_tracer(frame, self.tracer)
             self.posed_at = frame.t
         pos, nrm = tick.world_points(frame, chosen)
         # the whole target ray set of each point: the bake's rays and seed, as the tick's slices add up to
@@ -174,8 +174,8 @@ class BackgroundTracer:
             self.tracer.set_rigid(rigid)
         self._thread.submit(geometry).result()
 
-    def set_dynamic(self, vertices, faces, rigid_transforms=None) -> None:
-        self._thread.submit(self.tracer.set_dynamic, vertices, faces, rigid_transforms)
+    def set_dynamic(self, vertices, faces, rigid_transforms=None, parts=None) -> None:
+        self._thread.submit(self.tracer.set_dynamic, vertices, faces, rigid_transforms, parts)
 
     def start(self, positions, normals, point_ids, settings: TraceSettings) -> "LocalPending":
         return LocalPending(self._thread.submit(self.tracer.visibility, positions, normals, point_ids, settings))

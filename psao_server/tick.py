@@ -244,10 +244,11 @@ class ServerTick:
         return TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed,
                              slices=slices)
 
-    def pose_tracer(self, frame: Frame) -> None:
-        """The tracer's moving part at `frame`: the skinned meshes' triangles, the rigid ones' transforms."""
-        self.tracer.set_dynamic(frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid],
-                                frame.skinned_parts)
+    def pose_tracer(self, frame: Frame, tracer=None) -> None:
+        """The moving part at `frame` (the skinned meshes' triangles, the rigid ones' transforms) into the
+        tick's tracer, or into `tracer` (the refiner's)."""
+        (self.tracer if tracer is None else tracer).set_dynamic(
+            frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid], frame.skinned_parts)
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
         """The tracer's visibility (with `slice_of`, the given slice of each point's ray set); a worker
