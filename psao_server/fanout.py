@@ -137,6 +137,7 @@ class Fanout:
         self._places: CellPlaces | None = None  # every slot's place, kept across ticks
         self._placed_with: np.ndarray | None = None  # the transforms it holds
         self._stale = np.zeros(0, bool)  # per slot: changed since (the ticks' dirty cells)
+        self._stale_any = False  # whether any is (places() then scans and clears the mask)
 
     def planes(self, client: Client) -> np.ndarray | None:
         """The client's extended frustum, or None when it sees everything (no culling, no usable camera)."""
@@ -153,13 +154,15 @@ class Fanout:
             self._places = CellPlaces(grid, np.arange(len(grid.cells)), t)
         else:
             moved = np.flatnonzero(np.any(self._placed_with.reshape(len(t), -1) != t.reshape(len(t), -1), axis=1))
-            rows = np.flatnonzero(self._stale)
+            rows = np.flatnonzero(self._stale) if self._stale_any else np.zeros(0, np.int64)
             if len(moved):
                 rows = np.union1d(rows, np.flatnonzero(np.isin(grid.cell_instance, moved)))
             if len(rows):
                 self._places.refresh(grid, rows, t)
         self._placed_with = t.copy()
-        self._stale[:] = False
+        if self._stale_any:
+            self._stale[:] = False
+            self._stale_any = False
         return self._places
 
     def tile_size(self, places: CellPlaces) -> float:
@@ -209,8 +212,6 @@ class Fanout:
         sorted_slots = slots[order]
         counts = np.diff(np.append(starts, len(slots)))
         ends = starts + counts
-        dirty = np.zeros(capacity, bool)
-        dirty[slots] = True
         if self.head_transforms is None or self.head_transforms.shape != now_t.shape:
             tids = np.arange(len(now_t), dtype=np.uint32)
         else:
@@ -233,7 +234,7 @@ class Fanout:
             c.pending_cells[slots] = False  # what is sent now carries the latest content; the rest is marked again
             own_part = None
             if c.pending_cells.any() and (planes is not c.caught_up_with or c.caught_up_with is None):
-                own_part = self._catch_up(c, grid, now_t, places, planes, dirty, capacity)
+                own_part = self._catch_up(c, grid, now_t, places, planes)
             c.pending_cells[hidden] = True
             if c.sent_transforms is self.head_transforms and self.head_transforms is not None \
                     and not c.pending_buckets.any():
@@ -256,12 +257,11 @@ class Fanout:
                                          cells=rows[starts[t]:ends[t]]) for t in used}
         return PartsPlan(self.parts, tick, server_time, head, tile_deltas, recipes)
 
-    def _catch_up(self, c: Client, grid, transforms: np.ndarray, places, planes, dirty: np.ndarray,
-                  capacity: int) -> GridDelta | None:
+    def _catch_up(self, c: Client, grid, transforms: np.ndarray, places, planes) -> GridDelta | None:
         """The client's pending cells now in its view (none of this tick's: they go in tiles), as its own
         part; looked at again only when its camera moves, or at once when a message could not hold them."""
         limits = self.config_limits
-        cand = np.flatnonzero(c.pending_cells & ~dirty)
+        cand = np.flatnonzero(c.pending_cells)  # (this tick's cells were taken off it: they go in tiles)
         if places is not None and planes is not None and len(cand):
             cand = cand[places.in_view(planes, self.settings.view, cand)]
         room = limits.max_cells_per_message // 2
@@ -316,6 +316,7 @@ class Fanout:
         if len(self._stale) < capacity:
             self._stale = np.concatenate([self._stale, np.zeros(capacity - len(self._stale), bool)])
         self._stale[cell_slots] = True  # their places may have changed
+        self._stale_any |= bool(len(cell_slots))
         members, joiners = [], []
         for c in clients:
             may_join = (not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
