@@ -48,6 +48,16 @@ def read_delta(grid, transforms: np.ndarray, transform_ids, bucket_ids, cell_slo
     )
 
 
+def changed_transform_ids(sent: np.ndarray | None, transforms: np.ndarray) -> np.ndarray:
+    """Instances whose float32 transform differs bitwise from `sent` (every one where nothing, or another
+    number of them, was sent), as uint32 ids."""
+    if sent is None or sent.shape != transforms.shape:
+        return np.arange(len(transforms), dtype=np.uint32)
+    a = sent.reshape(len(transforms), -1).view(np.uint32)
+    b = np.ascontiguousarray(transforms, np.float32).reshape(len(transforms), -1).view(np.uint32)
+    return np.flatnonzero(np.any(a != b, axis=1)).astype(np.uint32)
+
+
 @dataclass
 class SnapshotPlan:
     """The full-state chunks for a new client: what was allocated when it joined, in sorted chunks.
@@ -141,11 +151,7 @@ class Client:
 
     def changed_transforms(self, transforms: np.ndarray) -> np.ndarray:
         """Instances whose transform differs (bitwise) from what this client was last sent."""
-        if self.sent_transforms is None or self.sent_transforms.shape != transforms.shape:
-            return np.arange(len(transforms), dtype=np.uint32)
-        a = self.sent_transforms.reshape(len(transforms), -1).view(np.uint32)
-        b = np.ascontiguousarray(transforms, np.float32).reshape(len(transforms), -1).view(np.uint32)
-        return np.flatnonzero(np.any(a != b, axis=1)).astype(np.uint32)
+        return changed_transform_ids(self.sent_transforms, transforms)
 
     def read_transforms(self, transforms: np.ndarray) -> np.ndarray:
         """Ids of the transforms to put in the message being built; from now on they count as sent."""

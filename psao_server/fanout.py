@@ -33,7 +33,7 @@ import numpy as np
 from protocol.session import ServerConfig, SharedParts, SharedStream
 from protocol.updates import GridDelta
 
-from .clients import Client, read_delta
+from .clients import Client, changed_transform_ids, read_delta
 from .sendview import CellPlaces, client_planes
 from .settings import FanoutSettings
 
@@ -212,11 +212,7 @@ class Fanout:
         sorted_slots = slots[order]
         counts = np.diff(np.append(starts, len(slots)))
         ends = starts + counts
-        if self.head_transforms is None or self.head_transforms.shape != now_t.shape:
-            tids = np.arange(len(now_t), dtype=np.uint32)
-        else:
-            a = self.head_transforms.reshape(len(now_t), -1).view(np.uint32)
-            tids = np.flatnonzero(np.any(a != now_t.reshape(len(now_t), -1).view(np.uint32), axis=1)).astype(np.uint32)
+        tids = changed_transform_ids(self.head_transforms, now_t)
         head = read_delta(grid, now_t, tids, bucket_ids, [])
         head_transforms = now_t.copy()
         recipes = []
@@ -350,11 +346,7 @@ class Fanout:
         if not members:
             return None
         now_t = np.ascontiguousarray(transforms, np.float32)
-        if restart or self.sent_transforms is None or self.sent_transforms.shape != now_t.shape:
-            tids = np.arange(len(now_t), dtype=np.uint32)
-        else:
-            a = self.sent_transforms.reshape(len(now_t), -1).view(np.uint32)
-            tids = np.flatnonzero(np.any(a != now_t.reshape(len(now_t), -1).view(np.uint32), axis=1)).astype(np.uint32)
+        tids = changed_transform_ids(None if restart else self.sent_transforms, now_t)
         if not (restart or len(tids) or len(bucket_ids) or len(cell_slots)):
             return None
         self.sent_transforms = now_t.copy()
