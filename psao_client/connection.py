@@ -94,8 +94,9 @@ class MirrorClient:
         self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
-        self.digest_every = digest_every  # log every k-th Snapshot/Update digest (each hashes the whole mirror)
-        self.digest_if = digest_if  # else: (connection id, message index) -> log this one's digest
+        # (connection id, message index) -> whether to log this Snapshot/Update's digest (each hashes the
+        # whole mirror); by default every digest_every-th
+        self.digest_if = digest_if or (lambda _conn, seq: seq % digest_every == 0)
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
         # seconds for a connection's opening handshake; a busy server's is slow, and each retry throws away
@@ -193,8 +194,7 @@ class MirrorClient:
                         await _cancel(renders)
                         renders = asyncio.create_task(self._render_frames(ws, session, frames))
                     if (digests and isinstance(event, (SnapshotReceived, UpdateReceived))
-                            and (self.digest_if(self.stats.connection_id, seq) if self.digest_if is not None
-                                 else seq % self.digest_every == 0)):
+                            and self.digest_if(self.stats.connection_id, seq)):
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
                                                   "digest": self.mirror.digest()}) + "\n")
                     seq += 1
