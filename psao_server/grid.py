@@ -277,8 +277,8 @@ class Grid:
         found = []
         kernels = _kernels()
         groups = np.flatnonzero(np.bincount(insts, minlength=len(self.instances)))  # the instances (no sort)
+        one = len(groups) == 1  # (a deforming instance on its own: no gathered copies)
         for inst in groups.tolist():
-            one = len(groups) == 1  # (a deforming instance on its own: no gathered copies)
             sel = np.arange(len(slots)) if one else np.flatnonzero(insts == inst)
             mine_pos, mine_side = (new_local_pos, side) if one else (new_local_pos[sel], side[sel])
             rec = self.instances[inst]
@@ -298,7 +298,7 @@ class Grid:
             if leaving[inst]:
                 mine = cells_of[self.cell_instance[cells_of] == inst]
                 if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
-                    take = (lambda a: a) if len(found) == 1 else (lambda a: a[sel])  # noqa: E731
+                    take = (lambda a: a) if one else (lambda a: a[sel])  # noqa: E731
                     kept[sel] = self._refill_instance(inst, mine, take(slots), take(idx), take(new_local_pos),
                                                       take(new_normals), cell, inside, keys, take(ids), take(ao))
                     stay[sel] = True  # done
