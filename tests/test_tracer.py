@@ -235,3 +235,43 @@ def test_rigid_meshes_posed_by_transform_trace_like_their_world_triangles(backen
     assert posed.visibility(pos, nrm, np.arange(400), s).min() == 1.0
     posed.close()
     merged.close()
+
+
+def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
+    """Each rigid mover traces only the rays of points within the AO distance of its world box: the
+    answers equal tracing every ray against every posed mover, over a batch where each mover is near some
+    points and far from most."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    from psao_server.tracer.embree import _chunk_rays, _device, _Scenes
+
+    v, f = slab(1.5)
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    box = trimesh.creation.box(extents=(0.6, 0.3, 0.5))
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[0, :3, 3] = (-6.0, 0.0, 0.5)
+    poses[1, :3, :3] = np.diag((1.0, 2.0, 0.5))
+    poses[1, :3, 3] = (5.0, 1.0, 0.4)
+    scenes = _Scenes(np.asarray(v[:8], np.float32), np.asarray(f[:12], np.int32),
+                     [(np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)) for m in (sphere, box)])
+    scenes.update_dynamic(0, None, None, poses)
+    rng = np.random.default_rng(3)
+    n = 2000
+    pos = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), np.zeros(n)]).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
+    s = TraceSettings(rays=16, ao_distance=1.0)
+    org, dirs = (a.copy() for a in _chunk_rays(pos, nrm, np.arange(n), s, 0))
+    hit = scenes.occluded(org, dirs, s.ao_distance, s.rays)
+
+    every = scenes.static.run(org, dirs, dists=np.full(len(org), 1.0, np.float32), query="OCCLUDED") != -1
+    for mesh, pose in zip((sphere, box), poses):
+        scene = rtcore_scene.EmbreeScene(_device())
+        TriangleMesh(scene, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32))
+        inv = np.linalg.inv(pose)
+        o = (org @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
+        d = (dirs @ inv[:3, :3].T).astype(np.float32)
+        every |= scene.run(o, d, dists=np.full(len(org), 1.0, np.float32), query="OCCLUDED") != -1
+    near = np.abs(pos[:, 0] + 6) < 2 + 0.4
+    assert hit.reshape(n, -1)[near].any() and not hit.reshape(n, -1)[np.abs(pos[:, 0]) < 3].any()
+    assert np.array_equal(hit, every)

@@ -61,21 +61,24 @@ class _Rigid:
         lo, hi = v.min(axis=0), v.max(axis=0)
         self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
-    def occluded(self, pose: np.ndarray, origins, dirs, tmax) -> np.ndarray:
-        """Rays (world, re-centred) occluded by this mesh at `pose` (4x4 local -> world); only rays
-        starting within tmax of its world box are traced."""
-        hit = np.zeros(len(origins), dtype=bool)
+    def occlude(self, pose: np.ndarray, origins, dirs, tmax, hit: np.ndarray, rays_per_point: int) -> None:
+        """Mark in `hit` the rays (world, re-centred) this mesh at `pose` (4x4 local -> world) occludes.
+        Rays come in runs of `rays_per_point` sharing one origin: the box test (origin within tmax of the
+        mesh's world box) runs once per point, and only the near points' rays not yet hit are gathered and
+        traced, so a mover far from most of a batch costs little beyond one pass over the points."""
         if self.scene is None:
-            return hit
+            return
         w = self.corners @ pose[:3, :3].T + pose[:3, 3]
         lo, hi = w.min(axis=0) - tmax, w.max(axis=0) + tmax
-        near = np.flatnonzero(np.all((origins >= lo) & (origins <= hi), axis=1))
-        if len(near):
+        points = origins[::rays_per_point]
+        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        rays = (near[:, None] * rays_per_point + np.arange(rays_per_point)).ravel()
+        rays = rays[~hit[rays]]
+        if len(rays):
             inv = np.linalg.inv(pose)
-            o = (origins[near] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
-            d = (dirs[near] @ inv[:3, :3].T).astype(np.float32)
-            hit[near] = self.scene.run(o, d, dists=np.full(len(near), tmax, np.float32), query="OCCLUDED") != -1
-        return hit
+            o = (origins[rays] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
+            d = (dirs[rays] @ inv[:3, :3].T).astype(np.float32)
+            hit[rays] = self.scene.run(o, d, dists=np.full(len(rays), tmax, np.float32), query="OCCLUDED") != -1
 
 
 class _Scenes:
@@ -105,9 +108,11 @@ class _Scenes:
         self._refit = RefitMesh.build(vertices, faces, _device(), parts)
         return self._refit.scene if self._refit is not None else _build_scene(vertices, faces)
 
-    def occluded(self, origins, dirs, tmax) -> np.ndarray:
+    def occluded(self, origins, dirs, tmax, rays_per_point: int = 1) -> np.ndarray:
         """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
-        ones before let through."""
+        ones before let through. Rays come in runs of `rays_per_point` that share an origin (a point's)."""
+        if len(origins) % rays_per_point:
+            raise TracerError(f"{len(origins)} rays are not runs of {rays_per_point}")
         dists = np.full(len(origins), tmax, np.float32)
         if self.static is not None:
             hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
@@ -119,10 +124,7 @@ class _Scenes:
                 hit[todo] = self.dynamic.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
         if self.rigid_poses is not None:
             for mesh, pose in zip(self.rigid, self.rigid_poses):
-                todo = np.flatnonzero(~hit)
-                if len(todo) == 0:
-                    break
-                hit[todo] = mesh.occluded(pose, origins[todo], dirs[todo], tmax)
+                mesh.occlude(pose, origins, dirs, tmax, hit, rays_per_point)
         return hit
 
 
@@ -170,7 +172,7 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
     t0 = time.perf_counter()
     org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
     t1 = time.perf_counter()
-    hit = scenes.occluded(org, dirs, s.ao_distance)
+    hit = scenes.occluded(org, dirs, s.ao_distance, len(org) // max(len(pos), 1))
     t2 = time.perf_counter()
     vis = 1.0 - hit.reshape(len(pos), -1).mean(axis=1, dtype=np.float32)
     return vis, t2 - t1, time.perf_counter() - t0
