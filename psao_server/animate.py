@@ -6,31 +6,28 @@ Instances are of three kinds:
     static   no animation and no skin: geometry and points never change
     rigid    a RigidAnimation and no skin: points stay in the instance's local space, only the
              transform changes (the client applies it; no point is re-sent for the motion itself)
-    skinned  a mesh with a Skin (possibly also moved rigidly): the mesh deforms, so its AO points move
-             in local space and are re-quantised into the grid
+    skinned  a mesh with a Skin (possibly also moved rigidly): the mesh deforms; the grid keeps its AO
+             points in the mesh's rest pose (the client looks fragments up by their rest-pose place), and
+             the tick traces them from where they are on the deformed mesh
 
-Skinned AO points follow their triangles exactly: a point is the same barycentric combination of its
-triangle's skinned corners (Warp skinning of the mesh vertices, psao_scene.skinning), and its normal is
-the skinned triangle's normal on the side the point was generated on. So points stay on the deformed
-surface, which blending per-point skin weights would not guarantee.
+Skinned AO points follow their triangles exactly: a posed point is the same barycentric combination of its
+triangle's skinned corners (Warp skinning of the mesh vertices, psao_scene.skinning) as its rest-pose
+point is of the rest corners, and its normal is the skinned triangle's normal on the side the point was
+generated on. So points stay on the deformed surface, which blending per-point skin weights would not
+guarantee, and the client finds a posed fragment's rest-pose place the same way (same triangle, same
+barycentrics).
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol import gridformat as gf
 from psao_scene.rigid import instance_transform
 from psao_scene.model import Scene
 from psao_scene.skinning import SceneSkinner, SurfacePoints, surface_points
 from psao_server.bake import scene_world_geometry
-from psao_server.grid import Grid
 from psao_server.points import PointSet
-
-log = logging.getLogger("psao.tick")
-
 
 @dataclass
 class InstanceKinds:
@@ -205,68 +202,3 @@ class SkinnedPoints:
         ok = np.linalg.norm(n, axis=1) > 0.5  # a triangle skinned flat keeps the point's rest normal
         nrm = np.where(ok[:, None], n * self.side[:, None], self.rest_normals)
         return pos, nrm.astype(np.float32)
-
-
-# ------------------------------------------------------------------------ grid boxes for animation
-
-def animation_period(skin) -> float:
-    """Seconds after which a skin's animation repeats (glTF duration, walk cycle), 0 when unknown."""
-    a = skin.animator
-    d = float(getattr(a, "duration", 0.0) or 0.0)
-    if d > 0:
-        return d
-    f = float(getattr(a, "frequency", 0.0) or 0.0)
-    return 1.0 / f if f > 0 else 0.0
-
-
-def skinned_point_bounds(scene: Scene, pointsets: list[PointSet], instances: list[int], skinner: SceneSkinner,
-                         samples: int = 64, fallback_span: float = 60.0) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Local (lo, hi) of every skinned instance's AO points over its animation: `samples` poses over one
-    period (or over `fallback_span` seconds when the period is unknown), and the rest pose."""
-    out = {}
-    for i in instances:
-        mesh_index = scene.instances[i].mesh
-        mesh = scene.meshes[mesh_index]
-        sp = SkinnedPoints.from_pointset(mesh, pointsets[i])
-        period = animation_period(mesh.skin) or fallback_span
-        lo, hi = pointsets[i].positions.min(axis=0), pointsets[i].positions.max(axis=0)
-        for t in np.linspace(0.0, period, samples, endpoint=False):
-            pos, _ = sp.follow(mesh.faces, skinner.vertices(mesh_index, float(t)))
-            lo, hi = np.minimum(lo, pos.min(axis=0)), np.maximum(hi, pos.max(axis=0))
-        out[i] = (lo, hi)
-    return out
-
-
-def grid_for_animation(grid: Grid, bounds: dict[int, tuple[np.ndarray, np.ndarray]]) -> Grid | None:
-    """A copy of `grid` whose instance boxes also cover `bounds` (local, per instance), or None when every
-    box already does. Cell size, radius and buckets stay; each grown box keeps one cell of padding.
-    Grid.build sizes boxes from the rest pose only, so swinging limbs would leave them."""
-    records = grid.instances.copy()
-    grown = False
-    for i, (lo, hi) in bounds.items():
-        rec = records[i]
-        s = float(rec["cell_size"])
-        origin = rec["origin"].astype(np.float64)
-        top = origin + rec["dims"].astype(np.float64) * s
-        if (lo >= origin + 0.5 * s).all() and (hi <= top - 0.5 * s).all():
-            continue
-        new_lo = np.minimum(lo, origin + s)
-        new_hi = np.maximum(hi, top - s)
-        dims = np.floor((new_hi - new_lo) / s).astype(np.int64) + 3
-        if dims.max() > gf.MAX_DIM:
-            log.warning("instance %d: its animation needs %s cells, more than %d per axis: box left as built",
-                        i, dims.tolist(), gf.MAX_DIM)
-            continue
-        rec["origin"] = (new_lo - s).astype(np.float32)
-        rec["dims"] = dims.astype(np.uint32)
-        grown = True
-    if not grown:
-        return None
-    table = grid.point_table()
-    out = Grid(records, grid.capacity)
-    for i in range(len(records)):
-        sel = np.flatnonzero(table.instance == i)
-        back = (grid.cells[table.slot[sel], gf.KEY_WORD] & gf.BACK_BIT) != 0
-        out.insert_points(i, table.local_pos[sel], table.local_normal[sel], table.ao_code[sel], table.point_id[sel],
-                          back=back)
-    return out

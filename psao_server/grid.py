@@ -24,25 +24,6 @@ from psao_server.errors import GridError
 from psao_server.settings import GridSettings
 
 NO_POINT = -1
-USE_KERNELS = True  # move_points' per-point work in Warp kernels (grid_kernels.py) where Warp imports; numpy else
-
-
-def _kernels():
-    """The grid's Warp kernels module, or None (turned off, or no Warp): the numpy code is the reference."""
-    if not USE_KERNELS:
-        return None
-    try:
-        from psao_server import grid_kernels
-    except ImportError:
-        return None
-    return grid_kernels
-
-
-def load_kernels() -> None:
-    """Compile and load move_points' kernels now (where they are used), not in the first move."""
-    kernels = _kernels()
-    if kernels is not None:
-        kernels.load()
 
 
 @dataclass
@@ -77,8 +58,7 @@ def instance_record(lo: np.ndarray, hi: np.ndarray, poisson_r: float, n_cells_hi
                     settings: GridSettings, margin_cells: int = 1) -> np.ndarray:
     """Grid geometry of one instance from its local point bounds (lo, hi) and Poisson radius.
 
-    The grid is padded by `margin_cells` on every side so points that move a little (skinning) stay
-    inside. If the dimensions would exceed MAX_DIM per axis the cell size grows (and with it the chance of
+    The grid is padded by `margin_cells` on every side. If the dimensions would exceed MAX_DIM per axis the cell size grows (and with it the chance of
     cell overflow, reported by the build statistics) rather than failing.
     """
     r = settings.radius_factor * poisson_r
@@ -257,11 +237,7 @@ class Grid:
 
     def move_points(self, slots, idx, new_local_pos, new_normals) -> np.ndarray:
         """Re-quantise points at new positions/normals, keeping AO and id. Points that stay in their cell
-        are rewritten in place; points that leave it are removed and re-inserted; an instance all of whose
-        points move and most of them out of their cells (a deforming mesh in motion) is cleared and filled
-        anew in one insertion instead, which costs less than removing and compacting cell by cell. Only a
-        whole instance is refilled: a few points moved in a large instance must not re-insert (and dirty) the
-        rest of it. Returns kept mask."""
+        are rewritten in place; points that leave it are removed and re-inserted. Returns kept mask."""
         slots = np.asarray(slots, np.int64)
         idx = np.asarray(idx, np.int64)
         new_local_pos = np.asarray(new_local_pos, np.float64).reshape(-1, 3)
@@ -274,35 +250,12 @@ class Grid:
         insts = self.cell_instance[slots]
         side = self.cells[slots, gf.KEY_WORD] & gf.BACK_BIT
         stay = np.zeros(len(slots), dtype=bool)
-        found = []
-        kernels = _kernels()
-        groups = np.flatnonzero(np.bincount(insts, minlength=len(self.instances)))  # the instances (no sort)
-        one = len(groups) == 1  # (a deforming instance on its own: no gathered copies)
-        for inst in groups.tolist():
-            sel = np.arange(len(slots)) if one else np.flatnonzero(insts == inst)
-            mine_pos, mine_side = (new_local_pos, side) if one else (new_local_pos[sel], side[sel])
+        for inst in np.unique(insts).tolist():
+            sel = np.flatnonzero(insts == inst)
             rec = self.instances[inst]
-            old_keys = self.cells[slots if one else slots[sel], gf.KEY_WORD]
-            if kernels is not None:
-                found.append((inst, sel, *kernels.locate(mine_pos, rec, mine_side, old_keys)))
-                continue
-            cell, inside = self.cell_of(inst, mine_pos)
-            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | mine_side
-            found.append((inst, sel, cell, inside, keys, inside & (keys == old_keys)))
-        # the cells of the instances most of whose moved points leave their cells, in one pass over the pool
-        leaving = np.zeros(len(self.instances) + 1, dtype=bool)  # index -1 (a free cell) stays False
-        leaving[[f[0] for f in found if 2 * int(f[5].sum()) < len(f[1])]] = True
-        cells_of = np.flatnonzero(leaving[self.cell_instance]) if leaving.any() else np.zeros(0, np.int64)
-        for inst, sel, cell, inside, keys, same in found:
-            rec = self.instances[inst]
-            if leaving[inst]:
-                mine = cells_of[self.cell_instance[cells_of] == inst]
-                if len(sel) == np.count_nonzero(self.point_id[mine] != NO_POINT):  # the whole instance moves
-                    take = (lambda a: a) if one else (lambda a: a[sel])  # noqa: E731
-                    kept[sel] = self._refill_instance(inst, mine, take(slots), take(idx), take(new_local_pos),
-                                                      take(new_normals), cell, inside, keys, take(ids), take(ao))
-                    stay[sel] = True  # done
-                    continue
+            cell, inside = self.cell_of(inst, new_local_pos[sel])
+            keys = gf.cell_key(cell[:, 0], cell[:, 1], cell[:, 2], rec["dims"]) | side[sel]
+            same = inside & (keys == self.cells[slots[sel], gf.KEY_WORD])
             s_sel = sel[same]
             frac = gf.grid_coords(new_local_pos[s_sel], rec["origin"], rec["cell_size"]) - cell[same]
             words = pw.pack_point(pw.quantise_cell_fraction(frac), pw.oct_encode(new_normals[s_sel]), ao[s_sel])
@@ -319,98 +272,6 @@ class Grid:
                 sel = leave[insts[leave] == inst]
                 kept[sel] = self.insert_points(inst, new_local_pos[sel], new_normals[sel], ao[sel], ids[sel],
                                                back=side[sel] != 0)
-        return kept
-
-    def _refill_instance(self, inst: int, mine, slots, idx, new_local_pos, new_normals, cell, inside, keys,
-                         ids, ao) -> np.ndarray:
-        """Move every point of instance `inst` (cells `mine`; the points at slots/idx, every one of them, with
-        their ids and AO codes, to new_local_pos / new_normals, whose cells, inside mask and keys with their
-        side bit are given) by
-        clearing its cells and buckets and placing them all anew, ids, AO and sides kept. Returns the kept
-        mask of the moved points.
-
-        The result is exactly what insert_points would make of the cleared instance with its points read
-        in (slot, index) order, computed in one sorted pass instead of its rounds: a key's points in that
-        order fill its cells 7 at a time (at most KEY_CELLS cells); the cells' bucket entries go by round
-        (a key's first cell, then its second, ...) and key, as long as the bucket has room (a key whose
-        cell finds none loses that cell's points and the rest); slots are taken lowest first in the order
-        round, bucket, key; bucket entries end sorted by key, then round."""
-        P, E = gf.POINTS_PER_CELL, gf.BUCKET_ENTRIES
-        rec = self.instances[inst]
-        n = len(slots)
-        rows = slice(int(rec["bucket_offset"]), int(rec["bucket_offset"] + rec["bucket_count"]))
-        before = self.buckets[rows].copy()
-        self.buckets[rows] = gf.EMPTY
-        self.cells[mine] = gf.FREE_CELL
-        self.point_id[mine] = NO_POINT
-        self.cell_instance[mine] = -1
-        self.dirty_cells[mine] = True
-        self.free_slots.extend(mine[::-1].tolist())  # lowest last: _allocate_slots takes them first
-        kept = np.zeros(n, dtype=bool)
-        pts = np.flatnonzero(inside)
-        self.stats.dropped_outside += n - len(pts)
-        self.stats.inserted -= n  # a move, not new points
-        if len(pts) == 0:
-            self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
-            return kept
-        # the points by key, then by their place before (slot, index): insert_points' stable order
-        order = pts[np.argsort((keys[pts].astype(np.int64) << 32) | (slots[pts] * P + idx[pts]))]
-        sk = keys[order]
-        start = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
-        count = np.diff(np.append(start, len(sk)))
-        rank = np.arange(len(sk)) - np.repeat(start, count)
-        key_of = np.repeat(np.arange(len(start)), count)  # each sorted point's key number
-        ukeys, ucell = sk[start], cell[order[start]]
-        ubucket = gf.bucket_index(ucell[:, 0], ucell[:, 1], ucell[:, 2], rec["dims"], int(rec["bucket_offset"]),
-                                  int(rec["bucket_count"])).astype(np.int64)
-        # the cells each key asks for: (key, round j), j < KEY_CELLS
-        ncell = np.minimum((count + P - 1) // P, gf.KEY_CELLS)
-        pair_start = np.cumsum(ncell) - ncell
-        pk = np.repeat(np.arange(len(start)), ncell)
-        pj = np.arange(len(pk)) - np.repeat(pair_start, ncell)
-        pb = ubucket[pk]
-        # bucket entries by round, then key: a pair fits while its bucket has entries left
-        by_bucket = np.lexsort((ukeys[pk], pj, pb))
-        sb = pb[by_bucket]
-        first = np.flatnonzero(np.concatenate([[True], sb[1:] != sb[:-1]]))
-        in_bucket = np.arange(len(sb)) - np.repeat(first, np.diff(np.append(first, len(sb))))
-        fits = np.zeros(len(pk), dtype=bool)
-        fits[by_bucket] = in_bucket < E
-        nfit = np.bincount(pk[fits], minlength=len(start))  # a prefix of each key's rounds (later rounds rank later)
-        # slots, lowest first, in the order round, bucket, key
-        placed = np.flatnonzero(fits)
-        placed = placed[np.lexsort((ukeys[pk[placed]], pb[placed], pj[placed]))]
-        pair_slot = np.full(len(pk), -1, np.int64)
-        pair_slot[placed] = self._allocate_slots(len(placed))
-        fresh = pair_slot[placed]
-        self.cells[fresh] = gf.FREE_CELL
-        self.cells[fresh, gf.KEY_WORD] = ukeys[pk[placed]]
-        self.cell_instance[fresh] = inst
-        self.dirty_cells[fresh] = True
-        # bucket rows: entries sorted by key, then round
-        placed = placed[np.lexsort((pj[placed], ukeys[pk[placed]], pb[placed]))]
-        b = pb[placed]
-        first = np.flatnonzero(np.concatenate([[True], b[1:] != b[:-1]]))
-        entry = np.arange(len(b)) - np.repeat(first, np.diff(np.append(first, len(b))))
-        self.buckets[b, entry, 0] = ukeys[pk[placed]]
-        self.buckets[b, entry, 1] = pair_slot[placed].astype(np.uint32)
-        self.dirty_buckets[b] = True
-        # the points
-        j = rank // P
-        ok = j < nfit[key_of]
-        self.stats.dropped_bucket_full += int((~ok & (nfit[key_of] < ncell[key_of])).sum())
-        self.stats.dropped_cell_full += int((~ok & (nfit[key_of] == ncell[key_of])).sum())
-        go = order[ok]
-        pslot = pair_slot[pair_start[key_of[ok]] + j[ok]]
-        pidx = rank[ok] % P
-        kernels = _kernels()
-        if kernels is None:
-            self._write_points(pslot, pidx, rec, cell[go], new_local_pos[go], new_normals[go], ao[go], ids[go])
-        else:
-            kernels.write_points(self, pslot, pidx, rec, cell, new_local_pos, new_normals, ao, ids, rows=go)
-        kept[go] = True
-        self.stats.inserted += len(go)
-        self.dirty_buckets[rows] |= np.any(self.buckets[rows] != before, axis=(1, 2))
         return kept
 
     # ------------------------------------------------------------------ internals

@@ -143,8 +143,6 @@ def _ticking(args, bake_with: BakeSettings, scene=None):
     # tracer (its cluster with --cluster) also refines waiting static points, in batches, beside the ticks.
     settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True,
                             tracer="embree" if args.tracer == "dask" else args.tracer, workers=args.workers)
-    if not args.animate:
-        settings.fit_grid = False
     refiner = None
     if args.progressive:  # the bake's tracer (a cluster's, or local worker processes) refines beside the ticks
         from psao_server.refine import BackgroundTracer, ClusterRefiner

@@ -206,7 +206,6 @@ class TickSettings:
     # query then gathers few points outside the box)
     near_margin: float = 0.25  # share of the AO distance a mover's reach is grown by when its nearby static
     # points are gathered (selection.NearCache): they serve the following ticks until it moves that far
-    fit_grid: bool = True  # grow skinned instances' grid boxes to cover their whole animation (replaces the grid)
     history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
     budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)
 

@@ -1,7 +1,7 @@
 """The server tick (DESIGN.md, server tick steps 1-5): animate, select, trace, quantise, threshold.
 
     tick = ServerTick(bake_result, TickSettings())   # static Embree scene built once, workers started
-    grid = tick.grid                                   # serve this grid (fit_grid may have replaced bake.grid)
+    grid = tick.grid                                   # the grid it writes (bake.grid)
     tick.set_cameras([(view, proj), ...])              # from the clients' Camera messages
     tick(grid, t)                                      # one tick at scene time t (the service's TickFn)
     plan = tick.prepare(t); tick.apply(plan)           # the same in two halves: prepare writes no grid
@@ -19,11 +19,12 @@ local position and normal, world position (static points: computed once), and a 
 selection wanted but no client could see).
 
 Rigid instances never touch their points: the client moves them with the transform. Skinned instances
-re-place every point on the deformed mesh; points that leave their cell are moved by the grid, and
-points the grid could not keep (full cell or bucket) are kept aside ("parked") and re-inserted, with
-freshly traced AO, as soon as they fit again. Grid.build sizes an instance's box from its rest pose, so
-ServerTick first grows the boxes of skinned instances to their whole animation (TickSettings.fit_grid):
-that replaces bake.grid, and the service must be given tick.grid.
+never touch them either: the grid keeps every skinned point where the bake generated it, in the mesh's
+rest (bind) pose, and the client looks a fragment up by its rest-pose position and normal (the G-buffer's
+local targets carry the rest pose of the posed fragment: same triangle, same barycentrics). Each tick
+re-places the skinned points on the deformed mesh only for tracing (`local_pos` / `local_nrm`: where a
+point is now, in instance space), so a skinned tick writes AO into fixed points and the thresholded
+changes are all it sends.
 
 Two ways to trace (TickSettings.budget):
     None      every selected point in a view is re-traced with `rays` rays in this very tick, however
@@ -47,12 +48,11 @@ import numpy as np
 
 from protocol import pointword as pw
 from protocol.errors import EditError
-from psao_server.animate import (Frame, SceneAnimator, SkinnedPoints, bounds_of, grid_for_animation, skinned_point_bounds,
-                                 to_world_points, affine)
+from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, affine, bounds_of, to_world_points
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_tracer
 from psao_server.errors import ConfigError, TracerError
-from psao_server.grid import NO_POINT, Grid, load_kernels
+from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
                                    rigid_in_company, sorted_union, sum_by_index)
 from psao_server.settings import TickSettings, TraceSettings
@@ -69,8 +69,7 @@ class TickStats:
     skipped: int  # considered - traced
     traced: int
     changed: int  # AO written (|new - old| > threshold) or re-inserted
-    moved: int  # skinned points given new local positions
-    parked: int  # skinned points the grid cannot hold at the moment
+    moved: int  # skinned points re-posed on their deformed triangles (traced from there; the grid keeps them at rest)
     cells_dirty: int  # cells marked dirty after the tick (= cells this tick dirtied when the service drains every tick)
     seconds_animate: float
     seconds_select: float
@@ -91,7 +90,7 @@ class TickStats:
 class TickPlan:
     """A prepared tick: what apply() writes."""
     frame: Frame
-    moved: np.ndarray  # ids of held skinned points with a new local position or normal
+    moved: int  # skinned points whose posed position or normal changed
     ids: np.ndarray  # ids traced
     codes: np.ndarray  # their new AO codes
     seconds: tuple[float, float, float]  # animate, select, trace
@@ -171,18 +170,9 @@ class ServerTick:
             raise ConfigError("the grid's point ids do not match the bake's point sets (not built by Grid.build?)")
         self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
         self.n_tracked = int(self.tracked.sum())
-        if self.kinds.skinned and self.settings.fit_grid:
-            bounds = skinned_point_bounds(self.scene, bake.pointsets, self.kinds.skinned, self.animator.skinner)
-            grown = grid_for_animation(self.grid, bounds)
-            if grown is not None:
-                log.info("grid boxes of skinned instances grown to cover their animation: the grid is replaced")
-                self.grid = bake.grid = grown
-                self._relocate_all()
         self.stale = np.zeros(n, dtype=bool)
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
-        if self.skinned:
-            load_kernels()  # skinned points move through the grid every tick
         # static points: world positions and normals once, and a block index for box queries
         self.world_pos = np.zeros((n, 3))
         self.world_nrm = np.zeros((n, 3), np.float32)
@@ -283,23 +273,6 @@ class ServerTick:
         self.index[:] = -1
         self._relocate_cells(np.flatnonzero(self.grid.cell_instance >= 0))
 
-    def _relocate_instances(self, instances: list[int]) -> None:
-        if not instances:
-            return
-        mine = np.isin(self.inst_of, instances)
-        self.slot[mine] = -1
-        self.index[mine] = -1
-        self._relocate_cells(np.flatnonzero(np.isin(self.grid.cell_instance, instances)))
-
-    def _parked(self) -> int:
-        """Tracked points the grid does not hold now (only skinned ones can be: per-tick work stays off
-        the static points)."""
-        ids = [self.ids_of[i] for i in self.kinds.skinned]
-        if not ids:
-            return 0
-        ids = np.concatenate(ids)
-        return int((self.tracked[ids] & (self.slot[ids] < 0)).sum())
-
     def _check_locations(self, ids: np.ndarray) -> None:
         """Someone else (an edit outside the tick) may have moved points: find them again (ids: points
         believed present; afterwards present() tells where they really are)."""
@@ -354,7 +327,7 @@ class ServerTick:
     def __call__(self, grid: Grid, t: float) -> TickStats:
         """One tick at scene time t: prepare (no grid writes) then apply."""
         if grid is not self.grid:
-            raise ConfigError("ServerTick was built for another grid (after fit_grid, use tick.grid)")
+            raise ConfigError("ServerTick was built for another grid (tick.grid)")
         return self.apply(self.prepare(t))
 
     def prepare(self, t: float) -> "TickPlan":
@@ -386,7 +359,7 @@ class ServerTick:
         self.refiner.forget(changed)
         return self.refiner.step(self, frame)
 
-    def _prepare_budgeted(self, frame: Frame, moved: np.ndarray, t_start: float, t_anim: float) -> "TickPlan":
+    def _prepare_budgeted(self, frame: Frame, moved: int, t_start: float, t_anim: float) -> "TickPlan":
         """Reset the history of the points the motion may have changed, pick as many waiting points as
         the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
         now = t_anim
@@ -420,8 +393,7 @@ class ServerTick:
 
     def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the
-        others, or the next `scan` of a sweep over a long queue; parked skinned points too (a trace
-        re-inserts them), not those the refiner has (out now, or the first grid's static points: it traces
+        others, or the next `scan` of a sweep over a long queue, not those the refiner has (out now, or the first grid's static points: it traces
         them faster). Once a whole sweep found none, only a reset can make more: until then the queue is
         not looked at (a first grid being refined costs the ticks nothing)."""
         n_list = self.queue.listed
@@ -453,17 +425,6 @@ class ServerTick:
         """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on
         the thread that owns the grid. Marks the cells and buckets it changes dirty."""
         g0 = time.perf_counter()
-        if len(plan.moved):
-            self._check_locations(plan.moved)
-            go = plan.moved[self.slot[plan.moved] >= 0]
-            was = self.slot[go]
-            self.grid.move_points(was, self.index[go], self.local_pos[go], self.local_nrm[go])
-            # where they are now: in their old cells (moved in place), or in a cell the move marked dirty
-            # (re-inserted, or shifted there by compaction); the moved ones the grid could not keep are parked
-            self.slot[go], self.index[go] = -1, -1
-            look = self.grid.dirty_cells.copy()
-            look[was] = True
-            self._relocate_cells(np.flatnonzero(look))
         changed = self._store(plan.ids, plan.codes)
         seconds_grid = self.stats_grid_s = time.perf_counter() - g0
         self.last_frame = plan.frame
@@ -472,7 +433,7 @@ class ServerTick:
         animate, select, trace = plan.seconds
         stats = TickStats(
             tick=self.tick_count, t=plan.frame.t, considered=n, skipped=n - len(plan.ids), traced=int(len(plan.ids)),
-            changed=changed, moved=int(len(plan.moved)), parked=self._parked(),
+            changed=changed, moved=plan.moved,
             cells_dirty=int(np.count_nonzero(self.grid.dirty_cells)),
             seconds_animate=animate, seconds_select=select, seconds_trace=trace, seconds_grid=seconds_grid,
             seconds_total=animate + select + trace + seconds_grid, **self._queue_stats(plan, trace))
@@ -490,20 +451,19 @@ class ServerTick:
                 "batch": plan.batch}
 
     # ------------------------------------------------------------------ steps
-    def _deform(self, frame: Frame) -> np.ndarray:
-        """Skinned points to their new local positions (the tick's arrays only); returns the ids of the
-        points the grid holds whose position or normal changed (apply moves them)."""
-        moved = []
+    def _deform(self, frame: Frame) -> int:
+        """Skinned points to where they are at `frame` on their deformed triangles (the tick's local_pos /
+        local_nrm, which it traces from; the grid keeps their rest pose); returns how many changed."""
+        moved = 0
         for i, sp in self.skinned.items():
             mesh = self.scene.meshes[self.scene.instances[i].mesh]
             pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
             ids = self.ids_of[i]
             mine = slice(int(ids[0]), int(ids[-1]) + 1) if len(ids) else slice(0, 0)  # consecutive ids: views
             dp, dn = pos != self.local_pos[mine], nrm != self.local_nrm[mine]
-            change = dp[:, 0] | dp[:, 1] | dp[:, 2] | dn[:, 0] | dn[:, 1] | dn[:, 2]
+            moved += int(np.count_nonzero(dp[:, 0] | dp[:, 1] | dp[:, 2] | dn[:, 0] | dn[:, 1] | dn[:, 2]))
             self.local_pos[mine], self.local_nrm[mine] = pos, nrm
-            moved.append(ids[change & (self.slot[mine] >= 0)])
-        return np.concatenate(moved) if moved else np.zeros(0, np.int64)
+        return moved
 
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Point ids to trace this tick (sorted) with their world positions and normals; updates the
@@ -585,24 +545,13 @@ class ServerTick:
         return pos, nrm
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
-        """Threshold and write traced AO; re-insert parked skinned points. Returns the points written."""
-        if len(ids):
-            self._check_locations(ids[self.slot[ids] >= 0])
-        here = self.slot[ids] >= 0
-        have, new = ids[here], codes[here]
-        changed = 0
-        if len(have):
-            old = (self.grid.cells[self.slot[have], self.index[have]] & np.uint32(0xFF)).astype(np.int64)
-            write = np.abs(new.astype(np.int64) - old) > self.settings.threshold
-            self.grid.set_ao(self.slot[have][write], self.index[have][write], new[write])
-            changed += int(write.sum())
-        parked = ids[~here]
-        if len(parked):
-            insts = self.inst_of[parked]
-            for i in np.unique(insts).tolist():
-                sel = parked[insts == i]
-                kept = self.grid.insert_points(i, self.local_pos[sel], self.local_nrm[sel], codes[~here][insts == i], sel,
-                                               back=self.back[sel])
-                changed += int(kept.sum())
-            self._relocate_instances(np.unique(insts).tolist())
-        return changed
+        """Threshold and write traced AO. Returns the points written."""
+        if len(ids) == 0:
+            return 0
+        self._check_locations(ids[self.slot[ids] >= 0])
+        here = self.slot[ids] >= 0  # (a point an edit outside the tick removed stays out)
+        ids, codes = ids[here], codes[here]
+        old = (self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)).astype(np.int64)
+        write = np.abs(codes.astype(np.int64) - old) > self.settings.threshold
+        self.grid.set_ao(self.slot[ids][write], self.index[ids][write], codes[write])
+        return int(write.sum())

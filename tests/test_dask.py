@@ -238,7 +238,7 @@ def test_cluster_refines_static_points_as_a_local_trace_would(cluster):
                       show_progress=False)
     refiner = ClusterRefiner(bake.tracer, RefineSettings(batch_points=1500, batches_per_thread=2))
     settings = TickSettings(rays=32, seed=SEED, budget=BudgetSettings(round_rays=8, budget_ms=0.1), selection=True,
-                            workers=1, fit_grid=False)
+                            workers=1)
     tick = ServerTick(bake, settings, close_bake_tracer=False, refiner=refiner)
     try:
         frame = tick.animator.frame(0.0)

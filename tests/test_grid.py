@@ -132,8 +132,8 @@ def test_random_edits_keep_invariants_and_dirty_flags():
 
 
 @pytest.mark.parametrize("moved_fraction", [1.0, 0.9])
-def test_moving_most_points_of_an_instance_refills_it_exactly(moved_fraction):
-    """A deforming instance moving all (the refill path) or most of its points: every point is held once at
+def test_moving_most_points_of_an_instance(moved_fraction):
+    """An instance moving all or most of its points: every point is held once at
     its new position with its id, AO and side, the other instance is untouched, invariants and dirty flags
     hold, and the pool does not grow."""
     rng = np.random.default_rng(7)
@@ -174,8 +174,8 @@ def test_moving_most_points_of_an_instance_refills_it_exactly(moved_fraction):
 
 def test_moving_a_few_points_of_a_large_instance_leaves_the_rest_alone():
     """A few points moved out of their cells in a large instance (an edit, a small part): every point is
-    kept, and only the cells those points leave or enter are marked dirty (no refill of the whole instance,
-    which would put all of it on the wire)."""
+    kept, and only the cells those points leave or enter are marked dirty (the rest of the instance does
+    not go on the wire)."""
     rng = np.random.default_rng(8)
     p, n = plane_points(4000, rng)
     grid = Grid.build([(p, n, 0.01, 0)])
@@ -256,74 +256,3 @@ def test_a_key_takes_at_most_key_cells_cells():
     cap = gf.KEY_CELLS * gf.POINTS_PER_CELL
     assert grid.stats.dropped_cell_full == 30 - cap and grid.n_points() == cap + 2
     check_invariants(grid)
-
-
-def refill_by_insert(grid: Grid, inst, slots, idx, new_local_pos, new_normals):
-    """Reference for the whole-instance move: clear the instance, then insert_points (its rounds) on its
-    points read in (slot, index) order."""
-    mine = np.flatnonzero(grid.cell_instance == inst)
-    s, k = np.nonzero(grid.point_id[mine] != -1)
-    s = mine[s]
-    where = np.searchsorted(s * gf.POINTS_PER_CELL + k, slots * gf.POINTS_PER_CELL + idx)
-    pos, nrm = grid.point_local[s, k], grid.point_normal[s, k]
-    pos[where], nrm[where] = new_local_pos, new_normals
-    ids, ao = grid.point_id[s, k], grid.cells[s, k] & np.uint32(0xFF)
-    back = (grid.cells[s, gf.KEY_WORD] & gf.BACK_BIT) != 0
-    rec = grid.instances[inst]
-    rows = slice(int(rec["bucket_offset"]), int(rec["bucket_offset"] + rec["bucket_count"]))
-    before = grid.buckets[rows].copy()
-    grid.buckets[rows] = gf.EMPTY
-    grid.cells[mine] = gf.FREE_CELL
-    grid.point_id[mine] = -1
-    grid.cell_instance[mine] = -1
-    grid.dirty_cells[mine] = True
-    grid.free_slots.extend(mine[::-1].tolist())
-    grid.stats.inserted -= len(s)
-    kept = grid.insert_points(inst, pos, nrm, ao, ids, back=back)
-    grid.dirty_buckets[rows] |= np.any(grid.buckets[rows] != before, axis=(1, 2))
-    return kept[where]
-
-
-GRID_STATE = ("cells", "buckets", "point_local", "point_normal", "point_id", "cell_instance", "dirty_cells", "dirty_buckets")
-
-
-@pytest.mark.parametrize("case", ["spread", "crowded", "few_buckets", "leaving"])
-def test_whole_instance_move_equals_insert_rounds(case):
-    """The sorted one-pass refill of a moving instance leaves the grid exactly as clearing it and
-    inserting its points (insert_points' rounds) would: every array, the free list and the statistics,
-    also where cells overflow into a key's further cells, buckets run out of entries or points leave the box."""
-    import copy
-
-    rng = np.random.default_rng({"spread": 1, "crowded": 2, "few_buckets": 3, "leaving": 4}[case])
-    p, n = plane_points(4000, rng)
-    p2, n2 = plane_points(300, rng, 2.0)
-    back = rng.random(4000) < 0.3
-    settings = GridSettings(bucket_factor=0.3) if case == "few_buckets" else GridSettings()
-    grid = Grid.build([(p2, n2, 0.02, 0), (p, n, 0.01, gf.FLAG_DOUBLE_SIDED, back)], settings)
-    t = grid.point_table()
-    grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
-    for step in range(4):
-        t = grid.point_table()
-        mine = np.flatnonzero(t.instance == 1)
-        pick = rng.permutation(mine)
-        newpos = t.local_pos[pick] + rng.normal(scale=0.03, size=(len(pick), 3)) * [1, 1, 0]
-        if case == "crowded":  # many points into a few cells: more than KEY_CELLS * 7 for some keys
-            newpos[: len(pick) // 3, :2] = newpos[: len(pick) // 3, :2] * 0.02 + 0.5
-        if case == "leaving":  # some leave the instance's box
-            newpos[::17] += 5.0
-        nrm = rng.normal(size=(len(pick), 3)).astype(np.float32)
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-        ref = copy.deepcopy(grid)
-        want = refill_by_insert(ref, 1, t.slot[pick], t.index[pick], newpos, nrm)
-        got = grid.move_points(t.slot[pick], t.index[pick], newpos, nrm)
-        np.testing.assert_array_equal(got, want)
-        for name in GRID_STATE:
-            np.testing.assert_array_equal(getattr(grid, name), getattr(ref, name), err_msg=name)
-        assert grid.free_slots == ref.free_slots and grid.stats == ref.stats
-        check_invariants(grid)
-    if case == "crowded":
-        assert grid.stats.dropped_cell_full > 0
-    if case == "few_buckets":
-        assert grid.stats.dropped_bucket_full > 0
-    if case == "leaving":
-        assert grid.stats.dropped_outside > 0

@@ -102,7 +102,7 @@ def test_local_refiner_brings_every_static_point_to_its_full_trace():
     bake = bake_scene(scene, BakeSettings(density=8, rays=8, seed=5, workers=1), show_progress=False)
     refiner = ClusterRefiner(BackgroundTracer(bake.tracer), RefineSettings(batch_points=2000))
     settings = TickSettings(rays=32, seed=5, budget=BudgetSettings(round_rays=8, budget_ms=0.1), selection=True,
-                            workers=1, fit_grid=False)
+                            workers=1)
     tick = ServerTick(bake, settings, close_bake_tracer=False, refiner=refiner)
     try:
         static = refiner.static

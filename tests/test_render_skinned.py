@@ -1,10 +1,10 @@
-"""Skinned meshes in the client renderer: posed at the server's time, the G-buffer's instance-local
-positions lie on the same deformed triangles the server spreads and moves the AO points over."""
+"""Skinned meshes in the client renderer: drawn posed at the server's time (world positions on the deformed
+triangles the server traces from), while the G-buffer's instance-local position and normal are the rest
+pose's at the same triangle and barycentrics, where the server keeps the AO points."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 
 from psao_client.errors import RenderError
 from psao_client.render.renderer import FrameRenderer
@@ -12,6 +12,7 @@ from psao_scene import load_scene
 from psao_scene.rigid import instance_transform
 from psao_scene.camera import look_at, perspective
 from psao_scene.skinning import skinned_vertices
+from skinned import closest_on_mesh, local_distance, rest_place
 
 SIZE = (160, 120)
 T = 0.37  # seconds: mid-stride, limbs far from the rest pose
@@ -23,17 +24,6 @@ def robot_view(scene, i: int, t: float):
     chest = m[:3, :3] @ np.array([0.0, 1.1, 0.0]) + m[:3, 3]
     eye = chest + np.array([0.4, 0.5, -2.6])  # from the wall side: the pillar is inside the loop
     return look_at(eye, chest), perspective(50.0, SIZE[0] / SIZE[1], 0.05, 30.0)
-
-
-def local_distance(mesh_vertices, faces, points) -> np.ndarray:
-    """Distance of each point to the nearest triangle, every point against every triangle (trimesh's
-    proximity query would need rtree, which is not installed)."""
-    tris = np.asarray(mesh_vertices, np.float64)[faces]
-    out = np.empty(len(points))
-    for k, p in enumerate(points):
-        closest = trimesh.triangles.closest_point(tris, np.broadcast_to(p, (len(tris), 3)))
-        out[k] = np.linalg.norm(closest - p, axis=1).min()
-    return out
 
 
 def test_skinned_mesh_drawn_at_the_server_time(ctx):
@@ -54,15 +44,22 @@ def test_skinned_mesh_drawn_at_the_server_time(ctx):
 
     pixels = posed.instance == i
     assert pixels.sum() > 200, "the robot is not in view"
-    local = posed.local[pixels].astype(np.float64)
     rng = np.random.default_rng(0)
-    local = local[rng.choice(len(local), size=min(200, len(local)), replace=False)]
-    at_t = local_distance(skinned_vertices(mesh, T), mesh.faces, local)
-    at_rest = local_distance(mesh.vertices, mesh.faces, local)
-    # On the posed surface to float32 precision; many pixels are far off the rest pose (swung limbs).
-    assert np.quantile(at_t, 0.99) < 1e-4, f"99% of pixels within {np.quantile(at_t, 0.99):.2e} m"
-    assert np.mean(at_rest > 0.01) > 0.05
-    # Back to the rest pose: the rest G-buffer lies on the rest mesh.
+    pick = rng.choice(int(pixels.sum()), size=min(200, int(pixels.sum())), replace=False)
+    m = transforms[i]
+    world = posed.world[pixels][pick].astype(np.float64)
+    drawn = (world - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T  # instance-local place of the drawn surface
+    posed_vertices = skinned_vertices(mesh, T)
+    # drawn on the posed surface to float32 precision; many pixels are far off the rest pose (swung limbs)
+    assert np.quantile(local_distance(posed_vertices, mesh.faces, drawn), 0.99) < 1e-4
+    assert np.mean(local_distance(mesh.vertices, mesh.faces, drawn) > 0.01) > 0.05
+    # the local targets: the rest pose of the drawn point (same triangle, same barycentrics) and its normal
+    local = posed.local[pixels][pick].astype(np.float64)
+    off = np.linalg.norm(local - rest_place(posed_vertices, mesh.vertices, mesh.faces, drawn), axis=1)
+    assert np.quantile(off, 0.99) < 1e-3, f"99% of pixels within {np.quantile(off, 0.99):.2e} m of their rest place"
+    _, face, _ = closest_on_mesh(mesh.vertices, mesh.faces, local)
+    assert np.mean(np.einsum("ij,ij->i", posed.local_normal[pixels][pick], mesh.face_normals()[face]) > 0.999) > 0.95
+    # the rest pose drawn: the same local targets as the rest mesh
     back = rest.local[rest.instance == i].astype(np.float64)[:200]
     assert np.quantile(local_distance(mesh.vertices, mesh.faces, back), 0.99) < 1e-4
 

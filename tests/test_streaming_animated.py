@@ -10,7 +10,7 @@ import subprocess
 from serving import HANG_S, server_url
 from test_streaming_mirror import matched, psao, read_jsonl
 
-SCENE = "builtin:robots"  # skinned walkers (points move between cells) in a room
+SCENE = "builtin:robots"  # skinned walkers (their AO changes every tick) in a room
 
 
 def test_mirror_bit_exact_under_animation(tmp_path):

@@ -24,6 +24,7 @@ from protocol.reconstruct import reconstruct_ao
 from psao_scene import load_scene
 from psao_scene.camera import camera_at, look_at, perspective, scene_camera
 from serving import HANG_S, server_url
+from skinned import local_distance
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -171,6 +172,24 @@ def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec,
     assert match >= 0.995, match
     if name == "robots":
         assert frame["serverTime"] is not None  # skinned meshes were posed at an Update's server time
+        assert_skinned_local_is_the_rest_pose(load_scene(spec), frame)
+
+
+def assert_skinned_local_is_the_rest_pose(scene, frame: dict) -> None:
+    """The page draws skinned meshes posed, but its local position target holds the rest pose (where the
+    server keeps their points): it lies on the rest mesh."""
+    local = decode(frame["local"], np.float32).reshape(-1, 4)
+    inst = np.rint(local[:, 3]).astype(np.int64) - 1
+    seen = 0
+    for i, sc in enumerate(scene.instances):
+        mesh = scene.meshes[sc.mesh]
+        pts = local[inst == i, :3].astype(np.float64)
+        if mesh.skin is None or len(pts) < 20:
+            continue
+        pts = pts[np.random.default_rng(i).choice(len(pts), min(100, len(pts)), replace=False)]
+        assert np.quantile(local_distance(mesh.vertices, mesh.faces, pts), 0.99) < 1e-4
+        seen += 1
+    assert seen > 0, "no skinned mesh in view"
 
 
 def test_refused_token_lost_server_and_resync(browser, tmp_path):

@@ -1,6 +1,7 @@
 // WebGL2 renderer: G-buffer (4 targets), PSAO pass (GLSL ES port of the desktop lookup, grid tables as
 // RGBA32UI textures read with texelFetch, NEAREST), SSAO + blur, composite. Skinned meshes are posed on
-// the CPU at the server time of the last Update and re-uploaded.
+// the CPU at the server time of the last Update and re-uploaded; the G-buffer's local position and normal
+// come from a second, fixed buffer of the rest pose (where the server keeps a skinned mesh's AO points).
 import * as C from "/psao_constants.js";
 import { posedVertices, triangleSoup } from "/scene.js";
 
@@ -113,25 +114,42 @@ export class Renderer {
   // ---------------------------------------------------------------------------------------- scene
   setScene(scene) {
     const gl = this.gl;
-    for (const m of this.meshes) { gl.deleteBuffer(m.buffer); gl.deleteVertexArray(m.vao); }
+    for (const m of this.meshes) {
+      gl.deleteBuffer(m.buffer);
+      if (m.rest !== m.buffer) gl.deleteBuffer(m.rest);
+      gl.deleteVertexArray(m.vao);
+    }
     this.scene = scene;
     this.skinTime = null;
+    // Attributes 0, 1: the drawn triangles (posed); 2, 3: the rest pose (the same buffer without a skin).
+    const bind = (buffer, first) => {
+      gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
+      gl.enableVertexAttribArray(first);
+      gl.vertexAttribPointer(first, 3, gl.FLOAT, false, 24, 0);
+      gl.enableVertexAttribArray(first + 1);
+      gl.vertexAttribPointer(first + 1, 3, gl.FLOAT, false, 24, 12);
+    };
     this.meshes = scene.meshes.map((mesh) => {
       const vao = gl.createVertexArray();
-      const buffer = gl.createBuffer();
+      const soup = triangleSoup(mesh.vertices, mesh.faces);
+      const rest = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, rest);
+      gl.bufferData(gl.ARRAY_BUFFER, soup, gl.STATIC_DRAW);
+      let buffer = rest;
+      if (mesh.skin) {
+        buffer = gl.createBuffer();
+        gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
+        gl.bufferData(gl.ARRAY_BUFFER, soup, gl.DYNAMIC_DRAW);
+      }
       gl.bindVertexArray(vao);
-      gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
-      gl.bufferData(gl.ARRAY_BUFFER, triangleSoup(mesh.vertices, mesh.faces), mesh.skin ? gl.DYNAMIC_DRAW : gl.STATIC_DRAW);
-      gl.enableVertexAttribArray(0);
-      gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 24, 0);
-      gl.enableVertexAttribArray(1);
-      gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 24, 12);
+      bind(buffer, 0);
+      bind(rest, 2);
       gl.bindVertexArray(null);
-      return { vao, buffer, count: mesh.faces.length };
+      return { vao, buffer, rest, count: mesh.faces.length };
     });
   }
 
-  // Pose skinned meshes at scene time t (null: rest pose), as the server posed the points it sent.
+  // Pose skinned meshes' drawn triangles at scene time t (null: rest pose), as the server posed the points it traced.
   setSkinTime(t) {
     if (t === this.skinTime || !this.scene) return;
     const gl = this.gl;

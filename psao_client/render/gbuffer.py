@@ -3,8 +3,10 @@
 Attachments (GL's bottom-up rows; `read()` flips them to top-down images):
     world        RGBA32F  world position, w = 1 where covered (the mask)
     normal       RGBA32F  world normal, facing the camera on double-sided meshes
-    local        RGBA32F  instance-local position (what the PSAO lookup needs, full float precision)
-    local_normal RGBA32F  instance-local normal, w = 1 where it shows the back side of a double-sided mesh
+    local        RGBA32F  instance-local position (what the PSAO lookup needs, full float precision); on a
+                          skinned mesh, the fragment's place in the rest pose (where the server keeps its points)
+    local_normal RGBA32F  instance-local normal (a skinned mesh's rest pose), w = 1 where it shows the back
+                          side of a double-sided mesh
     color        RGBA16F  lit colour without AO (directional light + ambient), linear
     instance     R32UI    instance index + 1, 0 = background
     depth        R32F     view depth (> 0), 0 = background (the SSAO taps read this one channel)
@@ -112,9 +114,13 @@ def flat_shaded_arrays(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 class GeometryPass:
     """One vertex array per mesh; one draw per instance with its model matrix.
 
-    Skinned meshes start in their rest pose; set_skin_time(t) poses them at scene time t (the server time
-    of the last Update) with the server's own skinning (psao_scene.skinning, Warp), so the G-buffer's
-    instance-local positions lie on the same deformed triangles the server spread the AO points over."""
+    Every mesh's vertex array reads its rest-pose triangles (position and face normal) for the G-buffer's
+    local targets, and its drawn triangles from a second buffer, the same one for meshes without a skin.
+    Skinned meshes start in their rest pose; set_skin_time(t) poses their drawn triangles at scene time t
+    (the server time of the last Update) with the server's own skinning (psao_scene.skinning, Warp), so
+    the picture and the world position and normal are the deformed mesh's, while the local position and
+    normal stay the rest pose's at the same triangle and barycentrics: where the server keeps the AO points
+    of a skinned mesh."""
 
     def __init__(self, ctx, scene, light: LightSettings | None = None):
         self._ctx = ctx
@@ -125,12 +131,16 @@ class GeometryPass:
         self._skinned = [m for m, mesh in enumerate(scene.meshes) if mesh.skin is not None and len(mesh.faces)]
         self._skinner = None  # psao_scene.skinning.SceneSkinner, built on the first set_skin_time
         self.skin_time: float | None = None  # None = rest pose
-        self._vbos, self._vaos = [], []
-        for mesh in scene.meshes:
+        self._vbos, self._rest_vbos, self._vaos = [], [], []
+        for m, mesh in enumerate(scene.meshes):
             data = flat_shaded_arrays(mesh.vertices, mesh.faces)
-            vbo = ctx.buffer(data.tobytes() if data.size else np.zeros(6, np.float32).tobytes())
+            rest = ctx.buffer(data.tobytes() if data.size else np.zeros(6, np.float32).tobytes())
+            vbo = ctx.buffer(rest.read()) if m in self._skinned else rest  # a skinned mesh's drawn triangles move
+            self._rest_vbos.append(rest)
             self._vbos.append(vbo)
-            self._vaos.append((ctx.vertex_array(self.program, [(vbo, "3f 3f", "in_position", "in_normal")]), len(data)))
+            self._vaos.append((ctx.vertex_array(self.program, [(vbo, "3f 3f", "in_position", "in_normal"),
+                                                               (rest, "3f 3f", "in_rest_position", "in_rest_normal")]),
+                               len(data)))
         light = light or LightSettings()
         direction = np.asarray(light.direction, dtype=np.float64)
         self.program["u_light_dir"].value = tuple((direction / np.linalg.norm(direction)).tolist())
@@ -142,8 +152,8 @@ class GeometryPass:
         return bool(self._skinned)
 
     def set_skin_time(self, t: float | None) -> None:
-        """Pose every skinned mesh at scene time t seconds (None: the rest pose); rewrites their vertex
-        buffers in place (same size: the topology never changes)."""
+        """Pose every skinned mesh at scene time t seconds (None: the rest pose); rewrites their drawn
+        vertex buffers in place (the rest-pose ones never change) (same size: the topology never changes)."""
         if not self._skinned or t == self.skin_time:
             return
         if t is not None and self._skinner is None:
@@ -181,10 +191,10 @@ class GeometryPass:
     def release(self) -> None:
         for vao, _ in self._vaos:
             vao.release()
-        for vbo in self._vbos:
+        for vbo in {id(b): b for b in self._vbos + self._rest_vbos}.values():
             vbo.release()
         self.program.release()
-        self._vaos, self._vbos = [], []
+        self._vaos, self._vbos, self._rest_vbos = [], [], []
 
 
 def _gl_mat4(m: np.ndarray) -> bytes:

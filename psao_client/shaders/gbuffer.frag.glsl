@@ -17,8 +17,8 @@ uniform float u_diffuse;        // directional term
 
 layout(location = 0) out vec4 o_world;         // xyz world position, w = 1 where covered
 layout(location = 1) out vec4 o_normal;        // xyz world normal (unit)
-layout(location = 2) out vec4 o_local;         // xyz instance-local position
-layout(location = 3) out vec4 o_local_normal;  // xyz instance-local normal (unit), w = 1 on a back side
+layout(location = 2) out vec4 o_local;         // xyz instance-local position (a skinned mesh's rest pose)
+layout(location = 3) out vec4 o_local_normal;  // xyz instance-local normal (unit, rest pose), w = 1 on a back side
 layout(location = 4) out vec4 o_color;         // lit colour without AO, linear
 layout(location = 5) out uint o_instance;      // instance index + 1, 0 = background
 layout(location = 6) out float o_depth;        // view depth, 0 = background

@@ -1,7 +1,12 @@
 #version 410
-// Geometry pass: mesh-local vertices with flat (face) normals, one draw per instance.
-layout(location = 0) in vec3 in_position;  // mesh-local
-layout(location = 1) in vec3 in_normal;    // mesh-local face normal (unit)
+// Geometry pass: mesh-local vertices with flat (face) normals, one draw per instance. A skinned mesh is
+// drawn posed (in_position, in_normal) and carries its rest pose (in_rest_position, in_rest_normal: the same
+// vertex of the same triangle), where the server keeps its AO points: the lookup's local position and
+// normal are the rest pose's. For other meshes both pairs are the same.
+layout(location = 0) in vec3 in_position;       // mesh-local, posed
+layout(location = 1) in vec3 in_normal;         // mesh-local face normal (unit), posed
+layout(location = 2) in vec3 in_rest_position;  // mesh-local, rest pose
+layout(location = 3) in vec3 in_rest_normal;    // mesh-local face normal (unit), rest pose
 
 uniform mat4 u_model;          // local -> world (the last transform received from the server)
 uniform mat4 u_view;           // world -> camera
@@ -9,18 +14,18 @@ uniform mat4 u_proj;           // camera -> clip
 uniform mat3 u_normal_matrix;  // inverse transpose of the model's linear part
 
 out vec3 v_world;
-out vec3 v_local;
+out vec3 v_local;              // rest pose
 out float v_depth;             // distance along the view axis, > 0 in front of the camera
-flat out vec3 v_local_normal;
+flat out vec3 v_local_normal;  // rest pose
 flat out vec3 v_world_normal;
 
 void main() {
     vec4 world = u_model * vec4(in_position, 1.0);
     vec4 eye = u_view * world;
     v_world = world.xyz;
-    v_local = in_position;
+    v_local = in_rest_position;
     v_depth = -eye.z;
-    v_local_normal = in_normal;
+    v_local_normal = in_rest_normal;
     v_world_normal = u_normal_matrix * in_normal;
     gl_Position = u_proj * eye;
 }
