@@ -207,9 +207,5 @@ def surface_points(vertices: np.ndarray, faces: np.ndarray, face_index: np.ndarr
     linear blend skinning)."""
     tri = vertices[faces[face_index]]  # (P, 3, 3)
     pos = np.einsum("pk,pkj->pj", bary, tri)
-    # normals once per triangle, then per point (a triangle holds several points): the same numbers
-    used, back = np.unique(face_index, return_inverse=True)
-    ft = vertices[faces[used]]
-    n = np.cross(ft[:, 1] - ft[:, 0], ft[:, 2] - ft[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    return pos, n[back.reshape(-1)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return pos, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

@@ -257,26 +257,6 @@ def test_fox_animation_by_name(tmp_path, shared_scene):
         load_mesh_file(fox, "Swim")
 
 
-def test_surface_points_equal_the_per_point_formula():
-    # normals computed once per triangle are the very numbers of the per-point cross product
-    from psao_scene.skinning import surface_points
-
-    rng = np.random.default_rng(3)
-    vertices = rng.normal(size=(200, 3))
-    faces = rng.integers(0, 200, size=(150, 3))
-    faces[7] = [5, 5, 9]  # a degenerate triangle
-    face_index = rng.integers(0, 150, size=2000)
-    face_index[:5] = 7
-    bary = rng.dirichlet(np.ones(3), size=2000)
-    pos, n = surface_points(vertices, faces, face_index, bary)
-    tri = vertices[faces[face_index]]
-    want = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    want = want / np.maximum(np.linalg.norm(want, axis=1, keepdims=True), 1e-300)
-    np.testing.assert_array_equal(n, want)
-    np.testing.assert_array_equal(pos, np.einsum("pk,pkj->pj", bary, tri))
-    assert (n[:5] == 0).all()
-
-
 def test_surface_points_kernel_follows_like_numpy():
     """SkinnedPoints.follow (Warp's SurfacePoints) against its numpy reference on a moving mesh: the same
     positions and normals up to rounding, sides kept, rest normals where a triangle is skinned flat."""
