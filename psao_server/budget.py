@@ -160,7 +160,12 @@ class RefineQueue:
         self.keep = int(keep_rays)
         self.slices = int(slices)  # the target ray set is traced in this many rounds of target / slices rays
         self.rays = np.zeros(n, np.int32)  # fresh rays: traced since the last change around the point
-        self.done = np.zeros(n, np.int32)  # slices traced since then: the next round traces slice `done`
+        self.done = np.zeros(n, np.int32)  # slices traced since then
+        # the slice the point's next round traces: it moves on with every round and is not set back by a
+        # reset, so the rounds of a point in a changing neighbourhood go through its whole ray set (a blend
+        # of recent rounds averages different rays instead of re-tracing the same slice), and any `slices`
+        # rounds in a row are the whole set
+        self.next_slice = np.zeros(n, np.int32)
         self.unoccluded = np.zeros(n, np.float32)
         self.old_rays = np.zeros(n, np.float32)  # the estimate from before the change, as so many rays
         self.old_unoccluded = np.zeros(n, np.float32)
@@ -317,13 +322,14 @@ class RefineQueue:
                 + ((self.waiting_since[ids] - base) - self.change[ids].astype(np.float64) * CHANGE_S))
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:
-        """Accumulate, for distinct `ids`, one round (each point's slice `done`, of `rays` rays; or `slices` slices at once, e.g.
+        """Accumulate, for distinct `ids`, one round (each point's slice `next_slice`, of `rays` rays; or `slices` slices at once, e.g.
         the whole target set traced in one call); returns the AO codes of the running means. Points still
         short of the target keep waiting (their wait restarts now, so others get their turn)."""
         self.unoccluded[ids] += np.rint(visibility.astype(np.float32) * rays)  # a count: exact in float32
         self.rays[ids] += rays
         before = self.done[ids]
         self.done[ids] += slices
+        self.next_slice[ids] = (self.next_slice[ids] + slices) % self.slices
         self._finished(ids, before)
         self.waiting_since[ids] = now
         self.change[ids] = 0.0

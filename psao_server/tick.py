@@ -229,7 +229,7 @@ class ServerTick:
 
     def _round_settings(self) -> TraceSettings:
         """One accumulation round: the target ray set (the bake's rays and seed) dealt into slices of
-        `round_rays` rays; each point traces its next slice (RefineQueue.done)."""
+        `round_rays` rays; each point traces its next slice (RefineQueue.next_slice)."""
         slices = self.settings.rays // min(self.settings.budget.round_rays, self.settings.rays)
         return TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed,
                              slices=slices)
@@ -378,7 +378,7 @@ class ServerTick:
         if len(chosen):
             pos, nrm = self.world_points(frame, chosen)
             self.pose_tracer(frame)
-            vis = self._trace(pos, nrm, chosen, round_settings, self.queue.done[chosen])
+            vis = self._trace(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen])
             codes = self.queue.add(chosen, vis, round_settings.rays_traced, time.perf_counter())
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)

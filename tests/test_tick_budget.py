@@ -329,3 +329,22 @@ def test_reset_again_without_new_rays_changes_nothing():
     q2.seed_from_codes(np.array([0]), np.array([128], np.uint32), 16)
     q2.reset(np.array([0]), 1.0)
     assert q2.old_rays[0] == 8
+
+
+def test_rounds_of_a_point_reset_every_tick_go_through_its_whole_ray_set():
+    """A reset does not send a point back to its first slice: in a neighbourhood that changes every tick
+    its rounds still trace every slice in turn, so the blend of recent rounds averages different rays, and
+    any `slices` rounds in a row after the last reset are its whole ray set."""
+    q = RefineQueue(3, target_rays=32, keep_rays=24, slices=4)
+    ids = np.arange(3)
+    q.seed_from_codes(ids, np.full(3, 255, np.uint32), 32)
+    traced = []
+    for step in range(6):
+        q.reset(ids, float(step))
+        traced.append(q.next_slice[ids].copy())
+        q.add(ids, np.ones(3, np.float32), 8, float(step))
+    np.testing.assert_array_equal(np.array(traced)[:, 0], [0, 1, 2, 3, 0, 1])
+    for _ in range(3):  # motion stops after the round of slice 1: slices 2, 3, 0 complete the set
+        assert len(q.waiting()) == 3
+        q.add(ids, np.ones(3, np.float32), 8, 9.0)
+    assert len(q.waiting()) == 0 and (q.next_slice == 1).all()
