@@ -69,7 +69,7 @@ class TickStats:
     skipped: int  # considered - traced
     traced: int
     changed: int  # AO written (|new - old| > threshold) or re-inserted
-    moved: int  # skinned points re-posed on their deformed triangles (traced from there; the grid keeps them at rest)
+    moved: int  # skinned points re-placed on their deformed triangles (traced from there; the grid keeps them at rest)
     cells_dirty: int  # cells marked dirty after the tick (= cells this tick dirtied when the service drains every tick)
     seconds_animate: float
     seconds_select: float
@@ -90,7 +90,7 @@ class TickStats:
 class TickPlan:
     """A prepared tick: what apply() writes."""
     frame: Frame
-    moved: int  # skinned points whose posed position or normal changed
+    moved: int  # skinned points re-placed on their deformed triangles
     ids: np.ndarray  # ids traced
     codes: np.ndarray  # their new AO codes
     seconds: tuple[float, float, float]  # animate, select, trace
@@ -171,6 +171,7 @@ class ServerTick:
         self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
         self.n_tracked = int(self.tracked.sum())
         self.stale = np.zeros(n, dtype=bool)
+        self._posed_on: dict[int, np.ndarray] = {}  # skinned instance -> the mesh vertices its points were placed on
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
         # static points: world positions and normals once, and a block index for box queries
@@ -453,16 +454,20 @@ class ServerTick:
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:
         """Skinned points to where they are at `frame` on their deformed triangles (the tick's local_pos /
-        local_nrm, which it traces from; the grid keeps their rest pose); returns how many changed."""
+        local_nrm, which it traces from; the grid keeps their rest pose), for the instances whose mesh
+        changed since they were last placed; returns how many points were placed."""
         moved = 0
         for i, sp in self.skinned.items():
-            mesh = self.scene.meshes[self.scene.instances[i].mesh]
-            pos, nrm = sp.follow(mesh.faces, frame.mesh_vertices[self.scene.instances[i].mesh])
+            m = self.scene.instances[i].mesh
+            vertices = frame.mesh_vertices[m]
+            if np.array_equal(vertices, self._posed_on.get(i)):
+                continue
+            pos, nrm = sp.follow(self.scene.meshes[m].faces, vertices)
             ids = self.ids_of[i]
             mine = slice(int(ids[0]), int(ids[-1]) + 1) if len(ids) else slice(0, 0)  # consecutive ids: views
-            dp, dn = pos != self.local_pos[mine], nrm != self.local_nrm[mine]
-            moved += int(np.count_nonzero(dp[:, 0] | dp[:, 1] | dp[:, 2] | dn[:, 0] | dn[:, 1] | dn[:, 2]))
             self.local_pos[mine], self.local_nrm[mine] = pos, nrm
+            self._posed_on[i] = vertices
+            moved += len(ids)
         return moved
 
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
