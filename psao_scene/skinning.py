@@ -77,19 +77,29 @@ class SkinDeformer:
         m = np.ascontiguousarray(matrices, dtype=np.float64)
         if self.mats is None or self.mats.shape[0] != len(m):
             self.mats = wp.empty(len(m), dtype=wp.mat44d, device=self.device)
-        self.mats.assign(wp.array(m, dtype=wp.mat44d, device="cpu"))
+            inputs = [self.rest_pos, self.joints, self.weights, self.mats]
+            # recorded once: a launch's argument packing costs more than the kernel on a small mesh
+            self._launches = [wp.launch(skin_points_kernel, dim=self.count, inputs=inputs, outputs=[self.out_pos],
+                                        device=self.device, record_cmd=True)]
+            if self.rest_nrm is not None:
+                self._launches.append(wp.launch(skin_normals_kernel, dim=self.count, inputs=[self.rest_nrm, *inputs[1:]],
+                                                outputs=[self.out_nrm], device=self.device, record_cmd=True))
+        _write(self.mats, m)
 
     def deform(self, matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Skinned positions (P, 3) and, when rest normals were given, unit normals (P, 3)."""
         self._upload(matrices)
-        inputs = [self.rest_pos, self.joints, self.weights, self.mats]
-        wp.launch(skin_points_kernel, dim=self.count, inputs=inputs, outputs=[self.out_pos], device=self.device)
-        nrm = None
-        if self.rest_nrm is not None:
-            wp.launch(skin_normals_kernel, dim=self.count, inputs=[self.rest_nrm, *inputs[1:]],
-                      outputs=[self.out_nrm], device=self.device)
-            nrm = self.out_nrm.numpy()
-        return self.out_pos.numpy(), nrm
+        for launch in self._launches:
+            launch.launch()
+        return self.out_pos.numpy(), None if self.rest_nrm is None else self.out_nrm.numpy()
+
+
+def _write(array: wp.array, values: np.ndarray) -> None:
+    """Copy numpy values into a Warp array: through its numpy view on the CPU (no temporary Warp array)."""
+    if array.device.is_cpu:
+        array.numpy()[...] = values.reshape(array.numpy().shape)
+    else:
+        array.assign(wp.array(values, dtype=array.dtype, device="cpu"))
 
 
 def skin_points(skin: Skin, t: float, rest_pos, joints, weights, device: str | None = None) -> np.ndarray:
@@ -187,14 +197,21 @@ class SurfacePoints:
         self.rest_nrm = wp.array(np.ascontiguousarray(rest_nrm, np.float64), dtype=wp.vec3d, device=d)
         self.out_pos = wp.empty(self.count, dtype=wp.vec3d, device=d)
         self.out_nrm = wp.empty(self.count, dtype=wp.vec3f, device=d)
+        self._vertices: wp.array | None = None  # the mesh's vertices of the last call
 
     def follow(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (P, 3) float64 and unit normals (P, 3) float32 on the mesh with `vertices`: views of
         the output buffers, valid until the next call."""
         if self.count:
-            v = wp.array(np.ascontiguousarray(vertices, np.float64), dtype=wp.vec3d, device=self.device, copy=False)
-            wp.launch(surface_points_kernel, dim=self.count, device=self.device,
-                      inputs=[v, self.corners, self.bary, self.side, self.rest_nrm], outputs=[self.out_pos, self.out_nrm])
+            v = np.ascontiguousarray(vertices, np.float64)
+            if self._vertices is None or self._vertices.shape[0] != len(v):
+                self._vertices = wp.empty(len(v), dtype=wp.vec3d, device=self.device)
+                # recorded once: a launch's argument packing costs more than the kernel on a few points
+                self._launch = wp.launch(surface_points_kernel, dim=self.count, device=self.device,
+                                         inputs=[self._vertices, self.corners, self.bary, self.side, self.rest_nrm],
+                                         outputs=[self.out_pos, self.out_nrm], record_cmd=True)
+            _write(self._vertices, v)
+            self._launch.launch()
         return (self.out_pos.numpy().reshape(-1, 3)[: self.count],
                 self.out_nrm.numpy().reshape(-1, 3)[: self.count])
 
