@@ -19,7 +19,7 @@ from .model import Mesh, Scene
 from .rigid import PathAnimation, Polyline
 from .scene_builder import SceneBuilder
 from .skin import Skin, topological_order
-from .transforms import axis_angle_matrix, trs
+from .transforms import trs
 
 # (name, parent, rest position in model space)
 SKELETON = (
@@ -61,27 +61,32 @@ class WalkCycle:
         self.offsets = np.array([self.rest[k] - (self.rest[p] if p >= 0 else 0.0)
                                  for k, p in enumerate(self.parents)])
 
-    def local_rotations(self, t: float) -> dict[int, np.ndarray]:
+    def local_rotations(self, t: float) -> dict[int, tuple[str, float]]:
+        """Joint -> (axis "x" or "y", radians) of its rotation at time t; a positive x swings a limb backwards."""
         phi = 2 * math.pi * self.frequency * t + self.phase
         s, c = math.sin(phi), math.cos(phi)
-        rx = lambda a: axis_angle_matrix([1, 0, 0], a)  # noqa: E731 - positive swings a limb backwards
         return {
-            JOINT["hip_l"]: rx(-self.hip_swing * s), JOINT["hip_r"]: rx(self.hip_swing * s),
-            JOINT["knee_l"]: rx(self.knee_bend * max(0.0, -c)), JOINT["knee_r"]: rx(self.knee_bend * max(0.0, c)),
-            JOINT["shoulder_l"]: rx(self.arm_swing * s), JOINT["shoulder_r"]: rx(-self.arm_swing * s),
-            JOINT["elbow_l"]: rx(-0.35 - 0.25 * max(0.0, s)), JOINT["elbow_r"]: rx(-0.35 - 0.25 * max(0.0, -s)),
-            JOINT["chest"]: axis_angle_matrix([0, 1, 0], 0.12 * s),
+            JOINT["hip_l"]: ("x", -self.hip_swing * s), JOINT["hip_r"]: ("x", self.hip_swing * s),
+            JOINT["knee_l"]: ("x", self.knee_bend * max(0.0, -c)), JOINT["knee_r"]: ("x", self.knee_bend * max(0.0, c)),
+            JOINT["shoulder_l"]: ("x", self.arm_swing * s), JOINT["shoulder_r"]: ("x", -self.arm_swing * s),
+            JOINT["elbow_l"]: ("x", -0.35 - 0.25 * max(0.0, s)), JOINT["elbow_r"]: ("x", -0.35 - 0.25 * max(0.0, -s)),
+            JOINT["chest"]: ("y", 0.12 * s),
         }
 
     def joint_matrices(self, t: float) -> np.ndarray:
-        rot = self.local_rotations(t)
         bob = 0.03 * math.cos(2 * (2 * math.pi * self.frequency * t + self.phase))
-        world = np.empty((len(self.parents), 4, 4))
+        local = np.zeros((len(self.parents), 4, 4))
+        local[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+        local[:, :3, 3] = self.offsets
+        local[self.parents < 0, 1, 3] += bob
+        for k, (axis, angle) in self.local_rotations(t).items():
+            i, j = (1, 2) if axis == "x" else (2, 0)  # the plane it turns: y to z about x, z to x about y
+            c, s = math.cos(angle), math.sin(angle)
+            local[k, i, i] = local[k, j, j] = c
+            local[k, j, i], local[k, i, j] = s, -s
+        world = np.empty_like(local)
         for k in self.order:
-            local = np.eye(4)
-            local[:3, :3] = rot.get(k, np.eye(3))
-            local[:3, 3] = self.offsets[k] + (np.array([0.0, bob, 0.0]) if self.parents[k] < 0 else 0.0)
-            world[k] = local if self.parents[k] < 0 else world[self.parents[k]] @ local
+            world[k] = local[k] if self.parents[k] < 0 else world[self.parents[k]] @ local[k]
         return world
 
 
