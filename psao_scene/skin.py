@@ -70,10 +70,10 @@ def check_skin(joints: np.ndarray, weights: np.ndarray, joint_count: int,
 
 @dataclass
 class Channel:
-    node: int
+    node: int | np.ndarray  # a node, or (G,) nodes animated alike (merge_channels)
     path: str  # "translation" | "rotation" | "scale"
     times: np.ndarray  # (K,) strictly increasing
-    values: np.ndarray  # (K, C) or (K, 3, C) for CUBICSPLINE (in-tangent, value, out-tangent)
+    values: np.ndarray  # (K, C), (K, G, C) for G nodes, or (K, 3, C) for CUBICSPLINE (in-tangent, value, out-tangent)
     interpolation: str  # "LINEAR" | "STEP" | "CUBICSPLINE"
 
     def sample(self, t: float) -> np.ndarray:
@@ -100,6 +100,23 @@ class Channel:
         return self.values[i, 1] if self.interpolation == "CUBICSPLINE" else self.values[i]
 
 
+def merge_channels(channels: list[Channel]) -> list[Channel]:
+    """The same channels with those of one path, one LINEAR or STEP interpolation and equal key times merged
+    into one channel of several nodes, sampled in one pass (a glTF skin's joints usually share their
+    keys); the values are the very numbers the channels give one by one."""
+    groups: dict[tuple, list[Channel]] = {}
+    out = []
+    for c in channels:
+        if c.interpolation == "CUBICSPLINE" or np.ndim(c.node):
+            out.append(c)
+        else:
+            groups.setdefault((c.path, c.interpolation, c.times.tobytes()), []).append(c)
+    for (path, interpolation, _), cs in groups.items():
+        out.append(Channel(np.array([c.node for c in cs]), path, cs[0].times, np.stack([c.values for c in cs], axis=1),
+                           interpolation))
+    return out
+
+
 @dataclass
 class NodeAnimator:
     """Joint matrices from a node hierarchy: rest TRS per node, animated by channels, looping.
@@ -116,20 +133,31 @@ class NodeAnimator:
 
     def __post_init__(self):
         self.order = topological_order(self.parents)
+        self._merged_of: list | None = None  # the channel list _merged was made from
+
+    def _sampled(self) -> tuple[list[Channel], list[int]]:
+        """The channels merged for sampling and the nodes whose fixed matrix stands (no channel moves
+        them), worked out again only when `channels` is another list."""
+        if self._merged_of is not self.channels:
+            animated = {int(n) for c in self.channels for n in np.atleast_1d(c.node)}
+            self._merged = merge_channels(self.channels), [n for n, fixed in enumerate(self.rest_matrix)
+                                                            if fixed is not None and n not in animated]
+            self._merged_of = self.channels
+        return self._merged
 
     def local_matrices(self, t: float) -> np.ndarray:
         t = t % self.duration if self.duration > 0 else 0.0
         tr, rot, sc = self.rest_translation.copy(), self.rest_rotation.copy(), self.rest_scale.copy()
-        for c in self.channels:
+        channels, fixed = self._sampled()
+        for c in channels:
             v = c.sample(t)
             {"translation": tr, "rotation": rot, "scale": sc}[c.path][c.node] = v
         m = np.zeros((len(tr), 4, 4))
         m[:, :3, :3] = quat_to_matrix(rot) * sc[:, None, :]
         m[:, :3, 3] = tr
         m[:, 3, 3] = 1.0
-        for n, fixed in enumerate(self.rest_matrix):
-            if fixed is not None and not any(c.node == n for c in self.channels):
-                m[n] = fixed
+        for n in fixed:
+            m[n] = self.rest_matrix[n]
         return m
 
     def rest_joint_matrices(self) -> np.ndarray:

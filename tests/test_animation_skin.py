@@ -278,3 +278,20 @@ def test_surface_points_kernel_follows_like_numpy():
         np.testing.assert_allclose(nrm, want_nrm, rtol=0, atol=2e-7)
         assert pos.dtype == np.float64 and nrm.dtype == np.float32
         np.testing.assert_array_equal(nrm[:5], rest[:5].astype(np.float32))
+
+
+def test_merged_channels_sample_as_one_by_one(shared_scene):
+    """NodeAnimator samples a glTF skin's channels merged (merge_channels): the very numbers each channel
+    gives on its own, at and between keys, before the first and after the last."""
+    from psao_scene.skin import merge_channels
+
+    mesh = next(m for m in load_scene(shared_scene("cesiumman/CesiumMan.glb")).meshes if m.skin is not None)
+    channels = mesh.skin.animator.channels
+    merged = merge_channels(channels)
+    assert len(merged) < len(channels) and sum(np.size(m.node) for m in merged) == len(channels)
+    own = {(int(c.node), c.path): c for c in channels}
+    for t in np.concatenate([np.linspace(-0.1, 1.1 * mesh.skin.animator.duration, 41), channels[0].times[:3]]):
+        for m in merged:
+            got = np.asarray(m.sample(t)).reshape(np.size(m.node), -1)
+            for k, node in enumerate(np.atleast_1d(m.node)):
+                np.testing.assert_array_equal(got[k], own[(int(node), m.path)].sample(t))
