@@ -46,6 +46,10 @@ class BudgetSettings:
     # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
     # showing one round's noise; 0 = forget at once
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
+    exact_points: int = 2048  # static points near movers given their whole ray set at once each tick, from the
+    # rays the static scene lets through (static_hits.StaticHits) traced against the moving parts alone:
+    # those in view whose AO changed most since their last trace (at least exact_min_change); 0 = none
+    exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages

@@ -56,6 +56,7 @@ from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
                                    rigid_in_company, sorted_union, sum_by_index)
 from psao_server.settings import TickSettings, TraceSettings
+from psao_server.static_hits import StaticHits
 from psao_server.tracer import make_tracer
 
 log = logging.getLogger("psao.tick")
@@ -81,6 +82,7 @@ class TickStats:
     budget_ms: float = 0.0  # the trace budget of this tick (0: unbudgeted)
     budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
     batch: int = 0  # points the budget allowed this tick
+    exact: int = 0  # static points near movers given their whole ray set from kept static hits (in traced)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -96,6 +98,8 @@ class TickPlan:
     seconds: tuple[float, float, float]  # animate, select, trace
     batch: int = 0  # points the budget allowed (budgeted tick)
     budget_s: float = 0.0
+    exact: int = 0  # of ids: static points near movers traced whole from their kept static hits
+    exact_s: float = 0.0  # seconds that took
 
 
 class ServerTick:
@@ -139,6 +143,7 @@ class ServerTick:
             self.last_frame = None
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
+        self._static_hits: StaticHits | None = None
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
         if self.settings.budget is not None:
@@ -214,6 +219,9 @@ class ServerTick:
         self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays,
                                  self._round_settings().slices)
         self.queue.exclude(np.flatnonzero(~self.tracked))
+        # static points' static hits, kept for their whole traces near movers (where the tracer can)
+        self._static_hits = (StaticHits(len(self.tracked), self.settings.rays)
+                             if hasattr(self.tracer, "visibility_given_static") else None)
         ids = np.flatnonzero(self.present())
         if self.last_frame is not None:
             codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)
@@ -314,6 +322,8 @@ class ServerTick:
                     affine(mesh.vertices, self.last_frame.transforms[i]))
         self._index_static()
         self._load_tracer()
+        if getattr(self, "_static_hits", None) is not None:
+            self._static_hits.forget()  # the static scene lost the edited instances
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()
         return True
@@ -372,6 +382,9 @@ class ServerTick:
         round_settings = self._round_settings()
         k = self.budget.points(round_settings.rays_traced)
         refined = self._refine(changed, frame)
+        t_exact = time.perf_counter()
+        exact, exact_codes = self._exact_static(frame, changed)
+        exact_s = time.perf_counter() - t_exact
         looked = self._looked_at(changed, max(16 * k, self.settings.budget.scan_points))
         chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
@@ -387,10 +400,35 @@ class ServerTick:
         # looked at (all of them unless the queue is longer than a sweep's part)
         still = looked[self.queue.done[looked] < self.queue.slices]
         self._queue_now = (self.queue.count, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
-        if len(refined[0]):  # stored with this tick's own
-            chosen, codes = np.concatenate([chosen, refined[0]]), np.concatenate([codes, refined[1]])
-        return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
-                        batch=k, budget_s=self.budget.budget_s())
+        # stored with this tick's own: the refiner's, and (last) the static points traced whole
+        chosen, codes = np.concatenate([chosen, refined[0], exact]), np.concatenate([codes, refined[1], exact_codes])
+        return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim - exact_s, t_trace - t_sel + exact_s),
+                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact), exact_s=exact_s)
+
+    def _exact_static(self, frame: Frame, changed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The static points among `changed` (just reset) that get their whole ray set at once: in some
+        client's extended view, with an estimated AO change since their last trace of at least
+        exact_min_change, the `exact_points` changed most (of them at most an eighth whose static hits are
+        not kept yet: tracing those costs a full trace). Only the rays the static scene lets through are
+        traced, against the moving parts (StaticHits, EmbreeTracer.visibility_given_static): the full
+        trace's AO, which ends their wait. Returns (ids, AO codes)."""
+        b = self.settings.budget
+        ids = changed[~self.moving_point[changed]] if self._static_hits is not None and b.exact_points > 0 else changed[:0]
+        ids = ids[self.queue.change[ids] >= b.exact_min_change]
+        if self.refiner is not None:
+            ids = ids[~self.refiner.busy[ids]]
+        ids = ids[in_any_view(self.world_pos[ids], self.cameras, self.settings.view.distance_margin)]
+        ids = first_by_key(ids, -self.queue.change[ids].astype(np.float64), b.exact_points)
+        unknown = ~self._static_hits.known[ids] if len(ids) else np.zeros(0, bool)
+        ids = np.sort(ids[~unknown | (np.cumsum(unknown) <= max(b.exact_points // 8, 1))])
+        if len(ids) == 0:
+            return ids, np.zeros(0, np.uint32)
+        s = self.trace_settings
+        hits = self._static_hits.of(ids, lambda new: self.tracer.static_occluded(self.world_pos[new], self.world_nrm[new],
+                                                                                 new, s))
+        self.pose_tracer(frame)
+        vis = self.tracer.visibility_given_static(self.world_pos[ids], self.world_nrm[ids], ids, s, hits)
+        return ids, self.queue.add(ids, vis, s.rays, time.perf_counter(), slices=self.queue.slices)
 
     def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the
@@ -446,10 +484,11 @@ class ServerTick:
         if self.budget is None:
             return {"queue": int(np.count_nonzero(self.stale))}
         animate, select, _ = plan.seconds
-        self.budget.observe_other(animate + select + self.stats_grid_s)
+        # the whole traces of static points near movers are paid before the budget's rounds, like a stage
+        self.budget.observe_other(animate + select + self.stats_grid_s + plan.exact_s)
         return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
-                "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
-                "batch": plan.batch}
+                "budget_ms": 1e3 * plan.budget_s, "budget_used": (trace_s - plan.exact_s) / max(plan.budget_s, 1e-9),
+                "batch": plan.batch, "exact": plan.exact}
 
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:

@@ -100,12 +100,13 @@ def test_motion_resets_history_near_the_mover_only_and_queue_stays_bounded(budge
         s = tick(tick.grid, 0.5)  # the movers jump half a second along their paths
         reset = tick.queue.rays < rays_before
         assert 0 < reset.sum() < n // 2  # a neighbourhood, not the scene
-        assert s.traced == 64 and s.queue == reset.sum()  # one round of 4 rays completes a traced point
+        # one round of 4 rays completes a traced point; static points near the movers traced whole wait no more
+        assert s.traced == 64 + s.exact and s.queue == reset.sum()
         lengths = []
         for k in range(60):  # fast motion (a second of scene time per tick) with a tiny budget
             s = tick(tick.grid, 1.0 + k)
             lengths.append(s.queue)
-            assert s.queue <= n and s.traced == 64
+            assert s.queue <= n and s.traced == 64 + s.exact
         assert len(tick.stats_history) <= tick.settings.history
         assert tick.queue.rays.shape == (len(tick.tracked),)
         # motion stops: the queue drains (nothing was dropped, it waited) and no point is left short
@@ -348,3 +349,28 @@ def test_rounds_of_a_point_reset_every_tick_go_through_its_whole_ray_set():
         assert len(q.waiting()) == 3
         q.add(ids, np.ones(3, np.float32), 8, 9.0)
     assert len(q.waiting()) == 0 and (q.next_slice == 1).all()
+
+
+def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tick):
+    """Static points near the movers whose AO changed most are traced whole at once from their kept static
+    hits (only the rays the static scene lets through, against the movers): each holds exactly the full
+    trace of the scene as it stands at that tick, and waits no more; at most exact_points a tick."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50)
+    tick.settings.budget.exact_points = 300
+    try:
+        exact_total = 0
+        for t in (0.1, 0.2, 0.3):
+            plan = tick.prepare(t)
+            exact = plan.ids[len(plan.ids) - plan.exact:] if plan.exact else plan.ids[:0]
+            exact_total += plan.exact
+            assert plan.exact <= 300 and not tick.moving_point[exact].any()
+            stats = tick.apply(plan)
+            assert stats.exact == plan.exact
+            if len(exact):
+                assert (tick.queue.done[exact] == tick.queue.slices).all() and (tick.queue.rays[exact] == 8).all()
+                accumulated, full = estimates(tick, exact)
+                np.testing.assert_array_equal(accumulated, full)
+                np.testing.assert_array_equal(plan.codes[len(plan.ids) - plan.exact:], full)
+        assert exact_total > 0
+    finally:
+        tick.close()

@@ -275,3 +275,55 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
     near = np.abs(pos[:, 0] + 6) < 2 + 0.4
     assert hit.reshape(n, -1)[near].any() and not hit.reshape(n, -1)[np.abs(pos[:, 0]) < 3].any()
     assert np.array_equal(hit, every)
+
+
+def test_segments_reach_sphere_against_dense_sampling():
+    """The sphere test of the rigid movers' ray culling equals sampling each segment densely (up to
+    segments that graze the sphere within the sampling step) and never drops a segment that reaches it."""
+    from psao_server.tracer.embree import segments_reach_sphere
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    org = rng.uniform(-2, 2, (n, 3)).astype(np.float32)
+    dirs = rng.normal(size=(n, 3)).astype(np.float32) * rng.uniform(0.3, 2.0, (n, 1)).astype(np.float32)
+    centre, radius, tmax = np.array([0.2, -0.1, 0.3]), 0.7, 1.5
+    got = segments_reach_sphere(org, dirs, tmax, centre, radius)
+    t = np.linspace(0, tmax, 4001)
+    dist = np.linalg.norm(org[:, None, :] + t[None, :, None] * dirs[:, None, :] - centre, axis=2).min(axis=1)
+    step = tmax * np.linalg.norm(dirs, axis=1) / 4000
+    assert got[dist <= radius].all()  # conservative
+    clear = np.abs(dist - radius) > step + 1e-4
+    np.testing.assert_array_equal(got[clear], (dist <= radius)[clear])
+    assert 0.03 < got.mean() < 0.9  # both answers are well represented
+
+
+@pytest.mark.parametrize("moving", ["rigid", "deforming", "both"])
+def test_only_the_rays_the_static_scene_lets_through_give_the_full_trace(moving):
+    """visibility_given_static with static_occluded's hits (each point's whole ray set: the static scene
+    once, then the moving parts on the rays it lets through) equals visibility, exactly, for points around
+    rigid and deforming movers."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=1)
+    tracer.set_static(v, f)  # floor and ceiling: the ceiling occludes the steeper rays
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    tracer.set_rigid([(ball.vertices, ball.faces)])
+    box = trimesh.creation.box(extents=(0.6, 0.4, 0.8))
+    rng = np.random.default_rng(1)
+    n = 600
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    ids = np.arange(n) * 7
+    s = TraceSettings(rays=32, ao_distance=1.5, seed=3)
+    hits = tracer.static_occluded(pos, nrm, ids, s)
+    assert hits.shape == (n, 32) and 0.05 < hits.mean() < 0.95
+    for shift in ((0.3, 0.2, 0.45), (-0.6, 0.5, 0.7)):
+        pose = np.eye(4)
+        pose[:3, 3] = shift
+        rigid = pose[None] if moving in ("rigid", "both") else None
+        deforming = (box.vertices + np.array(shift) * [-1, -1, 1], box.faces) if moving in ("deforming", "both") \
+            else (None, np.zeros((0, 3), int))
+        tracer.set_dynamic(*deforming, rigid)
+        full = tracer.visibility(pos, nrm, ids, s)
+        assert full.min() < 0.7  # the movers are really in the way
+        np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, hits), full)
+    tracer.close()

@@ -60,6 +60,8 @@ class _Rigid:
         v = np.asarray(vertices, np.float64)
         lo, hi = v.min(axis=0), v.max(axis=0)
         self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        self.centre = (lo + hi) / 2 if len(v) else np.zeros(3)  # a bounding sphere, local frame
+        self.radius = float(np.sqrt(((v - self.centre) ** 2).sum(axis=1).max())) if len(v) else 0.0
 
     def occlude(self, pose: np.ndarray, origins, dirs, tmax, hit: np.ndarray, rays_per_point: int) -> None:
         """Mark in `hit` the rays (world, re-centred) this mesh at `pose` (4x4 local -> world) occludes.
@@ -74,11 +76,29 @@ class _Rigid:
         near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
         rays = (near[:, None] * rays_per_point + np.arange(rays_per_point)).ravel()
         rays = rays[~hit[rays]]
+        # only rays whose segment comes within the mesh's bounding sphere (world) can hit: most rays of a
+        # point near the mover point away from it
+        scale = float(np.sqrt((pose[:3, :3] ** 2).sum(axis=0).max()))
+        rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, pose[:3, :3] @ self.centre + pose[:3, 3],
+                                          self.radius * scale)]
         if len(rays):
             inv = np.linalg.inv(pose)
             o = (origins[rays] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
             d = (dirs[rays] @ inv[:3, :3].T).astype(np.float32)
             hit[rays] = self.scene.run(o, d, dists=np.full(len(rays), tmax, np.float32), query="OCCLUDED") != -1
+
+
+def segments_reach_sphere(origins, dirs, tmax: float, centre, radius: float) -> np.ndarray:
+    """Bool per ray: whether the segment origin + t dir, t in [0, tmax], comes within `radius` of
+    `centre` (dirs need not be unit: t is the ray parameter). Conservative by a relative 1e-4 of the radius."""
+    # per coordinate (einsum over (N, 3) float32 costs several times more)
+    c = [np.float32(centre[k]) - origins[:, k] for k in range(3)]
+    d = [dirs[:, k] for k in range(3)]
+    dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    t = np.clip((d[0] * c[0] + d[1] * c[1] + d[2] * c[2]) / np.maximum(dd, np.float32(1e-30)), 0.0, tmax)
+    gap = [c[k] - t * d[k] for k in range(3)]
+    r = np.float32(radius * (1 + 1e-4) + 1e-6)
+    return gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2] <= r * r
 
 
 class _Scenes:
@@ -108,13 +128,17 @@ class _Scenes:
         self._refit = RefitMesh.build(vertices, faces, _device(), parts)
         return self._refit.scene if self._refit is not None else _build_scene(vertices, faces)
 
-    def occluded(self, origins, dirs, tmax, rays_per_point: int = 1) -> np.ndarray:
+    def occluded(self, origins, dirs, tmax, rays_per_point: int = 1, static_hit: np.ndarray | None = None) -> np.ndarray:
         """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
-        ones before let through. Rays come in runs of `rays_per_point` that share an origin (a point's)."""
+        ones before let through. Rays come in runs of `rays_per_point` that share an origin (a point's).
+        `static_hit`: per ray, whether the static scene occludes it, known already (static_occluded): the
+        static scene is not traced, the moving parts see only the other rays."""
         if len(origins) % rays_per_point:
             raise TracerError(f"{len(origins)} rays are not runs of {rays_per_point}")
         dists = np.full(len(origins), tmax, np.float32)
-        if self.static is not None:
+        if static_hit is not None:
+            hit = np.array(static_hit, dtype=bool)
+        elif self.static is not None:
             hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
         else:
             hit = np.zeros(len(origins), dtype=bool)
@@ -360,6 +384,37 @@ class EmbreeTracer(Tracer):
             self._pool = None
             raise TracerError(f"an Embree worker process died: {exc}") from None
         return np.concatenate(out).astype(np.float32)
+
+    def _local_rays(self, positions, normals, point_ids, settings: TraceSettings):
+        """Origins and directions of each point's whole `settings.rays`-ray set, in this process."""
+        if self._local is None:
+            raise TracerError("set_static() must be called before tracing")
+        whole = TraceSettings(rays=settings.rays, ao_distance=settings.ao_distance, seed=settings.seed)
+        return _chunk_rays(self._recentre(positions), np.asarray(normals, np.float32),
+                           np.asarray(point_ids, np.int64), whole, 0)
+
+    def static_occluded(self, positions, normals, point_ids, settings: TraceSettings) -> np.ndarray:
+        """(P, rays) bool: which rays of each point's whole ray set the static scene alone occludes (traced
+        in this process; for points that never move it holds until the static scene changes)."""
+        org, dirs = self._local_rays(positions, normals, point_ids, settings)
+        if self._local.static is None or len(org) == 0:
+            return np.zeros((len(positions), settings.rays), bool)
+        dists = np.full(len(org), settings.ao_distance, np.float32)
+        return (self._local.static.run(org, dirs, dists=dists, query="OCCLUDED") != -1).reshape(len(positions), -1)
+
+    def visibility_given_static(self, positions, normals, point_ids, settings: TraceSettings,
+                                static_hit: np.ndarray) -> np.ndarray:
+        """visibility() of each point's whole ray set, given `static_hit` (static_occluded of the same
+        points and settings): only the rays the static scene lets through are traced, against the moving
+        parts alone (in this process), so a point near movers costs a fraction of its full trace; the
+        answer is the full trace's."""
+        if len(positions) == 0:
+            return np.zeros(0, np.float32)
+        org, dirs = self._local_rays(positions, normals, point_ids, settings)
+        dyn_v, dyn_f, parts = self._dynamic
+        self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, parts)
+        hit = self._local.occluded(org, dirs, settings.ao_distance, settings.rays, np.asarray(static_hit).ravel())
+        return 1.0 - hit.reshape(len(positions), -1).mean(axis=1, dtype=np.float32)
 
     def throughput(self) -> dict:
         return self.account.rates(self.workers if self._pool is not None else 1)
