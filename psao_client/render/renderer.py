@@ -176,7 +176,8 @@ class FrameRenderer:
 
     def set_skin_time(self, t: float | None) -> None:
         """Scene time (seconds) at which skinned meshes are drawn: the server time of the last Update,
-        which is when the server posed the points it sent. None = rest pose. No-op without skins."""
+        the pose the server traced the AO it sent from (the lookup reads the rest pose of the drawn points
+        either way). None = rest pose. No-op without skins."""
         if t is not None and not np.isfinite(t):
             raise RenderError(f"skin time {t} is not a finite number")
         self.geometry.set_skin_time(t)
