@@ -313,10 +313,10 @@ class NearCache:
             self.queries += 1
         return held[4:]
 
-    def near(self, reach: dict, motion: MotionInput) -> tuple[np.ndarray, np.ndarray]:
+    def near(self, reach: dict, motion: MotionInput, with_change: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
         normals, ao_distance), and per index the occlusion_change of the movers' spheres, summed over the
-        movers."""
+        movers (None without `with_change`: the indices alone, merged without summing)."""
         parts, changes = [], []
         for i, boxes in reach.items():
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
@@ -324,4 +324,4 @@ class NearCache:
             keep = test(boxes, spheres, self.ao_distance).view(bool)
             parts.append(idx[keep])
             changes.append(test.change[keep])
-        return sum_by_index(parts, changes)
+        return sum_by_index(parts, changes) if with_change else (sorted_union(parts), None)

@@ -515,7 +515,7 @@ class ServerTick:
         candidates = self.tracked.copy()
         if self.settings.selection and self.last_frame is not None:
             candidates[:] = False
-            candidates[self._motion_candidates(frame)[0]] = True
+            candidates[self._motion_candidates(frame, with_change=False)[0]] = True
         candidates |= self.stale
         ids = np.flatnonzero(candidates & self.tracked)
         pos, nrm = self.world_points(frame, ids)
@@ -535,28 +535,30 @@ class ServerTick:
                 out.append(i)
         return out
 
-    def _motion_candidates(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    def _motion_candidates(self, frame: Frame, with_change: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed,
         and per id an estimate of how much (static points: selection.occlusion_change of the movers'
-        spheres; a mover's own points: _mover_change). Movers that stood still since then count as static
+        spheres; a mover's own points: _mover_change), or None without `with_change` (the unbudgeted tick
+        re-traces them all, in no order). Movers that stood still since then count as static
         boxes for the company test and select nothing themselves. Costs in proportion to the points near
         movers (NearCache), not to the scene."""
         moved = self._moved_since(frame, self.last_frame)
         if not moved:
-            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+            return np.zeros(0, np.int64), np.zeros(0, np.float32) if with_change else None
         pick = lambda d: {i: d[i] for i in moved if i in d}  # noqa: E731
         motion = MotionInput(pick(frame.bounds), pick(self.last_frame.bounds),
                              [i for i in self.kinds.rigid if i in moved], [i for i in self.kinds.skinned if i in moved],
                              pick(frame.spheres), pick(self.last_frame.spheres))
         reach = reach_boxes(motion, self.scene.ao_distance)
-        near, change = self.near_cache.near(reach, motion)
+        near, change = self.near_cache.near(reach, motion, with_change)
         parts, changes = [self.static_ids[near]], [change]  # static ids are tracked
         standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
         for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
             ids = self.ids_of[i]
             parts.append(ids[self.tracked[ids]])
-            changes.append(np.full(len(parts[-1]), self._mover_change(i, frame), np.float32))
-        return sum_by_index(parts, changes)
+            if with_change:
+                changes.append(np.full(len(parts[-1]), self._mover_change(i, frame), np.float32))
+        return sum_by_index(parts, changes) if with_change else (sorted_union(parts), None)
 
     def _mover_change(self, i: int, frame: Frame) -> float:
         """How much the AO of a moving instance's own points may have changed since the last tick, on the

@@ -127,6 +127,9 @@ def test_near_cache_matches_static_points_near_over_a_motion():
         want = np.flatnonzero(static_points_near(index, reach, motion, nrm, ao))
         got, change = cache.near(reach, motion)
         np.testing.assert_array_equal(got, want)
+        alone, none = cache.near(reach, motion, with_change=False)  # the same points, no estimate
+        assert none is None
+        np.testing.assert_array_equal(alone, want)
         # the change estimate: occlusion_change of each mover's spheres, summed over the movers that reach a point
         expect = np.zeros(len(pts))
         for i, boxes in reach.items():
