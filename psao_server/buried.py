@@ -72,27 +72,35 @@ class BuriedTest:
         return self._scene is not None and instance in self.instances
 
     def mask(self, world_pos: np.ndarray, world_normal: np.ndarray, seed: int = 0) -> np.ndarray:
-        """Bool (P,): the points (world position, unit normal of the side they are on) that are buried."""
+        """Bool (P,): the points (world position, unit normal of the side they are on) that are buried.
+        Works through the points in batches of about a million rays, drawing each batch's directions from
+        one random stream, so memory stays bounded and the answer does not depend on the batch size."""
         n = len(world_pos)
         if self._scene is None or n == 0:
             return np.zeros(n, bool)
-        k = self.settings.rays
         rng = np.random.default_rng([self.settings.seed, seed])
+        world_pos = np.asarray(world_pos, np.float64)
+        world_normal = np.asarray(world_normal, np.float32)
+        step = max(1, (1 << 20) // self.settings.rays)
+        out = np.empty(n, bool)
+        for s in range(0, n, step):
+            sl = slice(s, s + step)
+            out[sl] = self._batch(world_pos[sl], world_normal[sl], rng)
+        return out
+
+    def _batch(self, world_pos: np.ndarray, world_normal: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        n, k = len(world_pos), self.settings.rays
         dirs = rng.normal(size=(n * k, 3))
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-        nrm = np.repeat(np.asarray(world_normal, np.float64), k, axis=0)
+        nrm = np.repeat(world_normal.astype(np.float64), k, axis=0)
         dirs = np.where((np.einsum("ij,ij->i", dirs, nrm) < 0)[:, None], -dirs, dirs)
-        org = ray_origins(np.asarray(world_pos, np.float64) - self.centre, np.asarray(world_normal, np.float32),
-                          self.ao_distance)
+        org = ray_origins(world_pos - self.centre, world_normal, self.ao_distance)
         org = (np.repeat(org, k, axis=0) + dirs * (self.settings.skip * self.ao_distance)).astype(np.float32)
         dirs = dirs.astype(np.float32)
-        back = np.zeros(n * k, bool)
-        for s in range(0, n * k, 1 << 20):  # bounded memory for the hit records
-            sl = slice(s, s + (1 << 20))
-            out = self._scene.run(org[sl], dirs[sl], query="INTERSECT", output=1)
-            hit = out["geomID"] != np.array(-1).astype(out["geomID"].dtype)
-            # Embree's geometric normal Ng points to the counter-clockwise (outward) side, as the meshes'.
-            back[sl] = hit & (np.einsum("ij,ij->i", out["Ng"], dirs[sl]) > 0)
+        out = self._scene.run(org, dirs, query="INTERSECT", output=1)
+        hit = out["geomID"] != np.array(-1).astype(out["geomID"].dtype)
+        # Embree's geometric normal Ng points to the counter-clockwise (outward) side, as the meshes'.
+        back = hit & (np.einsum("ij,ij->i", out["Ng"], dirs) > 0)
         return back.reshape(n, k).mean(axis=1) > self.settings.back_fraction
 
 
