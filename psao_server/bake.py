@@ -17,8 +17,9 @@ from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.buried import BuriedTest
+from psao_server.densify import densify
 from psao_server.gapfill import fill_gaps
-from psao_server.grid import Grid
+from psao_server.grid import Grid, PointTable
 from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
 from psao_server.points_pool import generate_scene_points_parallel
 from psao_server.sampling import resolve_density
@@ -128,9 +129,15 @@ def grid_world_points(grid: Grid, scene: Scene):
     return t, pos, nrm
 
 
-def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None) -> np.ndarray:
-    """Trace every allocated point at its exact position and store the quantised AO. Returns visibility."""
+def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None,
+                      point_ids: np.ndarray | None = None) -> np.ndarray:
+    """Trace every allocated point (or those with the given ids) at its exact position and store the
+    quantised AO. Returns visibility."""
     t, pos, nrm = grid_world_points(grid, scene)
+    if point_ids is not None:
+        sel = np.isin(t.point_id, point_ids)
+        t = PointTable(*(getattr(t, f.name)[sel] for f in fields(t)))
+        pos, nrm = pos[sel], nrm[sel]
     vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
     grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
     return vis
@@ -195,6 +202,16 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         trace_grid_points(grid, scene, tracer, trace_settings,
                           progress=trace_progress(bar, task, tracer, settings.rays) if bar else None)
         stats["seconds_trace"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        added = 0
+        if settings.densify.runs_with(settings.rays):
+            task = bar.add_task("densify", total=settings.densify.rounds) if bar else None
+            pointsets, added = densify(scene, pointsets, grid, tracer, trace_settings, settings.densify, buried,
+                                       progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+            n = grid.n_points()
+        stats["points_densify"] = int(added)
+        stats["seconds_densify"] = time.perf_counter() - t0
     grid.take_dirty()
     stats.update(
         points_spawned=int(sum(ps.spawned for ps in pointsets)),

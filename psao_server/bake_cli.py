@@ -11,7 +11,7 @@ from psao_server import sampling
 from psao_server.cluster_cli import add_cluster_arguments, cluster_settings
 from psao_server.errors import ConfigError
 from psao_server.outputs import check_output_path, write_atomically
-from psao_server.settings import BakeSettings, GapFillSettings, ProbeSettings
+from psao_server.settings import BakeSettings, DensifySettings, GapFillSettings, ProbeSettings
 from psao_server.tracer import BACKENDS
 
 
@@ -31,6 +31,9 @@ def add_bake_arguments(p: argparse.ArgumentParser, density: bool = True) -> None
     p.add_argument("--gap-fill-first-step", action="store_true",
                    help="--gap-fill adds points also where the lookup's first step (radius r, normals within "
                         "FIRST_T_N) finds none, not only where the whole lookup does (small faces at creases)")
+    p.add_argument("--densify", type=int, default=default(BakeSettings, "densify.rounds"), metavar="ROUNDS",
+                   help="rounds of adding points where the lookup misses the traced AO of candidate points "
+                        f"(AO varying fast: mouldings, creases; 0: off; needs --rays >= {DensifySettings.min_rays})")
     add_tracer_arguments(p)
     add_cluster_arguments(p)  # --cluster: the bake's trace on a Dask cluster
 
@@ -49,7 +52,8 @@ def bake_settings(args: argparse.Namespace) -> BakeSettings:
     settings = BakeSettings(**points, rays=args.rays, seed=args.seed, tracer=args.tracer, workers=args.workers,
                             spawn_ratio=args.spawn_ratio, cluster=cluster_settings(args),
                             gap_fill=GapFillSettings(passes=args.gap_fill, ratio=args.gap_fill_ratio,
-                                                     first_step=args.gap_fill_first_step))
+                                                     first_step=args.gap_fill_first_step),
+                            densify=DensifySettings(rounds=args.densify))
     settings.check()  # a bad number fails before the scene loads
     return settings
 
@@ -61,7 +65,8 @@ def bake_arguments(settings: BakeSettings) -> list[str]:
     return [*points, "--max-points", f"{settings.max_points:g}", "--rays", str(settings.rays), "--seed", str(settings.seed),
             "--spawn-ratio", f"{settings.spawn_ratio:g}", "--gap-fill", str(settings.gap_fill.passes),
             "--gap-fill-ratio", f"{settings.gap_fill.ratio:g}", "--tracer", settings.tracer,
-            "--workers", str(settings.workers), *(["--gap-fill-first-step"] if settings.gap_fill.first_step else [])]
+            "--workers", str(settings.workers), "--densify", str(settings.densify.rounds),
+            *(["--gap-fill-first-step"] if settings.gap_fill.first_step else [])]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

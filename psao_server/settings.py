@@ -91,6 +91,26 @@ class GapFillSettings:
     seed: int = 0x6A9F11
 
 
+@dataclass
+class DensifySettings:
+    """Points added after the first trace where the lookup misses the AO (psao_server/densify.py)."""
+
+    rounds: int = 3  # rounds of additions; 0 = off (the paper's evenly spread points only)
+    ratio: float = 4.0  # traced candidates per kept point of an instance (drawn once, looked at every round)
+    threshold: float = 0.05  # a candidate is added where the lookup misses its traced AO (0..1) by more
+    spacing: float = 0.5  # candidates added in one round are at least this many lookup radii apart
+    min_rays: int = 64  # rays per point below which the traced AO is too noisy to tell where it varies: off
+    seed: int = 0xD3E5
+
+    def check(self) -> None:
+        if self.rounds < 0 or not self.ratio > 0 or not self.threshold > 0 or not self.spacing >= 0:
+            raise ConfigError(f"densify needs rounds >= 0, ratio > 0, threshold > 0 and spacing >= 0, got "
+                              f"{self.rounds}, {self.ratio}, {self.threshold}, {self.spacing}")
+
+    def runs_with(self, rays: int) -> bool:
+        return self.rounds > 0 and rays >= self.min_rays
+
+
 LOCAL_PREFIX = "local:"
 SCENE_SOURCES = ("auto", "spec", "bytes")
 
@@ -137,6 +157,7 @@ class BakeSettings:
     spawn_ratio: float = PointSettings.spawn_ratio  # spawned / kept before elimination
     grid: GridSettings = field(default_factory=GridSettings)
     gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
+    densify: DensifySettings = field(default_factory=DensifySettings)  # add points where the AO varies fast
     skip_buried: bool = True  # no points on surfaces inside closed static geometry (psao_server/buried.py)
     cluster: ClusterSettings | None = None  # trace on a Dask cluster (the dask back-end) instead of `tracer`
 
@@ -154,6 +175,7 @@ class BakeSettings:
                               f"(psao --scene-limit max_rays=N raises the limit)")
         if self.gap_fill.passes < 0 or not self.gap_fill.ratio > 0:
             raise ConfigError(f"gap fill passes must be >= 0 and ratio > 0, got {self.gap_fill.passes}, {self.gap_fill.ratio}")
+        self.densify.check()
 
     def sampling(self) -> SamplingSettings:
         return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points)

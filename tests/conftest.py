@@ -53,3 +53,18 @@ def make_tick():
         tick.grid.take_dirty()
         return tick, bake
     return make
+
+
+@pytest.fixture(scope="module")
+def cornell_double_block():
+    """The Cornell box with its tall block made double-sided: one-sided and double-sided point layouts in
+    one small scene."""
+    import dataclasses
+
+    from psao_scene import load_scene
+
+    base = load_scene("builtin:cornell")
+    meshes = list(base.meshes)
+    k = base.instances[-1].mesh
+    meshes[k] = dataclasses.replace(meshes[k], double_sided=True)
+    return dataclasses.replace(base, meshes=meshes)

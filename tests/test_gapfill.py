@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from protocol.reconstruct import reconstruct_ao
-from psao_scene import load_scene
 from psao_server.bake import build_scene_grid, sample_probes
 from psao_server.gapfill import decoded_points, fill_gaps, first_step_covered, kd_covered, surface_candidates, thin
 from psao_server.settings import GapFillSettings
@@ -19,13 +18,9 @@ DENSITY = 64.0
 
 
 @pytest.fixture(scope="module")
-def scene():
+def scene(cornell_double_block):
     """Cornell box with its tall block made double-sided, so both point layouts are exercised."""
-    base = load_scene("builtin:cornell")
-    meshes = list(base.meshes)
-    k = base.instances[-1].mesh
-    meshes[k] = dataclasses.replace(meshes[k], double_sided=True)
-    return dataclasses.replace(base, meshes=meshes)
+    return cornell_double_block
 
 
 def builder(scene):
