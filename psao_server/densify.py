@@ -37,6 +37,10 @@ from psao_server.settings import DensifySettings, TraceSettings
 # Stable ids of the candidates while they are traced and looked at (the ids of probes start at 2^30):
 # decorrelated rays, apart from every point's and probe's. Added points get their final ids afterwards.
 POOL_ID_BASE = 3 << 30
+# Candidates per call of the lookup's oracle: its arrays grow with a chunk's fragments times the points of
+# their 2x2x2 blocks (fandisk's bake peaked at 683 MB with the oracle's default of 65,536, at 400 MB with
+# this; 330 MB without densify).
+ORACLE_CHUNK = 16384
 
 
 @dataclass
@@ -102,7 +106,7 @@ def densify_round(grid: Grid, pools: list[Pool], settings: DensifySettings) -> l
             continue
         c = p.cand
         ao, _ = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.full(len(idx), p.instance),
-                               c.local_pos[idx], c.local_normal[idx])
+                               c.local_pos[idx], c.local_normal[idx], chunk=ORACLE_CHUNK)
         miss = np.abs(ao - pw.dequantise_ao(p.ao_code[idx]))
         over = miss > settings.threshold
         pick = idx[over][np.argsort(-miss[over], kind="stable")]  # thin keeps the first of each close pair
