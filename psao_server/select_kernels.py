@@ -3,8 +3,9 @@
 `near_kernel` is selection.NearCache's per-tick test (inside one of a mover's reach boxes, and able to
 see its bounding sphere now or before: selection.may_see_sphere) over a mover's gathered candidates;
 `priority_kernel` is the budgeted tick's priority key over the waiting points (budget.RefineQueue.pick),
-with each point's world position and its test against the clients' extended views (selection.in_frustum)
-computed on the way. Both compute in float64 with the numpy versions' formulas; tests/test_selection.py
+with each point's world position and its test against the union of the clients' extended views
+(selection.in_any_view; by blocks of space classified once per call, so the test costs about one view's,
+not one per client) computed on the way. Both compute in float64 with the numpy versions' formulas; tests/test_selection.py
 and tests/test_budget.py check them equal to those.
 
 Numpy would make ~30 passes over each array (one per comparison and logical operation), each with its
@@ -21,6 +22,11 @@ wp.config.quiet = True
 HIDDEN = wp.constant(HIDDEN_S)
 REFINING = wp.constant(REFINING_S)
 CHANGE = wp.constant(CHANGE_S)
+# priority_kernel's verdicts on a block of space against the union of the clients' extended views
+UNKNOWN = wp.constant(0)  # not classified yet (this call)
+SEEN = wp.constant(1)  # wholly inside some view
+UNSEEN = wp.constant(2)  # wholly outside every view
+SOME = wp.constant(3)  # cut by some views: its points are tested against those
 
 
 @wp.func
@@ -124,12 +130,75 @@ class NearTest:
         return self.keep
 
 
+@wp.func
+def in_camera(p: wp.vec3d, planes: wp.array(dtype=wp.vec4d), c: int, margin: wp.float64) -> bool:
+    """selection.in_frustum of one point and camera c's 5 planes (the same sums, in the same order)."""
+    for k in range(5):
+        pl = planes[c * 5 + k]
+        if p[0] * pl[0] + p[1] * pl[1] + p[2] * pl[2] + pl[3] < -margin:
+            return False
+    return True
+
+
+@wp.func
+def classify_block(b: int, lo: wp.vec3d, size: wp.float64, nx: int, ny: int, planes: wp.array(dtype=wp.vec4d),
+                   cameras: int, margin: wp.float64, state: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32),
+                   count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32), used: wp.array(dtype=wp.int32)) -> int:
+    """The union's verdict for every point of block b: SEEN (wholly inside some camera's extended frustum),
+    UNSEEN (wholly outside each), else SOME, with the cameras that cut the block listed (first[b], count[b]).
+    The block's box is grown by a millionth of its side and each box test keeps a relative slack: a point
+    near a plane, or rounded into the block, is left to the exact per-camera test."""
+    z = b / (nx * ny)
+    y = (b / nx) % ny
+    x = b % nx
+    half = wp.float64(0.5) * size
+    cx = lo[0] + (wp.float64(x) + wp.float64(0.5)) * size
+    cy = lo[1] + (wp.float64(y) + wp.float64(0.5)) * size
+    cz = lo[2] + (wp.float64(z) + wp.float64(0.5)) * size
+    h = half * wp.float64(1.000001)
+    start = used[0]
+    n = int(0)
+    verdict = int(UNSEEN)
+    for c in range(cameras):
+        inside = True
+        outside = False
+        for k in range(5):
+            pl = planes[c * 5 + k]
+            d = cx * pl[0] + cy * pl[1] + cz * pl[2] + pl[3] + margin
+            r = h * (wp.abs(pl[0]) + wp.abs(pl[1]) + wp.abs(pl[2]))
+            tol = wp.float64(1e-9) * (wp.abs(cx * pl[0]) + wp.abs(cy * pl[1]) + wp.abs(cz * pl[2]) + wp.abs(pl[3])
+                                      + margin + r)
+            if d + r < -tol:
+                outside = True
+            if d - r < tol:
+                inside = False
+        if inside:
+            verdict = int(SEEN)
+            n = 0
+            break
+        if not outside:
+            listed[start + n] = c
+            n = n + 1
+    if verdict != SEEN and n > 0:
+        verdict = int(SOME)
+    first[b] = start
+    count[b] = n
+    used[0] = start + n
+    state[b] = verdict
+    return verdict
+
+
 @wp.kernel
 def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3d), local: wp.array(dtype=wp.vec3d),
                     instance: wp.array(dtype=wp.int64), moving: wp.array(dtype=wp.bool),
                     transforms: wp.array(dtype=wp.mat44d), planes: wp.array(dtype=wp.vec4d), cameras: int,
                     margin: wp.float64, rays: wp.array(dtype=wp.int32), since: wp.array(dtype=wp.float64),
-                    change: wp.array(dtype=wp.float32), base: wp.float64, key: wp.array(dtype=wp.float64)):
+                    change: wp.array(dtype=wp.float32), base: wp.float64, key: wp.array(dtype=wp.float64),
+                    lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
+                    first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
+                    used: wp.array(dtype=wp.int32)):
+    # blocks (nx, ny, nz cubes of side `size` from `lo`; none: nx = 0): a block is classified against the
+    # union of the views once, when a point first falls in it; a point outside them is tested against every view
     for j in range(ids.shape[0]):
         i = ids[j]
         p = world[i]
@@ -140,14 +209,30 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                          m[1, 0] * q[0] + m[1, 1] * q[1] + m[1, 2] * q[2] + m[1, 3],
                          m[2, 0] * q[0] + m[2, 1] * q[1] + m[2, 2] * q[2] + m[2, 3])
         seen = cameras == 0  # no view known: every point counts as visible
-        for c in range(cameras):
-            inside = True
-            for k in range(5):
-                pl = planes[c * 5 + k]
-                if p[0] * pl[0] + p[1] * pl[1] + p[2] * pl[2] + pl[3] < -margin:
-                    inside = False
-            if inside:
+        b = int(-1)
+        if cameras > 1 and nx > 0 and size > wp.float64(0.0):
+            fx = wp.floor((p[0] - lo[0]) / size)
+            fy = wp.floor((p[1] - lo[1]) / size)
+            fz = wp.floor((p[2] - lo[2]) / size)
+            if (fx >= wp.float64(0.0) and fy >= wp.float64(0.0) and fz >= wp.float64(0.0) and fx < wp.float64(nx)
+                    and fy < wp.float64(ny) and fz < wp.float64(nz)):
+                b = (int(fz) * ny + int(fy)) * nx + int(fx)
+        if b >= 0:
+            verdict = state[b]
+            if verdict == UNKNOWN:
+                verdict = classify_block(b, lo, size, nx, ny, planes, cameras, margin, state, first, count, listed, used)
+            if verdict == SEEN:
                 seen = True
+            elif verdict == SOME:
+                for t in range(count[b]):
+                    if in_camera(p, planes, listed[first[b] + t], margin):
+                        seen = True
+                        break
+        else:
+            for c in range(cameras):
+                if in_camera(p, planes, c, margin):
+                    seen = True
+                    break
         tier = wp.float64(0.0)
         if not seen:
             tier = wp.float64(HIDDEN)
@@ -171,16 +256,32 @@ class Arrays:
 
 class PriorityKey:
     """priority_kernel over a tick's point arrays: world positions of static points, local positions
-    (moving points), instance and moving flag per point id."""
+    (moving points), instance and moving flag per point id. With several views and a box that holds the
+    points (`box`), each point is tested against their union: the box is cut into cubic blocks (`blocks`
+    along its longest side) and a block is classified once against every view (wholly inside one, outside
+    all, or cut by a few), so a point costs a block look-up and the views that cut its block, not every
+    view; the verdicts equal the per-view test's (a point near a block's verdict is tested exactly)."""
 
-    def __init__(self):
+    def __init__(self, blocks: int = 12):
         self.views = Arrays()
+        self.blocks = int(blocks)
+        self._work: dict[str, tuple] = {}
+
+    def _scratch(self, name: str, n: int) -> tuple:
+        """(int32 work array of at least n entries, its Warp view), kept across calls (not cleared)."""
+        held = self._work.get(name)
+        if held is None or len(held[0]) < n:
+            a = np.empty(max(n, 1), np.int32)
+            held = self._work[name] = (a, wp.array(a, dtype=wp.int32, device="cpu", copy=False))
+        return held
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
-                 rays: np.ndarray, since: np.ndarray, change: np.ndarray, base: float) -> np.ndarray:
+                 rays: np.ndarray, since: np.ndarray, change: np.ndarray, base: float,
+                 box: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Priority key (float64, per id; smaller first): RefineQueue.key with each point's visibility
-        in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible)."""
+        in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible);
+        `box` (lo, hi): where the points are (world), for the union's blocks (None: each view is tested)."""
         ids = np.ascontiguousarray(ids, np.int64)
         key = np.empty(len(ids), np.float64)
         if len(ids) == 0:
@@ -188,6 +289,16 @@ class PriorityKey:
         v = self.views
         cams = 0 if planes is None else len(planes)
         flat = np.zeros((1, 4)) if cams == 0 else np.ascontiguousarray(planes, np.float64).reshape(-1, 4)
+        lo, size, dims = np.zeros(3), 1.0, (0, 0, 0)
+        if box is not None and cams > 1:
+            lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
+            size = float((hi - lo).max()) / self.blocks
+            if np.isfinite(size) and size > 0:
+                dims = tuple(int(d) for d in np.minimum(np.floor((hi - lo) / size) + 1, self.blocks))
+        n_blocks = int(np.prod(dims))
+        state = self._scratch("state", n_blocks)
+        state[0][:n_blocks] = 0  # UNKNOWN: classified anew for this call's views
+        self._scratch("used", 1)[0][0] = 0  # entries of `listed` taken
         wp.launch(priority_kernel, dim=1, device="cpu", inputs=[
             wp.array(ids, dtype=wp.int64, device="cpu", copy=False),
             v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
@@ -195,5 +306,8 @@ class PriorityKey:
             wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
             wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin),
             v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32), wp.float64(base),
-            wp.array(key, dtype=wp.float64, device="cpu", copy=False)])
+            wp.array(key, dtype=wp.float64, device="cpu", copy=False),
+            wp.vec3d(*lo), wp.float64(size), *dims, state[1], self._scratch("first", n_blocks)[1],
+            self._scratch("count", n_blocks)[1], self._scratch("listed", min(n_blocks, len(ids)) * max(cams, 1))[1],
+            self._scratch("used", 1)[1]])
         return key

@@ -125,6 +125,7 @@ class ServerTick:
         self._init_tracer()
         self.static_boxes = self.animator.static_bounds()
         self.cameras: list[np.ndarray] = []
+        self._planes_held: dict[int, tuple] = {}  # id(camera) -> (camera, its planes), from the last set_cameras
         self._edits: dict[int, np.ndarray] = {}  # instance -> transform, from the event loop, until the next prepare
         self._edits_lock = threading.Lock()
         self.stats_history: deque[TickStats] = deque(maxlen=max(1, self.settings.history))
@@ -195,6 +196,7 @@ class ServerTick:
         block = self.settings.block or 0.25 * self.scene.ao_distance
         self.block_index = BlockIndex(self.world_pos[self.static_ids], block)
         self.static_normals = self.world_nrm[self.static_ids].astype(np.float64)
+        self._static_box = None  # the static points' world box (_points_box), worked out at the first pick
         self.near_cache = NearCache(self.block_index, self.static_normals, self.scene.ao_distance,
                                     self.settings.near_margin * self.scene.ao_distance)
 
@@ -294,7 +296,12 @@ class ServerTick:
     def set_cameras(self, cameras) -> None:
         """Cameras as (view 4x4, projection 4x4) pairs (OpenGL conventions); [] means: every point visible,
         and so does a camera whose matrices make no frustum (NaN, singular)."""
-        self.cameras = [camera_planes(v, p, self.settings.view.fov_margin) for v, p in cameras]
+        held, self._planes_held = self._planes_held, {}
+        for c in cameras:  # a camera given again (the same object: its client sent no new one) keeps its planes
+            kept = held.get(id(c))
+            planes = kept[1] if kept is not None and kept[0] is c else camera_planes(c[0], c[1], self.settings.view.fov_margin)
+            self._planes_held[id(c)] = (c, planes)
+        self.cameras = [self._planes_held[id(c)][1] for c in cameras]
 
     def edit(self, instance: int, transform: np.ndarray) -> None:
         """A scene edit (already authorised and range-checked by the session): instance `instance` is at
@@ -457,8 +464,17 @@ class ServerTick:
         planes = None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
         key = self._priority(waiting, self.world_pos, self.local_pos, self.inst_of, self.moving_point, frame.transforms,
                              planes, self.settings.view.distance_margin, self.queue.rays, self.queue.waiting_since,
-                             self.queue.change, float(self.queue.waiting_since[waiting].min()))
+                             self.queue.change, float(self.queue.waiting_since[waiting].min()), self._points_box(frame))
         return first_by_key(waiting, key, k)
+
+    def _points_box(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """A world box around the points (the static ones' and the movers' bounds at `frame`): where the
+        pick's union of views is cut into blocks."""
+        if self._static_box is None:
+            p = self.world_pos[self.static_ids]
+            self._static_box = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.full(3, np.inf), np.full(3, -np.inf))
+        boxes = [self._static_box] + [frame.bounds[i] for i in self.kinds.moving if i in frame.bounds]
+        return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
     def apply(self, plan: "TickPlan") -> TickStats:
         """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on

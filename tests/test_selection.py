@@ -202,3 +202,34 @@ def test_may_see_sphere_is_conservative():
         t = np.clip((centre - p) @ hemi.T, 0.0, d)
         closest = p + t[:, None] * hemi
         assert (np.linalg.norm(closest - centre, axis=1) > radius).all()
+
+
+@pytest.mark.parametrize("n_views", [2, 7, 40, 70])
+def test_priority_key_union_of_views_equals_each_view_tested(n_views):
+    # select_kernels.PriorityKey tests points against the union of the views by blocks of a box: its
+    # visibility must be in_any_view's exactly, also for points on a plane's margin, on block faces and
+    # outside the box
+    from psao_server.budget import HIDDEN_S
+    from psao_server.select_kernels import PriorityKey
+
+    rng = np.random.default_rng(n_views)
+    views = [frustum_planes(look_at(rng.uniform(-25, 25, 3), rng.uniform(-8, 8, 3)),
+                            perspective(rng.uniform(5, 40), 16 / 9, 0.01, rng.uniform(3, 30)), 20.0)
+             for _ in range(n_views)]
+    margin = 1.0
+    pts = [rng.uniform(-30, 30, (6000, 3))]
+    for planes in views[:10]:  # on a plane's margin: n.p + d = -margin
+        n, d = planes[rng.integers(0, 5, 200), :3], planes[rng.integers(0, 5, 200), 3]
+        pts.append(n * (-margin - d)[:, None])
+    lo, hi = np.full(3, -20.0), np.full(3, 20.0)
+    pts.append(lo + np.round(rng.uniform(0, 12, (500, 3))) * (hi - lo).max() / 12)  # on block faces
+    world = np.concatenate(pts)
+    n = len(world)
+    ids = np.arange(n)
+    key = PriorityKey()
+    for box in ((lo, hi), (world.min(axis=0), world.max(axis=0)), None):
+        got = key(ids, world, world, np.zeros(n, np.int64), np.zeros(n, bool), np.eye(4)[None], np.stack(views), margin,
+                  np.zeros(n, np.int32), np.zeros(n), np.zeros(n, np.float32), 0.0, box)
+        want = in_any_view(world, views, margin)
+        assert 0 < want.sum() < n
+        np.testing.assert_array_equal(got < HIDDEN_S / 2, want)
