@@ -147,18 +147,18 @@ class Fanout:
 
     def places(self, grid, transforms: np.ndarray) -> CellPlaces:
         """Where every cell slot is, for all the clients: worked out in full when the pool changes size,
-        else again only for the slots the ticks changed and the cells of instances that moved."""
+        else again only for the slots the ticks changed, and the cells of instances whose transform
+        changed (bitwise) moved with them."""
         t = np.ascontiguousarray(transforms, np.float32)
         if (self._places is None or len(self._places.centres) != len(grid.cells)
                 or self._placed_with.shape != t.shape):
             self._places = CellPlaces(grid, np.arange(len(grid.cells)), t)
         else:
-            moved = np.flatnonzero(np.any(self._placed_with.reshape(len(t), -1) != t.reshape(len(t), -1), axis=1))
-            rows = np.flatnonzero(self._stale) if self._stale_any else np.zeros(0, np.int64)
-            if len(moved):
-                rows = np.union1d(rows, np.flatnonzero(np.isin(grid.cell_instance, moved)))
-            if len(rows):
-                self._places.refresh(grid, rows, t)
+            if self._stale_any:
+                self._places.refresh(grid, np.flatnonzero(self._stale), t)
+            moved = changed_transform_ids(self._placed_with, t)
+            if len(moved):  # their cells keep their places in the instance's space
+                self._places.place(np.flatnonzero(np.isin(self._places.owner, moved)), t)
         self._placed_with = t.copy()
         if self._stale_any:
             self._stale[:] = False

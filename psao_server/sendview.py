@@ -22,35 +22,52 @@ class CellPlaces:
 
     def __init__(self, grid, slots: np.ndarray, transforms: np.ndarray):
         slots = np.asarray(slots, np.int64)
-        self.centres = np.full((len(slots), 3), np.nan)
-        self.reach = np.zeros(len(slots))
-        inst = grid.cell_instance[slots] if len(slots) else np.zeros(0, np.int64)
-        keys = grid.cells[slots, gf.KEY_WORD] if len(slots) else np.zeros(0, np.uint32)
+        n = len(slots)
+        # where each slot's cell is in its instance's space (owner -1: a slot whose place is unknown)
+        self.owner = np.full(n, -1, np.int64)
+        self.local = np.zeros((n, 3))
+        self.half_diagonal = np.zeros(n)  # in the instance's units
+        inst = grid.cell_instance[slots] if n else np.zeros(0, np.int64)
+        keys = grid.cells[slots, gf.KEY_WORD] if n else np.zeros(0, np.uint32)
         placed = np.flatnonzero((inst >= 0) & (keys != gf.EMPTY))
         placed = placed[np.argsort(inst[placed], kind="stable")]
         owners, starts = np.unique(inst[placed], return_index=True)
         for i, rows in zip(owners, np.split(placed, starts[1:])):
             rec = grid.instances[i]
             xyz = gf.key_to_cell(keys[rows], rec["dims"])
-            local = rec["origin"].astype(np.float64) + (xyz + 0.5) * float(rec["cell_size"])
-            m = np.asarray(transforms[i], np.float64)
-            self.centres[rows] = np.einsum("pj,kj->pk", local, m[:3, :3]) + m[:3, 3]  # einsum: no BLAS threads
-            scale = float(np.linalg.norm(m[:3, :3], axis=0).max())
-            self.reach[rows] = 0.5 * np.sqrt(3.0) * float(rec["cell_size"]) * scale
+            self.local[rows] = rec["origin"].astype(np.float64) + (xyz + 0.5) * float(rec["cell_size"])
+            self.half_diagonal[rows] = 0.5 * np.sqrt(3.0) * float(rec["cell_size"])
+            self.owner[rows] = i
+        self.centres = np.full((n, 3), np.nan)
+        self.reach = np.zeros(n)
         # The same, laid out for in_view (it runs per client and send): coordinates as 3 rows, 0 where the
         # place is unknown, and the slack each plane test allows, infinite where unknown (always in view).
-        known = np.isfinite(self.centres).all(axis=1)
-        self.xyz = np.ascontiguousarray(np.where(known[:, None], self.centres, 0.0).T)
-        self.slack = np.where(known, self.reach, np.inf)
+        self.xyz = np.zeros((3, n))
+        self.slack = np.full(n, np.inf)
+        self.place(placed, transforms)
+
+    def place(self, rows: np.ndarray, transforms: np.ndarray) -> None:
+        """World centres and reach of these rows (slots with a known place) under `transforms`: what an
+        instance's move changes (its cells' places in its own space stay)."""
+        rows = np.asarray(rows, np.int64)
+        owners = self.owner[rows]
+        for i in np.unique(owners).tolist():
+            r = rows[owners == i]
+            m = np.asarray(transforms[i], np.float64)
+            loc = self.local[r]
+            # per coordinate multiply-adds (no einsum, no BLAS): the same numbers however many rows
+            world = loc[:, 0:1] * m[:3, 0] + loc[:, 1:2] * m[:3, 1] + loc[:, 2:3] * m[:3, 2] + m[:3, 3]
+            self.centres[r] = world
+            self.xyz[:, r] = world.T
+            self.reach[r] = self.slack[r] = self.half_diagonal[r] * float(np.linalg.norm(m[:3, :3], axis=0).max())
 
     def refresh(self, grid, slots: np.ndarray, transforms: np.ndarray) -> None:
-        """Work the places of these slots out again (their cells changed, or their instance moved); the
-        slots here are all of the grid's, 0..n-1."""
+        """Work the places of these slots out again (their cells changed); the slots here are all of the
+        grid's, 0..n-1."""
         part = CellPlaces(grid, slots, transforms)
-        self.centres[slots] = part.centres
-        self.reach[slots] = part.reach
+        for name in ("owner", "local", "half_diagonal", "centres", "reach", "slack"):
+            getattr(self, name)[slots] = getattr(part, name)
         self.xyz[:, slots] = part.xyz
-        self.slack[slots] = part.slack
 
     def in_view(self, planes: np.ndarray | None, view: ViewSettings, rows: np.ndarray | None = None) -> np.ndarray:
         """Bool per slot (or per one of `rows`, indices into the slots): in the extended view of a camera's
