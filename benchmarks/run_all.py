@@ -25,7 +25,7 @@ from benchmarks.verdicts import count_failures
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
 BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "quality", "culling", "clients", "web",
-              "denoise", "video", "realtime", "dask", "progressive", "scenes", "baselines",
+              "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
               "soak")
 MODULES = {"fuzz": "benchmarks.fuzz"}
 
@@ -49,6 +49,7 @@ QUICK_ARGS = {
     "clients": ["--counts", "1,10", "--density", "32", "--seconds", "5"],
     "scenes": ["--scenes", "builtin:cornell", "--scales", "1", "--probes", "2000", "--probe-rays", "64", "--spp", "16",
                "--frames", "1"],
+    "densify": ["--scene", "builtin:cornell", "--frames", "1", "--rounds", "2", "--probes", "2000", "--size", "160x90"],
     "baselines": ["--methods", "ssao,gtao,psao", "--frames", "1", "--spp", "32", "--no-stream", "--sponza-density", "64"],
     "progressive": ["--density", "64", "--rays", "32", "--marks", "1,3,5", "--probes", "4000", "--ref-rays", "256"],
     "soak": ["--minutes", "1.5", "--clients", "4", "--event-seconds", "4", "--host-kill-seconds", "30"],
