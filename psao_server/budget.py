@@ -48,13 +48,16 @@ class BudgetSettings:
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
     exact_points: int = 2048  # static points near movers given their whole ray set at once each tick, from the
     # rays the static scene lets through (static_hits.StaticHits) traced against the moving parts alone:
-    # those in view whose AO changed most since their last trace (at least exact_min_change); 0 = none
+    # those in view whose AO changed most since their last trace (at least exact_min_change); at most
+    # this many, and at most what exact_share of the budget allows at their measured cost; 0 = none
+    exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
 
 
+EXACT_MIN = 32  # whole traces from kept static hits a tick may always make (TraceBudget.exact_points)
 ALIKE = 0.1  # call sizes whose spread is below this share of their mean cannot separate rate and overhead
 
 
@@ -68,6 +71,7 @@ class TraceBudget:
         self.other_stages_s = 0.0  # animate + select + grid, averaged
         self._moments: list[float] | None = None  # weighted means of rays, seconds, rays^2, rays*seconds
         self._dither = -0.25  # share added to the next batch while the calls are alike (sign flips each time)
+        self.exact_s_per_point = 2e-5  # seconds a whole trace from kept static hits costs a point, averaged
 
     def budget_s(self) -> float:
         s = self.settings
@@ -78,9 +82,24 @@ class TraceBudget:
         return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz,
                    s.floor / (1 - s.floor) * self.other_stages_s)
 
-    def points(self, rays_per_point: int) -> int:
-        """How many points of `rays_per_point` rays fit in this tick's budget (at least min_points)."""
-        budget = self.budget_s()
+    def exact_points(self) -> int:
+        """How many whole traces from kept static hits fit in exact_share of this tick's budget (at least
+        EXACT_MIN of them, so that their cost keeps being measured on batches where it shows)."""
+        s = self.settings
+        fit = int(s.exact_share * self.budget_s() / self.exact_s_per_point)
+        return min(s.exact_points, max(fit, EXACT_MIN)) if s.exact_share > 0 else 0
+
+    def observe_exact(self, points: int, seconds: float) -> None:
+        """Learn the cost of a whole trace from one tick's: only from batches of at least EXACT_MIN points
+        (a smaller one's fixed costs, spread over few points, would make the next batch smaller still)."""
+        if points >= EXACT_MIN and math.isfinite(seconds):
+            a = self.settings.smoothing
+            self.exact_s_per_point = max((1 - a) * self.exact_s_per_point + a * seconds / points, 1e-8)
+
+    def points(self, rays_per_point: int, spent_s: float = 0.0) -> int:
+        """How many points of `rays_per_point` rays fit in this tick's budget, less `spent_s` seconds of it
+        already traced (at least min_points)."""
+        budget = max(self.budget_s() - spent_s, 0.0)
         # An overhead beyond the budget is paid whenever anything is traced: then trace half a budget's
         # worth of rays on top of it, or the tick would crawl along at min_points.
         room = max(budget - self.overhead_s, 0.5 * budget)

@@ -387,11 +387,12 @@ class ServerTick:
             changed, change = self._motion_candidates(frame)
         self.queue.reset(changed, now, change)
         round_settings = self._round_settings()
-        k = self.budget.points(round_settings.rays_traced)
         refined = self._refine(changed, frame)
         t_exact = time.perf_counter()
-        exact, exact_codes = self._exact_static(frame, changed)
+        exact, exact_codes = self._exact_static(frame, changed, self.budget.exact_points())
         exact_s = time.perf_counter() - t_exact
+        self.budget.observe_exact(len(exact), exact_s)
+        k = self.budget.points(round_settings.rays_traced, exact_s)  # the rounds get what is left
         looked = self._looked_at(changed, max(16 * k, self.settings.budget.scan_points))
         chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
@@ -412,22 +413,22 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim - exact_s, t_trace - t_sel + exact_s),
                         batch=k, budget_s=self.budget.budget_s(), exact=len(exact), exact_s=exact_s)
 
-    def _exact_static(self, frame: Frame, changed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _exact_static(self, frame: Frame, changed: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `changed` (just reset) that get their whole ray set at once: in some
         client's extended view, with an estimated AO change since their last trace of at least
-        exact_min_change, the `exact_points` changed most (of them at most an eighth whose static hits are
+        exact_min_change, the `most` changed most (of them at most an eighth whose static hits are
         not kept yet: tracing those costs a full trace). Only the rays the static scene lets through are
         traced, against the moving parts (StaticHits, EmbreeTracer.visibility_given_static): the full
         trace's AO, which ends their wait. Returns (ids, AO codes)."""
         b = self.settings.budget
-        ids = changed[~self.moving_point[changed]] if self._static_hits is not None and b.exact_points > 0 else changed[:0]
+        ids = changed[~self.moving_point[changed]] if self._static_hits is not None and most > 0 else changed[:0]
         ids = ids[self.queue.change[ids] >= b.exact_min_change]
         if self.refiner is not None:
             ids = ids[~self.refiner.busy[ids]]
         ids = ids[in_any_view(self.world_pos[ids], self.cameras, self.settings.view.distance_margin)]
-        ids = first_by_key(ids, -self.queue.change[ids].astype(np.float64), b.exact_points)
+        ids = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
         unknown = ~self._static_hits.known[ids] if len(ids) else np.zeros(0, bool)
-        ids = np.sort(ids[~unknown | (np.cumsum(unknown) <= max(b.exact_points // 8, 1))])
+        ids = np.sort(ids[~unknown | (np.cumsum(unknown) <= max(most // 8, 1))])
         if len(ids) == 0:
             return ids, np.zeros(0, np.uint32)
         s = self.trace_settings
@@ -500,10 +501,9 @@ class ServerTick:
         if self.budget is None:
             return {"queue": int(np.count_nonzero(self.stale))}
         animate, select, _ = plan.seconds
-        # the whole traces of static points near movers are paid before the budget's rounds, like a stage
-        self.budget.observe_other(animate + select + self.stats_grid_s + plan.exact_s)
+        self.budget.observe_other(animate + select + self.stats_grid_s)
         return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
-                "budget_ms": 1e3 * plan.budget_s, "budget_used": (trace_s - plan.exact_s) / max(plan.budget_s, 1e-9),
+                "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
                 "batch": plan.batch, "exact": plan.exact}
 
     # ------------------------------------------------------------------ steps

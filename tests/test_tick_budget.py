@@ -355,7 +355,7 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
     """Static points near the movers whose AO changed most are traced whole at once from their kept static
     hits (only the rays the static scene lets through, against the movers): each holds exactly the full
     trace of the scene as it stands at that tick, and waits no more; at most exact_points a tick."""
-    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
     tick.settings.budget.exact_points = 300
     try:
         exact_total = 0
@@ -374,3 +374,20 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
         assert exact_total > 0
     finally:
         tick.close()
+
+
+def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
+    from psao_server.budget import TraceBudget
+
+    b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5), rays_per_second=1e6,
+                    overhead_s=0.0)
+    b.exact_s_per_point = 1e-5
+    assert b.exact_points() == pytest.approx(500, abs=1)  # half of 10 ms at 10 us a point
+    b.settings.exact_points = 200
+    assert b.exact_points() == 200
+    for _ in range(40):
+        b.observe_exact(100, 4e-3)  # they cost 40 us a point
+    assert b.exact_points() == pytest.approx(125, abs=2)
+    full, rest = b.points(8), b.points(8, spent_s=4e-3)
+    assert rest < full and rest == pytest.approx(0.6 * full, rel=0.3)
+    assert b.points(8, spent_s=1.0) == b.settings.min_points
