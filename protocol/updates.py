@@ -197,16 +197,18 @@ def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray
             raise PayloadError(f"{what}: {b.size} bytes for no values")
         return _empty_u32(0)
     ends = b < 0x80
-    if int(ends.sum()) != count or not ends[-1]:
-        raise PayloadError(f"{what}: varint section does not hold exactly {count} values")
-    group = np.concatenate([[0], np.cumsum(ends)[:-1]])
+    if b.size == count and ends.all():  # every value in one byte (small gaps, the usual case): the values
+        return b.astype(np.uint32)
     last = np.flatnonzero(ends)
+    if len(last) != count or not ends[-1]:
+        raise PayloadError(f"{what}: varint section does not hold exactly {count} values")
     first = np.concatenate([[0], last[:-1] + 1])
-    pos = np.arange(b.size) - first[group]
-    if pos.max() > 4:
+    if (last - first).max() > 4:
         raise PayloadError(f"{what}: varint longer than 5 bytes")
-    v = np.zeros(count, dtype=np.uint64)
-    np.add.at(v, group, (b & 0x7F).astype(np.uint64) << (7 * pos).astype(np.uint64))
+    # each value's (up to) 5 groups as a row: the bytes from its first on, those past its last masked out
+    at = first[:, None] + _VARINT_GROUP
+    groups = np.where(at <= last[:, None], b[np.minimum(at, b.size - 1)] & 0x7F, 0).astype(np.uint64)
+    v = (groups << _VARINT_SHIFTS.astype(np.uint64)).sum(axis=1)
     if v.max() > 0xFFFFFFFF:
         raise PayloadError(f"{what}: varint value beyond 32 bits")
     return v.astype(np.uint32)

@@ -161,6 +161,12 @@ def test_varints_and_gaps():
         varint_decode(H("ffffffff7f"), 1, "v")  # 35 bits
     with pytest.raises(PayloadError):
         varint_decode(H("808080808001"), 1, "v")  # 6 bytes
+    with pytest.raises(PayloadError):
+        varint_decode(H("0102"), 1, "v")  # one-byte values, one too many
+    rng = np.random.default_rng(0)
+    for top in (1 << 7, 1 << 14, 1 << 32):  # one-byte values only, and mixed lengths
+        values = rng.integers(0, top, 500, dtype=np.uint64).astype(np.uint32)
+        assert np.array_equal(varint_decode(varint_encode(values), len(values), "v"), values)
     ids = np.array([0, 1, 5, 1000, 2**32 - 1], np.uint32)
     assert gaps_encode(ids)[:3] == H("00 00 03")
     assert np.array_equal(gaps_decode(gaps_encode(ids), len(ids), "g"), ids)
