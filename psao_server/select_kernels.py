@@ -5,8 +5,9 @@ see its bounding sphere now or before: selection.may_see_sphere) over a mover's 
 `priority_kernel` is the budgeted tick's priority key over the waiting points (budget.RefineQueue.pick),
 with each point's world position and its test against the union of the clients' extended views
 (selection.in_any_view; by blocks of space classified once per call, so the test costs about one view's,
-not one per client) computed on the way. Both compute in float64 with the numpy versions' formulas; tests/test_selection.py
-and tests/test_budget.py check them equal to those.
+not one per client) computed on the way; `union_kernel` (ViewUnion) is that union test alone (the budgeted
+tick's choice of static points to trace whole). They compute in float64 with the numpy versions'
+formulas; tests/test_selection.py and tests/test_tick_budget.py check them equal to those.
 
 Numpy would make ~30 passes over each array (one per comparison and logical operation), each with its
 own temporary; at a 60 Hz tick over tens of thousands of candidates those passes were most of the tick.
@@ -143,7 +144,8 @@ def in_camera(p: wp.vec3d, planes: wp.array(dtype=wp.vec4d), c: int, margin: wp.
 @wp.func
 def classify_block(b: int, lo: wp.vec3d, size: wp.float64, nx: int, ny: int, planes: wp.array(dtype=wp.vec4d),
                    cameras: int, margin: wp.float64, state: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32),
-                   count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32), used: wp.array(dtype=wp.int32)) -> int:
+                   count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
+                   used: wp.array(dtype=wp.int32)) -> int:
     """The union's verdict for every point of block b: SEEN (wholly inside some camera's extended frustum),
     UNSEEN (wholly outside each), else SOME, with the cameras that cut the block listed (first[b], count[b]).
     The block's box is grown by a millionth of its side and each box test keeps a relative slack: a point
@@ -188,6 +190,51 @@ def classify_block(b: int, lo: wp.vec3d, size: wp.float64, nx: int, ny: int, pla
     return verdict
 
 
+@wp.func
+def in_union(p: wp.vec3d, planes: wp.array(dtype=wp.vec4d), cameras: int, margin: wp.float64, lo: wp.vec3d,
+             size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
+             first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
+             used: wp.array(dtype=wp.int32)) -> bool:
+    """selection.in_any_view of one point: through its block (nx, ny, nz cubes of side `size` from `lo`;
+    none: nx = 0), classified against the views when a point first falls in it; a point outside the
+    blocks is tested against every view. No view: every point counts as visible."""
+    if cameras == 0:
+        return True
+    b = int(-1)
+    if cameras > 1 and nx > 0 and size > wp.float64(0.0):
+        fx = wp.floor((p[0] - lo[0]) / size)
+        fy = wp.floor((p[1] - lo[1]) / size)
+        fz = wp.floor((p[2] - lo[2]) / size)
+        if (fx >= wp.float64(0.0) and fy >= wp.float64(0.0) and fz >= wp.float64(0.0) and fx < wp.float64(nx)
+                and fy < wp.float64(ny) and fz < wp.float64(nz)):
+            b = (int(fz) * ny + int(fy)) * nx + int(fx)
+    if b >= 0:
+        verdict = state[b]
+        if verdict == UNKNOWN:
+            verdict = classify_block(b, lo, size, nx, ny, planes, cameras, margin, state, first, count, listed, used)
+        if verdict == SEEN:
+            return True
+        if verdict == SOME:
+            for t in range(count[b]):
+                if in_camera(p, planes, listed[first[b] + t], margin):
+                    return True
+        return False
+    for c in range(cameras):
+        if in_camera(p, planes, c, margin):
+            return True
+    return False
+
+
+@wp.kernel
+def union_kernel(pos: wp.array(dtype=wp.vec3d), planes: wp.array(dtype=wp.vec4d), cameras: int, margin: wp.float64,
+                 lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
+                 first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
+                 used: wp.array(dtype=wp.int32), seen: wp.array(dtype=wp.uint8)):
+    for j in range(pos.shape[0]):
+        seen[j] = wp.uint8(1) if in_union(pos[j], planes, cameras, margin, lo, size, nx, ny, nz, state, first, count,
+                                          listed, used) else wp.uint8(0)
+
+
 @wp.kernel
 def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3d), local: wp.array(dtype=wp.vec3d),
                     instance: wp.array(dtype=wp.int64), moving: wp.array(dtype=wp.bool),
@@ -197,8 +244,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
                     first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
                     used: wp.array(dtype=wp.int32)):
-    # blocks (nx, ny, nz cubes of side `size` from `lo`; none: nx = 0): a block is classified against the
-    # union of the views once, when a point first falls in it; a point outside them is tested against every view
+    # visibility: in_union (blocks of space classified against the views once per launch)
     for j in range(ids.shape[0]):
         i = ids[j]
         p = world[i]
@@ -208,31 +254,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
             p = wp.vec3d(m[0, 0] * q[0] + m[0, 1] * q[1] + m[0, 2] * q[2] + m[0, 3],
                          m[1, 0] * q[0] + m[1, 1] * q[1] + m[1, 2] * q[2] + m[1, 3],
                          m[2, 0] * q[0] + m[2, 1] * q[1] + m[2, 2] * q[2] + m[2, 3])
-        seen = cameras == 0  # no view known: every point counts as visible
-        b = int(-1)
-        if cameras > 1 and nx > 0 and size > wp.float64(0.0):
-            fx = wp.floor((p[0] - lo[0]) / size)
-            fy = wp.floor((p[1] - lo[1]) / size)
-            fz = wp.floor((p[2] - lo[2]) / size)
-            if (fx >= wp.float64(0.0) and fy >= wp.float64(0.0) and fz >= wp.float64(0.0) and fx < wp.float64(nx)
-                    and fy < wp.float64(ny) and fz < wp.float64(nz)):
-                b = (int(fz) * ny + int(fy)) * nx + int(fx)
-        if b >= 0:
-            verdict = state[b]
-            if verdict == UNKNOWN:
-                verdict = classify_block(b, lo, size, nx, ny, planes, cameras, margin, state, first, count, listed, used)
-            if verdict == SEEN:
-                seen = True
-            elif verdict == SOME:
-                for t in range(count[b]):
-                    if in_camera(p, planes, listed[first[b] + t], margin):
-                        seen = True
-                        break
-        else:
-            for c in range(cameras):
-                if in_camera(p, planes, c, margin):
-                    seen = True
-                    break
+        seen = in_union(p, planes, cameras, margin, lo, size, nx, ny, nz, state, first, count, listed, used)
         tier = wp.float64(0.0)
         if not seen:
             tier = wp.float64(HIDDEN)
@@ -254,16 +276,14 @@ class Arrays:
         return held[1]
 
 
-class PriorityKey:
-    """priority_kernel over a tick's point arrays: world positions of static points, local positions
-    (moving points), instance and moving flag per point id. With several views and a box that holds the
-    points (`box`), each point is tested against their union: the box is cut into cubic blocks (`blocks`
-    along its longest side) and a block is classified once against every view (wholly inside one, outside
-    all, or cut by a few), so a point costs a block look-up and the views that cut its block, not every
-    view; the verdicts equal the per-view test's (a point near a block's verdict is tested exactly)."""
+class ViewUnion:
+    """The union of the clients' extended views, tested by blocks (in_union): a box around the points is
+    cut into cubic blocks (`blocks` along its longest side) and a block is classified once per launch
+    against every view (wholly inside one, outside all, or cut by a few), so a point costs a block look-up
+    and the views that cut its block, not one test per view; the verdicts equal selection.in_any_view's
+    (a point near a block's verdict is tested exactly). Keeps its work arrays across calls."""
 
     def __init__(self, blocks: int = 12):
-        self.views = Arrays()
         self.blocks = int(blocks)
         self._work: dict[str, tuple] = {}
 
@@ -274,6 +294,48 @@ class PriorityKey:
             a = np.empty(max(n, 1), np.int32)
             held = self._work[name] = (a, wp.array(a, dtype=wp.int32, device="cpu", copy=False))
         return held
+
+    def inputs(self, planes: np.ndarray | None, margin: float, box: tuple[np.ndarray, np.ndarray] | None,
+               points: int) -> list:
+        """in_union's arguments for `points` points in `box` (lo, hi; None: no blocks, each view tested)
+        and views `planes` ((C, 5, 4), or None: every point visible); fresh block verdicts."""
+        cams = 0 if planes is None else len(planes)
+        flat = np.zeros((1, 4)) if cams == 0 else np.ascontiguousarray(planes, np.float64).reshape(-1, 4)
+        lo, size, dims = np.zeros(3), 1.0, (0, 0, 0)
+        if box is not None and cams > 1:
+            lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
+            size = float((hi - lo).max()) / self.blocks
+            if np.isfinite(size) and size > 0:
+                dims = tuple(int(d) for d in np.minimum(np.floor((hi - lo) / size) + 1, self.blocks))
+        n_blocks = int(np.prod(dims))
+        state = self._scratch("state", n_blocks)
+        state[0][:n_blocks] = 0  # UNKNOWN: classified anew for these views
+        used = self._scratch("used", 1)
+        used[0][0] = 0  # entries of `listed` taken
+        return [wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin), wp.vec3d(*lo),
+                wp.float64(size), *dims, state[1], self._scratch("first", n_blocks)[1],
+                self._scratch("count", n_blocks)[1], self._scratch("listed", min(n_blocks, points) * max(cams, 1))[1],
+                used[1]]
+
+    def __call__(self, points: np.ndarray, planes: np.ndarray | None, margin: float) -> np.ndarray:
+        """Bool (P,): selection.in_any_view of world points (P, 3) for views `planes` ((C, 5, 4) or None)."""
+        pos = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        seen = np.ones(len(pos), np.uint8)
+        if len(pos) and planes is not None and len(planes):
+            box = (pos.min(axis=0), pos.max(axis=0))
+            wp.launch(union_kernel, dim=1, device="cpu", inputs=[
+                wp.array(pos, dtype=wp.vec3d, device="cpu", copy=False), *self.inputs(planes, margin, box, len(pos)),
+                wp.array(seen, dtype=wp.uint8, device="cpu", copy=False)])
+        return seen.view(bool)
+
+
+class PriorityKey:
+    """priority_kernel over a tick's point arrays: world positions of static points, local positions
+    (moving points), instance and moving flag per point id; visibility by ViewUnion's blocks of `box`."""
+
+    def __init__(self, blocks: int = 12):
+        self.views = Arrays()
+        self.union = ViewUnion(blocks)
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
@@ -287,27 +349,12 @@ class PriorityKey:
         if len(ids) == 0:
             return key
         v = self.views
-        cams = 0 if planes is None else len(planes)
-        flat = np.zeros((1, 4)) if cams == 0 else np.ascontiguousarray(planes, np.float64).reshape(-1, 4)
-        lo, size, dims = np.zeros(3), 1.0, (0, 0, 0)
-        if box is not None and cams > 1:
-            lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
-            size = float((hi - lo).max()) / self.blocks
-            if np.isfinite(size) and size > 0:
-                dims = tuple(int(d) for d in np.minimum(np.floor((hi - lo) / size) + 1, self.blocks))
-        n_blocks = int(np.prod(dims))
-        state = self._scratch("state", n_blocks)
-        state[0][:n_blocks] = 0  # UNKNOWN: classified anew for this call's views
-        self._scratch("used", 1)[0][0] = 0  # entries of `listed` taken
+        u = self.union.inputs(planes, margin, box, len(ids))
         wp.launch(priority_kernel, dim=1, device="cpu", inputs=[
             wp.array(ids, dtype=wp.int64, device="cpu", copy=False),
             v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
             v("moving", moving, wp.bool),
             wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
-            wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin),
-            v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32), wp.float64(base),
-            wp.array(key, dtype=wp.float64, device="cpu", copy=False),
-            wp.vec3d(*lo), wp.float64(size), *dims, state[1], self._scratch("first", n_blocks)[1],
-            self._scratch("count", n_blocks)[1], self._scratch("listed", min(n_blocks, len(ids)) * max(cams, 1))[1],
-            self._scratch("used", 1)[1]])
+            *u[:3], v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32),
+            wp.float64(base), wp.array(key, dtype=wp.float64, device="cpu", copy=False), *u[3:]])
         return key

@@ -146,6 +146,7 @@ class ServerTick:
         self.budget: TraceBudget | None = None
         self._static_hits: StaticHits | None = None
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
+        self._union = None  # select_kernels.ViewUnion, made at the first test of points against the views
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
         if self.settings.budget is not None:
             self._init_budget(bake)
@@ -299,7 +300,8 @@ class ServerTick:
         held, self._planes_held = self._planes_held, {}
         for c in cameras:  # a camera given again (the same object: its client sent no new one) keeps its planes
             kept = held.get(id(c))
-            planes = kept[1] if kept is not None and kept[0] is c else camera_planes(c[0], c[1], self.settings.view.fov_margin)
+            planes = (kept[1] if kept is not None and kept[0] is c
+                      else camera_planes(c[0], c[1], self.settings.view.fov_margin))
             self._planes_held[id(c)] = (c, planes)
         self.cameras = [self._planes_held[id(c)][1] for c in cameras]
 
@@ -425,7 +427,7 @@ class ServerTick:
         ids = ids[self.queue.change[ids] >= b.exact_min_change]
         if self.refiner is not None:
             ids = ids[~self.refiner.busy[ids]]
-        ids = ids[in_any_view(self.world_pos[ids], self.cameras, self.settings.view.distance_margin)]
+        ids = ids[self._in_views(self.world_pos[ids])]
         ids = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
         unknown = ~self._static_hits.known[ids] if len(ids) else np.zeros(0, bool)
         ids = np.sort(ids[~unknown | (np.cumsum(unknown) <= max(most // 8, 1))])
@@ -462,11 +464,24 @@ class ServerTick:
         from psao_server.select_kernels import PriorityKey  # (Warp: imported at the first pick)
         if self._priority is None:
             self._priority = PriorityKey()
-        planes = None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
         key = self._priority(waiting, self.world_pos, self.local_pos, self.inst_of, self.moving_point, frame.transforms,
-                             planes, self.settings.view.distance_margin, self.queue.rays, self.queue.waiting_since,
-                             self.queue.change, float(self.queue.waiting_since[waiting].min()), self._points_box(frame))
+                             self._view_planes(), self.settings.view.distance_margin, self.queue.rays,
+                             self.queue.waiting_since, self.queue.change,
+                             float(self.queue.waiting_since[waiting].min()), self._points_box(frame))
         return first_by_key(waiting, key, k)
+
+    def _view_planes(self) -> np.ndarray | None:
+        """The clients' extended views as (C, 5, 4) planes, or None: every point counts as visible (no
+        camera, or one that makes no frustum)."""
+        return None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
+
+    def _in_views(self, points: np.ndarray) -> np.ndarray:
+        """in_any_view of world points (P, 3), tested against the union of the views
+        (select_kernels.ViewUnion: about one view's cost, however many clients)."""
+        if self._union is None:
+            from psao_server.select_kernels import ViewUnion  # (Warp: imported at the first use)
+            self._union = ViewUnion()
+        return self._union(points, self._view_planes(), self.settings.view.distance_margin)
 
     def _points_box(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         """A world box around the points (the static ones' and the movers' bounds at `frame`): where the
