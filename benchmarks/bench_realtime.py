@@ -14,7 +14,8 @@ Parts (--parts, comma list; all by default):
   quality  budgeted tick at 60 Hz (real time) against the unbudgeted tick (every selected point fully
            re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
            points in the camera's view against a --ref-rays reference trace, while moving and one second
-           after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart
+           after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart;
+           while moving, the squared error split by kind of point (POINT_KINDS: where the loss comes from)
 
 Progressive start (`psao serve --progressive`) has a benchmark of its own: benchmarks.bench_progressive.
 
@@ -196,6 +197,9 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
         print(f"  {name} N={args.quality_density:g}: mean PSNR while moving budgeted {r['moving_budgeted_db']:.2f} dB, "
               f"unbudgeted {r['moving_unbudgeted_db']:.2f} dB; 1 s after motion stops {r['rest_budgeted_db']:.2f} vs "
               f"{r['rest_unbudgeted_db']:.2f} dB", flush=True)
+        for kind, e in r["error_split_moving"].items():
+            print(f"    {kind:30s} {e['points_per_sample']:7.0f} points in view per sample, squared error "
+                  f"{e['mse_budgeted']:.2e} budgeted, {e['mse_unbudgeted']:.2e} unbudgeted (mean over all points)")
         v.check(f"{name} mean PSNR loss while moving, budgeted 60 Hz vs unbudgeted, dB",
                 r["moving_unbudgeted_db"] - r["moving_budgeted_db"], "<=", TARGETS["moving_loss_db"])
         v.check(f"{name} PSNR loss 1 s after motion stops, dB", r["rest_unbudgeted_db"] - r["rest_budgeted_db"], "<=",
@@ -237,7 +241,7 @@ def quality_scene(name: str, args) -> dict:
     period = 1.0 / 60.0
     budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
                                              budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays)))
-    times, samples_b, tick_times, sampled_ticks = [], [], [], []
+    times, samples_b, tick_times, sampled_ticks, kinds = [], [], [], [], []
     try:
         start = time.perf_counter()
         k = 0
@@ -251,6 +255,7 @@ def quality_scene(name: str, args) -> dict:
                 times.append((wall, t))
                 sampled_ticks.append(k)
                 samples_b.append(stored(budgeted))
+                kinds.append(point_kinds(budgeted, sample))
             k += 1
             time.sleep(max(0.0, start + k * period - time.perf_counter()))
         ticks_per_s = k / (time.perf_counter() - start)
@@ -293,15 +298,48 @@ def quality_scene(name: str, args) -> dict:
         return 10 * np.log10(1.0 / max(mse, 1e-12))
 
     pb = [psnr(a, r, s) for a, r, s in zip(samples_b, refs, views)]
+    moving_k = [k for k, (w, _) in enumerate(times) if w < args.move_s]
+    split = error_split([samples_b[k] for k in moving_k], [samples_u[k] for k in moving_k], [refs[k] for k in moving_k],
+                        [views[k] for k in moving_k], [kinds[k] for k in moving_k])
     pu = [psnr(a, r, s) for a, r, s in zip(samples_u, refs, views)]
     walls = np.array([w for w, _ in times])
     moving = walls < args.move_s
     rest = np.flatnonzero(walls >= args.move_s + 1.0)
     at_rest = int(rest[0]) if len(rest) else len(walls) - 1
     return {"ticks_per_s": ticks_per_s, "wall_s": walls.tolist(), "psnr_budgeted": pb, "psnr_unbudgeted": pu,
+            "error_split_moving": split,
             "moving_budgeted_db": float(np.nanmean(np.array(pb)[moving])),
             "moving_unbudgeted_db": float(np.nanmean(np.array(pu)[moving])),
             "rest_budgeted_db": pb[at_rest], "rest_unbudgeted_db": pu[at_rest]}
+
+
+POINT_KINDS = ("mover", "static, reset, no ray since", "static, refining", "static, whole")
+
+
+def point_kinds(tick, ids: np.ndarray) -> np.ndarray:
+    """Per id, its index in POINT_KINDS in the budgeted tick now: a moving instance's point; a static
+    point whose history was reset with no fresh ray since; one holding some of its rays; one holding all."""
+    q = tick.queue
+    return np.where(tick.moving_point[ids], 0,
+                    np.where(q.done[ids] < q.slices, np.where(q.rays[ids] == 0, 1, 2), 3))
+
+
+def error_split(budgeted, unbudgeted, refs, views, kinds) -> dict:
+    """Per POINT_KINDS entry, over the given samples: sampled points in view (per sample) and their
+    squared error against the reference as a mean over all such points, budgeted and unbudgeted (each
+    kind's part of the PSNR's mean squared error)."""
+    out = {}
+    count = sum(int((s & (b >= 0) & (u >= 0)).sum()) for b, u, s in zip(budgeted, unbudgeted, views))
+    for k, name in enumerate(POINT_KINDS):
+        n, eb, eu = 0, 0.0, 0.0
+        for b, u, r, s, kind in zip(budgeted, unbudgeted, refs, views, kinds):
+            m = s & (b >= 0) & (u >= 0) & (kind == k)
+            n += int(m.sum())
+            eb += float(((b[m] - r[m]) ** 2).sum())
+            eu += float(((u[m] - r[m]) ** 2).sum())
+        out[name] = {"points_per_sample": n / max(len(views), 1), "mse_budgeted": eb / max(count, 1),
+                     "mse_unbudgeted": eu / max(count, 1)}
+    return out
 
 
 def near_motion(bake, seconds: float) -> np.ndarray:

@@ -98,8 +98,9 @@ class TraceBudget:
 
     def points(self, rays_per_point: int, spent_s: float = 0.0) -> int:
         """How many points of `rays_per_point` rays fit in this tick's budget, less `spent_s` seconds of it
-        already traced (at least min_points)."""
-        budget = max(self.budget_s() - spent_s, 0.0)
+        already traced on whole traces, but at least what is not exact_share of it (at least min_points)."""
+        whole = self.budget_s()
+        budget = max(whole - spent_s, (1 - self.settings.exact_share) * whole)
         # An overhead beyond the budget is paid whenever anything is traced: then trace half a budget's
         # worth of rays on top of it, or the tick would crawl along at min_points.
         room = max(budget - self.overhead_s, 0.5 * budget)

@@ -418,8 +418,7 @@ class ServerTick:
     def _exact_static(self, frame: Frame, changed: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `changed` (just reset) that get their whole ray set at once: in some
         client's extended view, with an estimated AO change since their last trace of at least
-        exact_min_change, the `most` changed most (of them at most an eighth whose static hits are
-        not kept yet: tracing those costs a full trace). Only the rays the static scene lets through are
+        exact_min_change, the `most` changed most. Only the rays the static scene lets through are
         traced, against the moving parts (StaticHits, EmbreeTracer.visibility_given_static): the full
         trace's AO, which ends their wait. Returns (ids, AO codes)."""
         b = self.settings.budget
@@ -428,9 +427,7 @@ class ServerTick:
         if self.refiner is not None:
             ids = ids[~self.refiner.busy[ids]]
         ids = ids[self._in_views(self.world_pos[ids])]
-        ids = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
-        unknown = ~self._static_hits.known[ids] if len(ids) else np.zeros(0, bool)
-        ids = np.sort(ids[~unknown | (np.cumsum(unknown) <= max(most // 8, 1))])
+        ids = np.sort(first_by_key(ids, -self.queue.change[ids].astype(np.float64), most))
         if len(ids) == 0:
             return ids, np.zeros(0, np.uint32)
         s = self.trace_settings

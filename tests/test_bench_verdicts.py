@@ -35,3 +35,25 @@ def test_all_passing_exits_zero():
 def test_unknown_operator_is_refused():
     with pytest.raises(ValueError):
         Verdicts("bench_x").check("a", 1, "==", 1)
+
+
+def test_quality_error_split_adds_up_to_the_mean_squared_error():
+    """bench_realtime's split of the squared error by kind of point: the kinds' parts add up to the MSE
+    the PSNR is computed from (points in view with an AO on both sides), and each kind counts its own."""
+    import numpy as np
+
+    from benchmarks.bench_realtime import POINT_KINDS, error_split
+
+    rng = np.random.default_rng(0)
+    samples = [rng.uniform(0, 1, (4, 50)) for _ in range(3)]
+    budgeted, unbudgeted, refs = ([s[i] for s in samples] for i in range(3))
+    budgeted[1][:5] = -1.0  # a point the grid did not hold at that sample
+    views = [rng.uniform(size=50) < 0.7 for _ in range(3)]
+    kinds = [rng.integers(0, len(POINT_KINDS), 50) for _ in range(3)]
+    split = error_split(budgeted, unbudgeted, refs, views, kinds)
+    ok = [v & (b >= 0) & (u >= 0) for b, u, v in zip(budgeted, unbudgeted, views)]
+    mse = np.mean(np.concatenate([(b - r)[m] ** 2 for b, r, m in zip(budgeted, refs, ok)]))
+    assert sum(e["mse_budgeted"] for e in split.values()) == pytest.approx(mse)
+    assert sum(e["points_per_sample"] for e in split.values()) * 3 == pytest.approx(sum(int(m.sum()) for m in ok))
+    first = np.mean([int((m & (k == 0)).sum()) for m, k in zip(ok, kinds)])
+    assert split[POINT_KINDS[0]]["points_per_sample"] == pytest.approx(first)
