@@ -1,7 +1,7 @@
 """Densify's worth and cost on one scene: the same bake without and with it, then accuracy and AO pass.
 
-Both bakes use the scene's default density, rays and seed; one has densify off (`--densify 0`), the
-other its defaults (psao_server/densify.py). Reported: points, bake seconds, recon MAE and holes at the
+Both bakes use the scene's default density, rays and seed; one has densify off (the default), the
+other `--densify-rounds` rounds of it (3, as `psao bake --densify 3`; psao_server/densify.py). Reported: points, bake seconds, recon MAE and holes at the
 visible probes against AO traced there directly (as benchmarks/bench_scenes.py scores them), and the
 client's AO pass on both grids: the same renderer draws the same frames of the scene's camera path with
 PSAO and SSAO, in interleaved rounds (plain, densified, then densified, plain, ...); a grid's figure is
@@ -26,13 +26,12 @@ MAX_GROWTH = 1.15
 DEFAULT_SCENE = "../shared/scenes/sponza/sponza_s_lod4.glb"
 
 
-def bake(scene, densify: bool):
+def bake(scene, rounds: int):
     from psao_server.bake import bake_scene
     from psao_server.sampling import default_density
     from psao_server.settings import BakeSettings, DensifySettings
 
     t0 = time.perf_counter()
-    rounds = DensifySettings.rounds if densify else 0
     res = bake_scene(scene, BakeSettings(density=default_density(scene), densify=DensifySettings(rounds=rounds)),
                      show_progress=False)
     return res, time.perf_counter() - t0
@@ -52,6 +51,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5, help="timed submissions per frame (minimum kept)")
     ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--densify-rounds", type=int, default=3, help="densify's rounds in the densified bake")
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
 
@@ -63,8 +63,8 @@ def main(argv=None) -> int:
     scene = load_scene(args.scene)
     probes = visible_probes(scene, sample_probes(scene, args.probes))
     rows = {}
-    for name, on in (("plain", False), ("densified", True)):
-        res, seconds = bake(scene, on)
+    for name, rounds in (("plain", 0), ("densified", args.densify_rounds)):
+        res, seconds = bake(scene, rounds)
         try:
             err = reconstruction_error(res.grid, scene, res.tracer, probes, rays=args.probe_rays)
         finally:
