@@ -50,7 +50,9 @@ class BudgetSettings:
     # rays the static scene lets through (static_hits.StaticHits) traced against the moving parts alone:
     # those in view whose AO changed most since their last trace (at least exact_min_change); at most
     # this many, and at most what exact_share of the budget allows at their measured cost; 0 = none
-    exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
+    exact_share: float = 0.0  # of the trace budget, for those whole traces first; the rounds get the rest. 0 = no
+    # whole traces: at 0.5 a locked bench_realtime run lost more (courtyard 9.8 dB, 27 ticks/s at N=256) than
+    # with none (5.2 dB, 37 ticks/s): their fixed cost per tick left the movers' own points fewer rounds
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)

@@ -357,6 +357,7 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
     trace of the scene as it stands at that tick, and waits no more; at most exact_points a tick."""
     tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
     tick.settings.budget.exact_points = 300
+    tick.settings.budget.exact_share = 0.5
     try:
         exact_total = 0
         for t in (0.1, 0.2, 0.3):
