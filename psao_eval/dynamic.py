@@ -8,8 +8,9 @@ the last one at the frame's time, the frame's camera as the only client view), t
 from the grid and the instance transforms of that last tick, as a client in lockstep would. The RTAO
 reference places the occluders with the same transforms (reference_images uses the frame's transforms).
 
-Skinned meshes are drawn posed at the frame's time (the time of the server's last tick), on the same
-deformed triangles the server's points follow; the reference traces that same pose.
+Skinned meshes are drawn posed at the frame's time (the time of the server's last tick), the deformed
+triangles the server traced its points on (its grid keeps them in the rest pose, which the G-buffer's local
+targets carry); the reference traces that same pose.
 """
 from __future__ import annotations
 

@@ -89,7 +89,7 @@ class SkinDeformer:
     def deform(self, matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Skinned positions (P, 3) and, when rest normals were given, unit normals (P, 3)."""
         self._upload(matrices)
-        for launch in self._launches:
+        for launch in self._launches if self.count else ():  # Warp records no launch of no threads
             launch.launch()
         return self.out_pos.numpy(), None if self.rest_nrm is None else self.out_nrm.numpy()
 

@@ -202,6 +202,7 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         trace_grid_points(grid, scene, tracer, trace_settings,
                           progress=trace_progress(bar, task, tracer, settings.rays) if bar else None)
         stats["seconds_trace"] = time.perf_counter() - t0
+        n_traced = n  # the first trace's points (densify's traces are timed apart)
 
         t0 = time.perf_counter()
         added = 0
@@ -221,7 +222,7 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         cells=int(len(grid.allocated_cells())),
         buckets=int(len(grid.buckets)),
         buckets_used=int(len(grid.allocated_buckets())),
-        rays_per_second_wall=n * settings.rays / max(stats["seconds_trace"], 1e-9),
+        rays_per_second_wall=n_traced * settings.rays / max(stats["seconds_trace"], 1e-9),
         tracer=tracer.name,
     )
     # rates from the seconds inside the workers (query alone and whole chunks); the wall rate above is what a user waits

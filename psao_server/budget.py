@@ -51,8 +51,7 @@ class BudgetSettings:
     # those in view whose AO changed most since their last trace (at least exact_min_change); at most
     # this many, and at most what exact_share of the budget allows at their measured cost; 0 = none
     exact_share: float = 0.0  # of the trace budget, for those whole traces first; the rounds get the rest. 0 = no
-    # whole traces: at 0.5 a locked bench_realtime run lost more (courtyard 9.8 dB, 27 ticks/s at N=256) than
-    # with none (5.2 dB, 37 ticks/s): their fixed cost per tick left the movers' own points fewer rounds
+    # whole traces (their fixed cost per tick leaves the movers' own points fewer rounds; README)
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
@@ -94,7 +93,7 @@ class TraceBudget:
     def observe_exact(self, points: int, seconds: float) -> None:
         """Learn the cost of a whole trace from one tick's: only from batches of at least EXACT_MIN points
         (a smaller one's fixed costs, spread over few points, would make the next batch smaller still)."""
-        if points >= EXACT_MIN and math.isfinite(seconds):
+        if points >= min(EXACT_MIN, max(self.settings.exact_points, 1)) and math.isfinite(seconds):
             a = self.settings.smoothing
             self.exact_s_per_point = max((1 - a) * self.exact_s_per_point + a * seconds / points, 1e-8)
 

@@ -59,7 +59,7 @@ class CellPlaces:
             world = loc[:, 0:1] * m[:3, 0] + loc[:, 1:2] * m[:3, 1] + loc[:, 2:3] * m[:3, 2] + m[:3, 3]
             self.centres[r] = world
             self.xyz[:, r] = world.T
-            self.reach[r] = self.slack[r] = self.half_diagonal[r] * float(np.linalg.norm(m[:3, :3], axis=0).max())
+            self.reach[r] = self.slack[r] = self.half_diagonal[r] * float(np.linalg.norm(m[:3, :3], 2))  # largest stretch, shear included
 
     def refresh(self, grid, slots: np.ndarray, transforms: np.ndarray) -> None:
         """Work the places of these slots out again (their cells changed); the slots here are all of the

@@ -248,6 +248,9 @@ class TickSettings:
             if b.round_rays < 1 or b.min_points < 1 or b.scan_points < 1:
                 raise ConfigError(f"round rays, min points and scan points must be >= 1, got {b.round_rays}, "
                                   f"{b.min_points}, {b.scan_points}")
+            if not (0 <= b.exact_share <= 1) or b.exact_points < 0:
+                raise ConfigError(f"exact share must be within [0, 1] and exact points >= 0, got {b.exact_share}, "
+                                  f"{b.exact_points}")
             if self.rays % min(b.round_rays, self.rays):
                 raise ConfigError(f"round rays ({b.round_rays}) must divide the tick's rays ({self.rays}): each round "
                                   "traces one equal slice of the target ray set")

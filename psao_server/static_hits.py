@@ -30,6 +30,3 @@ class StaticHits:
             self.bits[new] = np.packbits(np.asarray(trace(new), bool), axis=1)
             self.known[new] = True
         return np.unpackbits(self.bits[ids], axis=1, count=self.rays).astype(bool)
-
-    def unknown(self, ids: np.ndarray) -> int:
-        return int(np.count_nonzero(~self.known[ids]))

@@ -69,7 +69,7 @@ class TickStats:
     considered: int  # points the tick owns
     skipped: int  # considered - traced
     traced: int
-    changed: int  # AO written (|new - old| > threshold) or re-inserted
+    changed: int  # AO written (|new - old| > threshold)
     moved: int  # skinned points re-placed on their deformed triangles (traced from there; the grid keeps them at rest)
     cells_dirty: int  # cells marked dirty after the tick (= cells this tick dirtied when the service drains every tick)
     seconds_animate: float
@@ -99,7 +99,6 @@ class TickPlan:
     batch: int = 0  # points the budget allowed (budgeted tick)
     budget_s: float = 0.0
     exact: int = 0  # of ids: static points near movers traced whole from their kept static hits
-    exact_s: float = 0.0  # seconds that took
 
 
 class ServerTick:
@@ -166,10 +165,9 @@ class ServerTick:
         self.inst_of = np.zeros(n, np.int64)
         self.local_pos = np.zeros((n, 3))
         self.local_nrm = np.zeros((n, 3), np.float32)
-        self.back = np.zeros(n, bool)
         for i, (ps, ids) in enumerate(zip(bake.pointsets, self.ids_of)):
             self.inst_of[ids] = i
-            self.local_pos[ids], self.local_nrm[ids], self.back[ids] = ps.positions, ps.normals, ps.back
+            self.local_pos[ids], self.local_nrm[ids] = ps.positions, ps.normals
         self.slot = np.full(n, -1, np.int64)
         self.index = np.full(n, -1, np.int64)
         self._relocate_all()
@@ -222,9 +220,6 @@ class ServerTick:
         self.queue = RefineQueue(len(self.tracked), self.settings.rays, self.settings.budget.keep_rays,
                                  self._round_settings().slices)
         self.queue.exclude(np.flatnonzero(~self.tracked))
-        # static points' static hits, kept for their whole traces near movers (where the tracer can)
-        self._static_hits = (StaticHits(len(self.tracked), self.settings.rays)
-                             if hasattr(self.tracer, "visibility_given_static") else None)
         ids = np.flatnonzero(self.present())
         if self.last_frame is not None:
             codes = self.grid.cells[self.slot[ids], self.index[ids]] & np.uint32(0xFF)
@@ -331,7 +326,7 @@ class ServerTick:
                     affine(mesh.vertices, self.last_frame.transforms[i]))
         self._index_static()
         self._load_tracer()
-        if getattr(self, "_static_hits", None) is not None:
+        if self._static_hits is not None:
             self._static_hits.forget()  # the static scene lost the edited instances
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()
@@ -413,7 +408,7 @@ class ServerTick:
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
         chosen, codes = np.concatenate([chosen, refined[0], exact]), np.concatenate([codes, refined[1], exact_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim - exact_s, t_trace - t_sel + exact_s),
-                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact), exact_s=exact_s)
+                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact))
 
     def _exact_static(self, frame: Frame, changed: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `changed` (just reset) that get their whole ray set at once: in some
@@ -422,7 +417,11 @@ class ServerTick:
         traced, against the moving parts (StaticHits, EmbreeTracer.visibility_given_static): the full
         trace's AO, which ends their wait. Returns (ids, AO codes)."""
         b = self.settings.budget
-        ids = changed[~self.moving_point[changed]] if self._static_hits is not None and most > 0 else changed[:0]
+        if most <= 0 or not hasattr(self.tracer, "visibility_given_static"):
+            return changed[:0], np.zeros(0, np.uint32)
+        if self._static_hits is None:  # static points' static hits, kept from their first whole trace on
+            self._static_hits = StaticHits(len(self.tracked), self.settings.rays)
+        ids = changed[~self.moving_point[changed]]
         ids = ids[self.queue.change[ids] >= b.exact_min_change]
         if self.refiner is not None:
             ids = ids[~self.refiner.busy[ids]]
@@ -490,7 +489,7 @@ class ServerTick:
         return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
     def apply(self, plan: "TickPlan") -> TickStats:
-        """Write a prepared tick into the grid (moves, thresholded AO, re-inserts): a few milliseconds, on
+        """Write a prepared tick into the grid (thresholded AO): a few milliseconds, on
         the thread that owns the grid. Marks the cells and buckets it changes dirty."""
         g0 = time.perf_counter()
         changed = self._store(plan.ids, plan.codes)

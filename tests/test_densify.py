@@ -83,8 +83,8 @@ def test_every_point_carries_the_ao_of_its_own_ids_rays(scene, bakes):
 
 
 def test_a_quick_low_ray_bake_is_not_densified(scene, bakes):
-    res = bake_scene(scene, BakeSettings(density=DENSITY, rays=DensifySettings.min_rays - 1, workers=1),
-                     show_progress=False)
+    res = bake_scene(scene, BakeSettings(density=DENSITY, rays=DensifySettings.min_rays - 1, workers=1,
+                                         densify=DensifySettings(rounds=3)), show_progress=False)
     try:
         assert res.stats["points_densify"] == 0
         assert res.stats["points_kept"] == bakes[0].stats["points_kept"]

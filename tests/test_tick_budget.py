@@ -166,7 +166,9 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
 
 
 @pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("tick_hz", 0.0),
-                                         ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3)])
+                                         ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3),
+                                         ("exact_share", 1.5), ("exact_share", -0.1), ("exact_share", math.nan),
+                                         ("exact_points", -1)])
 def test_bad_budget_settings_are_refused(field, value):
     budget = BudgetSettings(**{field: value})
     with pytest.raises(ConfigError):

@@ -238,9 +238,10 @@ def test_rigid_meshes_posed_by_transform_trace_like_their_world_triangles(backen
 
 
 def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
-    """Each rigid mover traces only the rays of points within the AO distance of its world box: the
-    answers equal tracing every ray against every posed mover, over a batch where each mover is near some
-    points and far from most."""
+    """Each rigid mover traces only the rays of points within the AO distance of its world box whose
+    segments reach its posed bounding sphere: the answers equal tracing every ray against every posed
+    mover, over a batch where each mover is near some points and far from most, one of them sheared (its
+    sphere's radius grows by the largest stretch of the map, more than any column's length)."""
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
@@ -250,6 +251,7 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.5))
     poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[0, :3, :3] = np.array([[1.0, 3.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # a shear
     poses[0, :3, 3] = (-6.0, 0.0, 0.5)
     poses[1, :3, :3] = np.diag((1.0, 2.0, 0.5))
     poses[1, :3, 3] = (5.0, 1.0, 0.4)

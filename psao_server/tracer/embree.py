@@ -78,7 +78,7 @@ class _Rigid:
         rays = rays[~hit[rays]]
         # only rays whose segment comes within the mesh's bounding sphere (world) can hit: most rays of a
         # point near the mover point away from it
-        scale = float(np.sqrt((pose[:3, :3] ** 2).sum(axis=0).max()))
+        scale = float(np.linalg.norm(pose[:3, :3], 2))  # the largest stretch, shear included
         rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, pose[:3, :3] @ self.centre + pose[:3, 3],
                                           self.radius * scale)]
         if len(rays):
@@ -196,7 +196,7 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
     t0 = time.perf_counter()
     org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
     t1 = time.perf_counter()
-    hit = scenes.occluded(org, dirs, s.ao_distance, len(org) // max(len(pos), 1))
+    hit = scenes.occluded(org, dirs, s.ao_distance, max(len(org) // max(len(pos), 1), 1))
     t2 = time.perf_counter()
     vis = 1.0 - hit.reshape(len(pos), -1).mean(axis=1, dtype=np.float32)
     return vis, t2 - t1, time.perf_counter() - t0
