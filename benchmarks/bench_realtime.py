@@ -148,9 +148,9 @@ def part_grid(args, v: Verdicts, out: dict) -> None:
                    "written_per_tick": written / args.grid_ticks, "cells_dirty_per_tick": dirty / args.grid_ticks}
     print(f"grid stage, {args.skinned}: {bake.stats['points_kept']:,} points ({skinned:,} skinned), {handled:,} traced "
           f"AO thresholded and written in {args.grid_ticks} ticks, {1e3 * seconds / args.grid_ticks:.2f} ms per tick "
-          f"({1e9 * seconds / max(handled, 1):.1f} ns per skinned point); {written / args.grid_ticks:,.0f} AO written "
+          f"({1e9 * seconds / max(handled, 1):.1f} ns per traced point); {written / args.grid_ticks:,.0f} AO written "
           f"and {dirty / args.grid_ticks:,.0f} cells dirtied per tick")
-    v.check(f"skinned points through the grid stage per second ({args.skinned})", rate, ">=",
+    v.check(f"traced points through the grid stage per second ({args.skinned})", rate, ">=",
             TARGETS["grid_points_per_s"])
 
 
