@@ -1,7 +1,8 @@
 """The web client in a real headless browser (Debian chromium driven by playwright) against real `psao
-serve` processes: the page's mirror equals the server's, its PSAO image equals the Python oracle, and it
-shows refusals and lost servers and resyncs after a restart. Screenshots go to out/web_client/ (and the
-test's tmp_path) for a person to look at. Skips when chromium or playwright is missing."""
+serve` processes: the page's mirror equals the server's, its PSAO image equals the Python oracle, it draws
+skinned meshes posed at the server's time with the rest pose's local targets, and it shows refusals and
+lost servers and resyncs after a restart. Screenshots go to out/web_client/ (and the test's tmp_path) for
+a person to look at. Skips when chromium or playwright is missing."""
 from __future__ import annotations
 
 import base64
@@ -21,10 +22,14 @@ from protocol import messages as m
 from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
 from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
 from protocol.reconstruct import reconstruct_ao
+from protocol.scenefile import SceneFile
+from psao_client.scene_import import scene_from_file
 from psao_scene import load_scene
 from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+from psao_scene.skinning import skin_points_reference
+from psao_server.scene_export import scene_file
 from serving import HANG_S, server_url
-from skinned import local_distance
+from skinned import closest_on_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -162,6 +167,8 @@ def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec,
         page.evaluate("() => { window.psao.mode = 'ssao'; window.psao.renderOnce(); }")
         shot(page, tmp_path, f"{name}_ssao", canvas_only=True)
         log = page.evaluate("window.psao.digestLog")
+        if name == "robots":
+            close_up = skinned_close_up(page, server, load_scene(spec), tmp_path)
     finally:
         page.close()
         server.stop()
@@ -171,25 +178,74 @@ def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec,
     assert covered > 0.2 * W * H
     assert match >= 0.995, match
     if name == "robots":
-        assert frame["serverTime"] is not None  # skinned meshes were posed at an Update's server time
-        assert_skinned_local_is_the_rest_pose(load_scene(spec), frame)
+        assert_skinned_drawn_posed_with_rest_targets(*close_up)
 
 
-def assert_skinned_local_is_the_rest_pose(scene, frame: dict) -> None:
-    """The page draws skinned meshes posed, but its local position target holds the rest pose (where the
-    server keeps their points): it lies on the rest mesh."""
-    local = decode(frame["local"], np.float32).reshape(-1, 4)
-    inst = np.rint(local[:, 3]).astype(np.int64) - 1
-    seen = 0
-    for i, sc in enumerate(scene.instances):
-        mesh = scene.meshes[sc.mesh]
-        pts = local[inst == i, :3].astype(np.float64)
-        if mesh.skin is None or len(pts) < 20:
-            continue
-        pts = pts[np.random.default_rng(i).choice(len(pts), min(100, len(pts)), replace=False)]
-        assert np.quantile(local_distance(mesh.vertices, mesh.faces, pts), 0.99) < 1e-4
-        seen += 1
-    assert seen > 0, "no skinned mesh in view"
+def skinned_close_up(page, server: Server, scene, tmp_path: Path) -> tuple:
+    """The page's G-buffer of the skinned instance furthest from its rest pose at the server time of the
+    last Update, seen from its side with a depth range that holds only it. The server is stopped first, so
+    no Update moves the mirror between reading its time and transforms and drawing them. Returns that
+    mesh as the page received it, its posed vertices (numpy), the instance's index and transform, the
+    camera and the frame."""
+    server.stop()
+    wait_page(page, "window.psao.state === 'server gone'")
+    t, transforms = page.evaluate("[window.psao.mirror.serverTime, Array.from(window.psao.mirror.transforms)]")
+    assert t is not None, "no Update gave the page a server time to pose skinned meshes at"
+    delivered = scene_from_file(SceneFile.parse(scene_file(scene).serialize()))
+    posed = {}
+    for i, inst in enumerate(delivered.instances):
+        mesh = delivered.meshes[inst.mesh]
+        if mesh.skin is not None:
+            posed[i] = skin_points_reference(mesh.skin.skinning_matrices(t), mesh.vertices, mesh.skin.joints,
+                                             mesh.skin.weights)
+    i = max(posed, key=lambda k: np.abs(posed[k] - delivered.meshes[delivered.instances[k].mesh].vertices).max())
+    model = np.asarray(transforms, np.float64).reshape(-1, 4, 4)[i]
+    lo, hi = posed[i].min(axis=0), posed[i].max(axis=0)
+    centre, radius = model[:3, :3] @ ((lo + hi) / 2) + model[:3, 3], float(np.linalg.norm(hi - lo)) / 2
+    side = model[:3, :3] @ [1.0, 0.0, 0.0]
+    side[1] = 0.0
+    side /= np.linalg.norm(side)
+    if side @ (np.mean(delivered.world_bounds(), axis=0) - centre) < 0:  # look from the room's side of it
+        side = -side
+    fov = 50.0
+    distance = 1.05 * radius / np.sin(np.radians(fov / 2))
+    view = look_at(centre + distance * side, centre)
+    proj = perspective(fov, W / H, distance - radius, distance + radius)
+    frame = page.evaluate("([v, p]) => { const a = window.psao; a.setCamera(v, p); a.renderOnce(); return a.readPsao(); }",
+                          [view.astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()])
+    shot(page, tmp_path, "robots_skinned_close_up", canvas_only=True)
+    return delivered.meshes[delivered.instances[i].mesh], posed[i], i, model, proj @ view, frame
+
+
+def assert_skinned_drawn_posed_with_rest_targets(mesh, posed, instance: int, model, view_proj, frame: dict) -> None:
+    """Where the page drew the skinned instance it drew the posed mesh, and its local targets hold the rest
+    place of the drawn point (same triangle, same barycentrics: where the server keeps the points) and the
+    rest face's normal. So each target lies on the rest mesh, and posed as the server posed it, placed by
+    the instance's transform and projected it lands on the pixel that holds it; and the pose matters here:
+    a target projected unposed lands elsewhere for many pixels."""
+    n = W * H
+    local = decode(frame["local"], np.float32).reshape(n, 4)
+    normal = decode(frame["normal"], np.float32).reshape(n, 4)
+    pixels = np.flatnonzero(np.rint(local[:, 3]) == instance + 1)
+    assert len(pixels) >= 1000, f"the skinned instance covers only {len(pixels)} pixels"
+    pick = np.random.default_rng(0).choice(pixels, 300, replace=False)
+    target = local[pick, :3].astype(np.float64)
+    dist, face, bary = closest_on_mesh(mesh.vertices, mesh.faces, target)
+    assert np.quantile(dist, 0.99) < 1e-4, f"local targets off the rest mesh by {np.quantile(dist, 0.99):.2e} m"
+
+    def pixel_of(points):  # instance-local points -> window coordinates (rows bottom-up, as the frame)
+        clip = np.c_[points @ model[:3, :3].T + model[:3, 3], np.ones(len(points))] @ view_proj.T
+        return (clip[:, :2] / clip[:, 3:] + 1) / 2 * [W, H]
+
+    centre = np.c_[pick % W, pick // W] + 0.5
+    drawn = np.einsum("pk,pkj->pj", bary, posed[mesh.faces[face]])  # the rest place posed
+    off = np.linalg.norm(pixel_of(drawn) - centre, axis=1)
+    unposed = np.linalg.norm(pixel_of(target) - centre, axis=1)
+    assert np.quantile(off, 0.99) < 0.25, f"1% of the targets, posed, land {np.quantile(off, 0.99):.2f}+ px from their pixel"
+    assert np.mean(unposed > 3.0) > 0.2, f"the pose moves only {np.mean(unposed > 3.0):.0%} of pixels: no test of posing"
+    flip = np.where(normal[pick, 3] > 0.5, -1.0, 1.0)[:, None]  # the back side of a double-sided mesh
+    agree = np.einsum("ij,ij->i", flip * normal[pick, :3], mesh.face_normals()[face]) > 0.999
+    assert np.mean(agree) > 0.95, f"only {np.mean(agree):.0%} of the normal targets are the rest face's normal"
 
 
 def test_refused_token_lost_server_and_resync(browser, tmp_path):
