@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .transforms import (axis_angle_matrix, linear_matrix, matrix_to_quat, quat_mul, quat_pow, quat_to_matrix, slerp,
+from .transforms import (axis_angle_matrix, linear_matrix, quat_mul, quat_pow, quat_to_matrix, slerp,
                          translation_matrix)
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -122,21 +122,32 @@ class RollAnimation(RigidAnimation):
     kind = "roll"
 
     def __post_init__(self):
-        segs = [matrix_to_quat(self._segment_rotation(i, self.path.lengths[i]))
-                for i in range(len(self.path.lengths))]
+        # per segment: the unit axis it rolls about (None: a vertical segment, no rolling)
+        self._axes = []
+        for d in self.path.dirs:
+            axis = np.cross(UP, d)
+            norm = float(np.linalg.norm(axis))
+            self._axes.append(None if norm < 1e-12 else axis / norm)
+        segs = [self._segment_quat(i, self.path.lengths[i]) for i in range(len(self.path.lengths))]
         self._prefix = [np.array([0.0, 0.0, 0.0, 1.0])]  # orientation at the start of each segment
         for q in segs:
             self._prefix.append(quat_mul(q, self._prefix[-1]))
 
-    def _segment_rotation(self, i: int, dist: float) -> np.ndarray:
-        axis = np.cross(UP, self.path.dirs[i])
-        if np.linalg.norm(axis) < 1e-12:  # a vertical segment: no rolling
-            return np.eye(3)
-        return axis_angle_matrix(axis, dist / self.radius)
+    def _segment_quat(self, i: int, dist: float) -> np.ndarray:
+        """Unit quaternion (w >= 0) of the rotation about segment i's axis by dist / radius (scalar math:
+        this runs for every moving instance at every tick)."""
+        axis = self._axes[i]
+        if axis is None:
+            return np.array([0.0, 0.0, 0.0, 1.0])
+        half = 0.5 * dist / self.radius
+        s, c = math.sin(half), math.cos(half)
+        if c < 0:
+            s, c = -s, -c
+        return np.array([axis[0] * s, axis[1] * s, axis[2] * s, c])
 
     def _orientation(self, s: float, laps: int) -> np.ndarray:
         i, into = self.path.locate(s)
-        q = quat_mul(matrix_to_quat(self._segment_rotation(i, into)), self._prefix[i])
+        q = quat_mul(self._segment_quat(i, into), self._prefix[i])
         if laps:
             q = quat_mul(q, quat_pow(self._prefix[-1], laps))
         return quat_to_matrix(q)

@@ -17,6 +17,11 @@ from scipy.spatial.transform import Rotation
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices from unit quaternions (..., 4) in (x, y, z, w) order."""
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    if q.ndim == 1:  # one quaternion (every rigid mover, every tick): the same products on Python floats
+        x, y, z, w = q.tolist()
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),

@@ -83,6 +83,22 @@ def test_roll_without_slipping(closed):
             assert np.linalg.norm(v_top) == pytest.approx(2 * anim.speed, rel=1e-4)  # top moves at 2v
 
 
+def test_roll_segment_quaternion_is_the_axis_angle_rotation():
+    """The rolling rotation's quaternion (scalar math) is the Rodrigues matrix's, w >= 0, up to rounding,
+    on either side of half a turn."""
+    anim, r = _roll(True)
+    for i in range(len(anim.path.lengths)):
+        for dist in (0.0, 0.3, math.pi * r * 0.999, math.pi * r * 1.001, 5.0, 17.0):
+            want = matrix_to_quat(axis_angle_matrix(np.cross([0, 1, 0], anim.path.dirs[i]), dist / r))
+            np.testing.assert_allclose(anim._segment_quat(i, dist), want, atol=1e-12)
+
+
+def test_one_quaternion_to_matrix_is_the_batched_result_bit_for_bit():
+    from psao_scene.transforms import quat_to_matrix
+    q = RNG.normal(size=(200, 4))
+    assert np.array_equal(np.array([quat_to_matrix(x) for x in q]), quat_to_matrix(q))
+
+
 def test_roll_orientation_matches_integrated_rotation_over_laps():
     """Brute force: compose many small rolling rotations along the path for 2.5 laps."""
     anim, r = _roll(True)
