@@ -48,6 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="give up after S seconds without a message")
     p.add_argument("--digest-log", type=Path, default=None,
                    help="append the mirror's state digest (jsonl) after every Snapshot and Update (tests)")
+    p.add_argument("--digest-every", type=int, default=default(ConnectSettings, "digest_every"), metavar="N",
+                   help="with --digest-log: the digest after the first Snapshot's chunks and the first Update, then "
+                        "after every N-th Update only (each digest hashes the whole mirror: on a large grid that costs "
+                        "more than applying the Update)")
     from psao_client.render.stream_render import add_render_arguments
 
     add_render_arguments(p)  # --render OUTDIR and its options: frames at the client's own rate (--fps)
@@ -100,7 +104,10 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         raise ConnectError(f"--frames must be >= 0, got {args.frames}")
     if args.read_delay < 0:
         raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
-    return MirrorClient(
+    every = getattr(args, "digest_every", ConnectSettings.digest_every)
+    if every < 1:
+        raise ConnectError(f"--digest-every must be >= 1, got {every}")
+    client = MirrorClient(
         args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=_token(args), codecs=_codecs(args.codecs),
         camera=scene_camera_feed(scene, _aspect(getattr(args, "size", None)), getattr(args, "camera_path", None)),
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
@@ -108,6 +115,9 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
         on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)), tls_ca=_tls_ca(args),
     )
+    if every > 1:  # (the Updates applied so far, this one included: the Snapshot's chunks come before any)
+        client.digest_if = lambda _conn, _seq: client.stats.updates <= 1 or client.stats.updates % every == 0
+    return client
 
 
 def report(client, seconds: float) -> dict:

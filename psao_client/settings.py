@@ -15,6 +15,7 @@ class ConnectSettings:
     codecs: tuple[str, ...] = ("zstd-stream", "zstd", "lz4", "none")
     read_delay: float = 0.0  # seconds paused after every message (0: none; more simulates a slow client)
     reconnect_timeout: float = 10.0  # seconds without a message before the client gives up
+    digest_every: int = 1  # with a digest log: after the first Update, a digest every this many Updates
 
 
 @dataclass

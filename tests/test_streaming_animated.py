@@ -22,13 +22,15 @@ def test_mirror_bit_exact_under_animation(tmp_path):
     try:
         url = server_url(server, err, 180)
         common = ["--json", "--reconnect-timeout", "30"]
-        logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow")}
+        logs = {k: tmp_path / f"{k}.jsonl" for k in ("plain", "slow", "sparse")}
         plain = psao("client", url, SCENE, "--frames", "40", "--digest-log", str(logs["plain"]), *common)
         slow = psao("client", url, SCENE, "--frames", "10", "--read-delay", "0.4", "--recv-buffer", "4096",
                     "--digest-log", str(logs["slow"]), *common)
-        procs += [plain, slow]
+        sparse = psao("client", url, SCENE, "--frames", "12", "--digest-log", str(logs["sparse"]), "--digest-every", "4",
+                      *common)
+        procs += [plain, slow, sparse]
         reports = {}
-        for name, p in (("plain", plain), ("slow", slow)):
+        for name, p in (("plain", plain), ("slow", slow), ("sparse", sparse)):
             out, _ = p.communicate(timeout=HANG_S)
             assert p.returncode == 0, f"client {name} failed"
             reports[name] = json.loads(out.strip().splitlines()[-1])
@@ -46,6 +48,9 @@ def test_mirror_bit_exact_under_animation(tmp_path):
         compared, differ, _ = matched(slog, read_jsonl(path))
         assert differ == 0, f"{name}: {differ} of {compared} mirror states differ from the server"
         assert compared >= 5, f"{name}: only {compared} states compared"
+    # --digest-every 4: every snapshot chunk, the first Update, then Updates 4, 8 and 12 only
+    sparse = read_jsonl(logs["sparse"])
+    assert sum(d["tick"] != sparse[0]["tick"] for d in sparse) == 4
     # The stream really carried animation: the state changed from update to update.
     digests = [d["digest"] for d in read_jsonl(logs["plain"])]
     assert len(set(digests)) >= 10
