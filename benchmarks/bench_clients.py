@@ -10,16 +10,22 @@ stream, server CPU (its process and its tracer processes, share of one core; per
 clients added) and RSS. Memory per extra client is the RSS growth from the 1-client stage divided by the
 clients added. The client processes run at a lower CPU priority (nice CLIENT_NICE): in a deployment the
 clients run on other machines, so here they stand in for remote machines and take only the CPU the
-server leaves; whether every client keeps up is checked (it stays connected, and the slowest client's
-updates/s is at least KEEP_UP of the server's ticks/s: an Update folds the ticks a client was not sent). Mirrors: each client logs the digest of every
-message the server logged one for (ServerDigests; `--digest-every k` also every k-th) and checks it against the server's digest log (`--digest-log`) wherever
-both exist (the server logs a digest after a message that leaves nothing pending for that client: with
-culling, a client whose view leaves cells behind has none; `--no-cull` sends every change). Output: `--out`/table.md, table.json and clients.png.
+server leaves; whether every client keeps up is checked (it stays connected, the slowest client's
+updates/s is at least KEEP_UP of the server's ticks/s, an Update folding the ticks a client was not sent,
+and when the window ends the slowest client's mirror holds a tick at most MAX_LAG_S seconds older than
+the server's latest). Mirrors: each client logs the digest of a message the server logged one for
+(ServerDigests), for each connection's first such message and then, per client process, at most one
+every DIGEST_GAP_S (`--digest-every k`: also every k-th message), and the driver checks them against the
+server's digest log (`--digest-log`) wherever both exist (the server logs a digest after a message that
+leaves nothing pending for that client: with culling, a client whose view leaves cells behind has none;
+`--no-cull` sends every change). Output: `--out`/table.md, table.json, clients.png and server.log.
 
 Verdicts: 10 clients >= 0.8x and 30 clients >= 0.6x the 1-client tick rate; at every stage every client
-keeps up (all connected through the window, no reconnect, slowest updates/s >= KEEP_UP x ticks/s); every
+keeps up (all connected through the window, no reconnect, slowest updates/s >= KEEP_UP x ticks/s, slowest
+mirror at most MAX_LAG_S behind); every
 client of the last stage has its snapshot within 60 s of joining; RSS per extra client <= 4 MB; every
-compared digest equal.
+compared digest equal, and at the end (every client turned to a camera that sees the whole scene, so
+that nothing stays pending for it) a digest of every client of the last stage compared.
 """
 from __future__ import annotations
 
@@ -34,11 +40,16 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.verdicts import Verdicts
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_NICE = 10  # client processes' nice value: below the server (0), above other niced work on the machine
 KEEP_UP = 0.5  # the slowest client's updates/s over the server's ticks/s: at least every other tick's changes
+MAX_LAG_S = 2.0  # seconds of scene time the slowest client's mirror may trail the server's latest tick
+FINAL_S = 60.0  # seconds the clients have, at the end, to be sent an Update after which nothing is pending
+DIGEST_GAP_S = 0.5  # seconds between the mirror digests one client process works out (after each connection's first)
 SERVER_DIGESTS = "server_digests.jsonl"  # in the run's folder: the server's --digest-log
 
 
@@ -46,8 +57,8 @@ class ServerDigests:
     """The (connection, message) pairs the server logged a state digest for, read from its log as it grows.
     The server writes a message's line before it sends the message, so when a client has a message, its
     line (if any) is in the file. A digest hashes the whole mirror (~25 MB at N=64, ~40 ms of a client
-    process's CPU): clients work one out for exactly the messages the server vouches for, not for every
-    k-th message (which left the co-located client processes too little CPU to keep up)."""
+    process's CPU): clients work one out only for messages the server vouches for, and not for each of
+    those (client_host's `vouched`), as that left the co-located client processes too little CPU."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -104,7 +115,27 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
 
     scene = load_scene(scene_spec)
     feed = scene_camera_feed(scene)
-    vouched = ServerDigests(digest_dir / SERVER_DIGESTS)
+    server_vouched = ServerDigests(digest_dir / SERVER_DIGESTS)
+    digested_conns: set[int] = set()
+    last_digest = [-float("inf")]
+
+    def vouched(conn: int, seq: int) -> bool:
+        """A message the server logged a digest for: each connection's first, then one per host every
+        DIGEST_GAP_S (a digest costs as much CPU as dozens of Updates)."""
+        if not server_vouched(conn, seq):
+            return False
+        now = time.perf_counter()
+        if conn in digested_conns and now - last_digest[0] < DIGEST_GAP_S and (
+                overview[0] is None or conn in final_conns):
+            return False
+        digested_conns.add(conn)
+        last_digest[0] = now
+        if overview[0] is not None:
+            final_conns.add(conn)
+        return True
+
+    overview: list = [None]  # at the end: a camera that sees the whole scene, for every client
+    final_conns: set[int] = set()  # connections whose mirror was digested after that
     clients: list[MirrorClient] = []
     tasks = []
 
@@ -120,7 +151,8 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
             if k % hosts != host:
                 continue
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
-            c = MirrorClient(url, scene_hash_bytes(scene.content_hash()), camera=lambda t, s=shift: feed(t + s),
+            c = MirrorClient(url, scene_hash_bytes(scene.content_hash()),
+                             camera=lambda t, s=shift: overview[0] or feed(t + s),
                              digest_log=digest_dir / f"c{k}.jsonl", reconnect_timeout=60.0, open_timeout=30.0,
                              digest_if=(lambda conn, seq: seq % digest_every == 0 or vouched(conn, seq))
                              if digest_every else vouched)
@@ -139,10 +171,30 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
             await asyncio.sleep(0.05)
         print(json.dumps({"stage": stage, "clients": n, "measured": True,
                           "updates": [c.stats.updates for c in clients],
-                          "reconnects": [c.stats.reconnects for c in clients]}), flush=True)
+                          "reconnects": [c.stats.reconnects for c in clients],
+                          "ticks": [c.mirror.tick if c.mirror is not None else -1 for c in clients]}), flush=True)
+    # Every client now looks at the whole scene, so an Update leaves nothing pending for it (whatever its
+    # view kept back) and the server vouches for its mirror: each one's digest is compared once more.
+    overview[0] = overview_camera(scene)
+    end = time.perf_counter() + FINAL_S
+    while time.perf_counter() < end and not all(c.stats.connection_id in final_conns for c in clients):
+        await asyncio.sleep(0.1)
+    print(json.dumps({"final": True, "digested": [c.stats.connection_id in final_conns for c in clients],
+                      "conns": [c.stats.connection_id for c in clients]}), flush=True)
     for c in clients:
         c.stop()
     await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def overview_camera(scene) -> tuple[np.ndarray, np.ndarray]:
+    """(view, projection) that sees the whole scene: its bounding sphere inside a 60 degree frustum."""
+    from psao_scene.camera import look_at, perspective
+
+    lo, hi = (np.asarray(b, np.float64) for b in scene.world_bounds())
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 + 1e-3
+    eye = centre + 3.0 * radius * np.array([0.3, 0.6, 1.0]) / np.linalg.norm([0.3, 0.6, 1.0])
+    return (look_at(eye, centre).astype(np.float32),
+            perspective(60.0, 16 / 9, 0.01 * radius, 10.0 * radius).astype(np.float32))
 
 
 # ------------------------------------------------------------------------------------------ driver
@@ -191,6 +243,7 @@ def host_lines(hosts: list[subprocess.Popen]) -> dict | None:
         parts.append(json.loads(line))
     return {"updates": [u for p in parts for u in p["updates"]],
             "reconnects": [r for p in parts for r in p["reconnects"]],
+            "ticks": [t for p in parts for t in p.get("ticks", [])],
             "snapshot_s_max": max(p.get("snapshot_s_max", 0.0) for p in parts)}
 
 
@@ -220,15 +273,16 @@ def chart(rows: list[dict], path: Path) -> None:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| clients | ticks/s | updates/s per client (slowest) | on the shared stream | server CPU (% of a core) | "
-           "server CPU per extra client | client processes CPU | server RSS (MB) | slowest snapshot (s) |",
-           "|---|---|---|---|---|---|---|---|---|"]
+    out = ["| clients | ticks/s | updates/s per client (slowest) | slowest mirror behind (s) | on the shared stream | "
+           "server CPU (% of a core) | server CPU per extra client | client processes CPU | server RSS (MB) | "
+           "slowest snapshot (s) |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     base = rows[0] if rows else None
     for r in rows:
         per = (f"{100 * (r['server_cpu'] - base['server_cpu']) / (r['clients'] - base['clients']):.1f}"
                if r["clients"] > base["clients"] else "")
         out.append(f"| {r['clients']} | {r['ticks_per_s']:.2f} | {r['updates_per_s_per_client']:.2f} "
-                   f"({r['updates_per_s_min']:.2f}) | {r['shared_members']:.1f} | {100 * r['server_cpu']:.0f} | {per} | "
+                   f"({r['updates_per_s_min']:.2f}) | {r['lag_s_max']:.2f} | {r['shared_members']:.1f} | {100 * r['server_cpu']:.0f} | {per} | "
                    f"{100 * r['clients_cpu']:.0f} | {r['server_rss_mb']:.0f} | {r['snapshot_s_max']:.1f} |")
     return "\n".join(out)
 
@@ -287,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
              for h in range(n_hosts)]
     print(f"{n_hosts} client processes of up to {args.per_process} clients each (MirrorClient: protocol and mirror, "
           f"no renderer)", flush=True)
-    rows = []
+    rows, finals = [], []
     try:
         for stage, n in enumerate(counts):
             control.write_text(str(stage))
@@ -296,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"bench_clients: a client process ended during the {n}-client stage", flush=True)
                 rows.append({"clients": n, "ticks_per_s": 0.0, "updates_per_s_per_client": 0.0, "server_cpu": 0.0,
                              "clients_cpu": 0.0, "shared_members": 0.0, "updates_per_s_min": 0.0, "reconnects": float("inf"),
+                             "lag_s_max": float("inf"),
                              "connected_min": 0,
                              "server_rss_mb": proc_stats(server.pid)[1] / 2**20, "snapshot_s_max": float("inf")})
                 break
@@ -310,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
             wall = time.time() - t0
             control.write_text(f"{stage}m")
             measured = host_lines(hosts)
+            recs2 = read_jsonl(stats)  # the server's latest tick, just after every client said where it is
+            time_of = {r["service_tick"]: r["time"] for r in recs2}
+            lags = [recs2[-1]["time"] - time_of[t] if t in time_of else float("inf") for t in measured["ticks"]]
             a, b = recs0[-1], recs1[-1]
             window = [r for r in recs1 if a["service_tick"] < r["service_tick"] <= b["service_tick"]]
             ticks = (b["service_tick"] - a["service_tick"]) / max(b["time"] - a["time"], 1e-9)
@@ -318,16 +376,18 @@ def main(argv: list[str] | None = None) -> int:
                          "shared_members": sum(r.get("shared_members", 0) for r in window) / max(len(window), 1),
                          "server_cpu": (cpu1 - cpu0) / wall, "clients_cpu": (ccpu1 - ccpu0) / wall,
                          "server_rss_mb": rss / 2**20, "snapshot_s_max": ready["snapshot_s_max"],
-                         "updates_per_s_min": min(ups),
+                         "updates_per_s_min": min(ups), "lag_s_max": max(lags, default=float("inf")),
                          "reconnects": sum(m - r for r, m in zip(ready["reconnects"], measured["reconnects"])),
                          "connected_min": min((r["clients"] for r in window), default=0)})
             r = rows[-1]
             print(f"{n:4d} clients: {ticks:6.2f} ticks/s, {r['updates_per_s_per_client']:5.2f} updates/s per client "
-                  f"(slowest {r['updates_per_s_min']:.2f}), {r['reconnects']} reconnects, at least "
+                  f"(slowest {r['updates_per_s_min']:.2f}), slowest mirror {r['lag_s_max']:.2f} s behind, "
+                  f"{r['reconnects']} reconnects, at least "
                   f"{r['connected_min']} connected, "
                   f"{r['shared_members']:.1f} on the shared stream, server CPU {100 * r['server_cpu']:.0f}% of a core, "
                   f"client processes {100 * r['clients_cpu']:.0f}%, RSS {rss / 2**20:.0f} MB, slowest snapshot "
                   f"{ready['snapshot_s_max']:.1f} s", flush=True)
+        finals = [json.loads(h.stdout.readline() or "{}") for h in hosts] if len(rows) == len(counts) else []
     finally:
         control.write_text(f"{len(counts)}m")
         for h in hosts:
@@ -336,9 +396,12 @@ def main(argv: list[str] | None = None) -> int:
             except subprocess.TimeoutExpired:
                 h.kill()
         stop_server(server)
-    compared, differ, _ = compare_digests(slog, work.glob("c*.jsonl"))
-    print(f"mirror digests compared: {compared}, different: {differ}")
+    compared, differ, conns = compare_digests(slog, work.glob("c*.jsonl"))
+    final_ok = sum(d and c in conns for f in finals for d, c in zip(f.get("digested", []), f.get("conns", [])))
+    print(f"mirror digests compared: {compared}, different: {differ}; at the end, seeing the whole scene, "
+          f"{final_ok} of {counts[-1]} clients' mirrors compared")
     traceback = any("Traceback" in line for line in log_lines)
+    (args.out / "server.log").write_text("".join(log_lines))
     print(table(rows))
     (args.out / "table.md").write_text(table(rows) + "\n")
     (args.out / "table.json").write_text(json.dumps(rows, indent=1))
@@ -355,12 +418,15 @@ def main(argv: list[str] | None = None) -> int:
         v.check(f"{r['clients']} clients: reconnects during the window", r["reconnects"], "<=", 0)
         v.check(f"{r['clients']} clients: slowest client's updates/s / ticks/s",
                 r["updates_per_s_min"] / max(r["ticks_per_s"], 1e-9), ">=", KEEP_UP)
+        v.check(f"{r['clients']} clients: slowest mirror's lag behind the server's latest tick (s)",
+                r["lag_s_max"], "<=", MAX_LAG_S)
     last = rows[-1]
     v.check(f"slowest snapshot of the {last['clients']}-client stage (s)", last["snapshot_s_max"], "<=", 60)
     if len(rows) > 1:
         per = (last["server_rss_mb"] - base["server_rss_mb"]) / (last["clients"] - base["clients"])
         v.check("server RSS per extra client (MB)", per, "<=", 4)
     v.check("mirror digests compared", compared, ">=", 1)
+    v.check(f"clients of the {counts[-1]}-client stage whose mirror was compared at the end", final_ok, ">=", counts[-1])
     v.check("mirror digests different", differ, "<=", 0)
     v.check("tracebacks in the server log", int(traceback), "<=", 0)
     return v.exit_code()

@@ -11,8 +11,9 @@ starts a frame. A continuation can never begin with the magic: read as a block h
 declare a raw block of 390,821 bytes, over zstd's 128 KiB block maximum.
 
 Decompression never trusts a declared size: a zstd frame whose header declares more than the cap is
-refused before anything is decoded; otherwise the input is fed in small pieces and decoding stops as
-soon as the output passes the cap (a decompression bomb costs at most the cap plus a few MiB). A ZSTD
+refused before anything is decoded; otherwise the input is fed in pieces no larger than what cannot
+decode past the cap (small ones near it) and decoding stops as soon as the output passes the cap (a
+decompression bomb costs at most the cap plus a few MiB). A ZSTD
 payload may hold several whole frames back to back (a sender that compressed parts of a message apart
 sends them so, and each part's bytes can be shared by many messages); the cap holds for all of them
 together, and bytes after the last frame that are not a whole frame are refused. An LZ4 payload is
@@ -133,23 +134,37 @@ class StreamCompressor:
         return self._obj.compress(payload) + self._obj.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK)
 
 
+ZSTD_BLOCK_MAX = 128 * 1024  # the most one zstd block decodes to
+ZSTD_BLOCK_MIN = 4  # the fewest bytes a block takes (3 of header, 1 of an RLE block's byte)
+
+
+def _piece(room: int, smallest: int) -> int:
+    """Input bytes to feed next so that their output cannot pass `room` more bytes: each block they
+    complete (one begun earlier, and one per ZSTD_BLOCK_MIN bytes fed) decodes to at most ZSTD_BLOCK_MAX;
+    at least `smallest` (limits.decompress_piece_bytes, which then bounds the overshoot)."""
+    return max(smallest, ZSTD_BLOCK_MIN * (room // ZSTD_BLOCK_MAX - 1))
+
+
 def _zstd_bounded(dobj, data: bytes, cap: int, limits: Limits, what: str) -> _Frame:
-    """Feed `data` to a zstd decompressobj in small pieces; stop as soon as the output passes `cap`, or
-    where the frame ends (the bytes after it are counted, not fed)."""
+    """Feed `data` to a zstd decompressobj in pieces, each no larger than what cannot decode past `cap`
+    (near the cap, limits.decompress_piece_bytes); stop as soon as the output passes `cap`, or where the
+    frame ends (the bytes after it are counted, not fed)."""
     out: list[bytes] = []
     total = 0
-    piece = limits.decompress_piece_bytes
     view = memoryview(data)
+    i = 0
     try:
-        for i in range(0, len(data), piece):
+        while i < len(data):
+            piece = _piece(cap - total, limits.decompress_piece_bytes)
             chunk = dobj.decompress(view[i : i + piece])
+            i += piece
             if chunk:
                 total += len(chunk)
                 if total > cap:
                     raise LimitError(f"{what}: decompressed payload exceeds the limit of {cap} bytes")
                 out.append(chunk)
             if dobj.eof:
-                return _Frame(b"".join(out), len(dobj.unused_data) + max(0, len(data) - i - piece))
+                return _Frame(b"".join(out), len(dobj.unused_data) + max(0, len(data) - i))
     except zstandard.ZstdError as exc:
         raise CodecError(f"{what}: corrupt zstd data ({exc})") from None
     return _Frame(b"".join(out), 0)

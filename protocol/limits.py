@@ -47,8 +47,9 @@ class Limits:
     max_scene_faces: int = 1 << 26  # per mesh
     max_skin_samples: int = 1 << 14  # sampled poses per skin
     max_scene_camera_keys: int = 1 << 16
-    # Decompression: input is fed in pieces this small, so the output overshoots a cap by at most
-    # piece / 4 * 128 KiB (a zstd RLE block is 4 bytes for 128 KiB) before the cap check stops it.
+    # Decompression: input is fed in pieces whose output cannot pass the cap, and near it in pieces this
+    # small, so the output overshoots a cap by at most (piece / 4 + 1) * 128 KiB (a zstd RLE block is 4
+    # bytes for 128 KiB) before the cap check stops it.
     decompress_piece_bytes: int = 128
     zstd_max_window_bytes: int = 1 << 24
 

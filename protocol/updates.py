@@ -529,5 +529,5 @@ def state_digest(instances: np.ndarray, buckets: np.ndarray, cells: np.ndarray, 
     for a in (instances, buckets, cells, transforms):
         a = np.ascontiguousarray(a)
         h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(a.tobytes())
+        h.update(a.reshape(-1).view(np.uint8))  # the array's own bytes, not a copy
     return h.hexdigest()

@@ -78,6 +78,60 @@ class SnapshotPlan:
         return len(self.cell_chunks)
 
 
+class PendingSet:
+    """Indices (cell slots or buckets) pending for one client: a mask to look them up, their count, and
+    the indices set since they were last listed, so that testing, counting and listing cost in proportion
+    to what is pending rather than to the grid's capacity. Indices given to set/unset are unique."""
+
+    def __init__(self, size: int):
+        self.mask = np.zeros(size, dtype=bool)
+        self.count = 0
+        self._added: list[np.ndarray] | None = []  # holds every set index (and some unset since); None: lost track
+        self._added_rows = 0
+
+    def __len__(self) -> int:
+        return self.count
+
+    def grow(self, size: int) -> None:
+        """Follow the grid's capacity, which only grows: the new indices are not pending."""
+        if size > len(self.mask):
+            self.mask = np.concatenate([self.mask, np.zeros(size - len(self.mask), dtype=bool)])
+
+    def set(self, idx: np.ndarray) -> None:
+        idx = np.asarray(idx, np.int64)
+        if not len(idx):
+            return
+        new = idx[~self.mask[idx]]
+        self.mask[new] = True
+        self.count += len(new)
+        if self._added is not None:
+            self._added.append(new)
+            self._added_rows += len(new)
+            if self._added_rows > len(self.mask) // 8:  # listing by a scan of the mask is as cheap by now
+                self._added = None
+
+    def unset(self, idx: np.ndarray) -> None:
+        idx = np.asarray(idx, np.int64)
+        if not (len(idx) and self.count):
+            return
+        was = int(np.count_nonzero(self.mask[idx]))
+        if was:
+            self.mask[idx] = False
+            self.count -= was
+
+    def indices(self) -> np.ndarray:
+        """The pending indices, ascending."""
+        if not self.count:
+            out = np.zeros(0, np.int64)
+        elif self._added is None:
+            out = np.flatnonzero(self.mask)
+        else:
+            rows = np.concatenate(self._added)
+            out = np.unique(rows[self.mask[rows]])
+        self._added, self._added_rows = [out], len(out)
+        return out
+
+
 _ids = itertools.count(1)
 
 
@@ -89,8 +143,8 @@ class Client:
     n_buckets: int
     capacity: int
     id: int = field(default_factory=lambda: next(_ids))
-    pending_buckets: np.ndarray = None
-    pending_cells: np.ndarray = None
+    buckets_pending: PendingSet = None
+    cells_pending: PendingSet = None
     sent_transforms: np.ndarray | None = None  # last transforms sent; None before the first message
     camera: tuple[np.ndarray, np.ndarray] | None = None  # (view, projection) last received
     wake: asyncio.Event = field(default_factory=asyncio.Event)
@@ -105,48 +159,60 @@ class Client:
     in_flight: int = 0  # shared Updates planned for it and still being encoded (they reach `outbox` in order)
     assigned: int = 0  # messages made for this connection so far (Welcome is message 0)
     messages_sent: int = 0
+    # messages its client has been shown to have read: its websocket answered a ping sent after them (the
+    # answer comes back behind everything sent before the ping, in whatever buffers that waits)
+    messages_read: int = 0
+    probe: object = None  # the ping whose answer is awaited (service.Service._probe), None when none is
     updates_sent: int = 0
     bytes_sent: int = 0
     _planes_of: tuple | None = None  # the camera the cached planes belong to
     _planes: np.ndarray | None = None
 
     def __post_init__(self):
-        self.pending_buckets = np.zeros(self.n_buckets, dtype=bool)
-        self.pending_cells = np.zeros(self.capacity, dtype=bool)
+        self.buckets_pending = PendingSet(self.n_buckets)
+        self.cells_pending = PendingSet(self.capacity)
+
+    @property
+    def pending_buckets(self) -> np.ndarray:
+        """Bool per bucket: pending (read only; changes go through buckets_pending)."""
+        return self.buckets_pending.mask
+
+    @property
+    def pending_cells(self) -> np.ndarray:
+        """Bool per cell slot: pending (read only; changes go through cells_pending)."""
+        return self.cells_pending.mask
 
     def _fit(self, capacity: int) -> None:
         """Follow the grid's capacity, which only grows: the new slots have nothing pending."""
-        n = len(self.pending_cells)
-        if capacity > n:
-            self.pending_cells = np.concatenate([self.pending_cells, np.zeros(capacity - n, dtype=bool)])
+        self.cells_pending.grow(capacity)
 
     def mark(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
         """Pending for its own sender, which takes over from shared parts."""
         self._fit(capacity)
         self.on_parts = False
         self.caught_up_with = None
-        self.pending_buckets[bucket_ids] = True
-        self.pending_cells[cell_slots] = True
+        self.buckets_pending.set(bucket_ids)
+        self.cells_pending.set(cell_slots)
         self.wake.set()
 
     def clear(self, bucket_ids: np.ndarray, cell_slots: np.ndarray, capacity: int) -> None:
         """What is about to be sent (read now, so the latest content) is no longer pending."""
         self._fit(capacity)
-        self.pending_buckets[bucket_ids] = False
-        self.pending_cells[cell_slots] = False
+        self.buckets_pending.unset(bucket_ids)
+        self.cells_pending.unset(cell_slots)
 
     def take_pending(self, limits: Limits, capacity: int,
                      in_view: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
         """Drain at most one message's worth: (bucket ids, cell slots, everything drained). `in_view`
         (cell slots -> bool per slot) keeps the cells outside the client's view pending."""
         self._fit(capacity)
-        b = np.flatnonzero(self.pending_buckets)
-        c = np.flatnonzero(self.pending_cells)
+        b = self.buckets_pending.indices()
+        c = self.cells_pending.indices()
         if in_view is not None and len(c):
             c = c[in_view(c)]
         b, c = b[: limits.max_buckets_per_message], c[: limits.max_cells_per_message]
-        self.pending_buckets[b] = False
-        self.pending_cells[c] = False
+        self.buckets_pending.unset(b)
+        self.cells_pending.unset(c)
         return b.astype(np.uint32), c.astype(np.uint32), not self.pending_anything()
 
     def changed_transforms(self, transforms: np.ndarray) -> np.ndarray:
@@ -160,13 +226,17 @@ class Client:
         return ids
 
     def pending_anything(self) -> bool:
-        return bool(self.pending_buckets.any() or self.pending_cells.any())
+        return bool(self.buckets_pending.count or self.cells_pending.count)
 
     def view_planes(self, make: Callable[[tuple], np.ndarray | None]) -> np.ndarray | None:
         """The extended frustum of the last camera (`make(camera)`), kept until the camera changes."""
         if self._planes_of is not self.camera:
             self._planes_of, self._planes = self.camera, make(self.camera)
         return self._planes
+
+    def unread(self) -> int:
+        """Messages sent that its client has not yet been shown to have read."""
+        return self.messages_sent - self.messages_read
 
     def next_seq(self) -> int:
         """The index of the message being made for this connection."""

@@ -23,6 +23,12 @@ shared stream starts a new frame; the stream restarts for waiting clients at mos
 `join_interval` (a restart costs every member one message without history). A member leaves it when the
 tick's dirty cells reach outside its view (culling) or when `max_queued` shared messages wait for it (a
 slow reader): from then on its own sender takes over, after the queued messages.
+
+A client is behind (`behind`) when `max_unread` messages sent to it wait to be shown read (a ping sent
+after them not yet answered: the answer queues behind them in every buffer on the way): nothing more is
+sent to it, no shared Update or part is queued for it, and its changes wait in its pending sets until its
+own sender sends them, merged, once it has read. A slow reader thus gets fewer, larger Updates instead of
+falling seconds behind.
 """
 from __future__ import annotations
 
@@ -45,7 +51,7 @@ class FanoutCounters:
     restarts: int = 0  # frames the shared stream started after its first
     joins: int = 0
     leaves_view: int = 0  # members that left because the tick's cells reached outside their view
-    leaves_slow: int = 0  # members that left with max_queued messages waiting
+    leaves_slow: int = 0  # members that left as slow readers (max_queued messages waiting, or behind)
     part_updates: int = 0  # Updates made of shared parts (one per client and tick)
     parts_encoded: int = 0  # tile parts compressed (each once, for every client whose view holds the tile)
     parts_sent: int = 0  # tile parts in those Updates
@@ -158,7 +164,9 @@ class Fanout:
                 self._places.refresh(grid, np.flatnonzero(self._stale), t)
             moved = changed_transform_ids(self._placed_with, t)
             if len(moved):  # their cells keep their places in the instance's space
-                self._places.place(np.flatnonzero(np.isin(self._places.owner, moved)), t)
+                is_moved = np.zeros(len(t) + 1, bool)  # (the last entry: owner -1, a slot with no place)
+                is_moved[moved] = True
+                self._places.place(np.flatnonzero(is_moved[self._places.owner]), t)
         self._placed_with = t.copy()
         if self._stale_any:
             self._stale[:] = False
@@ -175,11 +183,17 @@ class Fanout:
             self._tile_size = max(float((c.max(axis=0) - c.min(axis=0)).max()) / self.settings.tiles_per_axis, 1e-6)
         return self._tile_size
 
+    def behind(self, c: Client) -> bool:
+        """Whether max_unread messages sent to the client wait to be shown read (Client.unread): nothing
+        more is sent to it until it has read them, and its changes wait in its pending sets meanwhile."""
+        return c.unread() >= self.settings.max_unread
+
     def takes_parts(self, c: Client) -> bool:
         """A client whose Updates may be made of shared parts now: streaming, its client decodes zstd, off
-        the shared stream, not sending an Update of its own, and not behind (a short outbox)."""
+        the shared stream, not sending an Update of its own, and not behind (a short outbox, its messages
+        read)."""
         return (c.takes_parts and c.streaming and not c.shared and not c.busy
-                and len(c.outbox) + c.in_flight < self.settings.max_queued)
+                and len(c.outbox) + c.in_flight < self.settings.max_queued and not self.behind(c))
 
     def plan_parts(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray,
                    transforms: np.ndarray, tick: int, server_time: float) -> PartsPlan | None:
@@ -227,18 +241,18 @@ class Fanout:
             tiles = np.flatnonzero(visible)
             hidden = sorted_slots[np.repeat(~visible, counts)]
             c.on_parts = True
-            c.pending_cells[slots] = False  # what is sent now carries the latest content; the rest is marked again
+            c.cells_pending.unset(slots)  # what is sent now carries the latest content; the rest is marked again
             own_part = None
-            if c.pending_cells.any() and (planes is not c.caught_up_with or c.caught_up_with is None):
+            if c.cells_pending.count and (planes is not c.caught_up_with or c.caught_up_with is None):
                 own_part = self._catch_up(c, grid, now_t, places, planes)
-            c.pending_cells[hidden] = True
+            c.cells_pending.set(hidden)
             if c.sent_transforms is self.head_transforms and self.head_transforms is not None \
-                    and not c.pending_buckets.any():
+                    and not c.buckets_pending.count:
                 own_head = None
             else:
-                c.pending_buckets[bucket_ids] = True
-                b = np.flatnonzero(c.pending_buckets)[: limits.max_buckets_per_message]
-                c.pending_buckets[b] = False
+                c.buckets_pending.set(bucket_ids)
+                b = c.buckets_pending.indices()[: limits.max_buckets_per_message]
+                c.buckets_pending.unset(b)
                 own_head = read_delta(grid, now_t, c.changed_transforms(now_t), b, [])
             c.sent_transforms = head_transforms
             if own_head is None and not (len(tids) or len(bucket_ids) or len(tiles) or own_part is not None):
@@ -257,7 +271,7 @@ class Fanout:
         """The client's pending cells now in its view (none of this tick's: they go in tiles), as its own
         part; looked at again only when its camera moves, or at once when a message could not hold them."""
         limits = self.config_limits
-        cand = np.flatnonzero(c.pending_cells)  # (this tick's cells were taken off it: they go in tiles)
+        cand = c.cells_pending.indices()  # (this tick's cells were taken off it: they go in tiles)
         if places is not None and planes is not None and len(cand):
             cand = cand[places.in_view(planes, self.settings.view, cand)]
         room = limits.max_cells_per_message // 2
@@ -265,7 +279,7 @@ class Fanout:
         cand = cand[:room]
         if not len(cand):
             return None
-        c.pending_cells[cand] = False
+        c.cells_pending.unset(cand)
         self.counters.catch_ups += 1
         return read_delta(grid, transforms, [], [], cand)
 
@@ -316,7 +330,7 @@ class Fanout:
         members, joiners = [], []
         for c in clients:
             may_join = (not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
-                        and not c.pending_anything())
+                        and not self.behind(c) and not c.pending_anything())
             if not (c.shared or may_join):  # (the view test below is the costly part: only where it decides)
                 others.append(c)
                 continue
@@ -325,7 +339,7 @@ class Fanout:
             if planes is not None and len(cell_slots):
                 sees_all = bool(self.places(grid, transforms).in_view(planes, self.settings.view, cell_slots).all())
             if c.shared:
-                if sees_all and len(c.outbox) + c.in_flight < self.settings.max_queued:
+                if sees_all and len(c.outbox) + c.in_flight < self.settings.max_queued and not self.behind(c):
                     members.append(c)
                     continue
                 c.shared = False

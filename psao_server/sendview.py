@@ -50,16 +50,19 @@ class CellPlaces:
         """World centres and reach of these rows (slots with a known place) under `transforms`: what an
         instance's move changes (its cells' places in its own space stay)."""
         rows = np.asarray(rows, np.int64)
+        if not len(rows):
+            return
         owners = self.owner[rows]
-        for i in np.unique(owners).tolist():
-            r = rows[owners == i]
-            m = np.asarray(transforms[i], np.float64)
-            loc = self.local[r]
-            # per coordinate multiply-adds (no einsum, no BLAS): the same numbers however many rows
-            world = loc[:, 0:1] * m[:3, 0] + loc[:, 1:2] * m[:3, 1] + loc[:, 2:3] * m[:3, 2] + m[:3, 3]
-            self.centres[r] = world
-            self.xyz[:, r] = world.T
-            self.reach[r] = self.slack[r] = self.half_diagonal[r] * float(np.linalg.norm(m[:3, :3], 2))  # largest stretch, shear included
+        used, at = np.unique(owners, return_inverse=True)
+        m = np.asarray(transforms, np.float64)[used]  # (instances, 4, 4)
+        stretch = np.linalg.norm(m[:, :3, :3], 2, axis=(1, 2))  # largest stretch of each, shear included
+        m = m[at]  # each row's instance's
+        loc = self.local[rows]
+        # per coordinate multiply-adds (no einsum, no BLAS): the same numbers however many rows
+        world = loc[:, 0:1] * m[:, :3, 0] + loc[:, 1:2] * m[:, :3, 1] + loc[:, 2:3] * m[:, :3, 2] + m[:, :3, 3]
+        self.centres[rows] = world
+        self.xyz[:, rows] = world.T
+        self.reach[rows] = self.slack[rows] = self.half_diagonal[rows] * stretch[at]
 
     def refresh(self, grid, slots: np.ndarray, transforms: np.ndarray) -> None:
         """Work the places of these slots out again (their cells changed); the slots here are all of the

@@ -349,7 +349,7 @@ class Service:
         ticks = (c.ticks - last.get("ticks", 0)) / dt
         busy = (c.tick_seconds - last.get("tick_s", 0.0)) / dt
         encode = (c.encode_seconds - last.get("encode_s", 0.0)) / max(c.ticks - last.get("ticks", 0), 1)
-        pending = max((int(cl.pending_cells.sum()) for cl in self.registry), default=0)
+        pending = max((cl.cells_pending.count for cl in self.registry), default=0)
         s = self.last_tick_stats
         work = ""
         if "traced" in s:  # the server tick's split of the last tick
@@ -555,6 +555,7 @@ class Service:
         client.sent(data)
         self.counters.bytes_out += len(data)
         self.counters.messages_out += 1
+        await self._probe(ws, client)
 
     def _state_digest(self) -> str:
         """Digest of the state now (grid and transforms); computed once per tick and edit, not per client."""
@@ -594,12 +595,14 @@ class Service:
                 data = await upcoming
                 if i + 1 < len(plan):
                     upcoming = asyncio.create_task(chunk(i + 1))
+                await self._until_read(ws, client)
                 await self._send(ws, client, data)
         finally:
             upcoming.cancel()
         client.assigned = len(plan) + 1
         client.streaming = True
         while True:
+            await self._until_read(ws, client)
             if client.outbox:  # shared Updates, in order, before anything of its own
                 item = client.outbox.popleft()
                 data = (session.update_of_parts(item.frames) if isinstance(item, Parts) else session.shared(item))
@@ -609,12 +612,42 @@ class Service:
                 continue
             await client.wake.wait()
             client.wake.clear()
-            if not (client.shared or client.on_parts or client.outbox or client.in_flight):
+            if not (client.shared or client.on_parts or client.outbox or client.in_flight or self.fanout.behind(client)):
                 client.busy = True
                 try:
                     await self._send_own_update(ws, session, client)
                 finally:
                     client.busy = False
+
+    async def _until_read(self, ws, client: Client) -> None:
+        """Wait while the client is behind (Fanout.behind): until the answer to a probe shows it has read
+        enough. Its changes meanwhile wait in its pending sets (or its outbox)."""
+        if not self.fanout.behind(client):
+            return
+        while self.fanout.behind(client):
+            if client.probe is None:  # (the last answer came before the messages sent while it was awaited)
+                await self._probe(ws, client, now=True)
+            client.wake.clear()
+            await client.wake.wait()
+        client.wake.set()  # what woke it meanwhile (pending changes) is looked at now
+
+    async def _probe(self, ws, client: Client, now: bool = False) -> None:
+        """After a message: a ping once probe_every messages wait to be shown read (one ping at a time).
+        Its answer comes back behind everything sent before it, so when it does, the client has read those
+        messages (Client.messages_read); it wakes the sender, which may be holding back for it."""
+        if client.probe is not None or (client.unread() < self.settings.fanout.probe_every and not now):
+            return
+        mark = client.messages_sent
+        client.probe = pong = await ws.ping()
+
+        def answered(f: asyncio.Future) -> None:
+            client.probe = None
+            if f.cancelled() or f.exception() is not None:
+                return  # the connection ended
+            client.messages_read = max(client.messages_read, mark)
+            client.wake.set()
+
+        pong.add_done_callback(answered)
 
     async def _send_own_update(self, ws, session: ServerSession, client: Client) -> None:
         """One Update of this client's own: pending buckets, pending cells in its view, moved transforms."""

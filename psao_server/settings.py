@@ -206,6 +206,12 @@ class FanoutSettings:
     view: ViewSettings = field(default_factory=ViewSettings)  # the extended view (the tick's selection uses the same)
     join_interval: float = 1.0  # seconds between restarts of the shared stream for clients waiting to join
     max_queued: int = 4  # shared Updates waiting in a client's outbox before it leaves the shared stream
+    # messages sent to a client and not yet shown read (a websocket ping sent after them not yet answered)
+    # before nothing more is sent to it: its changes wait in its pending sets and go out merged once it has
+    # read. Kernel and library buffers on the way can hold seconds of Updates; this bounds how far behind
+    # a slow reader's mirror (and the answers to keepalive pings, which queue behind the data) can fall.
+    max_unread: int = 8
+    probe_every: int = 2  # messages sent after the last answered ping before the next ping (one at a time)
     # rows (buckets + cells): a client's own Update of at most this many is encoded on the event loop (well
     # under a millisecond), a bigger one in a worker thread; the thread hop costs more than a small encode
     inline_rows: int = 2048
@@ -302,3 +308,6 @@ class ServeSettings:
             raise ConfigError("TLS needs both a certificate and its key (--tls-cert and --tls-key)")
         if self.allow_edits and self.edit_token == self.token:
             raise ConfigError("the edit token must differ from the viewing token")
+        f = self.fanout
+        if not 1 <= f.probe_every < f.max_unread:
+            raise ConfigError(f"fanout: probe_every ({f.probe_every}) must be >= 1 and below max_unread ({f.max_unread})")

@@ -307,3 +307,82 @@ def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):
     assert updates >= 3 * 30 - 10 and sent > encoded > 0  # the two clients looking the same way shared tiles
     assert mirrors == [server] * 3
     assert_digests_equal(tmp_path, ["c0", "c1", "c2"], at_least=1)
+
+
+def test_a_client_that_stops_reading_is_sent_nothing_more_then_one_merged_catch_up(tmp_path):
+    """A client stops reading while every tick changes the grid. Kernel and library buffers would take
+    megabytes of Updates for it; instead the server stops once max_unread messages wait to be shown read
+    (a ping sent after them unanswered), at every tick. When the client reads again, it gets the ticks it
+    missed merged into a few Updates, and its mirror equals the server bit for bit."""
+    from websockets.asyncio.client import connect
+
+    from protocol.codecs import Codec
+    from protocol.session import ClientConfig, ClientSession, SnapshotReceived, UpdateReceived
+    from psao_client.mirror import Mirror
+
+    fan = FanoutSettings(max_unread=4, probe_every=2)
+
+    async def scenario():
+        unread_seen = []  # per tick: the most messages any client had not been shown to have read
+        edits = RandomEdits(150)
+
+        def tick(grid, t):
+            edits(grid, t)
+            unread_seen.append(max((c.unread() for c in service.registry if c.streaming), default=0))
+
+        settings = ServeSettings(port=0, tick_hz=60, stats_interval=1e9, digest_log=tmp_path / "server.jsonl",
+                                 fanout=fan)
+        service, stop, task, url = await start(make_grid(3000), settings, tick)
+        session = ClientSession(ClientConfig(HASH, "", frozenset(Codec)))
+        try:
+            async with connect(url, compression=None, max_size=None) as ws:
+                await ws.send(session.hello())
+                mirror, seq, updates = None, 0, 0
+
+                async def read_one():
+                    nonlocal mirror, seq, updates
+                    event = session.receive(await ws.recv())
+                    if mirror is None:
+                        mirror = Mirror.from_welcome(event.welcome)
+                    elif isinstance(event, SnapshotReceived):
+                        mirror.apply(event.snapshot.delta)
+                        if event.complete:
+                            mirror.complete()
+                    elif isinstance(event, UpdateReceived):
+                        mirror.apply(event.update.delta)
+                        updates += 1
+                    seq += 1
+
+                while not (mirror is not None and session.state.name == "STREAMING"):
+                    await read_one()
+                me = next(c for c in service.registry if c.id == session.welcome.connection_id)
+                # now it reads nothing (its websocket library still reads a few messages ahead, and answers
+                # the pings among them): the server holds back once it is behind, and then sends no more
+                for _ in range(100):
+                    await until(lambda: service.fanout.behind(me), "the server sees the client behind")
+                    sent, at_tick = me.messages_sent, service.tick
+                    await until(lambda: service.tick >= at_tick + 30, "30 more ticks")
+                    if me.messages_sent == sent:
+                        break
+                assert me.messages_sent == sent  # nothing more while nothing is read
+                # it reads again: the ticks it missed come merged, and its mirror catches up exactly
+                updates_before, tick_before = updates, service.tick
+                server = {}
+                while True:
+                    await read_one()
+                    server.update({d["seq"]: d["digest"] for d in read_jsonl(tmp_path / "server.jsonl")
+                                   if d["conn"] == me.id})
+                    if seq - 1 in server and updates > updates_before:
+                        assert mirror.digest() == server[seq - 1]
+                        break
+                merged_ticks = service.tick - tick_before
+        finally:
+            stop.set()
+            await task
+        return unread_seen, updates - updates_before, merged_ticks, service
+
+    unread_seen, updates_after, ticks, service = asyncio.run(scenario())
+    assert max(unread_seen) <= fan.max_unread  # never more than that sent and not shown read, at any tick
+    assert max(unread_seen) == fan.max_unread  # (and it was reached: the client was held back)
+    assert service.counters.ticks > 60
+    assert updates_after >= 1

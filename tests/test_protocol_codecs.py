@@ -140,3 +140,39 @@ def test_zstd_cap_holds_for_all_frames_together():
     assert len(decompress_frame(Codec.ZSTD, part, CAP)) == CAP // 2 + 1
     with pytest.raises(LimitError):
         decompress_frame(Codec.ZSTD, part + part, CAP)
+
+
+def test_bomb_of_rle_blocks_stops_within_a_few_blocks_of_the_cap_in_pieces_sized_to_the_room():
+    """The worst case: a frame of 4-byte RLE blocks, 128 KiB each. Input goes in pieces sized so that
+    their output cannot pass the cap (large far from it, limits.decompress_piece_bytes near it), so the
+    output seen before the cap check stops it passes the cap by at most (piece / 4 + 1) blocks."""
+    from protocol.codecs import ZSTD_BLOCK_MAX, _zstd_bounded
+    from protocol.limits import DEFAULT_LIMITS as L
+
+    block = ((ZSTD_BLOCK_MAX << 3) | (1 << 1)).to_bytes(3, "little") + b"\x07"  # RLE block of 128 KiB of 7s
+    frame = bytes.fromhex("28b52ffd") + bytes([0x00, 0x38]) + block * 400  # no content size, 128 KiB window
+    cap = 16 << 20
+
+    class Spy:
+        def __init__(self):
+            self.inner = zstandard.ZstdDecompressor().decompressobj()
+            self.out = 0
+            self.calls = 0
+
+        def decompress(self, data):
+            self.calls += 1
+            chunk = self.inner.decompress(data)
+            self.out += len(chunk)
+            return chunk
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    spy = Spy()
+    with pytest.raises(LimitError, match="exceeds the limit"):
+        _zstd_bounded(spy, frame, cap, L, "bomb")
+    assert cap < spy.out <= cap + (L.decompress_piece_bytes // 4 + 1) * ZSTD_BLOCK_MAX
+    assert spy.calls < len(frame) // L.decompress_piece_bytes / 4  # far from the cap, pieces are larger
+    whole = Spy()  # and a frame that fits decodes whole, exactly
+    fits = bytes.fromhex("28b52ffd") + bytes([0x00, 0x38]) + block * 20 + ((ZSTD_BLOCK_MAX << 3) | 3).to_bytes(3, "little") + b"\x07"
+    assert _zstd_bounded(whole, fits, cap, L, "fits").data == b"\x07" * (21 * ZSTD_BLOCK_MAX)

@@ -107,6 +107,37 @@ def test_pending_sets_fold_ticks_and_follow_capacity():
     assert c.changed_transforms(t).tolist() == [] and c.read_transforms(t2).tolist() == [1]
 
 
+def test_pending_set_equals_a_plain_mask_through_random_sets_unsets_and_growth():
+    """PendingSet keeps a count and the indices set since it last listed them (so a client's planning
+    costs what is pending, not the capacity): through any sequence of sets, unsets, listings and growth,
+    its count, mask and listing equal those of a plain mask."""
+    from psao_server.clients import PendingSet
+
+    rng = np.random.default_rng(7)
+    size = 1000
+    pend, plain = PendingSet(size), np.zeros(size, bool)
+    for step in range(3000):
+        op = rng.integers(0, 10)
+        idx = np.sort(rng.choice(size, int(rng.integers(0, 60)), replace=False))
+        if op < 4:
+            pend.set(idx)
+            plain[idx] = True
+        elif op < 8:
+            pend.unset(idx)
+            plain[idx] = False
+        elif op < 9:
+            np.testing.assert_array_equal(pend.indices(), np.flatnonzero(plain))
+        elif size < 4000:
+            size += int(rng.integers(1, 300))
+            pend.grow(size)
+            plain = np.concatenate([plain, np.zeros(size - len(plain), bool)])
+        assert pend.count == plain.sum() and len(pend) == pend.count
+        np.testing.assert_array_equal(pend.mask, plain)
+    pend.set(np.arange(size))  # more than an eighth of the capacity at once: it lists by a scan from then on
+    plain[:] = True
+    np.testing.assert_array_equal(pend.indices(), np.flatnonzero(plain))
+
+
 def test_snapshot_plan_covers_everything_allocated_in_chunks():
     grid = make_grid(2000)
     plan = SnapshotPlan.of(grid, Limits(), cells_per_chunk=50)
