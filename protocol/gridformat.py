@@ -48,14 +48,24 @@ HASH_Z = 31
 # Paper eq. 3: a point counts at a fragment only if n_p . n_x > T_N and (n_p . (p - x) / |p - x|)^2 < T_D.
 T_N = 0.1  # normal threshold (cosine; paper value)
 T_D = 0.7  # distance-direction threshold (squared cosine; paper value)
-# The first step (radius r) also asks n_p . n_x > FIRST_T_N (within about 26 degrees): near a crease or a
-# small face the points of the other face differ in AO more than anything within r on the same face, and
-# eq. 3's T_N = 0.1 lets them in. Where this leaves no weight, the wider step takes eq. 3 as the paper has
-# it, so no fragment loses its points to this test. On Sponza's probes it cuts the MAE by about a tenth.
-FIRST_T_N = 0.9
-# Where eq. 2-4 find no weight in the 2x2x2 block, the lookup takes the block's points with the radius
-# times this, and where those have none either, the 3x3x3 block around the fragment's cell with that radius
-# (every point within one cell, s >= 2 r, lies in it).
+# The first step (radius r) takes only the fragment's own face: n_p . n_x > FIRST_T_N (within about 18
+# degrees, just wider than the octahedral normals' worst quantisation error of 17.1) and a point close to
+# the fragment's tangent plane, (n_p . (p - x))^2 < FIRST_T_D |p - x|^2 (more than about 67 degrees from
+# the normal). Near a crease, a step or a moulding the points of the other surface differ in AO more than
+# anything within r on the same one, and eq. 3's T_N = 0.1 and T_D = 0.7 let them in.
+FIRST_T_N = 0.95
+FIRST_T_D = 0.15
+# Where the first step finds no weight (a small face, a moulding narrower than r), the second step takes
+# the block's points at radius FALLBACK_SCALE * r whose normal is within about 26 degrees (SECOND_T_N) of
+# the fragment's, and only where that has none either the third step takes eq. 3 alone at that radius, so
+# no fragment loses the points it found before. On Sponza's probes the three steps with squared weights
+# cut the MAE by about a tenth against one strict step with linear weights.
+SECOND_T_N = 0.9
+# Weights are max(0, (rho - d) / rho) to this power (paper eq. 2 has 1): the nearest points count more,
+# which matters where the AO changes within r and points were added there (psao_server/densify.py).
+WEIGHT_POWER = 2
+# The radius of the second and third steps is r times this; where those have no weight either, the 3x3x3
+# block around the fragment's cell takes that radius (every point within one cell, s >= 2 r, lies in it).
 FALLBACK_SCALE = 2.0
 # The 3x3x3 ring answers only where nothing else did, mostly on small faces at sharp edges whose points all
 # went to their neighbours: it keeps eq. 3's tangent-plane test but takes points whose normal is up to

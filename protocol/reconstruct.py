@@ -4,12 +4,12 @@ It reads exactly the arrays the client holds (instances, buckets, cells) and doe
 `psao_client/shaders/psao_lookup.glsl` does, vectorised over fragments: the 2x2x2 block floor(g - 0.5) + {0,1}^3,
 hash -> bucket -> linear scan for the key's first entry -> the allocated points of its cell and of the
 cells of the entries right after it with the same key (a key holding more than 7 points owns up to
-KEY_CELLS consecutive entries of its bucket), weights max(0, (r - d) / r), zeroed when n_p . n_x <= T_n or
-(n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), and at radius r also when n_p . n_x <= FIRST_T_N, and the
-weighted mean. Where all weights are 0, the same block's points with radius R = FALLBACK_SCALE * r and
-eq. 3 alone; where those have none either, the 3x3x3 block
-floor(g) + {-1,0,1}^3 with radius R and the normal threshold RING_T_N instead of T_n, and 1 where that
-finds no weight. Positions are in grid units (one
+KEY_CELLS consecutive entries of its bucket), points zeroed when n_p . n_x <= T_n or
+(n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), weights max(0, 1 - d / rho)^WEIGHT_POWER, and the
+weighted mean of the first of three steps that finds weight: radius r with n_p . n_x > FIRST_T_N and
+(n_p . (p - x))^2 < FIRST_T_D |p - x|^2 too; radius R = FALLBACK_SCALE * r with n_p . n_x > SECOND_T_N;
+radius R with eq. 3 alone. Where none does, the 3x3x3 block floor(g) + {-1,0,1}^3 with radius R and the
+normal threshold RING_T_N instead of T_n, and 1 where that finds no weight. Positions are in grid units (one
 cell = 1), as the shader computes them: g = (x - origin) / cell_size, a point's offset from the fragment
 (cell + (q + 0.5) / 32) - g. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
@@ -42,20 +42,22 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
         sl = slice(s, s + chunk)
         args = (instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d,
                 None if back is None else back[sl])
-        (ao_r, w_r), (ao_big, w_big) = _reconstruct_chunk(*args)
-        found = w_r > 0  # else the block's points with the wider radius
-        ao[sl], wsum[sl] = np.where(found, ao_r, ao_big), np.where(found, w_r, w_big)
+        answer_ao, answer_w = np.ones(len(inst_ids[sl]), np.float32), np.zeros(len(inst_ids[sl]), np.float32)
+        for step_ao, step_w in reversed(_reconstruct_chunk(*args)):  # the first step with weight answers
+            found = step_w > 0
+            answer_ao, answer_w = np.where(found, step_ao, answer_ao), np.where(found, step_w, answer_w)
+        ao[sl], wsum[sl] = answer_ao, answer_w
         hole = np.flatnonzero(wsum[sl] == 0)
-        if len(hole):  # the 3x3x3 ring where the block found no weight at either radius
+        if len(hole):  # the 3x3x3 ring where the block found no weight in any step
             ring = [a if a is None or np.ndim(a) == 0 or k < 3 else a[hole] for k, a in enumerate(args)]
             ao[s + hole], wsum[s + hole] = _reconstruct_chunk(*ring, ring=True)[0]
     return ao, wsum
 
 
 def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
-    """[(AO, weight sum)] of the 2x2x2 block at radius r (normal threshold FIRST_T_N too) and at
-    FALLBACK_SCALE * r, or (ring) of the 3x3x3 block around the fragment's cell at FALLBACK_SCALE * r with
-    the normal threshold RING_T_N."""
+    """[(AO, weight sum)] of the 2x2x2 block's three steps (radius r with FIRST_T_N and FIRST_T_D,
+    FALLBACK_SCALE * r with SECOND_T_N, FALLBACK_SCALE * r with eq. 3 alone), or (ring) of the 3x3x3 block
+    around the fragment's cell at FALLBACK_SCALE * r with the normal threshold RING_T_N."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
@@ -65,10 +67,12 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     g = ((x - origin) / s[:, None]).astype(np.float32)
     if ring:
         t_n = gf.RING_T_N
-        radii = [(wide, t_n)]
+        steps = [(wide, t_n, t_d)]
         cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
     else:
-        radii = [(r, np.float32(gf.FIRST_T_N)), (wide, t_n)]  # (radius, the step's normal threshold)
+        # (radius, the step's normal threshold, its tangent-plane threshold)
+        steps = [(r, np.float32(gf.FIRST_T_N), np.float32(gf.FIRST_T_D)), (wide, np.float32(gf.SECOND_T_N), np.float32(t_d)),
+                 (wide, t_n, t_d)]
         cell = gf.lookup_block_base(g)[:, None, :] + _BLOCK[None, :, :]  # (M, 8, 3)
     inside = np.all((cell >= 0) & (cell < dims[:, None, :]), axis=2)
     c = np.where(inside[..., None], cell, 0)
@@ -112,10 +116,14 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     passes = (ndot > t_n) & ((ddot * ddot < np.float32(t_d) * dist2) | (dist2 == 0)) & allocated
     ao_vals = pw.dequantise_ao(aocode)
     out = []
-    for radius, step_t_n in radii:
-        rk = radius[mi][:, None]
-        counts = passes & (ndot > step_t_n)
-        w = np.where(counts, np.maximum(np.float32(0.0), (rk - dist) / rk), np.float32(0.0)).astype(np.float32)
+    for radius, step_t_n, step_t_d in steps:
+        inv = (np.float32(1.0) / radius[mi]).astype(np.float32)[:, None]  # the shader multiplies by 1 / rho
+        counts = passes & (ndot > step_t_n) & ((ddot * ddot < step_t_d * dist2) | (dist2 == 0))
+        tent = np.maximum(np.float32(0.0), np.float32(1.0) - dist * inv).astype(np.float32)
+        w = tent
+        for _ in range(gf.WEIGHT_POWER - 1):  # repeated products, as the shader computes the power
+            w = (w * tent).astype(np.float32)
+        w = np.where(counts, w, np.float32(0.0)).astype(np.float32)
         wsum = np.bincount(mi, weights=w.sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
         num = np.bincount(mi, weights=(w * ao_vals).sum(axis=1, dtype=np.float32), minlength=len(inst)).astype(np.float32)
         ao = np.where(wsum > 0, num / np.where(wsum > 0, wsum, np.float32(1.0)), np.float32(1.0)).astype(np.float32)

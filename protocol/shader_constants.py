@@ -45,6 +45,9 @@ def define_values(t_n: float = gf.T_N, t_d: float = gf.T_D, table_width: int | N
         "PSAO_T_D": _float(t_d),
         "PSAO_FALLBACK_SCALE": _float(gf.FALLBACK_SCALE),
         "PSAO_FIRST_T_N": _float(gf.FIRST_T_N),
+        "PSAO_FIRST_T_D": _float(gf.FIRST_T_D),
+        "PSAO_SECOND_T_N": _float(gf.SECOND_T_N),
+        "PSAO_WEIGHT_POWER": str(gf.WEIGHT_POWER),  # int: a loop bound
         "PSAO_RING_T_N": _float(gf.RING_T_N),
         "PSAO_EMPTY": _uint(gf.EMPTY),
         "PSAO_BACK_BIT": _uint(gf.BACK_BIT),

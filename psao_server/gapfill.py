@@ -11,7 +11,7 @@ to one per lookup radius and appends them to the instance's PointSet (on a doubl
 addition on both sides, flagged in PointSet.back). The caller rebuilds the grid after each pass.
 
 With `first_step` (GapFillSettings) a candidate is a gap already where the lookup's first step finds no
-point: none within r whose normal passes FIRST_T_N and eq. 3's tangent-plane test, so the lookup would
+point: none within r whose normal passes FIRST_T_N and whose offset passes FIRST_T_D, so the lookup would
 answer there from its 2r step, a blend over the neighbouring faces (small faces at creases, narrow
 mouldings). That test runs on the decoded points alone (positions within r, no margins): it decides where
 the server adds points, not what the client computes.
@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from protocol.gridformat import FIRST_T_N, T_D, T_N
+from protocol.gridformat import FIRST_T_D, FIRST_T_N, T_D, T_N
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import Grid
@@ -53,6 +53,9 @@ class Candidates:
     local_pos: np.ndarray  # (C, 3) float64
     local_normal: np.ndarray  # (C, 3) float32
 
+    def subset(self, keep: np.ndarray) -> "Candidates":
+        return Candidates(self.faces[keep], self.bary[keep], self.local_pos[keep], self.local_normal[keep])
+
 
 def surface_candidates(scene: Scene, i: int, ratio: float, per_side: int, rng: np.random.Generator) -> Candidates:
     """Uniform points over instance i's surface (world-area weighted), front-side normals: `ratio` per
@@ -69,8 +72,7 @@ def visible_candidates(cand: Candidates, buried, transform: np.ndarray) -> Candi
     """The candidates the buried test does not reject (front side: the test applies to one-sided meshes)."""
     from psao_server.bake import to_world  # bake imports this module
 
-    keep = ~buried.mask(*to_world(transform, cand.local_pos, cand.local_normal))
-    return Candidates(cand.faces[keep], cand.bary[keep], cand.local_pos[keep], cand.local_normal[keep])
+    return cand.subset(~buried.mask(*to_world(transform, cand.local_pos, cand.local_normal)))
 
 
 def kd_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
@@ -105,7 +107,8 @@ def _passes(tree, points_pos, points_nrm, pos, nrm, radius: float, k: int) -> np
 def first_step_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
                        radius: float) -> np.ndarray:
     """Bool (C,): some point within `radius` of each candidate has a normal within FIRST_T_N of the
-    candidate's and passes eq. 3's tangent-plane test: the lookup's first step finds weight there."""
+    candidate's and passes the first step's tangent-plane test (FIRST_T_D): the lookup's first step finds
+    weight there."""
     covered = np.zeros(len(pos), bool)
     if len(points_pos) == 0 or len(pos) == 0:
         return covered
@@ -119,7 +122,7 @@ def first_step_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.n
     dist2 = np.einsum("ij,ij->i", d_vec, d_vec)
     ndot = np.einsum("ij,ij->i", points_nrm[pts], nrm[cand])
     ddot = np.einsum("ij,ij->i", points_nrm[pts], d_vec)
-    ok = (ndot > FIRST_T_N) & ((ddot * ddot < T_D * dist2) | (dist2 == 0)) & (dist2 < radius * radius)
+    ok = (ndot > FIRST_T_N) & ((ddot * ddot < FIRST_T_D * dist2) | (dist2 == 0)) & (dist2 < radius * radius)
     covered[cand[ok]] = True
     return covered
 

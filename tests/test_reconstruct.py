@@ -9,11 +9,11 @@ from psao_server.grid import Grid
 
 
 def brute_force(grid: Grid, inst, x, n_x):
-    """eq. 2-4 over ALL decoded points of the instance whose normal also passes FIRST_T_N, no grid lookup;
-    where no point has weight, the points of the 2x2x2 block around x passing eq. 3 with the radius times
-    FALLBACK_SCALE, and where none of those
-    has weight, all points with that radius and the normal threshold RING_T_N (the 3x3x3 ring holds every
-    point within it)."""
+    """eq. 2-4 over ALL decoded points of the instance whose normal also passes FIRST_T_N and whose offset
+    passes FIRST_T_D, no grid lookup; where no point has weight, the points of the 2x2x2 block around x
+    with the radius times FALLBACK_SCALE whose normal passes SECOND_T_N, then all those passing eq. 3;
+    where none of those has weight, all points with that radius and the normal threshold RING_T_N (the
+    3x3x3 ring holds every point within it). Weights (radius - d) / radius to the power WEIGHT_POWER."""
     rec = grid.instances[inst]
     slots = np.flatnonzero(grid.cell_instance == inst)
     words = grid.cells[slots, : gf.POINTS_PER_CELL]
@@ -33,8 +33,11 @@ def brute_force(grid: Grid, inst, x, n_x):
         ring = ((n_p @ ni) > gf.RING_T_N) & (cosd ** 2 < T_D)
         block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
         in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
-        for radius, among in ((r, counts & ((n_p @ ni) > gf.FIRST_T_N)), (r * gf.FALLBACK_SCALE, counts & in_block), (r * gf.FALLBACK_SCALE, ring)):
-            w = np.where(among, np.maximum(0, (radius - dist) / radius), 0)
+        first = counts & ((n_p @ ni) > gf.FIRST_T_N) & (cosd ** 2 < gf.FIRST_T_D)
+        second = counts & in_block & ((n_p @ ni) > gf.SECOND_T_N)
+        wide = r * gf.FALLBACK_SCALE
+        for radius, among in ((r, first), (wide, second), (wide, counts & in_block), (wide, ring)):
+            w = np.where(among, np.maximum(0, (radius - dist) / radius) ** gf.WEIGHT_POWER, 0)
             if w.sum() > 0:
                 break
         out.append((w * a).sum() / w.sum() if w.sum() > 0 else 1.0)

@@ -146,8 +146,9 @@ def test_shader_equals_oracle_in_every_fallback_step(ctx):
         frame = r.render(look_at([0.2, 0.5, -1.4], [0.2, 0.05, -2.0], up=(0, 1, 0)), perspective(70, 4 / 3, 0.02, 20))
     m, ao, wsum = oracle(frame, *arrays)
     gb = frame.gbuffer
-    (_, w_r), (_, w_wide) = _reconstruct_chunk(*arrays, gb.instance[m].astype(np.int64), gb.local[m], gb.local_normal[m],
-                                              0.1, 0.7, gb.back_side[m])
+    (_, w_r), (_, w_near), (_, w_wide) = _reconstruct_chunk(*arrays, gb.instance[m].astype(np.int64), gb.local[m],
+                                                            gb.local_normal[m], 0.1, 0.7, gb.back_side[m])
+    assert np.array_equal(w_near, w_wide)  # one normal everywhere: the 2r steps with SECOND_T_N and T_N agree
     wall = gb.local_normal[m][:, 2] > 0.5
     steps = {"r": w_r > 0, "block 2r": (w_r == 0) & (w_wide > 0), "ring": (w_wide == 0) & (wsum > 0) & ~wall,
              "ring across the edge": wall & (wsum > 0), "none": wsum == 0}
