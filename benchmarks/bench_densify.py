@@ -1,7 +1,7 @@
 """Densify's worth and cost on one scene: the same bake without and with it, then accuracy and AO pass.
 
 Both bakes use the scene's default density, rays and seed; one has densify off (the default), the
-other `--densify-rounds` rounds of it (3, as `psao bake --densify 3`; psao_server/densify.py). Reported: points, bake seconds, recon MAE and holes at the
+other `--densify-rounds` rounds of it (5, as `psao bake --densify 5`; psao_server/densify.py). Reported: points, bake seconds, recon MAE and holes at the
 visible probes against AO traced there directly (as benchmarks/bench_scenes.py scores them), and the
 client's AO pass on both grids: the same renderer draws the same frames of the scene's camera path with
 PSAO and SSAO, in interleaved rounds (plain, densified, then densified, plain, ...); a grid's figure is
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5, help="timed submissions per frame (minimum kept)")
     ap.add_argument("--rounds", type=int, default=4)
-    ap.add_argument("--densify-rounds", type=int, default=3, help="densify's rounds in the densified bake")
+    ap.add_argument("--densify-rounds", type=int, default=5, help="densify's rounds in the densified bake")
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
 

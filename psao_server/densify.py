@@ -5,10 +5,16 @@ fluting or the foot of a wall, whose AO changes within one lookup radius, gets a
 open floor, and small faces get none of their own. There the lookup (paper eq. 2-4) blends points whose
 AO differs from the fragment's. After the bake's first trace this stage draws a pool of candidate points
 over each instance it applies to (uniform by area, `ratio` per kept point, none on buried surfaces),
-traces them once, and in each of `rounds` rounds adds the candidates where the client's lookup over the
+leaves out the quiet ones (below), traces the rest once, and in each of `rounds` rounds adds the candidates where the client's lookup over the
 current grid (protocol.reconstruct, the shader's oracle) misses the candidate's traced AO by more than
 `threshold`: largest misses first, no two added in one round closer than `spacing` lookup radii. Each
 round looks at the candidates not yet added against the grid the last round left.
+
+A candidate is quiet where the lookup cannot be far off: a kept point of its own face (the lookup's first
+step: normal within FIRST_T_N, offset within FIRST_T_D) lies within r, and the traced AO of every kept
+point within `quiet_reach` lookup radii spans at most `quiet_spread`. The lookup blends points of those
+AO values, so there it misses only detail that falls between all of them. Most of an open scene is quiet
+(Sponza, busy with mouldings: about half of the candidates), and tracing the rest is what densify costs.
 
 The grid keeps its radius and cells: added points go into the cells of their keys (a key takes up to
 KEY_CELLS cells). A candidate whose key has no room left is not added, so densifying never drops a
@@ -24,9 +30,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
+from protocol.gridformat import FIRST_T_D, FIRST_T_N
 from psao_scene.model import Scene
 from psao_server.buried import is_static
 from psao_server.gapfill import Candidates, append_points, surface_candidates, thin, visible_candidates
@@ -41,6 +49,10 @@ POOL_ID_BASE = 3 << 30
 # their 2x2x2 blocks (fandisk's bake peaked at 683 MB with the oracle's default of 65,536, at 400 MB with
 # this; 330 MB without densify).
 ORACLE_CHUNK = 16384
+# Candidates per k-d query of the quiet test, and the nearest kept points it looks at per candidate
+# (about 10 lie within 1.5 r on a flat face).
+QUIET_CHUNK = 131072
+QUIET_NEIGHBOURS = 16
 
 
 @dataclass
@@ -59,14 +71,18 @@ def applies(scene: Scene, i: int) -> bool:
     return is_static(scene, i) and not scene.meshes[scene.instances[i].mesh].double_sided
 
 
-def draw_pools(scene: Scene, pointsets: list[PointSet], settings: DensifySettings, buried=None) -> list[Pool]:
-    """Untraced candidate pools of the instances densify applies to."""
+def draw_pools(scene: Scene, pointsets: list[PointSet], grid: Grid, settings: DensifySettings, buried=None) -> list[Pool]:
+    """Untraced candidate pools of the instances densify applies to, quiet candidates left out."""
     rng = np.random.default_rng(settings.seed)
     pools, next_id = [], POOL_ID_BASE
+    table = grid.point_table()
     for i, ps in enumerate(pointsets):
         if not applies(scene, i) or len(ps) == 0:
             continue
         cand = surface_candidates(scene, i, settings.ratio, len(ps), rng)
+        mine = table.instance == i  # the quiet test first: it is cheaper than the buried one
+        cand = cand.subset(~quiet(table.local_pos[mine], table.local_normal[mine], pw.dequantise_ao(table.ao_code[mine]),
+                                  cand.local_pos, cand.local_normal, float(grid.instances[i]["radius"]), settings))
         if buried is not None and buried.applies_to(i):
             cand = visible_candidates(cand, buried, scene.instances[i].transform)
         n = len(cand.faces)
@@ -74,6 +90,32 @@ def draw_pools(scene: Scene, pointsets: list[PointSet], settings: DensifySetting
                           np.ones(n, bool), np.ones(n, bool)))
         next_id += n
     return pools
+
+
+def quiet(points_pos: np.ndarray, points_nrm: np.ndarray, points_ao: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
+          radius: float, settings: DensifySettings) -> np.ndarray:
+    """Bool (C,): a kept point of each candidate's own face lies within `radius` (r), and the AO of the kept
+    points within settings.quiet_reach * r (the QUIET_NEIGHBOURS nearest) spans at most settings.quiet_spread."""
+    out = np.zeros(len(pos), bool)
+    if len(points_pos) == 0 or len(pos) == 0 or settings.quiet_spread <= 0:
+        return out
+    tree = cKDTree(points_pos)
+    k = min(QUIET_NEIGHBOURS, len(points_pos))
+    for s in range(0, len(pos), QUIET_CHUNK):
+        x, n = pos[s:s + QUIET_CHUNK], nrm[s:s + QUIET_CHUNK]
+        dist, idx = tree.query(x, k=k, distance_upper_bound=settings.quiet_reach * radius, workers=-1)
+        dist, idx = dist.reshape(len(x), k), idx.reshape(len(x), k)
+        found = idx < len(points_pos)
+        safe = np.where(found, idx, 0)
+        ao = points_ao[safe]
+        spread = np.where(found, ao, -np.inf).max(axis=1) - np.where(found, ao, np.inf).min(axis=1)
+        n_p = points_nrm[safe]
+        d_vec = points_pos[safe] - x[:, None, :]
+        ddot = np.einsum("ckj,ckj->ck", n_p, d_vec)
+        own = (found & (dist < radius) & (np.einsum("ckj,cj->ck", n_p, n) > FIRST_T_N)
+               & (ddot * ddot <= FIRST_T_D * dist * dist))
+        out[s:s + len(x)] = own.any(axis=1) & (spread <= settings.quiet_spread)
+    return out
 
 
 def trace_pools(pools: list[Pool], scene: Scene, tracer, trace_settings: TraceSettings) -> None:
@@ -143,7 +185,7 @@ def densify(scene: Scene, pointsets: list[PointSet], grid: Grid, tracer, trace_s
     as the server's later traces of it do."""
     from psao_server.bake import scene_point_ids, trace_grid_points  # bake imports this module
 
-    pools = draw_pools(scene, pointsets, settings, buried)
+    pools = draw_pools(scene, pointsets, grid, settings, buried)
     trace_pools(pools, scene, tracer, trace_settings)
     chosen = [np.zeros(0, np.int64) for _ in pools]
     for k in range(settings.rounds):

@@ -94,14 +94,18 @@ class GapFillSettings:
 @dataclass
 class DensifySettings:
     """Points added after the first trace where the lookup misses the AO (psao_server/densify.py). Off by
-    default: tracing the candidate pool costs about four first traces (the courtyard's bake at N=256 took
-    6x as long for 1.7% more points), which a scene whose AO the even points already follow does not need;
-    `psao bake --densify 3` for scenes with much detail finer than the point spacing (Sponza)."""
+    default: tracing the candidates that are not quiet and asking the lookup's oracle about them each round
+    costs several first traces, which a scene whose AO the even points already follow does not need;
+    `psao bake --densify 5` for scenes with much detail finer than the point spacing (Sponza: 134,778 ->
+    280,076 points, recon MAE 0.0264 -> 0.0191 against 1024-ray probes)."""
 
-    rounds: int = 0  # rounds of additions; 0 = off (the paper's evenly spread points only); 3 where used
-    ratio: float = 4.0  # traced candidates per kept point of an instance (drawn once, looked at every round)
-    threshold: float = 0.05  # a candidate is added where the lookup misses its traced AO (0..1) by more
-    spacing: float = 0.5  # candidates added in one round are at least this many lookup radii apart
+    rounds: int = 0  # rounds of additions; 0 = off (the paper's evenly spread points only); 5 where used
+    ratio: float = 8.0  # candidates per kept point of an instance (drawn once, looked at every round)
+    threshold: float = 0.03  # a candidate is added where the lookup misses its traced AO (0..1) by more
+    spacing: float = 0.25  # candidates added in one round are at least this many lookup radii apart
+    quiet_spread: float = 0.05  # a candidate is not traced where the kept points' AO near it spans at most
+    # this (and one of its own face lies within r): the lookup cannot be far off there; 0 traces all
+    quiet_reach: float = 1.5  # "near it": within this many lookup radii
     min_rays: int = 64  # rays per point below which the traced AO is too noisy to tell where it varies: off
     seed: int = 0xD3E5
 
@@ -109,6 +113,9 @@ class DensifySettings:
         if self.rounds < 0 or not self.ratio > 0 or not self.threshold > 0 or not self.spacing >= 0:
             raise ConfigError(f"densify needs rounds >= 0, ratio > 0, threshold > 0 and spacing >= 0, got "
                               f"{self.rounds}, {self.ratio}, {self.threshold}, {self.spacing}")
+        if not self.quiet_spread >= 0 or not self.quiet_reach > 0:
+            raise ConfigError(f"densify needs quiet_spread >= 0 and quiet_reach > 0, got {self.quiet_spread}, "
+                              f"{self.quiet_reach}")
 
     def runs_with(self, rays: int) -> bool:
         return self.rounds > 0 and rays >= self.min_rays

@@ -98,3 +98,22 @@ def test_bad_densify_settings_are_refused():
     for bad in (dict(rounds=-1), dict(ratio=0.0), dict(threshold=0.0), dict(spacing=-1.0)):
         with pytest.raises(ConfigError, match="densify"):
             BakeSettings(densify=DensifySettings(**bad)).check()
+
+
+def test_quiet_candidates_are_those_the_lookup_cannot_miss():
+    """A floor of evenly spread points: candidates where every point near them has one AO are quiet; those
+    near a step in the AO, or with no point of their own orientation within r, are not."""
+    from psao_server.densify import quiet
+
+    r = 0.1
+    g = np.arange(0.0, 2.0, r / 2)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    up = np.tile(np.float32([0, 0, 1]), (len(pts), 1))
+    ao = np.where(pts[:, 0] < 1.0, 0.3, 0.9).astype(np.float32)  # a step in the AO at x = 1
+    cand = np.array([[0.5, 1.0, 0.0], [1.5, 1.0, 0.0], [1.01, 1.0, 0.0], [0.5, 1.0, 0.0]])
+    cnrm = np.float32([[0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 0, 0]])  # the last faces another way
+    settings = DensifySettings()
+    assert quiet(pts, up, ao, cand, cnrm, r, settings).tolist() == [True, True, False, False]
+    settings.quiet_spread = 0.0  # off: every candidate is traced
+    assert not quiet(pts, up, ao, cand, cnrm, r, settings).any()
