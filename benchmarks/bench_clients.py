@@ -49,7 +49,7 @@ CLIENT_NICE = 10  # client processes' nice value: below the server (0), above ot
 KEEP_UP = 0.5  # the slowest client's updates/s over the server's ticks/s: at least every other tick's changes
 MAX_LAG_S = 2.0  # seconds of scene time the slowest client's mirror may trail the server's latest tick
 FINAL_S = 60.0  # seconds the clients have, at the end, to be sent an Update after which nothing is pending
-DIGEST_GAP_S = 0.5  # seconds between the mirror digests one client process works out (after each connection's first)
+DIGEST_GAP_S = 2.0  # seconds between the mirror digests one client process works out (after each connection's first)
 SERVER_DIGESTS = "server_digests.jsonl"  # in the run's folder: the server's --digest-log
 
 

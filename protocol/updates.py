@@ -344,6 +344,9 @@ def _read_counts(r: Reader, n: int, most: int, what: str) -> np.ndarray:
 
 def _decode_packed(r: Reader, capacity: int, k: int, nb: int, nc: int) -> _Part:
     lt, lb, lc = r.unpack(_PACKED_LENGTHS)
+    if not (k or nb or lt or lb):  # cells only (a tile of an Update of parts): nothing else to read
+        return _Part(capacity, _empty_u32(0), np.zeros((0, 4, 4), np.float32), _empty_u32(0),
+                     _empty_u32(0, BUCKET_ENTRIES, 2), _read_packed_cells(r, lc, nc))
     transform_ids = gaps_decode(r.take(lt), k, "transform ids")
     transforms = unplanes(r, "<f4", 16 * k).reshape(k, 4, 4) if k else np.zeros((0, 4, 4), np.float32)
     bucket_ids, buckets = _decode_packed_buckets(r, lb, nb)
@@ -374,7 +377,7 @@ class _CellSections:
 
     slot_gaps: memoryview  # the slots' varint section (decoded with the other parts': gaps_decode_parts)
     n: int  # cells
-    counts: np.ndarray
+    counts: memoryview  # a byte per cell: its points, or RAW
     keys: memoryview  # 4 byte planes of nc key words
     pos: memoryview  # 2 byte planes of n_points position fields
     normal: memoryview
@@ -382,14 +385,23 @@ class _CellSections:
     raw: memoryview  # 4 byte planes of the raw cells' points
 
 
+_CELL_COUNTS = bytes(range(POINTS_PER_CELL + 1)) + bytes([RAW])  # the count bytes a cell may have
+
+
 def _read_packed_cells(r: Reader, lc: int, nc: int) -> _CellSections:
     slot_gaps = r.take(lc)
-    c_count = _read_counts(r, nc, POINTS_PER_CELL, "cell") if nc else np.zeros(0, np.uint8)
-    canon = c_count != RAW
-    n_points, n_raw = int(c_count[canon].sum()), int(nc - canon.sum())
+    counts = r.take(nc)
+    # checked, and the sections' lengths, with bytes methods (a part is often a few dozen cells: numpy
+    # calls would cost more than the work)
+    b = counts.tobytes()
+    if b.translate(None, _CELL_COUNTS):
+        raise PayloadError(f"cell: entry count above {POINTS_PER_CELL}")
+    n_raw = b.count(RAW)
+    total = sum(b) if nc <= 256 else int(np.frombuffer(b, np.uint8).sum(dtype=np.int64))
+    n_points = total - RAW * n_raw
     keys = r.take(4 * nc)
     pos = r.take(2 * n_points)
-    return _CellSections(slot_gaps, nc, c_count, keys, pos, r.take(n_points), r.take(n_points),
+    return _CellSections(slot_gaps, nc, counts, keys, pos, r.take(n_points), r.take(n_points),
                          r.take(4 * POINTS_PER_CELL * n_raw))
 
 
@@ -404,7 +416,7 @@ def _assemble_cells(sections: list[_CellSections]) -> tuple[np.ndarray, np.ndarr
     """(cell slots, cells) of one or more parts' cell sections, in part order."""
     one = len(sections) == 1
     slots = gaps_decode_parts([s.slot_gaps for s in sections], [s.n for s in sections], "cell slots")
-    c_count = sections[0].counts if one else np.concatenate([s.counts for s in sections])
+    c_count = np.frombuffer(sections[0].counts if one else b"".join(s.counts for s in sections), np.uint8)
     nc = len(slots)
     cells = np.zeros((nc, CELL_WORDS), dtype=np.uint32)
     if not nc:
@@ -485,7 +497,12 @@ def _union(parts: list[_Part], limits: Limits) -> GridDelta:
              "bucket": ([p.bucket_ids for p in parts], [p.buckets for p in parts])}
     out = {}
     for what, (ids, rows) in kinds.items():
-        out[what] = _sorted_union(what, [len(i) for i in ids], np.concatenate(ids), np.concatenate(rows))
+        full = [j for j, i in enumerate(ids) if len(i)] or [0]  # (most parts carry cells only)
+        if len(full) == 1:
+            out[what] = ids[full[0]], rows[full[0]]
+        else:
+            out[what] = _sorted_union(what, [len(ids[j]) for j in full], np.concatenate([ids[j] for j in full]),
+                                      np.concatenate([rows[j] for j in full]))
     sizes = [p.cells.n if isinstance(p.cells, _CellSections) else len(p.cells[0]) for p in parts]
     slots, cells = _sorted_union("cell", sizes, slots, cells)
     delta = GridDelta(capacity, *out["transform"], *out["bucket"], slots, cells)

@@ -378,3 +378,28 @@ def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone
     got = m.Update.parse(payload).delta
     assert got.equals(union_of_parts(parts))
     assert got.cell_slots.tolist() == sorted(slots.tolist())
+
+
+@pytest.mark.parametrize("bad_part", [0, 2])
+def test_a_cell_count_over_the_points_per_cell_in_any_part_is_refused(bad_part):
+    """A cell's count byte is its number of points (at most POINTS_PER_CELL) or RAW, in every part of an
+    Update."""
+    from protocol.gridformat import POINTS_PER_CELL
+    from protocol.updates import gaps_encode
+
+    parts = []
+    for k in range(3):
+        slots = np.arange(10, dtype=np.uint32) * 3 + k
+        cells = np.zeros((10, 8), np.uint32)
+        cells[:, :2] = (1 << 31) | 5
+        parts.append(encode_delta(GridDelta(100, cell_slots=slots, cells=cells)))
+    lc = len(gaps_encode(np.arange(10) * 3 + bad_part))
+    counts_at = struct.calcsize("<BIIII") + struct.calcsize("<III") + lc
+    part = bytearray(parts[bad_part])
+    assert part[counts_at] == 2
+    part[counts_at] = POINTS_PER_CELL + 1
+    parts[bad_part] = bytes(part)
+    head = m.Update(1, 0.0, GridDelta(100)).serialize()
+    m.Update.parse(head + b"".join(p for k, p in enumerate(parts) if k != bad_part))  # the others decode
+    with pytest.raises(PayloadError, match=f"entry count above {POINTS_PER_CELL}"):
+        m.Update.parse(head + b"".join(parts))
