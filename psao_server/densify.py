@@ -148,7 +148,8 @@ def densify_round(grid: Grid, pools: list[Pool], settings: DensifySettings) -> l
             continue
         c = p.cand
         ao, _ = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.full(len(idx), p.instance),
-                               c.local_pos[idx], c.local_normal[idx], chunk=ORACLE_CHUNK)
+                               c.local_pos[idx], c.local_normal[idx], chunk=ORACLE_CHUNK,
+                               back=np.zeros(len(idx), bool))  # one-sided: the front keys alone, half the scan
         miss = np.abs(ao - pw.dequantise_ao(p.ao_code[idx]))
         over = miss > settings.threshold
         pick = idx[over][np.argsort(-miss[over], kind="stable")]  # thin keeps the first of each close pair
