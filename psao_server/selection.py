@@ -106,17 +106,56 @@ def sorted_union(parts: list[np.ndarray]) -> np.ndarray:
 
 
 def sum_by_index(parts: list[np.ndarray], values: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(sorted_union(parts), the values of each index summed over the parts)."""
+    """(sorted_union(parts), the values of each index summed over the parts, in float32, in the parts'
+    order: ((0 + first) + second) + ...). The plain reference of the tick's merges (merge_disjoint,
+    NearCache.near), which are tested equal to it."""
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0, np.float32)
     c = np.concatenate(parts)
     v = np.concatenate(values).astype(np.float32)
-    order = np.argsort(c, kind="stable")
-    c, v = c[order], v[order]
-    if len(c) == 0:
-        return c, v
-    first = np.flatnonzero(np.concatenate([[True], c[1:] != c[:-1]]))
-    return c[first], np.add.reduceat(v, first)
+    ids, at = np.unique(c, return_inverse=True)
+    total = np.zeros(len(ids), np.float32)
+    np.add.at(total, at, v)  # unbuffered, in element order: the parts' order per index
+    return ids, total
+
+
+def union_places(parts: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(sorted_union of index arrays in any order, per part the place of each of its entries in the
+    union): one sort of them all (numpy's default sort; np.unique and a stable sort of unsorted runs
+    cost many times more)."""
+    if not parts:
+        return np.zeros(0, np.int64), []
+    c = np.concatenate(parts)
+    order = np.argsort(c)
+    s = c[order]
+    new = np.ones(len(s), bool)
+    np.not_equal(s[1:], s[:-1], out=new[1:])
+    at = np.empty(len(c), np.int64)
+    at[order] = np.cumsum(new) - 1
+    return s[new], np.split(at, np.cumsum([len(p) for p in parts])[:-1])
+
+
+def merge_disjoint(base: np.ndarray, base_values: np.ndarray | None, runs: list[np.ndarray],
+                   run_values: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """sum_by_index([base, *runs], [base_values, *run_values]) (values None: sorted_union alone) when
+    `base` (sorted, distinct) and the runs (each sorted, distinct and non-empty) share no index and no
+    index of `base` lies within a run's span (a moving instance's points: consecutive ids): each run is
+    slotted into `base` whole, with no sort and nothing to sum."""
+    if not runs:
+        return base, None if base_values is None else np.asarray(base_values, np.float32)
+    order = sorted(range(len(runs)), key=lambda k: int(runs[k][0]))
+    at = np.searchsorted(base, [int(runs[k][0]) for k in order])
+    cuts = np.concatenate([[0], at, [len(base)]])
+    ids, vals = [], []
+    for j, k in enumerate(order):
+        ids += [base[cuts[j]:cuts[j + 1]], runs[k]]
+        if base_values is not None:
+            vals += [base_values[cuts[j]:cuts[j + 1]], run_values[k]]
+    ids.append(base[cuts[-2]:])
+    if base_values is None:
+        return np.concatenate(ids), None
+    vals.append(base_values[cuts[-2]:])
+    return np.concatenate(ids), np.concatenate(vals).astype(np.float32)
 
 
 class BlockIndex:
@@ -134,6 +173,9 @@ class BlockIndex:
         keys = self._keys(self._coords(self.positions))
         self.order = np.argsort(keys, kind="stable")
         self.sorted_keys = keys[self.order]
+        # the positions in block order: a box's blocks are runs of it, read in sequence rather than
+        # gathered from all over the point set
+        self.sorted_positions = self.positions[self.order]
 
     def _coords(self, p: np.ndarray) -> np.ndarray:
         return np.floor((np.asarray(p, np.float64).reshape(-1, 3) - self.lo) / self.block).astype(np.int64)
@@ -143,6 +185,10 @@ class BlockIndex:
 
     def query_box(self, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Indices (into the positions given at construction) of the points inside the box, unordered."""
+        return self.order[self.query_box_sorted(box)]
+
+    def query_box_sorted(self, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """query_box as places in the block order (indices into `sorted_positions` and `order`)."""
         if len(self.positions) == 0:
             return np.zeros(0, np.int64)
         c0 = np.maximum(self._coords(box[0])[0], 0)
@@ -155,8 +201,8 @@ class BlockIndex:
         starts = c0[0] + self.dims[0] * (y.ravel() + self.dims[1] * z.ravel())
         lo = np.searchsorted(self.sorted_keys, starts, side="left")
         hi = np.searchsorted(self.sorted_keys, starts + nx, side="left")
-        idx = self.order[_ranges(lo, hi)]
-        return idx[in_box(self.positions[idx], box)]
+        k = _ranges(lo, hi)
+        return k[in_box(self.sorted_positions[k], box)]
 
 
 # ---------------------------------------------------------------------------------------- policy
@@ -270,15 +316,21 @@ class NearCache:
     contiguous arrays; with the movers' spheres, only those within a ball that bounds every point that may
     see them) serve every following tick whose reach stays inside that grown box and ball. Each tick
     then tests only those candidates (in a reach box, may see the mover's sphere now or before: one pass
-    of select_kernels.near_kernel), never the block index or the whole point set."""
+    of select_kernels.near_kernel), never the block index or the whole point set. The movers' candidate
+    sets are merged once into their sorted union (kept until one of them is refilled), so a tick sums
+    the movers' estimates on places in it instead of sorting what they found."""
 
     def __init__(self, index: BlockIndex, normals: np.ndarray, ao_distance: float, margin: float):
         self.index = index
         self.normals = np.asarray(normals, np.float64)
+        self.sorted_normals = self.normals[index.order]  # in the block order, as index.sorted_positions
         self.ao_distance = float(ao_distance)
         self.margin = float(margin)
         self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, ball centre, radius, candidate indices,
         # select_kernels.NearTest over their positions and normals)
+        # the movers' candidates together: (the held entries they come from, their sorted union, per mover
+        # the place of each of its candidates in the union), made again when any mover's candidates change
+        self._union: tuple | None = None
         self._last: dict[int, tuple] = {}  # mover -> its reach (lo, hi) at the last call
         self.queries = 0  # block-index queries made (each a cache refill)
 
@@ -298,18 +350,19 @@ class NearCache:
             step = 0.0 if last is None else float(max(np.abs(lo - last[0]).max(), np.abs(hi - last[1]).max()))
             grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
             q = (lo - grow, hi + grow)
-            idx = self.index.query_box(q)
+            k = self.index.query_box_sorted(q)  # block order: positions and normals read in runs
+            pos = self.index.sorted_positions[k]
             centre, radius = 0.5 * (lo + hi), np.inf
             if spheres:
                 centre = spheres[0][0]
                 radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres) + self.ao_distance + grow
-                d = self.index.positions[idx] - centre
+                d = pos - centre
                 # (slack: the per-tick test's own rounding must never reach past the ball)
-                idx = idx[np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2]
-            idx = np.sort(idx)
+                ball = np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2
+                k, pos = k[ball], pos[ball]
             from psao_server.select_kernels import NearTest  # (Warp: imported when something first moves)
-            held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, idx,
-                                    NearTest(self.index.positions[idx], self.normals[idx]))
+            held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, self.index.order[k],
+                                    NearTest(pos, self.sorted_normals[k]))
             self.queries += 1
         return held[4:]
 
@@ -317,11 +370,29 @@ class NearCache:
         """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
         normals, ao_distance), and per index the occlusion_change of the movers' spheres, summed over the
         movers (None without `with_change`: the indices alone, merged without summing)."""
-        parts, changes = [], []
+        tests = []
         for i, boxes in reach.items():
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
-            idx, test = self._candidates(i, boxes, spheres)
+            self._candidates(i, boxes, spheres)
+            tests.append((self._held[i], boxes, spheres))
+        union, places = self._union_of([held for held, _, _ in tests])
+        # sum_by_index of the movers' parts, on the union's places: summed in the movers' order
+        hit = np.zeros(len(union), bool)
+        total = np.zeros(len(union), np.float32) if with_change else None
+        for (held, boxes, spheres), place in zip(tests, places):
+            test = held[5]
             keep = test(boxes, spheres, self.ao_distance).view(bool)
-            parts.append(idx[keep])
-            changes.append(test.change[keep])
-        return sum_by_index(parts, changes) if with_change else (sorted_union(parts), None)
+            at = place[keep]
+            hit[at] = True
+            if with_change:
+                total[at] += test.change[keep]
+        return union[hit], total[hit] if with_change else None
+
+    def _union_of(self, held: list[tuple]) -> tuple[np.ndarray, list[np.ndarray]]:
+        """(sorted union of the candidate indices of these held entries, per entry its candidates' places in
+        the union), kept while the same entries serve."""
+        was = self._union
+        if was is None or len(was[0]) != len(held) or any(a is not b for a, b in zip(was[0], held)):
+            # (the entries themselves are kept: compared by identity)
+            self._union = (held, *union_places([h[4] for h in held]))
+        return self._union[1], self._union[2]

@@ -54,7 +54,7 @@ from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_t
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
-                                   rigid_in_company, sorted_union, sum_by_index)
+                                   merge_disjoint, rigid_in_company, sorted_union)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.static_hits import StaticHits
 from psao_server.tracer import make_tracer
@@ -578,14 +578,17 @@ class ServerTick:
                              pick(frame.spheres), pick(self.last_frame.spheres))
         reach = reach_boxes(motion, self.scene.ao_distance)
         near, change = self.near_cache.near(reach, motion, with_change)
-        parts, changes = [self.static_ids[near]], [change]  # static ids are tracked
+        runs, changes = [], []  # each mover's own points: consecutive ids, none of them static
         standing = {i: frame.bounds[i] for i in self.kinds.moving if i not in moved}
         for i in motion.skinned + rigid_in_company(motion, reach, {**self.static_boxes, **standing}):
             ids = self.ids_of[i]
-            parts.append(ids[self.tracked[ids]])
-            if with_change:
-                changes.append(np.full(len(parts[-1]), self._mover_change(i, frame), np.float32))
-        return sum_by_index(parts, changes) if with_change else (sorted_union(parts), None)
+            ids = ids[self.tracked[ids]]
+            if len(ids):
+                runs.append(ids)
+                if with_change:
+                    changes.append(np.full(len(ids), self._mover_change(i, frame), np.float32))
+        # static ids are tracked
+        return merge_disjoint(self.static_ids[near], change, runs, changes if with_change else None)
 
     def _mover_change(self, i: int, frame: Frame) -> float:
         """How much the AO of a moving instance's own points may have changed since the last tick, on the

@@ -6,7 +6,7 @@ import pytest
 from psao_scene.camera import look_at, perspective
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view, in_box, in_frustum,
                                    reach_boxes, rigid_in_company, sorted_union, static_points_near,
-                                   occlusion_change, sum_by_index)
+                                   merge_disjoint, occlusion_change, sum_by_index, union_places)
 
 
 def random_points(n, seed=0, scale=20.0):
@@ -138,6 +138,10 @@ def test_near_cache_matches_static_points_near_over_a_motion():
             expect[mine] += occlusion_change(pts[mine], nrm[mine], sp, ao)
         np.testing.assert_allclose(change, expect[want], rtol=1e-5, atol=1e-6)
         assert (change > 0).any()
+        # the movers' candidates merged once and reused: bit for bit what a cache made afresh gives
+        fresh_ids, fresh_change = NearCache(index, nrm, ao, margin=0.25 * ao).near(reach, motion)
+        np.testing.assert_array_equal(got, fresh_ids)
+        np.testing.assert_array_equal(change, fresh_change)
     assert 3 <= cache.queries < 40 * 3  # candidates are reused between ticks, refilled when a mover leaves them
     # without spheres: the boxes alone
     motion = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {}, [0], [])
@@ -151,6 +155,58 @@ def test_sum_by_index_sums_the_values_of_each_index():
     ids, vals = sum_by_index([np.array([1, 4, 7]), np.array([], np.int64), np.array([0, 4])],
                              [np.array([1.0, 2.0, 3.0]), np.array([]), np.array([5.0, 0.5])])
     assert list(ids) == [0, 1, 4, 7] and list(vals) == [5.0, 1.0, 2.5, 3.0]
+
+
+def test_sum_by_index_adds_in_the_order_of_the_parts():
+    a, b, c = np.float32(0.9746484), np.float32(0.031535614), np.float32(0.92544216)
+    _, vals = sum_by_index([np.array([3]), np.array([3]), np.array([3])], [np.array([a]), np.array([b]), np.array([c])])
+    assert vals[0] == (a + b) + c
+
+
+def test_merge_disjoint_is_sum_by_index_of_disjoint_runs():
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        n = int(rng.integers(0, 400))
+        owner = rng.integers(0, 6, n)  # 0: base; k > 0: run k (its ids consecutive: one instance's)
+        owner = np.sort(owner) if trial % 3 == 0 else owner
+        blocks = np.split(np.arange(n), np.flatnonzero(np.diff(owner)) + 1) if n else []
+        base, runs = [], []
+        for blk in blocks:  # a run is one block of equal owners, never split by base ids
+            (base if owner[blk[0]] == 0 else runs).append(blk)
+        base = np.concatenate(base) if base else np.zeros(0, np.int64)
+        base = np.sort(rng.choice(base, int(rng.integers(0, len(base) + 1)), replace=False)) if len(base) else base
+        runs = [r for r in runs if len(r)]
+        rng.shuffle(runs)
+        bv = rng.random(len(base)).astype(np.float32)
+        rv = [rng.random(len(r)).astype(np.float32) for r in runs]
+        ids, vals = merge_disjoint(base, bv, runs, rv)
+        want_ids, want_vals = sum_by_index([base, *runs], [bv, *rv])
+        np.testing.assert_array_equal(ids, want_ids)
+        np.testing.assert_array_equal(vals, want_vals)
+        alone, none = merge_disjoint(base, None, runs)
+        assert none is None
+        np.testing.assert_array_equal(alone, sorted_union([base, *runs]))
+
+
+def test_union_places_are_the_parts_entries_in_their_sorted_union():
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        parts = [rng.permutation(np.unique(rng.integers(0, 300, int(rng.integers(0, 80))))) for _ in range(int(rng.integers(1, 6)))]
+        union, places = union_places(parts)
+        np.testing.assert_array_equal(union, np.unique(np.concatenate(parts)))
+        for p, at in zip(parts, places):
+            np.testing.assert_array_equal(union[at], p)
+    assert len(union_places([])[0]) == 0
+
+
+def test_block_index_query_box_is_the_points_in_the_box():
+    pts = random_points(5000, seed=3, scale=4.0)
+    index = BlockIndex(pts, 0.7)
+    for lo in ([-1.0, -2.0, 0.0], [0.5, 0.5, 0.5], [-9.0, -9.0, -9.0]):
+        b = box(lo, np.asarray(lo) + [1.5, 2.5, 1.0])
+        got = index.query_box(b)
+        np.testing.assert_array_equal(np.sort(got), np.flatnonzero(in_box(pts, b)))
+        np.testing.assert_array_equal(index.sorted_positions[index.query_box_sorted(b)], pts[got])
 
 
 def test_sorted_union_is_unique_of_the_parts():
