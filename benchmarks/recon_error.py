@@ -108,22 +108,23 @@ def picture(r: dict, data: dict, path: Path) -> None:
              f"points' noise\n({r['bake_rays']} -> {r['point_rays']} rays)": r["points_noise_part"],
              "lookup\n(fine points)": r["recon_fine_points_vs_truth"]}
     axes[0].bar(range(len(parts)), list(parts.values()), color=["C7", "C7", "C1", "C3"])
-    axes[0].set_xticks(range(len(parts)), list(parts.keys()), fontsize=8)
+    axes[0].set_xticks(range(len(parts)), list(parts.keys()), fontsize=7)
     axes[0].axhline(TARGET_MAE, color="k", ls="--", lw=0.8)
     axes[0].set_ylabel("mean |error| over probes")
-    axes[0].set_title(f"{r['scene']}: recon MAE {r['recon_vs_truth']:.4f} vs {r['truth_rays']}-ray truth")
+    axes[0].set_title(f"{r['scene']}: MAE {r['recon_vs_truth']:.4f} (target {TARGET_MAE}), parts", fontsize=9)
     names = list(r["steps"])
     axes[1].bar(range(len(names)), [r["steps"][n]["part"] for n in names], color="C3")
     for k, n in enumerate(names):
         axes[1].text(k, r["steps"][n]["part"], f"{r['steps'][n]['share']:.1%}\nMAE {r['steps'][n]['mae']:.3f}", ha="center",
                      va="bottom", fontsize=7)
-    axes[1].set_xticks(range(len(names)), names, rotation=20, fontsize=8)
-    axes[1].set_title("lookup part by the step that answered (share of probes)")
+    axes[1].set_xticks(range(len(names)), names, rotation=20, fontsize=7)
+    axes[1].margins(y=0.15)
+    axes[1].set_title("lookup part by the step that answered", fontsize=9)
     pos, err = data["pos"], data["err"]
     order = np.argsort(err)
     sc = axes[2].scatter(pos[order, 0], pos[order, 2], c=err[order], s=2, cmap="magma", vmin=0, vmax=0.25)
     axes[2].set_aspect("equal")
-    axes[2].set_title("lookup error at the probes, top view (x, z)")
+    axes[2].set_title("lookup error at the probes, top view (x, z)", fontsize=9)
     fig.colorbar(sc, ax=axes[2], fraction=0.03)
     fig.tight_layout()
     fig.savefig(path)  # main made its folder
