@@ -260,7 +260,7 @@ def test_may_see_sphere_is_conservative():
         assert (np.linalg.norm(closest - centre, axis=1) > radius).all()
 
 
-@pytest.mark.parametrize("n_views", [2, 7, 40, 70])
+@pytest.mark.parametrize("n_views", [1, 2, 7, 40, 70])
 def test_union_of_views_equals_each_view_tested(n_views):
     # select_kernels.ViewUnion (and PriorityKey through it) tests points against the union of the views by
     # blocks of a box: its visibility must be in_any_view's exactly, also for points on a plane's margin,
