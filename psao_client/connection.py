@@ -51,6 +51,7 @@ from .mirror import Mirror
 OnMirror = Callable[[Mirror], None]
 OnUpdate = Callable[[Mirror, np.ndarray, int], None]
 CameraFeed = Callable[[float], tuple[np.ndarray, np.ndarray]]  # seconds -> (view, projection)
+READ_AHEAD = 4  # messages the websocket library queues before it stops reading (websockets' max_queue)
 QUIET_END_S = 5.0  # run(frames): seconds without any Update after the snapshot that end it (a static server)
 
 
@@ -159,7 +160,11 @@ class MirrorClient:
         t0 = time.perf_counter()
         cameras: asyncio.Task | None = None
         renders: asyncio.Task | None = None
-        extra = {"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer else {"max_queue": 16}
+        # Messages the websocket library may read ahead of the mirror: few, as it answers the server's pings as
+        # it reads, and the server sends a client more only when those answers show it has read enough
+        # (read-ahead is lag the server cannot see)
+        extra = ({"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer
+                 else {"max_queue": READ_AHEAD})
         if self.tls is not None and self.url.startswith("wss:"):
             extra["ssl"] = self.tls
         async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
