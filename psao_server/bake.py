@@ -24,6 +24,7 @@ from psao_server.points import PointSet, generate_scene_points, spawn_uniform, t
 from psao_server.points_pool import generate_scene_points_parallel
 from psao_server.sampling import resolve_density
 from psao_server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
+from psao_server.static_hits import StaticHits
 from psao_server.tracer import Tracer, make_tracer
 
 # A bake estimated at this many points or more generates its instances' points in `workers` processes
@@ -38,6 +39,9 @@ class BakeResult:
     pointsets: list[PointSet]
     stats: dict
     tracer: Tracer  # still open: the server keeps tracing with it; close() when done
+    # which of each static point's rays the static scene occludes, kept from the bake's trace of a scene with
+    # moving instances (psao_server.static_hits); None when not kept (no movers, or a tracer that cannot)
+    static_hits: StaticHits | None = None
 
 
 # ---------------------------------------------------------------- transforms
@@ -130,17 +134,39 @@ def grid_world_points(grid: Grid, scene: Scene):
 
 
 def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None,
-                      point_ids: np.ndarray | None = None) -> np.ndarray:
+                      point_ids: np.ndarray | None = None, static_hits: StaticHits | None = None) -> np.ndarray:
     """Trace every allocated point (or those with the given ids) at its exact position and store the
-    quantised AO. Returns visibility."""
+    quantised AO. Returns visibility. With `static_hits`, the static scene's answers for the static
+    points are kept there (the tracer's static scene must then hold the static instances alone)."""
     t, pos, nrm = grid_world_points(grid, scene)
     if point_ids is not None:
         sel = np.isin(t.point_id, point_ids)
         t = PointTable(*(getattr(t, f.name)[sel] for f in fields(t)))
         pos, nrm = pos[sel], nrm[sel]
-    vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
+    if static_hits is None:
+        vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
+    else:
+        vis, bits = tracer.visibility_and_static_hits(pos, nrm, t.point_id, settings, progress=progress)
+        static = static_hits.static[t.point_id]
+        static_hits.keep(t.point_id[static], bits[static])
     grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
     return vis
+
+
+def load_bake_geometry(tracer: Tracer, scene: Scene, settings: BakeSettings) -> tuple[list[int], list[int]] | None:
+    """The whole scene (at its instances' transforms) into the bake's tracer. With moving instances and a
+    tracer that keeps static hits (settings.keep_static_hits), the static instances go into its static
+    scene and the moving ones into its moving part, so each trace answers from the static scene first
+    and its answers can be kept: returns (static, moving) instance lists then, else None."""
+    from psao_server.animate import classify_instances  # (animate imports this module)
+
+    kinds = classify_instances(scene)
+    if not (settings.keep_static_hits and kinds.moving and hasattr(tracer, "visibility_and_static_hits")):
+        tracer.set_static(*scene_world_geometry(scene))
+        return None
+    tracer.set_static(*scene_world_geometry(scene, kinds.static))
+    tracer.set_dynamic(*scene_world_geometry(scene, kinds.moving))
+    return kinds.static, kinds.moving
 
 
 def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress: bool | None = None) -> BakeResult:
@@ -162,7 +188,7 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
 
 
 def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict) -> BakeResult:
-    tracer.set_static(*scene_world_geometry(scene))
+    split = load_bake_geometry(tracer, scene, settings)
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
     with _progress(show_progress) as bar:
         t0 = time.perf_counter()
@@ -199,8 +225,14 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         n = grid.n_points()
         task = bar.add_task("trace", total=n) if bar else None
         t0 = time.perf_counter()
+        static_hits = None
+        if split is not None:
+            ids = scene_point_ids(pointsets)
+            static_hits = StaticHits(sum(len(x) for x in ids), settings.rays, settings.seed,
+                                     np.concatenate([ids[i] for i in split[0]]) if split[0] else None)
         trace_grid_points(grid, scene, tracer, trace_settings,
-                          progress=trace_progress(bar, task, tracer, settings.rays) if bar else None)
+                          progress=trace_progress(bar, task, tracer, settings.rays) if bar else None,
+                          static_hits=static_hits)
         stats["seconds_trace"] = time.perf_counter() - t0
         n_traced = n  # the first trace's points (densify's traces are timed apart)
 
@@ -211,6 +243,8 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
             pointsets, added = densify(scene, pointsets, grid, tracer, trace_settings, settings.densify, buried,
                                        progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
             n = grid.n_points()
+            if added:
+                static_hits = None  # densify renumbers the point ids the kept answers are indexed by
         stats["points_densify"] = int(added)
         stats["seconds_densify"] = time.perf_counter() - t0
     grid.take_dirty()
@@ -228,7 +262,9 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
     # rates from the seconds inside the workers (query alone and whole chunks); the wall rate above is what a user waits
     stats.update(tracer.throughput())
     stats.setdefault("rays_per_second", stats["rays_per_second_wall"])
-    return BakeResult(scene=scene, grid=grid, pointsets=pointsets, stats=stats, tracer=tracer)
+    if static_hits is not None:
+        stats["static_hits_bytes"] = static_hits.nbytes
+    return BakeResult(scene=scene, grid=grid, pointsets=pointsets, stats=stats, tracer=tracer, static_hits=static_hits)
 
 
 # ---------------------------------------------------------------- accuracy

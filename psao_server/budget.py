@@ -46,19 +46,21 @@ class BudgetSettings:
     # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
     # showing one round's noise; 0 = forget at once
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
-    exact_points: int = 2048  # static points near movers given their whole ray set at once each tick, from the
-    # rays the static scene lets through (static_hits.StaticHits) traced against the moving parts alone:
-    # those in view whose AO changed most since their last trace (at least exact_min_change); at most
-    # this many, and at most what exact_share of the budget allows at their measured cost; 0 = none
-    exact_share: float = 0.0  # of the trace budget, for those whole traces first; the rounds get the rest. 0 = no
-    # whole traces (their fixed cost per tick leaves the movers' own points fewer rounds; README)
+    exact_points: int = 100_000  # static points near movers given their whole ray set at once each tick, from
+    # the rays the static scene lets through (the bake's static hits, static_hits.StaticHits) traced against
+    # the moving parts alone: those in view whose AO changed most since their last trace (at least
+    # exact_min_change); at most this many, and at most what exact_share of the budget allows; 0 = none
+    exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
+    # (traced in the same call); 0 = no whole traces
+    exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays (measured
+    # 0.56-0.59 of the CPU time on the built-in courtyard and robots: the static scene is most of a ray's cost
+    # but occludes few rays near movers; README)
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
 
 
-EXACT_MIN = 32  # whole traces from kept static hits a tick may always make (TraceBudget.exact_points)
 ALIKE = 0.1  # call sizes whose spread is below this share of their mean cannot separate rate and overhead
 
 
@@ -72,7 +74,6 @@ class TraceBudget:
         self.other_stages_s = 0.0  # animate + select + grid, averaged
         self._moments: list[float] | None = None  # weighted means of rays, seconds, rays^2, rays*seconds
         self._dither = -0.25  # share added to the next batch while the calls are alike (sign flips each time)
-        self.exact_s_per_point = 2e-5  # seconds a whole trace from kept static hits costs a point, averaged
 
     def budget_s(self) -> float:
         s = self.settings
@@ -83,29 +84,29 @@ class TraceBudget:
         return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz,
                    s.floor / (1 - s.floor) * self.other_stages_s)
 
-    def exact_points(self) -> int:
-        """How many whole traces from kept static hits fit in exact_share of this tick's budget (at least
-        EXACT_MIN of them, so that their cost keeps being measured on batches where it shows)."""
+    def exact_rays(self, rays: int) -> float:
+        """What a whole trace of `rays` rays from static hits costs, in rays of the fitted rate."""
+        return rays * self.settings.exact_cost
+
+    def exact_points(self, rays: int) -> int:
+        """How many whole traces of `rays` rays from static hits fit in exact_share of this tick's rays."""
         s = self.settings
-        fit = int(s.exact_share * self.budget_s() / self.exact_s_per_point)
-        return min(s.exact_points, max(fit, EXACT_MIN)) if s.exact_share > 0 else 0
+        if s.exact_share <= 0:
+            return 0
+        return min(s.exact_points, int(s.exact_share * self.rays_in_budget() / max(self.exact_rays(rays), 1e-9)))
 
-    def observe_exact(self, points: int, seconds: float) -> None:
-        """Learn the cost of a whole trace from one tick's: only from batches of at least EXACT_MIN points
-        (a smaller one's fixed costs, spread over few points, would make the next batch smaller still)."""
-        if points >= min(EXACT_MIN, max(self.settings.exact_points, 1)) and math.isfinite(seconds):
-            a = self.settings.smoothing
-            self.exact_s_per_point = max((1 - a) * self.exact_s_per_point + a * seconds / points, 1e-8)
+    def rays_in_budget(self) -> float:
+        """Rays this tick's budget allows at the fitted rate, after the per-call overhead. An overhead
+        beyond the budget is paid whenever anything is traced: then half a budget's worth of rays goes on
+        top of it, or the tick would crawl along at min_points."""
+        budget = self.budget_s()
+        return max(budget - self.overhead_s, 0.5 * budget) * self.rays_per_second
 
-    def points(self, rays_per_point: int, spent_s: float = 0.0) -> int:
-        """How many points of `rays_per_point` rays fit in this tick's budget, less `spent_s` seconds of it
-        already traced on whole traces, but at least what is not exact_share of it (at least min_points)."""
-        whole = self.budget_s()
-        budget = max(whole - spent_s, (1 - self.settings.exact_share) * whole)
-        # An overhead beyond the budget is paid whenever anything is traced: then trace half a budget's
-        # worth of rays on top of it, or the tick would crawl along at min_points.
-        room = max(budget - self.overhead_s, 0.5 * budget)
-        n = room * self.rays_per_second / max(rays_per_point, 1)
+    def points(self, rays_per_point: int, spent_rays: float = 0.0) -> int:
+        """How many points of `rays_per_point` rays fit in this tick's budget, less `spent_rays` (rays of the
+        fitted rate) of it given to whole traces, but at least what is not exact_share of it (at least min_points)."""
+        whole = self.rays_in_budget()
+        n = max(whole - spent_rays, (1 - self.settings.exact_share) * whole) / max(rays_per_point, 1)
         if self._alike():
             # Calls of one size cannot tell the rate from the overhead: a rate believed too high would stay
             # (its error taken for overhead) and every tick would trace past its budget. Batches a quarter

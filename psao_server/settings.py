@@ -169,6 +169,10 @@ class BakeSettings:
     gap_fill: GapFillSettings = field(default_factory=GapFillSettings)  # add points where lookups find none (off by default)
     densify: DensifySettings = field(default_factory=DensifySettings)  # add points where the AO varies fast
     skip_buried: bool = True  # no points on surfaces inside closed static geometry (psao_server/buried.py)
+    # keep which rays of each static point the static scene occludes (rays / 8 bytes a point, only for scenes
+    # with moving instances): the budgeted tick then re-traces a static point near movers whole at a
+    # fraction of its cost (psao_server/static_hits.py)
+    keep_static_hits: bool = True
     cluster: ClusterSettings | None = None  # trace on a Dask cluster (the dask back-end) instead of `tracer`
 
     def check(self) -> None:

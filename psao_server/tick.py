@@ -58,6 +58,7 @@ from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_pl
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.static_hits import StaticHits
 from psao_server.tracer import make_tracer
+from psao_server.tracer.base import TracePart
 
 log = logging.getLogger("psao.tick")
 
@@ -143,7 +144,13 @@ class ServerTick:
             self.last_frame = None
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
-        self._static_hits: StaticHits | None = None
+        # the bake's static hits, for ray sets like the tick's (the static scene's answers, for the whole traces
+        # of static points near movers; only the Embree tracer answers from them)
+        hits = bake.static_hits
+        self._static_hits: StaticHits | None = (
+            hits if hits is not None and hits.fits(self.settings.rays, self.settings.seed)
+            and hasattr(self.tracer, "visibility_given_static") else None)
+        self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._union = None  # select_kernels.ViewUnion, made at the first test of points against the views
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
@@ -210,6 +217,7 @@ class ServerTick:
     def _load_tracer(self) -> None:
         """The tracer's static scene and its rigid movers (built once and posed per tick; only deforming
         meshes are rebuilt)."""
+        self._posed = None
         self.tracer.set_static(*self.animator.static_geometry())
         self.tracer.set_rigid([(self.scene.meshes[self.scene.instances[i].mesh].vertices,
                                 self.scene.meshes[self.scene.instances[i].mesh].faces) for i in self.kinds.rigid])
@@ -243,9 +251,14 @@ class ServerTick:
 
     def pose_tracer(self, frame: Frame, tracer=None) -> None:
         """The moving part at `frame` (the skinned meshes' triangles, the rigid ones' transforms) into the
-        tick's tracer, or into `tracer` (the refiner's)."""
+        tick's tracer (once per frame: each new pose refits the deforming part in every worker), or into
+        `tracer` (the refiner's)."""
+        if tracer is None and self._posed is frame:
+            return
         (self.tracer if tracer is None else tracer).set_dynamic(
             frame.skinned_vertices, frame.skinned_faces, frame.transforms[self.kinds.rigid], frame.skinned_parts)
+        if tracer is None:
+            self._posed = frame
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
         """The tracer's visibility (with `slice_of`, the given slice of each point's ray set); a worker
@@ -257,6 +270,20 @@ class ServerTick:
         except TracerError as exc:
             log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
             return self.tracer.visibility(pos, nrm, ids, settings, **extra)
+
+    def _trace_parts(self, parts) -> list[np.ndarray]:
+        """The tracer's visibility_parts (or one visibility call per part where the tracer has no such
+        call), with _trace's one retry when a worker died."""
+        def run():
+            if hasattr(self.tracer, "visibility_parts"):
+                return self.tracer.visibility_parts(parts)
+            return [self.tracer.visibility(p.positions, p.normals, p.point_ids, p.settings,
+                                           **({} if p.slice_of is None else {"slice_of": p.slice_of})) for p in parts]
+        try:
+            return run()
+        except TracerError as exc:
+            log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
+            return run()
 
     def close(self) -> None:
         self.tracer.close()
@@ -385,56 +412,53 @@ class ServerTick:
         self.queue.reset(changed, now, change)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
-        t_exact = time.perf_counter()
-        exact, exact_codes = self._exact_static(frame, changed, self.budget.exact_points())
-        exact_s = time.perf_counter() - t_exact
-        self.budget.observe_exact(len(exact), exact_s)
-        k = self.budget.points(round_settings.rays_traced, exact_s)  # the rounds get what is left
-        looked = self._looked_at(changed, max(16 * k, self.settings.budget.scan_points))
+        looked = self._looked_at(changed, max(16 * self.budget.points(round_settings.rays_traced),
+                                              self.settings.budget.scan_points))
+        s = self.trace_settings
+        exact = self._exact_static(looked, self.budget.exact_points(s.rays))
+        spent = len(exact) * self.budget.exact_rays(s.rays)
+        k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
+        if len(exact):
+            looked = looked[~np.isin(looked, exact, assume_unique=True)]
         chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
-        codes = np.zeros(0, np.uint32)
-        if len(chosen):
+        codes, exact_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
+        if len(chosen) or len(exact):  # one call: the workers' hand-over is paid once
             pos, nrm = self.world_points(frame, chosen)
+            parts = [TracePart(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen])]
+            if len(exact):
+                parts.append(TracePart(self.world_pos[exact], self.world_nrm[exact], exact, s,
+                                       static_hit=self._static_hits.packed(exact)))
             self.pose_tracer(frame)
-            vis = self._trace(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen])
-            codes = self.queue.add(chosen, vis, round_settings.rays_traced, time.perf_counter())
+            vis = self._trace_parts(parts)
+            now = time.perf_counter()
+            codes = self.queue.add(chosen, vis[0], round_settings.rays_traced, now)
+            if len(exact):  # the full trace's AO: the point's whole ray set at once
+                exact_codes = self.queue.add(exact, vis[1], s.rays, now, slices=self.queue.slices)
         t_trace = time.perf_counter()
-        self.budget.observe_trace(len(chosen) * round_settings.rays_traced, t_trace - t_sel)
+        self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel)
         # the queue after this round (points out on the refiner wait too); the oldest wait among the points
         # looked at (all of them unless the queue is longer than a sweep's part)
         still = looked[self.queue.done[looked] < self.queue.slices]
         self._queue_now = (self.queue.count, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
         chosen, codes = np.concatenate([chosen, refined[0], exact]), np.concatenate([codes, refined[1], exact_codes])
-        return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim - exact_s, t_trace - t_sel + exact_s),
+        return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s(), exact=len(exact))
 
-    def _exact_static(self, frame: Frame, changed: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray]:
-        """The static points among `changed` (just reset) that get their whole ray set at once: in some
-        client's extended view, with an estimated AO change since their last trace of at least
-        exact_min_change, the `most` changed most. Only the rays the static scene lets through are
-        traced, against the moving parts (StaticHits, EmbreeTracer.visibility_given_static): the full
-        trace's AO, which ends their wait. Returns (ids, AO codes)."""
-        b = self.settings.budget
-        if most <= 0 or not hasattr(self.tracer, "visibility_given_static"):
-            return changed[:0], np.zeros(0, np.uint32)
-        if self._static_hits is None:  # static points' static hits, kept from their first whole trace on
-            self._static_hits = StaticHits(len(self.tracked), self.settings.rays)
-        ids = changed[~self.moving_point[changed]]
-        ids = ids[self.queue.change[ids] >= b.exact_min_change]
-        if self.refiner is not None:
-            ids = ids[~self.refiner.busy[ids]]
+    def _exact_static(self, waiting: np.ndarray, most: int) -> np.ndarray:
+        """The static points among `waiting` (sorted) that get their whole ray set at once this tick (sorted):
+        those whose static hits the bake kept, in some client's extended view, with an estimated AO change
+        since their last trace of at least exact_min_change, the `most` changed most. Only the rays the
+        static scene lets through are traced, against the moving parts (StaticHits, TracePart.static_hit):
+        the full trace's AO, which ends their wait."""
+        hits = self._static_hits
+        if most <= 0 or hits is None:
+            return waiting[:0]
+        ids = waiting[hits.known[waiting]]
+        ids = ids[self.queue.change[ids] >= self.settings.budget.exact_min_change]
         ids = ids[self._in_views(self.world_pos[ids])]
-        ids = np.sort(first_by_key(ids, -self.queue.change[ids].astype(np.float64), most))
-        if len(ids) == 0:
-            return ids, np.zeros(0, np.uint32)
-        s = self.trace_settings
-        hits = self._static_hits.of(ids, lambda new: self.tracer.static_occluded(self.world_pos[new], self.world_nrm[new],
-                                                                                 new, s))
-        self.pose_tracer(frame)
-        vis = self.tracer.visibility_given_static(self.world_pos[ids], self.world_nrm[ids], ids, s, hits)
-        return ids, self.queue.add(ids, vis, s.rays, time.perf_counter(), slices=self.queue.slices)
+        return np.sort(first_by_key(ids, -self.queue.change[ids].astype(np.float64), most))
 
     def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the

@@ -120,3 +120,39 @@ def test_cli_malformed_toml(tmp_path):
     bad.write_text("[scene\nname = 'x'\n")
     r = run_cli("bake", str(bad))
     assert r.returncode == 2 and "Traceback" not in r.stderr and "bad.toml" in r.stderr
+
+
+def test_bake_keeps_the_static_scenes_answers_for_static_points():
+    """A scene with movers: the bake traces its static instances first and keeps, per static point, which
+    rays the static scene occludes (equal to a trace of the static scene alone), at no change to the AO."""
+    from psao_server.animate import SceneAnimator
+    from psao_server.bake import scene_center
+    from psao_server.settings import TraceSettings
+    from psao_server.tracer import make_tracer
+
+    scene = load_scene("builtin:courtyard")
+    settings = BakeSettings(density=4, rays=16, workers=2)
+    res = bake_scene(scene, settings, show_progress=False)
+    res.tracer.close()
+    plain = bake_scene(scene, BakeSettings(density=4, rays=16, workers=2, keep_static_hits=False), show_progress=False)
+    plain.tracer.close()
+    assert plain.static_hits is None and res.static_hits is not None
+    assert res.stats["static_hits_bytes"] >= 2 * res.grid.n_points()
+    t = res.grid.point_table()
+    np.testing.assert_array_equal(t.ao_code[np.argsort(t.point_id)],
+                                  plain.grid.point_table().ao_code[np.argsort(plain.grid.point_table().point_id)])
+    anim = SceneAnimator(scene)
+    static = np.isin(t.instance, anim.kinds.static)
+    assert static.any() and not static.all()
+    np.testing.assert_array_equal(res.static_hits.known[t.point_id], static)
+    ids = t.point_id[static]
+    tracer = make_tracer("embree", scene_center(scene), workers=1)
+    tracer.set_static(*anim.static_geometry())
+    pos, nrm = np.zeros((len(ids), 3)), np.zeros((len(ids), 3), np.float32)
+    for i in np.unique(t.instance[static]):
+        sel = t.instance[static] == i
+        pos[sel], nrm[sel] = to_world(scene.instances[i].transform, t.local_pos[static][sel], t.local_normal[static][sel])
+    expected = tracer.static_occluded(pos, nrm, ids, TraceSettings(rays=16, ao_distance=scene.ao_distance, seed=0))
+    np.testing.assert_array_equal(res.static_hits.of(ids), expected)
+    assert 0.01 < expected.mean() < 0.99
+    tracer.close()

@@ -382,16 +382,15 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
 def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
     from psao_server.budget import TraceBudget
 
-    b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5), rays_per_second=1e6,
-                    overhead_s=0.0)
-    b.exact_s_per_point = 1e-5
-    assert b.exact_points() == pytest.approx(500, abs=1)  # half of 10 ms at 10 us a point
+    b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5, exact_cost=0.5),
+                    rays_per_second=1e6, overhead_s=0.0)
+    assert b.rays_in_budget() == pytest.approx(1e4)
+    assert b.exact_points(32) == 312  # half of 10k rays, at 16 rays' cost a whole trace
     b.settings.exact_points = 200
-    assert b.exact_points() == 200
-    for _ in range(40):
-        b.observe_exact(100, 4e-3)  # they cost 40 us a point
-    assert b.exact_points() == pytest.approx(125, abs=2)
-    full, rest = b.points(8), b.points(8, spent_s=4e-3)
-    assert rest < full and rest == pytest.approx(0.6 * full, rel=0.3)
+    assert b.exact_points(32) == 200
+    full, rest = b.points(8), b.points(8, spent_rays=200 * b.exact_rays(32))
+    assert full == 1250 and rest == 850
     # whole traces that overran their share take nothing from the rest of the budget
-    assert b.points(8, spent_s=1.0) == b.points(8, spent_s=5e-3) == pytest.approx(0.5 * full, rel=0.01)
+    assert b.points(8, spent_rays=1e9) == b.points(8, spent_rays=6000) == 625
+    b.settings.exact_share = 0.0
+    assert b.exact_points(32) == 0

@@ -329,3 +329,46 @@ def test_only_the_rays_the_static_scene_lets_through_give_the_full_trace(moving)
         assert full.min() < 0.7  # the movers are really in the way
         np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, hits), full)
     tracer.close()
+
+
+@pytest.mark.parametrize("moving", ["rigid", "deforming"])
+def test_static_hits_kept_by_a_trace_give_the_full_trace_in_the_workers(moving):
+    """visibility_and_static_hits answers as visibility and keeps the static scene's answers (bit-packed,
+    equal to static_occluded); visibility_given_static from those bits, traced in the worker processes,
+    equals a full trace of the same rays wherever the movers stand."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=2)
+    tracer.set_static(v, f)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    tracer.set_rigid([(ball.vertices, ball.faces)])
+    box = trimesh.creation.box(extents=(0.6, 0.4, 0.8))
+    rng = np.random.default_rng(2)
+    n = 1500  # above local_rays: the workers trace
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    ids = np.arange(n) * 5 + 11
+    s = TraceSettings(rays=24, ao_distance=1.5, seed=4)
+    assert n * s.rays >= s.local_rays
+
+    def pose(shift):
+        rigid = np.eye(4)[None].copy()
+        rigid[0, :3, 3] = shift
+        if moving == "rigid":
+            tracer.set_dynamic(None, np.zeros((0, 3), int), rigid)
+        else:
+            tracer.set_dynamic(box.vertices + np.array(shift), box.faces, None)
+
+    pose((0.2, 0.1, 0.5))
+    vis, bits = tracer.visibility_and_static_hits(pos, nrm, ids, s)
+    assert bits.shape == (n, 3) and bits.dtype == np.uint8
+    np.testing.assert_array_equal(vis, tracer.visibility(pos, nrm, ids, s))
+    static = tracer.static_occluded(pos, nrm, ids, s)
+    assert 0.05 < static.mean() < 0.95
+    np.testing.assert_array_equal(np.unpackbits(bits, axis=1, count=s.rays).astype(bool), static)
+    for shift in ((0.2, 0.1, 0.5), (-0.7, 0.4, 0.6), (5.0, 5.0, 0.5)):
+        pose(shift)
+        full = tracer.visibility(pos, nrm, ids, s)
+        np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, bits), full)
+        np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, static), full)
+    assert full.min() < 1.0  # the ceiling is in the way even where the mover is not
+    tracer.close()

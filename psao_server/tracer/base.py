@@ -7,6 +7,8 @@ the point unoccluded within the AO distance.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -25,6 +27,20 @@ def recentre_poses(rigid_transforms, center: np.ndarray) -> np.ndarray | None:
     poses = np.asarray(rigid_transforms, np.float64).reshape(-1, 4, 4).copy()
     poses[:, :3, 3] -= center
     return poses
+
+
+@dataclass
+class TracePart:
+    """One batch of EmbreeTracer.visibility_parts: points, their settings and, optionally, the slice of each
+    point's ray set to trace (slice_of), the static scene's answers known already (static_hit: whole ray
+    sets, (P, rays) bool or (P, ceil(rays / 8)) packed uint8), or a request to keep them (keep_static)."""
+    positions: np.ndarray
+    normals: np.ndarray
+    point_ids: np.ndarray
+    settings: TraceSettings
+    slice_of: np.ndarray | None = None
+    static_hit: np.ndarray | None = None
+    keep_static: bool = False
 
 
 class Tracer:

@@ -137,7 +137,7 @@ def _trace_points(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> dict:
     vis = np.empty(len(pos), np.float32)
     cpu_query = cpu_total = 0.0
     for i in range(0, len(pos), s.chunk_points):
-        v, q, t = _trace_chunk(scenes, pos[i:i + s.chunk_points], nrm[i:i + s.chunk_points], ids[i:i + s.chunk_points], s)
+        v, q, t, _ = _trace_chunk(scenes, pos[i:i + s.chunk_points], nrm[i:i + s.chunk_points], ids[i:i + s.chunk_points], s)
         vis[i:i + len(v)] = v
         cpu_query += q
         cpu_total += t

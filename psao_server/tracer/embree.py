@@ -20,7 +20,7 @@ import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
-from psao_server.tracer.base import Tracer, recentre, recentre_poses
+from psao_server.tracer.base import TracePart, Tracer, recentre, recentre_poses
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 from psao_server.tracer.embree_refit import RefitMesh
 
@@ -62,6 +62,19 @@ class _Rigid:
         self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         self.centre = (lo + hi) / 2 if len(v) else np.zeros(3)  # a bounding sphere, local frame
         self.radius = float(np.sqrt(((v - self.centre) ** 2).sum(axis=1).max())) if len(v) else 0.0
+        self._pose_key: bytes | None = None  # the pose _placed last worked out, and its answer
+        self._pose_placed = None
+
+    def _placed(self, pose: np.ndarray):
+        """(world sphere centre, radius, inverse pose) at `pose`: the chunks of one call share a pose, so it
+        is worked out once per pose (a 3x3 singular value decomposition and an inverse cost more than a
+        small chunk's box test)."""
+        key = pose.tobytes()
+        if key != self._pose_key:
+            scale = float(np.linalg.norm(pose[:3, :3], 2))  # the largest stretch, shear included
+            self._pose_placed = (pose[:3, :3] @ self.centre + pose[:3, 3], self.radius * scale, np.linalg.inv(pose))
+            self._pose_key = key
+        return self._pose_placed
 
     def occlude(self, pose: np.ndarray, origins, dirs, tmax, hit: np.ndarray, rays_per_point: int) -> None:
         """Mark in `hit` the rays (world, re-centred) this mesh at `pose` (4x4 local -> world) occludes.
@@ -74,15 +87,20 @@ class _Rigid:
         lo, hi = w.min(axis=0) - tmax, w.max(axis=0) + tmax
         points = origins[::rays_per_point]
         near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        if len(near) == 0:
+            return
+        centre, radius, inv = self._placed(pose)
+        # a point farther than tmax (unit directions) beyond the world bounding sphere reaches it with no ray:
+        # one test per point, before any ray is gathered
+        gap = points[near] - centre.astype(np.float32)
+        reach = np.float32(tmax + radius * (1 + 1e-4) + 1e-6)
+        near = near[np.einsum("pi,pi->p", gap, gap) <= reach * reach]
         rays = (near[:, None] * rays_per_point + np.arange(rays_per_point)).ravel()
         rays = rays[~hit[rays]]
         # only rays whose segment comes within the mesh's bounding sphere (world) can hit: most rays of a
         # point near the mover point away from it
-        scale = float(np.linalg.norm(pose[:3, :3], 2))  # the largest stretch, shear included
-        rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, pose[:3, :3] @ self.centre + pose[:3, 3],
-                                          self.radius * scale)]
+        rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, centre, radius)]
         if len(rays):
-            inv = np.linalg.inv(pose)
             o = (origins[rays] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
             d = (dirs[rays] @ inv[:3, :3].T).astype(np.float32)
             hit[rays] = self.scene.run(o, d, dists=np.full(len(rays), tmax, np.float32), query="OCCLUDED") != -1
@@ -128,11 +146,13 @@ class _Scenes:
         self._refit = RefitMesh.build(vertices, faces, _device(), parts)
         return self._refit.scene if self._refit is not None else _build_scene(vertices, faces)
 
-    def occluded(self, origins, dirs, tmax, rays_per_point: int = 1, static_hit: np.ndarray | None = None) -> np.ndarray:
+    def occluded(self, origins, dirs, tmax, rays_per_point: int = 1, static_hit: np.ndarray | None = None,
+                 static_out: np.ndarray | None = None) -> np.ndarray:
         """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
         ones before let through. Rays come in runs of `rays_per_point` that share an origin (a point's).
         `static_hit`: per ray, whether the static scene occludes it, known already (static_occluded): the
-        static scene is not traced, the moving parts see only the other rays."""
+        static scene is not traced, the moving parts see only the other rays. `static_out`: filled with
+        the static scene's own answer per ray (what the static scene decides before the movers are asked)."""
         if len(origins) % rays_per_point:
             raise TracerError(f"{len(origins)} rays are not runs of {rays_per_point}")
         dists = np.full(len(origins), tmax, np.float32)
@@ -142,6 +162,8 @@ class _Scenes:
             hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
         else:
             hit = np.zeros(len(origins), dtype=bool)
+        if static_out is not None:
+            static_out[:] = hit
         if self.dynamic is not None:
             todo = np.flatnonzero(~hit)
             if len(todo):
@@ -188,18 +210,25 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
     return rays.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance, first, s.slices)
 
 
-def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None):
+def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None, static_bits=None,
+                 keep_static: bool = False):
     """Visibility of a chunk of points, with the seconds the Embree query and the whole chunk took in this
     worker (perf_counter: a CPU-time clock is a system call, which on a loaded machine can cost more
-    than a small chunk's tracing). The tracer's throughput against bare Embree is measured as a run of
+    than a small chunk's tracing) and the static scene's answers, bit-packed per point (P, ceil(K / 8)),
+    when `keep_static` (else None). `static_bits`: those answers known already (whole ray sets only):
+    the static scene is not traced. The tracer's throughput against bare Embree is measured as a run of
     its own (benchmarks/bench_realtime.py), not from these."""
     t0 = time.perf_counter()
     org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
     t1 = time.perf_counter()
-    hit = scenes.occluded(org, dirs, s.ao_distance, max(len(org) // max(len(pos), 1), 1))
+    per_point = max(len(org) // max(len(pos), 1), 1)
+    given = None if static_bits is None else np.unpackbits(static_bits, axis=1, count=per_point).ravel().astype(bool)
+    static = np.empty(len(org), bool) if keep_static else None
+    hit = scenes.occluded(org, dirs, s.ao_distance, per_point, given, static)
     t2 = time.perf_counter()
     vis = 1.0 - hit.reshape(len(pos), -1).mean(axis=1, dtype=np.float32)
-    return vis, t2 - t1, time.perf_counter() - t0
+    bits = np.packbits(static.reshape(len(pos), -1), axis=1) if keep_static else None
+    return vis, t2 - t1, time.perf_counter() - t0, bits
 
 
 # ---- worker-process side
@@ -260,9 +289,9 @@ def _worker_init(parent, static_vertices, static_faces, rigid):
 
 
 def _worker_trace(job):
-    version, dyn_v, dyn_f, parts, poses, pos, nrm, ids, s, first = job
+    version, dyn_v, dyn_f, parts, poses, pos, nrm, ids, s, first, static_bits, keep_static = job
     _WORKER.update_dynamic(version, dyn_v, dyn_f, poses, parts)
-    return _trace_chunk(_WORKER, pos, nrm, ids, s, first)
+    return _trace_chunk(_WORKER, pos, nrm, ids, s, first, static_bits, keep_static)
 
 
 def _worker_ping(_):
@@ -333,15 +362,18 @@ class EmbreeTracer(Tracer):
         # The in-process scenes catch up lazily, when a small call traces here rather than in the workers.
 
     # tracing --------------------------------------------------------------
-    def _jobs(self, positions, normals, point_ids, s: TraceSettings, slice_of=None):
+    def _jobs(self, positions, normals, point_ids, s: TraceSettings, slice_of=None, static_bits=None,
+              keep_static: bool = False, spread: bool = True):
         pos = self._recentre(positions)
         nrm = np.asarray(normals, np.float32)
         ids = np.asarray(point_ids, np.int64)
-        # At least one chunk per worker, so small point sets are spread over every worker too.
-        step = max(1, min(s.chunk_points, -(-len(pos) // self.workers)))
+        # With `spread` (for the workers) at least one chunk per worker, so small point sets are spread over
+        # every worker too; traced here, as few chunks as chunk_points allows (each has fixed costs).
+        step = max(1, min(s.chunk_points, -(-len(pos) // (self.workers if spread else 1))))
         for i in range(0, len(pos), step):
             yield (self._dynamic_version, *self._dynamic, self._poses, pos[i:i + step], nrm[i:i + step],
-                   ids[i:i + step], s, None if slice_of is None else slice_of[i:i + step])
+                   ids[i:i + step], s, None if slice_of is None else slice_of[i:i + step],
+                   None if static_bits is None else static_bits[i:i + step], keep_static)
 
     def _ensure_pool(self):
         if self._pool is None and self.workers > 1:
@@ -360,30 +392,67 @@ class EmbreeTracer(Tracer):
 
     def visibility(self, positions, normals, point_ids, settings: TraceSettings, progress=None,
                    slice_of=None) -> np.ndarray:
+        return self._trace_parts([TracePart(positions, normals, point_ids, settings, slice_of)], progress)[0][0]
+
+    def visibility_and_static_hits(self, positions, normals, point_ids, settings: TraceSettings,
+                                   progress=None) -> tuple[np.ndarray, np.ndarray]:
+        """visibility() of each point's whole ray set, and which of those rays the static scene alone
+        occludes, bit-packed (P, ceil(rays / 8)) uint8 (np.packbits order): the static scene answers first
+        in every trace, so keeping its answers costs no extra ray."""
+        if settings.slices != 1:
+            raise TracerError("static hits are kept for whole ray sets only")
+        return self._trace_parts([TracePart(positions, normals, point_ids, settings, keep_static=True)], progress)[0]
+
+    def visibility_parts(self, parts: list[TracePart]) -> list[np.ndarray]:
+        """visibility() of several batches (each its own settings, slices, static hits) in one hand-over to
+        the workers: a tick that traces two kinds of batch pays the pool's per-call cost once."""
+        return [vis for vis, _ in self._trace_parts(parts)]
+
+    def _trace_parts(self, parts: list[TracePart], progress=None) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """Per part: (visibility, the static scene's packed answers when it keeps them, else None)."""
         if self._local is None:
             raise TracerError("set_static() must be called before tracing")
-        out = []
-        if len(positions) == 0:
-            return np.zeros(0, np.float32)
-        big = len(positions) >= 2 * self.workers and len(positions) * settings.rays_traced >= settings.local_rays
+        for part in parts:
+            if part.static_hit is not None and part.settings.slices != 1:
+                raise TracerError("static hits are kept for whole ray sets only")
+        points = sum(len(p.positions) for p in parts)
+        rays = sum(len(p.positions) * p.settings.rays_traced for p in parts)
+        big = points >= 2 * self.workers and rays >= min(p.settings.local_rays for p in parts) if parts else False
         pool = self._ensure_pool() if big else None
-        jobs = self._jobs(positions, normals, point_ids, settings,
-                          None if slice_of is None else np.asarray(slice_of, np.int64))
+        jobs, owner = [], []
+        for k, part in enumerate(parts):
+            hit = None if part.static_hit is None else np.asarray(part.static_hit)
+            if hit is not None and hit.dtype != np.uint8:  # (P, rays) bool: packed as the workers take it
+                hit = np.packbits(hit.reshape(len(part.positions), -1).astype(bool), axis=1)
+            for job in self._jobs(part.positions, part.normals, part.point_ids, part.settings,
+                                  None if part.slice_of is None else np.asarray(part.slice_of, np.int64), hit,
+                                  part.keep_static, spread=pool is not None):
+                jobs.append(job)
+                owner.append(k)
         if pool is None:
-            dyn_v, dyn_f, parts = self._dynamic
-            self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, parts)
+            dyn_v, dyn_f, dyn_parts = self._dynamic
+            self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, dyn_parts)
+        out = [([], []) for _ in parts]
         try:
             results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[5:]) for job in jobs)
-            for vis, cpu_query, cpu_total in results:
-                out.append(vis)
-                self.account.add(len(vis) * settings.rays_traced, cpu_query, cpu_total)
+            for k, (vis, cpu_query, cpu_total, kept) in zip(owner, results):
+                out[k][0].append(vis)
+                out[k][1].append(kept)
+                self.account.add(len(vis) * parts[k].settings.rays_traced, cpu_query, cpu_total)
                 if progress is not None:
                     progress(len(vis))
         except BrokenProcessPool as exc:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
             raise TracerError(f"an Embree worker process died: {exc}") from None
-        return np.concatenate(out).astype(np.float32)
+        answers = []
+        for part, (vis, kept) in zip(parts, out):
+            v = np.concatenate(vis).astype(np.float32) if vis else np.zeros(0, np.float32)
+            b = None
+            if part.keep_static:
+                b = np.concatenate(kept) if kept else np.zeros((0, (part.settings.rays + 7) // 8), np.uint8)
+            answers.append((v, b))
+        return answers
 
     def _local_rays(self, positions, normals, point_ids, settings: TraceSettings):
         """Origins and directions of each point's whole `settings.rays`-ray set, in this process."""
@@ -404,17 +473,12 @@ class EmbreeTracer(Tracer):
 
     def visibility_given_static(self, positions, normals, point_ids, settings: TraceSettings,
                                 static_hit: np.ndarray) -> np.ndarray:
-        """visibility() of each point's whole ray set, given `static_hit` (static_occluded of the same
-        points and settings): only the rays the static scene lets through are traced, against the moving
-        parts alone (in this process), so a point near movers costs a fraction of its full trace; the
+        """visibility() of each point's whole ray set, given `static_hit` (which of those rays the static
+        scene occludes: (P, rays) bool as static_occluded gives, or bit-packed (P, ceil(rays / 8)) uint8 as
+        visibility_and_static_hits keeps): only the rays the static scene lets through are traced, against
+        the moving parts alone (in the workers, as visibility), so the static scene costs nothing; the
         answer is the full trace's."""
-        if len(positions) == 0:
-            return np.zeros(0, np.float32)
-        org, dirs = self._local_rays(positions, normals, point_ids, settings)
-        dyn_v, dyn_f, parts = self._dynamic
-        self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, parts)
-        hit = self._local.occluded(org, dirs, settings.ao_distance, settings.rays, np.asarray(static_hit).ravel())
-        return 1.0 - hit.reshape(len(positions), -1).mean(axis=1, dtype=np.float32)
+        return self.visibility_parts([TracePart(positions, normals, point_ids, settings, static_hit=static_hit)])[0]
 
     def throughput(self) -> dict:
         return self.account.rates(self.workers if self._pool is not None else 1)
