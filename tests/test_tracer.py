@@ -372,3 +372,31 @@ def test_static_hits_kept_by_a_trace_give_the_full_trace_in_the_workers(moving):
         np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, static), full)
     assert full.min() < 1.0  # the ceiling is in the way even where the mover is not
     tracer.close()
+
+
+def test_a_call_traced_in_process_equals_the_same_call_spread_over_workers():
+    """A small call is traced in the calling process in one chunk, a large one in chunks over the workers:
+    a point's rays do not depend on its chunk, so the answers are the same bit for bit (static, deforming
+    and rigid parts, slices of the ray set)."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=2)
+    tracer.set_static(v[:8], f[:12])
+    mover = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    tracer.set_rigid([(mover.vertices, mover.faces)])
+    pose = np.eye(4)
+    pose[:3, 3] = (0.2, -0.1, 0.6)
+    tracer.set_dynamic(mover.vertices * 0.5 + (0.6, 0.4, 0.4), mover.faces, pose[None])
+    rng = np.random.default_rng(5)
+    n = 700
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    slices = rng.integers(0, 4, n)
+    try:
+        here = tracer.visibility(pos, nrm, np.arange(n), TraceSettings(rays=32, slices=4, ao_distance=2.0,
+                                                                       local_rays=10**9), slice_of=slices)
+        spread = tracer.visibility(pos, nrm, np.arange(n), TraceSettings(rays=32, slices=4, ao_distance=2.0,
+                                                                         local_rays=1, chunk_points=64), slice_of=slices)
+        assert tracer._pool is not None and here.min() < 0.8
+        np.testing.assert_array_equal(here, spread)
+    finally:
+        tracer.close()
