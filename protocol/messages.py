@@ -254,10 +254,17 @@ class Camera:
 
     @classmethod
     def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Camera":
-        r = Reader(payload, "Camera")
-        view, proj = _matrix(r, "Camera view"), _matrix(r, "Camera projection")
-        r.done()
-        return cls(view, proj)
+        # (a server parses one per client 30 times a second: both matrices in one read and one check)
+        if len(payload) != 128:
+            r = Reader(payload, "Camera")
+            view, proj = _matrix(r, "Camera view"), _matrix(r, "Camera projection")
+            r.done()
+            return cls(view, proj)
+        both = np.frombuffer(payload, "<f4").astype(np.float32)
+        if not np.isfinite(both).all():
+            what = "view" if not np.isfinite(both[:16]).all() else "projection"
+            raise PayloadError(f"Camera {what} has NaN or infinite entries")
+        return cls(both[:16].reshape(4, 4), both[16:].reshape(4, 4))
 
 
 _EDIT = struct.Struct("<I")
