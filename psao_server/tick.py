@@ -32,9 +32,11 @@ Two ways to trace (TickSettings.budget):
     settings  the time-budgeted tick of psao_server.budget: selected points have their ray history reset
               and wait in a priority queue; each tick traces as many as its time budget allows with one
               slice (`round_rays` rays) of each point's `rays`-ray set, accumulating up to `rays` per
-              point: a point's rounds together are exactly its unbudgeted trace. A scene at rest
-              converges and then traces nothing; idle budget refines points the bake traced with
-              fewer rays than `rays` (progressive start).
+              point: a point's rounds together are exactly its unbudgeted trace. First, exact_share of
+              the budget traces static points near movers whole from the bake's static hits (only the
+              rays the static scene lets through, against the movers: the full trace's AO), in the
+              same tracer call. A scene at rest converges and then traces nothing; idle budget refines
+              points the bake traced with fewer rays than `rays` (progressive start).
 """
 from __future__ import annotations
 
