@@ -113,10 +113,8 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
         read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
         reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
-        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)), tls_ca=_tls_ca(args),
+        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)), tls_ca=_tls_ca(args), digest_every=every,
     )
-    if every > 1:  # (the Updates applied so far, this one included: the Snapshot's chunks come before any)
-        client.digest_if = lambda _conn, _seq: client.stats.updates <= 1 or client.stats.updates % every == 0
     return client
 
 

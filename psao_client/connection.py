@@ -47,6 +47,7 @@ from protocol.session import (
 
 from .errors import ClientError, ConnectError
 from .mirror import Mirror
+from .settings import ConnectSettings
 
 OnMirror = Callable[[Mirror], None]
 OnUpdate = Callable[[Mirror, np.ndarray, int], None]
@@ -81,7 +82,7 @@ class MirrorClient:
                  read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
                  limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
-                 tls_ca: Path | None = None, digest_every: int = 1,
+                 tls_ca: Path | None = None, digest_every: int = ConnectSettings.digest_every,
                  digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
@@ -95,9 +96,13 @@ class MirrorClient:
         self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
+        if digest_every < 1:
+            raise ClientError(f"digest every must be >= 1 Updates, got {digest_every}")
         # (connection id, message index) -> whether to log this Snapshot/Update's digest (each hashes the
-        # whole mirror); by default every digest_every-th
-        self.digest_if = digest_if or (lambda _conn, seq: seq % digest_every == 0)
+        # whole mirror); by default after every Snapshot chunk and the first Update, then every
+        # digest_every-th Update applied
+        self.digest_if = digest_if or (
+            lambda _conn, _seq: self.stats.updates <= 1 or self.stats.updates % digest_every == 0)
         self.reconnect = reconnect
         self.reconnect_timeout = reconnect_timeout
         # seconds for a connection's opening handshake; a busy server's is slow, and each retry throws away

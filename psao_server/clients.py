@@ -22,6 +22,13 @@ from protocol.limits import Limits
 from protocol.updates import GridDelta
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A view of `a` that cannot be written through."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
 def changed_buckets(buckets: np.ndarray) -> np.ndarray:
     """Buckets that differ from an empty one (a fresh mirror starts with all buckets empty)."""
     return np.flatnonzero(np.any(buckets != EMPTY, axis=(1, 2))).astype(np.uint32)
@@ -175,12 +182,12 @@ class Client:
     @property
     def pending_buckets(self) -> np.ndarray:
         """Bool per bucket: pending (read only; changes go through buckets_pending)."""
-        return self.buckets_pending.mask
+        return _read_only(self.buckets_pending.mask)
 
     @property
     def pending_cells(self) -> np.ndarray:
         """Bool per cell slot: pending (read only; changes go through cells_pending)."""
-        return self.cells_pending.mask
+        return _read_only(self.cells_pending.mask)
 
     def _fit(self, capacity: int) -> None:
         """Follow the grid's capacity, which only grows: the new slots have nothing pending."""

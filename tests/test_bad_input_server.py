@@ -241,3 +241,15 @@ def test_message_beyond_the_socket_limit(caplog):
 def test_silent_connection_times_out(caplog):
     error, code, line = run_case(caplog, [])
     assert error.code == m.ErrorCode.TIMEOUT and code == 1008 and "no Hello" in line
+
+
+def test_client_digest_every_counts_updates_and_is_checked():
+    from psao_client.errors import ClientError
+    with pytest.raises(ClientError, match="digest every"):
+        MirrorClient("ws://127.0.0.1:1", b"\0" * 32, digest_every=0)
+    client = MirrorClient("ws://127.0.0.1:1", b"\0" * 32, digest_every=3)
+    logged = []
+    for updates in range(8):  # 0: the Snapshot's chunks; then after the first Update, every third
+        client.stats.updates = updates
+        logged.append(client.digest_if(1, updates + 5))
+    assert logged == [True, True, False, True, False, False, True, False]
