@@ -221,6 +221,7 @@ class FanoutSettings:
     # before nothing more is sent to it: its changes wait in its pending sets and go out merged once it has
     # read. Kernel and library buffers on the way can hold seconds of Updates; this bounds how far behind
     # a slow reader's mirror (and the answers to keepalive pings, which queue behind the data) can fall.
+    # A count, not a time: a link whose round trip exceeds max_unread ticks holds a fast reader back too.
     max_unread: int = 8
     probe_every: int = 2  # messages sent after the last answered ping before the next ping (one at a time)
     # rows (buckets + cells): a client's own Update of at most this many is encoded on the event loop (well
