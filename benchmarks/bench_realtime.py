@@ -15,7 +15,8 @@ Parts (--parts, comma list; all by default):
            re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
            points in the camera's view against a --ref-rays reference trace, while moving and one second
            after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart;
-           while moving, the squared error split by kind of point (POINT_KINDS: where the loss comes from)
+           while moving, the squared error split by kind of point (POINT_KINDS: where the loss comes from);
+           --exact-share sets the budgeted tick's BudgetSettings.exact_share (0: no whole traces)
 
 Progressive start (`psao serve --progressive`) has a benchmark of its own: benchmarks.bench_progressive.
 
@@ -35,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao_server.budget import BudgetSettings
 
 PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
@@ -218,7 +220,6 @@ def quality_scene(name: str, args) -> dict:
     from psao_scene import load_scene
     from psao_server.bake import BakeResult, bake_scene
     from psao_server.settings import BakeSettings, TickSettings, TraceSettings
-    from psao_server.budget import BudgetSettings
     from psao_server.selection import camera_planes, in_any_view
     from psao_server.tick import ServerTick
 
@@ -240,7 +241,8 @@ def quality_scene(name: str, args) -> dict:
 
     period = 1.0 / 60.0
     budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
-                                             budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays)))
+                                             budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays,
+                                                                   exact_share=args.exact_share)))
     times, samples_b, tick_times, sampled_ticks, kinds = [], [], [], [], []
     try:
         start = time.perf_counter()
@@ -407,6 +409,9 @@ def main(argv=None) -> int:
     ap.add_argument("--quality-density", type=float, default=64.0)
     ap.add_argument("--quality-rays", type=int, default=32)
     ap.add_argument("--round-rays", type=int, default=8)
+    ap.add_argument("--exact-share", type=float, default=BudgetSettings.exact_share,
+                    help="quality part: the budgeted tick's BudgetSettings.exact_share (share of the trace budget "
+                         "for whole traces of static points from their static hits; 0: none)")
     ap.add_argument("--ref-rays", type=int, default=256)
     ap.add_argument("--sample-points", type=int, default=20000)
     ap.add_argument("--sample-s", type=float, default=0.25, help="seconds between samples")
@@ -414,6 +419,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rest-s", type=float, default=2.0)
     ap.add_argument("--out", type=Path, default=Path("out/bench_realtime"))
     args = ap.parse_args(argv)
+    if not 0 <= args.exact_share <= 1:
+        ap.error(f"--exact-share must be within [0, 1], got {args.exact_share}")
     args.tick_points = [int(x) for x in args.tick_points.split(",") if x]
     args.rate_scenes = [x.strip() for x in args.rate_scenes.split(",") if x.strip()]
     if any(x not in rate_names for x in args.rate_scenes):

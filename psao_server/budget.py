@@ -52,9 +52,12 @@ class BudgetSettings:
     # exact_min_change); at most this many, and at most what exact_share of the budget allows; 0 = none
     exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
     # (traced in the same call); 0 = no whole traces
-    exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays (measured
-    # 0.56-0.59 of the CPU time on the built-in courtyard and robots: the static scene is most of a ray's cost
-    # but occludes few rays near movers; README)
+    exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays, > 0 (the
+    # one statement of it: measured 0.56-0.59 of the CPU time on the built-in courtyard and robots, the static
+    # points one tick of motion selects, by `python -m benchmarks.bench_static_hits`: the static scene is
+    # most of a ray's cost but occludes only 5-13% of the rays near movers)
+    refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
+    # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)

@@ -269,6 +269,9 @@ class TickSettings:
             if not (0 <= b.exact_share <= 1) or b.exact_points < 0:
                 raise ConfigError(f"exact share must be within [0, 1] and exact points >= 0, got {b.exact_share}, "
                                   f"{b.exact_points}")
+            if not (math.isfinite(b.exact_cost) and b.exact_cost > 0) or b.refill_points < 0:
+                raise ConfigError(f"exact cost must be a number > 0 and refill points >= 0, got {b.exact_cost}, "
+                                  f"{b.refill_points}")
             if self.rays % min(b.round_rays, self.rays):
                 raise ConfigError(f"round rays ({b.round_rays}) must divide the tick's rays ({self.rays}): each round "
                                   "traces one equal slice of the target ray set")

@@ -5,10 +5,11 @@ scene never changes under it, so whether the static scene occludes each of its r
 bake's tracer answers every ray from the static scene first and asks the moving instances only about the
 rays it lets through (bake.load_bake_geometry), so keeping those answers costs no ray
 (EmbreeTracer.visibility_and_static_hits). Near a mover, a point's AO then needs only the rays the static
-scene lets through, traced against the moving parts alone (EmbreeTracer.visibility_given_static): the full
-trace's answer at a fraction of its cost (about 0.55 of it on the built-in courtyard and robots, where the
-static scene occludes 5-13% of the rays of the points near movers: README). Kept bit-packed per point id
-(ceil(rays / 8) bytes each, np.packbits order).
+scene lets through, traced against the moving parts alone (TracePart.static_hit): the full trace's answer
+at a fraction of its cost (BudgetSettings.exact_cost says how much). A scene edit that makes a static
+instance a mover voids every answer (forget); the tick keeps them again for a few points a tick as it
+traces them whole (ServerTick._whole_static). Kept bit-packed per point id (ceil(rays / 8) bytes each,
+np.packbits order).
 """
 from __future__ import annotations
 
@@ -41,14 +42,18 @@ class StaticHits:
         """Whether these answers are for ray sets of `rays` rays under `seed`."""
         return self.rays == int(rays) and self.seed == int(seed)
 
-    def forget(self) -> None:
-        """The static scene changed: every kept answer is void."""
+    def forget(self, static_ids: np.ndarray) -> None:
+        """The static scene changed (an edit made some of its instances movers): every kept answer is void,
+        and answers may be kept for `static_ids` only (the points of the instances still static)."""
         self.known[:] = False
+        self.static[:] = False
+        self.static[static_ids] = True
 
     def packed(self, ids: np.ndarray) -> np.ndarray:
         """(P, ceil(rays / 8)) uint8 answers of known `ids`."""
         return self.bits[ids]
 
     def of(self, ids: np.ndarray) -> np.ndarray:
-        """(P, rays) bool answers of known `ids`."""
+        """(P, rays) bool answers of known `ids` (the form the tests compare with
+        EmbreeTracer.static_occluded; the tick hands the packed form to the tracer)."""
         return np.unpackbits(self.bits[ids], axis=1, count=self.rays).astype(bool)

@@ -86,6 +86,7 @@ class TickStats:
     budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
     batch: int = 0  # points the budget allowed this tick
     exact: int = 0  # static points near movers given their whole ray set from kept static hits (in traced)
+    refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -101,7 +102,8 @@ class TickPlan:
     seconds: tuple[float, float, float]  # animate, select, trace
     batch: int = 0  # points the budget allowed (budgeted tick)
     budget_s: float = 0.0
-    exact: int = 0  # of ids: static points near movers traced whole from their kept static hits
+    exact: int = 0  # of ids: static points near movers traced whole from their kept static hits (the last)
+    refilled: int = 0  # of ids: static points traced whole with their static hits kept again (before those)
 
 
 class ServerTick:
@@ -147,11 +149,11 @@ class ServerTick:
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
         # the bake's static hits, for ray sets like the tick's (the static scene's answers, for the whole traces
-        # of static points near movers; only the Embree tracer answers from them)
+        # of static points near movers; only a tracer whose visibility_parts takes them answers from them)
         hits = bake.static_hits
         self._static_hits: StaticHits | None = (
             hits if hits is not None and hits.fits(self.settings.rays, self.settings.seed)
-            and hasattr(self.tracer, "visibility_given_static") else None)
+            and hasattr(self.tracer, "visibility_parts") else None)
         self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._union = None  # select_kernels.ViewUnion, made at the first test of points against the views
@@ -273,14 +275,18 @@ class ServerTick:
             log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
             return self.tracer.visibility(pos, nrm, ids, settings, **extra)
 
-    def _trace_parts(self, parts) -> list[np.ndarray]:
-        """The tracer's visibility_parts (or one visibility call per part where the tracer has no such
-        call), with _trace's one retry when a worker died."""
+    def _trace_parts(self, parts) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """The tracer's visibility_parts, per part (visibility, static hits kept or None); one visibility
+        call per part where the tracer has no such call (it can neither take nor keep static hits: a part
+        that carries them is refused), with _trace's one retry when a worker died."""
         def run():
             if hasattr(self.tracer, "visibility_parts"):
                 return self.tracer.visibility_parts(parts)
-            return [self.tracer.visibility(p.positions, p.normals, p.point_ids, p.settings,
-                                           **({} if p.slice_of is None else {"slice_of": p.slice_of})) for p in parts]
+            if any(p.static_hit is not None or p.keep_static for p in parts):
+                raise ConfigError(f"the {self.settings.tracer} tracer takes no static hits (no visibility_parts)")
+            return [(self.tracer.visibility(p.positions, p.normals, p.point_ids, p.settings,
+                                            **({} if p.slice_of is None else {"slice_of": p.slice_of})), None)
+                    for p in parts]
         try:
             return run()
         except TracerError as exc:
@@ -356,7 +362,7 @@ class ServerTick:
         self._index_static()
         self._load_tracer()
         if self._static_hits is not None:
-            self._static_hits.forget()  # the static scene lost the edited instances
+            self._static_hits.forget(self.static_ids)  # the static scene lost the edited instances
         if hasattr(self.tracer, "warm_up"):
             self.tracer.warm_up()
         return True
@@ -417,26 +423,30 @@ class ServerTick:
         looked = self._looked_at(changed, max(16 * self.budget.points(round_settings.rays_traced),
                                               self.settings.budget.scan_points))
         s = self.trace_settings
-        exact = self._exact_static(looked, self.budget.exact_points(s.rays))
-        spent = len(exact) * self.budget.exact_rays(s.rays)
+        exact, refill = self._whole_static(looked, self.budget.exact_points(s.rays), s.rays)
+        spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
         k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
-        if len(exact):
-            looked = looked[~np.isin(looked, exact, assume_unique=True)]
+        whole = np.concatenate([refill, exact])
+        if len(whole):
+            looked = looked[~np.isin(looked, whole)]
         chosen = self.pick(frame, looked, k)
         t_sel = time.perf_counter()
-        codes, exact_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
-        if len(chosen) or len(exact):  # one call: the workers' hand-over is paid once
+        codes, whole_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
+        if len(chosen) or len(whole):  # one call: the workers' hand-over is paid once
             pos, nrm = self.world_points(frame, chosen)
-            parts = [TracePart(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen])]
-            if len(exact):
-                parts.append(TracePart(self.world_pos[exact], self.world_nrm[exact], exact, s,
-                                       static_hit=self._static_hits.packed(exact)))
+            parts = [TracePart(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen]),
+                     TracePart(self.world_pos[refill], self.world_nrm[refill], refill, s, keep_static=True),
+                     TracePart(self.world_pos[exact], self.world_nrm[exact], exact, s,
+                               static_hit=self._static_hits.packed(exact) if len(exact) else None)]
             self.pose_tracer(frame)
-            vis = self._trace_parts(parts)
+            vis = self._trace_parts(parts if len(whole) else parts[:1])
             now = time.perf_counter()
-            codes = self.queue.add(chosen, vis[0], round_settings.rays_traced, now)
-            if len(exact):  # the full trace's AO: the point's whole ray set at once
-                exact_codes = self.queue.add(exact, vis[1], s.rays, now, slices=self.queue.slices)
+            codes = self.queue.add(chosen, vis[0][0], round_settings.rays_traced, now)
+            if len(whole):  # the full trace's AO: the point's whole ray set at once
+                if len(refill):
+                    self._static_hits.keep(refill, vis[1][1])
+                whole_codes = self.queue.add(whole, np.concatenate([vis[1][0], vis[2][0]]), s.rays, now,
+                                             slices=self.queue.slices)
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel)
         # the queue after this round (points out on the refiner wait too); the oldest wait among the points
@@ -444,23 +454,31 @@ class ServerTick:
         still = looked[self.queue.done[looked] < self.queue.slices]
         self._queue_now = (self.queue.count, 1e3 * (t_trace - self.queue.waiting_since[still].min()) if len(still) else 0.0)
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
-        chosen, codes = np.concatenate([chosen, refined[0], exact]), np.concatenate([codes, refined[1], exact_codes])
+        chosen, codes = np.concatenate([chosen, refined[0], whole]), np.concatenate([codes, refined[1], whole_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
-                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact))
+                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact), refilled=len(refill))
 
-    def _exact_static(self, waiting: np.ndarray, most: int) -> np.ndarray:
-        """The static points among `waiting` (sorted) that get their whole ray set at once this tick (sorted):
-        those whose static hits the bake kept, in some client's extended view, with an estimated AO change
-        since their last trace of at least exact_min_change, the `most` changed most. Only the rays the
-        static scene lets through are traced, against the moving parts (StaticHits, TracePart.static_hit):
-        the full trace's AO, which ends their wait."""
+    def _whole_static(self, waiting: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
+        """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
+        of static instances in some client's extended view with an estimated AO change since their last
+        trace of at least exact_min_change, the `most` changed most, as (exact, refill), each sorted.
+        `exact`: those whose static hits are kept: only the rays the static scene lets through are traced,
+        against the moving parts (TracePart.static_hit). `refill`: those whose hits an edit voided, at most
+        refill_points of them and what is left of the `most` exact traces' rays, each a full trace of
+        `rays` rays that keeps its static hits again (TracePart.keep_static). Both give the full trace's
+        AO, which ends their wait."""
         hits = self._static_hits
         if most <= 0 or hits is None:
-            return waiting[:0]
-        ids = waiting[hits.known[waiting]]
+            return waiting[:0], waiting[:0]
+        ids = waiting[hits.static[waiting]]
         ids = ids[self.queue.change[ids] >= self.settings.budget.exact_min_change]
         ids = ids[self._in_views(self.world_pos[ids])]
-        return np.sort(first_by_key(ids, -self.queue.change[ids].astype(np.float64), most))
+        top = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
+        known = hits.known[top]
+        exact = top[known]
+        left = (most - len(exact)) * self.budget.exact_rays(rays) / max(rays, 1)
+        refill = top[~known][:min(self.settings.budget.refill_points, int(left))]
+        return np.sort(exact), np.sort(refill)
 
     def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the
@@ -541,7 +559,7 @@ class ServerTick:
         self.budget.observe_other(animate + select + self.stats_grid_s)
         return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
                 "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
-                "batch": plan.batch, "exact": plan.exact}
+                "batch": plan.batch, "exact": plan.exact, "refilled": plan.refilled}
 
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:

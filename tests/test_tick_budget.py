@@ -168,7 +168,8 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
 @pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("tick_hz", 0.0),
                                          ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3),
                                          ("exact_share", 1.5), ("exact_share", -0.1), ("exact_share", math.nan),
-                                         ("exact_points", -1)])
+                                         ("exact_points", -1), ("exact_cost", 0.0), ("exact_cost", -0.5),
+                                         ("exact_cost", math.nan), ("refill_points", -1)])
 def test_bad_budget_settings_are_refused(field, value):
     budget = BudgetSettings(**{field: value})
     with pytest.raises(ConfigError):
@@ -379,6 +380,45 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
         tick.close()
 
 
+def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
+    """An edit that makes a static instance a mover voids every kept static hit; the ticks after it trace
+    a few static points near the movers whole with their hits kept again (at most refill_points a tick),
+    and from those hits whole traces resume: every one still holds exactly the full trace."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
+    tick.settings.budget.exact_points = 300
+    tick.settings.budget.refill_points = 40
+    try:
+        tick(tick.grid, 0.1)
+        edited = [inst.name for inst in tick.scene.instances].index("boulder3")  # static, on the floor
+        assert edited in tick.kinds.static
+        placed = np.array(tick.scene.instances[edited].transform, np.float64)
+        placed[1, 3] += 0.5
+        tick.edit(edited, placed)
+        refilled = exact_after = 0
+        for t in (0.2, 0.3, 0.4, 0.5, 0.6):
+            plan = tick.prepare(t)
+            whole = plan.exact + plan.refilled
+            ids = plan.ids[len(plan.ids) - whole:] if whole else plan.ids[:0]
+            assert plan.refilled <= 40 and not tick.moving_point[ids].any()
+            assert not np.isin(ids, np.flatnonzero(tick.inst_of == edited)).any()
+            refilled += plan.refilled
+            exact_after += plan.exact if refilled > plan.refilled else 0  # from hits kept again after the edit
+            stats = tick.apply(plan)
+            assert stats.refilled == plan.refilled and stats.exact == plan.exact
+            if whole:
+                accumulated, full = estimates(tick, ids)
+                np.testing.assert_array_equal(accumulated, full)
+                np.testing.assert_array_equal(plan.codes[len(plan.ids) - whole:], full)
+        assert refilled > 0 and exact_after > 0
+        kept = np.flatnonzero(tick._static_hits.known)
+        assert len(kept) == refilled and not tick.moving_point[kept].any()
+        bits = tick._static_hits.of(kept)
+        np.testing.assert_array_equal(bits, tick.tracer.static_occluded(tick.world_pos[kept], tick.world_nrm[kept],
+                                                                        kept, tick.trace_settings))
+    finally:
+        tick.close()
+
+
 def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
     from psao_server.budget import TraceBudget
 
@@ -394,3 +434,24 @@ def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
     assert b.points(8, spent_rays=1e9) == b.points(8, spent_rays=6000) == 625
     b.settings.exact_share = 0.0
     assert b.exact_points(32) == 0
+
+
+def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
+    """The warp tracer has no visibility_parts: the tick keeps no static hits for it (no whole traces from
+    them), and a trace part that carries static hits, or asks to keep them, is refused rather than traced
+    without them."""
+    from psao_server.tracer.base import TracePart
+    budget = BudgetSettings(budget_ms=1000.0, round_rays=2, min_points=50)
+    tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
+    try:
+        assert bake.static_hits is not None and tick._static_hits is None
+        assert not hasattr(tick.tracer, "visibility_parts")
+        for t in (0.1, 0.2):
+            assert tick(tick.grid, t).exact == 0
+        ids = tick.static_ids[:4]
+        for extra in ({"static_hit": np.zeros((4, 1), np.uint8)}, {"keep_static": True}):
+            with pytest.raises(ConfigError, match="takes no static hits"):
+                tick._trace_parts([TracePart(tick.world_pos[ids], tick.world_nrm[ids], ids, tick.trace_settings,
+                                             **extra)])
+    finally:
+        tick.close()

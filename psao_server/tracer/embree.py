@@ -403,10 +403,11 @@ class EmbreeTracer(Tracer):
             raise TracerError("static hits are kept for whole ray sets only")
         return self._trace_parts([TracePart(positions, normals, point_ids, settings, keep_static=True)], progress)[0]
 
-    def visibility_parts(self, parts: list[TracePart]) -> list[np.ndarray]:
+    def visibility_parts(self, parts: list[TracePart]) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """visibility() of several batches (each its own settings, slices, static hits) in one hand-over to
-        the workers: a tick that traces two kinds of batch pays the pool's per-call cost once."""
-        return [vis for vis, _ in self._trace_parts(parts)]
+        the workers: a tick that traces several kinds of batch pays the pool's per-call cost once. Per part:
+        (visibility, the static scene's packed answers where the part keeps them (keep_static), else None)."""
+        return self._trace_parts(parts)
 
     def _trace_parts(self, parts: list[TracePart], progress=None) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """Per part: (visibility, the static scene's packed answers when it keeps them, else None)."""
@@ -464,7 +465,8 @@ class EmbreeTracer(Tracer):
 
     def static_occluded(self, positions, normals, point_ids, settings: TraceSettings) -> np.ndarray:
         """(P, rays) bool: which rays of each point's whole ray set the static scene alone occludes (traced
-        in this process; for points that never move it holds until the static scene changes)."""
+        in this process, ray by ray against the static scene alone). The server never calls it: it is the
+        reference the tests compare the kept answers (visibility_and_static_hits) with."""
         org, dirs = self._local_rays(positions, normals, point_ids, settings)
         if self._local.static is None or len(org) == 0:
             return np.zeros((len(positions), settings.rays), bool)
@@ -477,8 +479,9 @@ class EmbreeTracer(Tracer):
         scene occludes: (P, rays) bool as static_occluded gives, or bit-packed (P, ceil(rays / 8)) uint8 as
         visibility_and_static_hits keeps): only the rays the static scene lets through are traced, against
         the moving parts alone (in the workers, as visibility), so the static scene costs nothing; the
-        answer is the full trace's."""
-        return self.visibility_parts([TracePart(positions, normals, point_ids, settings, static_hit=static_hit)])[0]
+        answer is the full trace's. The tick traces such parts through visibility_parts with its other
+        batches; this one-part call is what the tests compare with the full trace."""
+        return self.visibility_parts([TracePart(positions, normals, point_ids, settings, static_hit=static_hit)])[0][0]
 
     def throughput(self) -> dict:
         return self.account.rates(self.workers if self._pool is not None else 1)
