@@ -24,7 +24,7 @@ from benchmarks.verdicts import count_failures
 
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
-BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "quality", "culling", "clients", "web",
+BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "static_hits", "quality", "culling", "clients", "web",
               "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
               "soak")
 MODULES = {"fuzz": "benchmarks.fuzz"}
@@ -37,6 +37,7 @@ QUICK_ARGS = {
     "bandwidth": ["--density", "64", "--animated-ticks", "20", "--ticks", "30", "--random-ticks", "10"],
     "render": ["--densities", "64,256", "--frames", "2"],
     "tick": ["--density", "64", "--ticks", "10", "--ticks-off", "2", "--sweep", ""],
+    "static_hits": ["--density", "16", "--repeats", "1"],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
     "web": ["--density", "16", "--updates", "10", "--frames", "3", "--codecs", "zstd-stream"],
     "denoise": ["--scenes", "builtin:robots", "--frames", "1", "--repeats", "3"],

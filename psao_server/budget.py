@@ -53,9 +53,10 @@ class BudgetSettings:
     exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
     # (traced in the same call); 0 = no whole traces
     exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays, > 0 (the
-    # one statement of it: measured 0.56-0.59 of the CPU time on the built-in courtyard and robots, the static
-    # points one tick of motion selects, by `python -m benchmarks.bench_static_hits`: the static scene is
-    # most of a ray's cost but occludes only 5-13% of the rays near movers)
+    # one statement of it: measured 0.58 on the built-in courtyard and 0.70 on robots, the tracer's seconds a
+    # point on the static points one tick of motion selects at N = 64 and 32 rays, by a locked
+    # `python -m benchmarks.bench_static_hits` (2026-11-29, load 1.4): the static scene is most of a ray's
+    # cost but occludes only 6-11% of those rays, so a whole trace from them saves about 0.3-0.4 of a full one)
     refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
     # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
