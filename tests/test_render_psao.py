@@ -119,12 +119,16 @@ def test_gbuffer_local_space_is_consistent_with_transforms(ctx):
     assert np.mean(np.sum(gb.normal[gb.mask] * eye_dir, axis=1) > 0) > 0.99  # visible faces face the camera
 
 
-def test_shader_equals_oracle_in_every_fallback_step(ctx):
-    """An L of two quads in one mesh, sparse random points (about 2 r apart) on the floor only: many floor
-    pixels find no point within r and are answered by the block's points within 2 r, some only by the
-    3x3x3 ring, and wall pixels near the floor by the ring's looser normal test (the floor's points across
-    the edge); the rest of the wall finds nothing. The shader agrees with the oracle on the pixels of each
-    step, weight sums included."""
+def test_shader_equals_oracle_in_every_lookup_step(ctx):
+    """An L of two quads in one mesh, sparse random points (about 2 r apart) on the floor only, a third
+    with the floor's normal, a third tilted to a cosine between SECOND_T_N and FIRST_T_N and a third to one
+    between T_N and SECOND_T_N. Each of the lookup's four steps answers some floor pixels: the block's
+    points within r on the fragment's face, else those within 2 r with a normal within SECOND_T_N, else
+    those within 2 r that pass eq. 3 alone, else the 3x3x3 ring; wall pixels near the floor are answered by
+    the ring's looser normal test (the floor's points across the edge) and the rest of the wall finds
+    nothing. The shader agrees with the oracle on the pixels of each step, weight sums included."""
+    from protocol import gridformat as gf
+    from protocol import pointword as pw
     from protocol.reconstruct import _reconstruct_chunk
     from psao_client.render.views import look_at, perspective
     from psao_scene.model import Instance, Mesh, Scene
@@ -137,7 +141,18 @@ def test_shader_equals_oracle_in_every_fallback_step(ctx):
     r_poisson = 0.02  # lookup radius r = 0.04
     n = int(16.0 / (2.2 * 0.04) ** 2)  # mean spacing about 2.2 r over the 4 x 4 floor
     pos = np.column_stack([rng.uniform(-2, 2, n), np.zeros(n), rng.uniform(-2, 2, n)])
-    grid = Grid.build([(pos, np.tile([0, 1.0, 0], (n, 1)), r_poisson, 0)])
+    # The point normals the grid can store (octahedral codes) that lean about x only, so the wall
+    # (normal +z) sees every floor point at cosine 0 and is answered by the ring alone, as before.
+    table = pw.oct_decode(np.arange(pw.NORMAL_CODES, dtype=np.uint32))
+    in_xy = table[np.abs(table[:, 2]) < 1e-6]
+    tilted = [in_xy[(in_xy[:, 1] > lo) & (in_xy[:, 1] < hi)] for lo, hi in ((gf.SECOND_T_N, gf.FIRST_T_N), (gf.T_N, gf.SECOND_T_N))]
+    assert all(len(t) for t in tilted)
+    kinds = rng.integers(0, 3, n)
+    normals = np.tile([0, 1.0, 0], (n, 1))
+    for kind, choices in enumerate(tilted, start=1):
+        sel = kinds == kind
+        normals[sel] = choices[rng.integers(0, len(choices), sel.sum())]
+    grid = Grid.build([(pos, normals, r_poisson, 0)])
     t = grid.point_table()
     grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)).astype(np.uint32))
     arrays = (grid.instances, grid.buckets, grid.cells)
@@ -147,16 +162,18 @@ def test_shader_equals_oracle_in_every_fallback_step(ctx):
     m, ao, wsum = oracle(frame, *arrays)
     gb = frame.gbuffer
     (_, w_r), (_, w_near), (_, w_wide) = _reconstruct_chunk(*arrays, gb.instance[m].astype(np.int64), gb.local[m],
-                                                            gb.local_normal[m], 0.1, 0.7, gb.back_side[m])
-    assert np.array_equal(w_near, w_wide)  # one normal everywhere: the 2r steps with SECOND_T_N and T_N agree
+                                                            gb.local_normal[m], gf.T_N, gf.T_D, gb.back_side[m])
     wall = gb.local_normal[m][:, 2] > 0.5
-    steps = {"r": w_r > 0, "block 2r": (w_r == 0) & (w_wide > 0), "ring": (w_wide == 0) & (wsum > 0) & ~wall,
+    # Pixels where the steps' point sets differ: the 2 r steps and eq. 3 alone answer differently there.
+    mixed = (w_r == 0) & (w_near > 0) & (w_wide > w_near)
+    steps = {"r": w_r > 0, "2r with SECOND_T_N": (w_r == 0) & (w_near > 0), "2r, both 2r steps' points": mixed,
+             "2r with eq. 3 alone": (w_near == 0) & (w_wide > 0), "ring": (w_wide == 0) & (wsum > 0) & ~wall,
              "ring across the edge": wall & (wsum > 0), "none": wsum == 0}
     assert m.mean() > 0.9 and all(sel.mean() > 0.005 for sel in steps.values()), {k: v.mean() for k, v in steps.items()}
     diff = np.abs(frame.ao["psao"][m] - ao)
     for name, sel in steps.items():
         assert np.mean(diff[sel] <= TOL) >= 0.995, f"{name}: {np.mean(diff[sel] > TOL):.3%} above 2/255"
-        np.testing.assert_allclose(frame.psao_weight[m][sel], wsum[sel], rtol=1e-3, atol=1e-4)
+        np.testing.assert_allclose(frame.psao_weight[m][sel], wsum[sel], rtol=1e-3, atol=1e-4, err_msg=name)
 
 
 def test_incremental_update_equals_full_upload(ctx):
