@@ -150,6 +150,20 @@ def lookup_block_base(g: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(g) - 0.5).astype(np.int64)
 
 
+def passes_thresholds(ndot, ddot, dist2, t_n, t_d) -> np.ndarray:
+    """Paper eq. 3 with normal threshold t_n and tangent-plane threshold t_d, as the shader writes it (no
+    division): n_p . n_x > t_n and (n_p . d)^2 < t_d |d|^2, true at d = 0. ndot = n_p . n_x, ddot = n_p . d,
+    dist2 = |d|^2 for d = p - x; arrays broadcast, float32 stays float32 when t_n and t_d are float32."""
+    return (ndot > t_n) & ((ddot * ddot < t_d * dist2) | (dist2 == 0))
+
+
+def in_first_step(ndot, ddot, dist2, radius) -> np.ndarray:
+    """The lookup's first step counts the point: within `radius` (r, the units of dist2's square root) and
+    on the fragment's own face (FIRST_T_N, FIRST_T_D). The oracle's tent weight, zero from r on, stands for
+    its radius test; the GLSL writes the same test itself (shader-equals-oracle tests hold them equal)."""
+    return passes_thresholds(ndot, ddot, dist2, FIRST_T_N, FIRST_T_D) & (dist2 < radius * radius)
+
+
 def decode_point_local(cell_xyz: np.ndarray, qpos: np.ndarray, origin, cell_size) -> np.ndarray:
     """Cell index (..., 3) and 5-bit codes (..., 3) -> local position (float32): the centre of the point's
     1/32 step of the cell (the lookup works with the same position in grid units, cell + (q + 0.5) / 32)."""

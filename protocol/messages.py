@@ -93,8 +93,12 @@ def frame(mtype: MessageType, codec: Codec, body: bytes) -> bytes:
     return Header(PROTOCOL_VERSION, mtype, codec, len(body)).serialize() + body
 
 
+_MATRIX_ENTRIES = 4 * 4  # a 4x4 matrix, float32 on the wire
+_MATRIX_BYTES = _MATRIX_ENTRIES * np.dtype("<f4").itemsize
+
+
 def _matrix(r: Reader, what: str) -> np.ndarray:
-    m = r.array("<f4", 16).reshape(4, 4)
+    m = r.array("<f4", _MATRIX_ENTRIES).reshape(4, 4)
     if not np.all(np.isfinite(m)):
         raise PayloadError(f"{what} has NaN or infinite entries")
     return m
@@ -255,16 +259,16 @@ class Camera:
     @classmethod
     def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Camera":
         # (a server parses one per client 30 times a second: both matrices in one read and one check)
-        if len(payload) != 128:
+        if len(payload) != 2 * _MATRIX_BYTES:  # view and projection
             r = Reader(payload, "Camera")
             view, proj = _matrix(r, "Camera view"), _matrix(r, "Camera projection")
             r.done()
             return cls(view, proj)
         both = np.frombuffer(payload, "<f4").astype(np.float32)
         if not np.isfinite(both).all():
-            what = "view" if not np.isfinite(both[:16]).all() else "projection"
+            what = "view" if not np.isfinite(both[:_MATRIX_ENTRIES]).all() else "projection"
             raise PayloadError(f"Camera {what} has NaN or infinite entries")
-        return cls(both[:16].reshape(4, 4), both[16:].reshape(4, 4))
+        return cls(both[:_MATRIX_ENTRIES].reshape(4, 4), both[_MATRIX_ENTRIES:].reshape(4, 4))
 
 
 _EDIT = struct.Struct("<I")

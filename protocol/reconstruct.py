@@ -113,12 +113,12 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     ndot = (n_p * n_x[mi][:, None, :]).sum(axis=-1)
     ddot = (n_p * d_vec).sum(axis=-1)
     # eq. 3; the shader stops at the first unallocated word, allocated-first makes that the same as masking.
-    passes = (ndot > t_n) & ((ddot * ddot < np.float32(t_d) * dist2) | (dist2 == 0)) & allocated
+    passes = gf.passes_thresholds(ndot, ddot, dist2, t_n, np.float32(t_d)) & allocated
     ao_vals = pw.dequantise_ao(aocode)
     out = []
     for radius, step_t_n, step_t_d in steps:
         inv = (np.float32(1.0) / radius[mi]).astype(np.float32)[:, None]  # the shader multiplies by 1 / rho
-        counts = passes & (ndot > step_t_n) & ((ddot * ddot < step_t_d * dist2) | (dist2 == 0))
+        counts = passes & gf.passes_thresholds(ndot, ddot, dist2, step_t_n, step_t_d)
         tent = np.maximum(np.float32(0.0), np.float32(1.0) - dist * inv).astype(np.float32)
         w = tent
         for _ in range(gf.WEIGHT_POWER - 1):  # repeated products, as the shader computes the power

@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from protocol import pointword as pw
 from protocol.reconstruct import reconstruct_ao
-from protocol.gridformat import FIRST_T_D, FIRST_T_N
+from protocol.gridformat import in_first_step
 from psao_scene.model import Scene
 from psao_server.buried import is_static
 from psao_server.gapfill import Candidates, append_points, surface_candidates, thin, visible_candidates
@@ -112,8 +112,8 @@ def quiet(points_pos: np.ndarray, points_nrm: np.ndarray, points_ao: np.ndarray,
         n_p = points_nrm[safe]
         d_vec = points_pos[safe] - x[:, None, :]
         ddot = np.einsum("ckj,ckj->ck", n_p, d_vec)
-        own = (found & (dist < radius) & (np.einsum("ckj,cj->ck", n_p, n) > FIRST_T_N)
-               & (ddot * ddot <= FIRST_T_D * dist * dist))
+        dist2 = np.einsum("ckj,ckj->ck", d_vec, d_vec)
+        own = found & in_first_step(np.einsum("ckj,cj->ck", n_p, n), ddot, dist2, radius)
         out[s:s + len(x)] = own.any(axis=1) & (spread <= settings.quiet_spread)
     return out
 

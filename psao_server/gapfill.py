@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from protocol import gridformat as gf
 from protocol import pointword as pw
-from protocol.gridformat import FIRST_T_D, FIRST_T_N, T_D, T_N
+from protocol.gridformat import T_D, T_N, in_first_step
 from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import Grid
@@ -122,7 +122,7 @@ def first_step_covered(points_pos: np.ndarray, points_nrm: np.ndarray, pos: np.n
     dist2 = np.einsum("ij,ij->i", d_vec, d_vec)
     ndot = np.einsum("ij,ij->i", points_nrm[pts], nrm[cand])
     ddot = np.einsum("ij,ij->i", points_nrm[pts], d_vec)
-    ok = (ndot > FIRST_T_N) & ((ddot * ddot < FIRST_T_D * dist2) | (dist2 == 0)) & (dist2 < radius * radius)
+    ok = in_first_step(ndot, ddot, dist2, radius)
     covered[cand[ok]] = True
     return covered
 

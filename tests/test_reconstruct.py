@@ -33,7 +33,7 @@ def brute_force(grid: Grid, inst, x, n_x):
         ring = ((n_p @ ni) > gf.RING_T_N) & (cosd ** 2 < T_D)
         block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
         in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
-        first = counts & ((n_p @ ni) > gf.FIRST_T_N) & (cosd ** 2 < gf.FIRST_T_D)
+        first = counts & gf.in_first_step(n_p @ ni, (n_p * d).sum(1), dist * dist, r)
         second = counts & in_block & ((n_p @ ni) > gf.SECOND_T_N)
         wide = r * gf.FALLBACK_SCALE
         for radius, among in ((r, first), (wide, second), (wide, counts & in_block), (wide, ring)):
