@@ -3,9 +3,11 @@ folder is absent). Every number is deterministic (seeded points, rays and probes
 little room above the measured value for other machines' floating point, not for a regression.
 
 Measured (16 rays per point, 2,000 probes against 64-ray truth; probes on surfaces buried inside other
-geometry left out, psao_server.buried.visible_probes). The bunny's MAE went 0.026 -> 0.028 with the lookup's
-stricter first step (gridformat.FIRST_T_N 0.95, FIRST_T_D): with 16 noisy rays per point, fewer neighbours
-averaged leave more noise; at the default 128 rays its MAE is 0.007 either way (docs/results.md).
+geometry left out, psao_server.buried.visible_probes). The reconstruction MAE is the mean |AO the lookup
+reconstructs at the probes - AO traced at them|. The bunny's 0.028 is mostly the points' own noise: at 16
+rays per point each point's AO is noisy, and the lookup's first step averages only the points of the
+fragment's own face within r (gridformat.FIRST_T_N, FIRST_T_D), too few to cancel it; bench_scenes' bakes
+at the default rays per point reach about 0.007 on the bunny (docs/results.md).
 
 | scene | N | dropped by overflow | reconstruction MAE | holes |
 |---|---|---|---|---|
