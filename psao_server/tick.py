@@ -264,34 +264,29 @@ class ServerTick:
         if tracer is None:
             self._posed = frame
 
-    def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
-        """The tracer's visibility (with `slice_of`, the given slice of each point's ray set); a worker
-        process that died is logged and the call made once more (the Embree back-end starts a fresh
-        pool), so one lost worker does not stop the server."""
-        extra = {} if slice_of is None else {"slice_of": slice_of}
+    def _retrying(self, call):
+        """call(); a worker process that died is logged and the call made once more (the Embree back-end
+        starts a fresh pool), so one lost worker does not stop the server."""
         try:
-            return self.tracer.visibility(pos, nrm, ids, settings, **extra)
+            return call()
         except TracerError as exc:
             log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
-            return self.tracer.visibility(pos, nrm, ids, settings, **extra)
+            return call()
+
+    def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
+        """The tracer's visibility (with `slice_of`, the given slice of each point's ray set), retrying."""
+        extra = {} if slice_of is None else {"slice_of": slice_of}
+        return self._retrying(lambda: self.tracer.visibility(pos, nrm, ids, settings, **extra))
 
     def _trace_parts(self, parts) -> list[tuple[np.ndarray, np.ndarray | None]]:
-        """The tracer's visibility_parts, per part (visibility, static hits kept or None); one visibility
-        call per part where the tracer has no such call (it can neither take nor keep static hits: a part
-        that carries them is refused), with _trace's one retry when a worker died."""
-        def run():
-            if hasattr(self.tracer, "visibility_parts"):
-                return self.tracer.visibility_parts(parts)
-            if any(p.static_hit is not None or p.keep_static for p in parts):
-                raise ConfigError(f"the {self.settings.tracer} tracer takes no static hits (no visibility_parts)")
-            return [(self.tracer.visibility(p.positions, p.normals, p.point_ids, p.settings,
-                                            **({} if p.slice_of is None else {"slice_of": p.slice_of})), None)
-                    for p in parts]
-        try:
-            return run()
-        except TracerError as exc:
-            log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
-            return run()
+        """The tracer's visibility_parts, per part (visibility, static hits kept or None), retrying; one
+        visibility call per part where the tracer has no such call (it can neither take nor keep static
+        hits: a part that carries them is refused)."""
+        if hasattr(self.tracer, "visibility_parts"):
+            return self._retrying(lambda: self.tracer.visibility_parts(parts))
+        if any(p.static_hit is not None or p.keep_static for p in parts):
+            raise ConfigError(f"the {self.settings.tracer} tracer takes no static hits (no visibility_parts)")
+        return [(self._trace(p.positions, p.normals, p.point_ids, p.settings, p.slice_of), None) for p in parts]
 
     def close(self) -> None:
         self.tracer.close()
