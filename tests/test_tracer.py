@@ -3,9 +3,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
 
 from psao_server.tracer import available_backends, make_tracer
+from psao_server.tracer.base import TracePart
 from psao_server.tracer.directions import cosine_directions, ray_origins
 
 BACKENDS = available_backends()
@@ -371,6 +373,13 @@ def test_static_hits_kept_by_a_trace_give_the_full_trace_in_the_workers(moving):
         np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, bits), full)
         np.testing.assert_array_equal(tracer.visibility_given_static(pos, nrm, ids, s, static), full)
     assert full.min() < 1.0  # the ceiling is in the way even where the mover is not
+    sliced = TraceSettings(rays=24, ao_distance=1.5, seed=4, slices=2)  # static hits hold for whole ray sets
+    with pytest.raises(TracerError, match="whole ray sets only"):
+        tracer.visibility_and_static_hits(pos, nrm, ids, sliced)
+    with pytest.raises(TracerError, match="whole ray sets only"):
+        tracer.visibility_parts([TracePart(pos, nrm, ids, sliced, keep_static=True)])
+    with pytest.raises(TracerError, match="whole ray sets only"):
+        tracer.visibility_given_static(pos, nrm, ids, sliced, bits)
     tracer.close()
 
 

@@ -399,8 +399,6 @@ class EmbreeTracer(Tracer):
         """visibility() of each point's whole ray set, and which of those rays the static scene alone
         occludes, bit-packed (P, ceil(rays / 8)) uint8 (np.packbits order): the static scene answers first
         in every trace, so keeping its answers costs no extra ray."""
-        if settings.slices != 1:
-            raise TracerError("static hits are kept for whole ray sets only")
         return self._trace_parts([TracePart(positions, normals, point_ids, settings, keep_static=True)], progress)[0]
 
     def visibility_parts(self, parts: list[TracePart]) -> list[tuple[np.ndarray, np.ndarray | None]]:
@@ -414,7 +412,7 @@ class EmbreeTracer(Tracer):
         if self._local is None:
             raise TracerError("set_static() must be called before tracing")
         for part in parts:
-            if part.static_hit is not None and part.settings.slices != 1:
+            if (part.static_hit is not None or part.keep_static) and part.settings.slices != 1:
                 raise TracerError("static hits are kept for whole ray sets only")
         points = sum(len(p.positions) for p in parts)
         rays = sum(len(p.positions) * p.settings.rays_traced for p in parts)
