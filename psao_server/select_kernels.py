@@ -5,8 +5,8 @@ see its bounding sphere now or before: selection.may_see_sphere) over a mover's 
 `priority_kernel` is the budgeted tick's priority key over the waiting points (budget.RefineQueue.pick),
 with each point's world position and its test against the union of the clients' extended views
 (selection.in_any_view; by blocks of space classified once per call, so the test costs about one view's,
-not one per client) computed on the way; `union_kernel` (ViewUnion) is that union test alone (the budgeted
-tick's choice of static points to trace whole). They compute in float64 with the numpy versions'
+not one per client) computed on the way and written out beside the key (the budgeted tick chooses its
+whole traces and its rounds from that one pass); `union_kernel` (ViewUnion) is that union test alone. They compute in float64 with the numpy versions'
 formulas; tests/test_selection.py and tests/test_tick_budget.py check them equal to those.
 
 Numpy would make ~30 passes over each array (one per comparison and logical operation), each with its
@@ -243,8 +243,8 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     change: wp.array(dtype=wp.float32), base: wp.float64, key: wp.array(dtype=wp.float64),
                     lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
                     first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
-                    used: wp.array(dtype=wp.int32)):
-    # visibility: in_union (blocks of space classified against the views once per launch)
+                    used: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8)):
+    # visibility: in_union (blocks of space classified against the views once per launch), also written out
     for j in range(ids.shape[0]):
         i = ids[j]
         p = world[i]
@@ -263,6 +263,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
         elif cameras > 1:
             seen = in_union(p, planes, cameras, margin, lo, size, nx, ny, nz, state, first, count, listed, used)
         tier = wp.float64(0.0)
+        visible[j] = wp.uint8(1) if seen else wp.uint8(0)
         if not seen:
             tier = wp.float64(HIDDEN)
         if rays[i] > 0:
@@ -343,6 +344,7 @@ class PriorityKey:
     def __init__(self, blocks: int = 12):
         self.views = Arrays()
         self.union = ViewUnion(blocks)
+        self.visible = np.zeros(0, bool)  # the last call's in_any_view per id (the key's visibility tier)
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
@@ -350,9 +352,12 @@ class PriorityKey:
                  box: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Priority key (float64, per id; smaller first): RefineQueue.key with each point's visibility
         in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible);
-        `box` (lo, hi): where the points are (world), for the union's blocks (None: each view is tested)."""
+        `box` (lo, hi): where the points are (world), for the union's blocks (None: each view is tested).
+        Each id's visibility is left in `visible`."""
         ids = np.ascontiguousarray(ids, np.int64)
         key = np.empty(len(ids), np.float64)
+        seen = np.empty(len(ids), np.uint8)
+        self.visible = seen.view(bool)
         if len(ids) == 0:
             return key
         v = self.views
@@ -363,5 +368,6 @@ class PriorityKey:
             v("moving", moving, wp.bool),
             wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
             *u[:3], v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32),
-            wp.float64(base), wp.array(key, dtype=wp.float64, device="cpu", copy=False), *u[3:]])
+            wp.float64(base), wp.array(key, dtype=wp.float64, device="cpu", copy=False), *u[3:],
+            wp.array(seen, dtype=wp.uint8, device="cpu", copy=False)])
         return key

@@ -156,7 +156,6 @@ class ServerTick:
             and hasattr(self.tracer, "visibility_parts") else None)
         self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
-        self._union = None  # select_kernels.ViewUnion, made at the first test of points against the views
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
         if self.settings.budget is not None:
             self._init_budget(bake)
@@ -418,13 +417,16 @@ class ServerTick:
         looked = self._looked_at(changed, max(16 * self.budget.points(round_settings.rays_traced),
                                               self.settings.budget.scan_points))
         s = self.trace_settings
-        exact, refill = self._whole_static(looked, self.budget.exact_points(s.rays), s.rays)
+        key, visible = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
+        exact, refill = self._whole_static(looked, visible, self.budget.exact_points(s.rays), s.rays)
         spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
         k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
         whole = np.concatenate([refill, exact])
-        if len(whole):
-            looked = looked[~np.isin(looked, whole)]
-        chosen = self.pick(frame, looked, k)
+        if len(whole):  # (both sorted, whole within looked)
+            rest = np.ones(len(looked), bool)
+            rest[np.searchsorted(looked, whole)] = False
+            looked, key = looked[rest], key[rest]
+        chosen = first_by_key(looked, key, k)
         t_sel = time.perf_counter()
         codes, whole_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
         if len(chosen) or len(whole):  # one call: the workers' hand-over is paid once
@@ -453,9 +455,9 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=k, budget_s=self.budget.budget_s(), exact=len(exact), refilled=len(refill))
 
-    def _whole_static(self, waiting: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
+    def _whole_static(self, waiting: np.ndarray, visible: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
-        of static instances in some client's extended view with an estimated AO change since their last
+        of static instances in some client's extended view (`visible`, per waiting point) with an estimated AO change since their last
         trace of at least exact_min_change, the `most` changed most, as (exact, refill), each sorted.
         `exact`: those whose static hits are kept: only the rays the static scene lets through are traced,
         against the moving parts (TracePart.static_hit). `refill`: those whose hits an edit voided, at most
@@ -465,9 +467,7 @@ class ServerTick:
         hits = self._static_hits
         if most <= 0 or hits is None:
             return waiting[:0], waiting[:0]
-        ids = waiting[hits.static[waiting]]
-        ids = ids[self.queue.change[ids] >= self.settings.budget.exact_min_change]
-        ids = ids[self._in_views(self.world_pos[ids])]
+        ids = waiting[visible & hits.static[waiting] & (self.queue.change[waiting] >= self.settings.budget.exact_min_change)]
         top = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
         known = hits.known[top]
         exact = top[known]
@@ -493,9 +493,16 @@ class ServerTick:
 
     def pick(self, frame: Frame, waiting: np.ndarray, k: int) -> np.ndarray:
         """RefineQueue.pick of `k` of `waiting` with their visibility in the clients' extended views at
-        `frame`, in one compiled pass over them (select_kernels.priority_kernel)."""
+        `frame` (priority)."""
         if len(waiting) == 0:
             return waiting
+        return first_by_key(waiting, self.priority(frame, waiting)[0], k)
+
+    def priority(self, frame: Frame, waiting: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(RefineQueue.key of `waiting`, bool in_any_view of each) with their visibility in the clients'
+        extended views at `frame`, in one compiled pass over them (select_kernels.priority_kernel)."""
+        if len(waiting) == 0:
+            return np.zeros(0), np.zeros(0, bool)
         from psao_server.select_kernels import PriorityKey  # (Warp: imported at the first pick)
         if self._priority is None:
             self._priority = PriorityKey()
@@ -503,20 +510,12 @@ class ServerTick:
                              self._view_planes(), self.settings.view.distance_margin, self.queue.rays,
                              self.queue.waiting_since, self.queue.change,
                              float(self.queue.waiting_since[waiting].min()), self._points_box(frame))
-        return first_by_key(waiting, key, k)
+        return key, self._priority.visible
 
     def _view_planes(self) -> np.ndarray | None:
         """The clients' extended views as (C, 5, 4) planes, or None: every point counts as visible (no
         camera, or one that makes no frustum)."""
         return None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
-
-    def _in_views(self, points: np.ndarray) -> np.ndarray:
-        """in_any_view of world points (P, 3), tested against the union of the views
-        (select_kernels.ViewUnion: about one view's cost, however many clients)."""
-        if self._union is None:
-            from psao_server.select_kernels import ViewUnion  # (Warp: imported at the first use)
-            self._union = ViewUnion()
-        return self._union(points, self._view_planes(), self.settings.view.distance_margin)
 
     def _points_box(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         """A world box around the points (the static ones' and the movers' bounds at `frame`): where the

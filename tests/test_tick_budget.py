@@ -155,11 +155,15 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
             planes = np.stack(tick.cameras) if tick.cameras else None
             margin = tick.settings.view.distance_margin
             base = float(tick.queue.waiting_since[ids].min())
-            got = PriorityKey()(ids, tick.world_pos, tick.local_pos, tick.inst_of, tick.moving_point, frame.transforms,
-                                planes, margin, tick.queue.rays, tick.queue.waiting_since, tick.queue.change, base)
+            priority = PriorityKey()
+            got = priority(ids, tick.world_pos, tick.local_pos, tick.inst_of, tick.moving_point, frame.transforms,
+                            planes, margin, tick.queue.rays, tick.queue.waiting_since, tick.queue.change, base)
             visible = in_any_view(tick.world_points(frame, ids)[0], tick.cameras, margin)
             assert 0 < visible.sum() and (k == 0 or not visible.all())
             np.testing.assert_array_equal(got, tick.queue.key(ids, visible, base))
+            np.testing.assert_array_equal(priority.visible, visible)  # the visibility the whole traces choose by
+            _, seen = tick.priority(frame, ids)
+            np.testing.assert_array_equal(seen, visible)
         assert camera_planes(np.full((4, 4), np.nan), np.eye(4), 0.0) is None  # such a view: tick passes planes=None
     finally:
         tick.close()
