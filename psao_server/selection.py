@@ -375,24 +375,24 @@ class NearCache:
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
             self._candidates(i, boxes, spheres)
             tests.append((self._held[i], boxes, spheres))
-        union, places = self._union_of([held for held, _, _ in tests])
-        # sum_by_index of the movers' parts, on the union's places: summed in the movers' order
-        hit = np.zeros(len(union), bool)
-        total = np.zeros(len(union), np.float32) if with_change else None
+        union, places, hit, total = self._union_of([held for held, _, _ in tests])
+        # sum_by_index of the movers' parts, on the union's places: summed in the movers' order, each
+        # mover's test marking and adding in place (select_kernels.near_kernel)
+        hit.fill(0)
+        total.fill(0)
         for (held, boxes, spheres), place in zip(tests, places):
             test = held[5]
-            keep = test(boxes, spheres, self.ao_distance).view(bool)
-            at = place[keep]
-            hit[at] = True
-            if with_change:
-                total[at] += test.change[keep]
-        return union[hit], total[hit] if with_change else None
+            test.bind(place, hit, total)
+            test(boxes, spheres, self.ao_distance)
+        at = np.flatnonzero(hit)
+        return union[at], total[at] if with_change else None
 
-    def _union_of(self, held: list[tuple]) -> tuple[np.ndarray, list[np.ndarray]]:
+    def _union_of(self, held: list[tuple]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
         """(sorted union of the candidate indices of these held entries, per entry its candidates' places in
-        the union), kept while the same entries serve."""
+        the union, a uint8 and a float32 work array over the union), kept while the same entries serve."""
         was = self._union
         if was is None or len(was[0]) != len(held) or any(a is not b for a, b in zip(was[0], held)):
             # (the entries themselves are kept: compared by identity)
-            self._union = (held, *union_places([h[4] for h in held]))
-        return self._union[1], self._union[2]
+            union, places = union_places([h[4] for h in held])
+            self._union = (held, union, places, np.zeros(len(union), np.uint8), np.zeros(len(union), np.float32))
+        return self._union[1:]
