@@ -196,6 +196,11 @@ def test_union_places_are_the_parts_entries_in_their_sorted_union():
         np.testing.assert_array_equal(union, np.unique(np.concatenate(parts)))
         for p, at in zip(parts, places):
             np.testing.assert_array_equal(union[at], p)
+        ordered = [np.sort(p) for p in parts]  # sorted runs, merged by a stable sort: the same answer
+        union_s, places_s = union_places(ordered, parts_sorted=True)
+        np.testing.assert_array_equal(union_s, union)
+        for p, at in zip(ordered, places_s):
+            np.testing.assert_array_equal(union_s[at], p)
     assert len(union_places([])[0]) == 0
 
 
