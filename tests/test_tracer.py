@@ -239,15 +239,28 @@ def test_rigid_meshes_posed_by_transform_trace_like_their_world_triangles(backen
     merged.close()
 
 
+def strip_rays(seed: int, n: int = 2000):
+    """(n, positions, settings, origins, directions): 16 rays each of n upward-facing points spread over a
+    strip x in [-10, 10], y in [-3, 3] on z = 0 (AO distance 1)."""
+    from psao_server.tracer.embree import _chunk_rays
+
+    rng = np.random.default_rng(seed)
+    pos = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), np.zeros(n)]).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
+    s = TraceSettings(rays=16, ao_distance=1.0)
+    org, dirs = (a.copy() for a in _chunk_rays(pos, nrm, np.arange(n), s, 0))
+    return n, pos, s, org, dirs
+
+
 def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
-    """Each rigid mover traces only the rays of points within the AO distance of its world box whose
-    segments reach its posed bounding sphere: the answers equal tracing every ray against every posed
-    mover, over a batch where each mover is near some points and far from most, one of them sheared (its
-    sphere's radius grows by the largest stretch of the map, more than any column's length)."""
+    """Each rigid mover traces only the rays whose segments reach its posed bounding sphere (mover_rays):
+    the answers equal tracing every ray against every posed mover, over a batch where each mover is near
+    some points and far from most, one of them sheared (its sphere's radius grows by the largest stretch
+    of the map, more than any column's length)."""
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    from psao_server.tracer.embree import _chunk_rays, _device, _Scenes
+    from psao_server.tracer.embree import _device, _Scenes
 
     v, f = slab(1.5)
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
@@ -260,12 +273,7 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
     scenes = _Scenes(np.asarray(v[:8], np.float32), np.asarray(f[:12], np.int32),
                      [(np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)) for m in (sphere, box)])
     scenes.update_dynamic(0, None, None, poses)
-    rng = np.random.default_rng(3)
-    n = 2000
-    pos = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), np.zeros(n)]).astype(np.float32)
-    nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
-    s = TraceSettings(rays=16, ao_distance=1.0)
-    org, dirs = (a.copy() for a in _chunk_rays(pos, nrm, np.arange(n), s, 0))
+    n, pos, s, org, dirs = strip_rays(3)
     hit = scenes.occluded(org, dirs, s.ao_distance, s.rays)
 
     every = scenes.static.run(org, dirs, dists=np.full(len(org), 1.0, np.float32), query="OCCLUDED") != -1
@@ -299,6 +307,53 @@ def test_segments_reach_sphere_against_dense_sampling():
     clear = np.abs(dist - radius) > step + 1e-4
     np.testing.assert_array_equal(got[clear], (dist <= radius)[clear])
     assert 0.03 < got.mean() < 0.9  # both answers are well represented
+
+
+def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_answers():
+    """The deforming part is traced only on the rays that reach one of its pieces' bounding spheres
+    (part_spheres): the answers equal tracing every ray against it, for pieces near some points and far
+    from most, and for pieces that do not cover every vertex (one sphere for all then)."""
+    from psao_server.tracer.embree import _Scenes
+
+    v, f = slab(1.5)
+    balls = [trimesh.creation.icosphere(subdivisions=2, radius=0.4).apply_translation(c)
+             for c in ((-6, 0, 0.5), (0, 1, 0.3), (5, -1, 0.6))]
+    verts = np.concatenate([b.vertices for b in balls]).astype(np.float32)
+    faces = np.concatenate([b.faces + sum(len(x.vertices) for x in balls[:k]) for k, b in enumerate(balls)])
+    n, pos, s, org, dirs = strip_rays(4)
+    for parts in ([len(b.vertices) for b in balls], None, [len(balls[0].vertices)]):
+        scenes = _Scenes(np.asarray(v[:8], np.float32), np.asarray(f[:12], np.int32))
+        scenes.update_dynamic(0, verts, faces.astype(np.int32), None, parts)
+        hit = scenes.occluded(org, dirs, s.ao_distance, s.rays)
+        dists = np.full(len(org), 1.0, np.float32)
+        every = ((scenes.static.run(org, dirs, dists=dists, query="OCCLUDED") != -1)
+                 | (scenes.dynamic.run(org, dirs, dists=dists, query="OCCLUDED") != -1))
+        assert np.array_equal(hit, every)
+        assert hit.reshape(n, -1)[np.abs(pos[:, 0] - 5) < 1.4].any()
+
+
+def test_mover_rays_compiled_equals_numpy_and_bits_may_be_shared():
+    """mover_rays' Warp kernel gives the numpy form's bits exactly, with more spheres than bits (40: bit
+    s % 32), and marks no ray that is hit already."""
+    from psao_server.tracer.embree import _chunk_rays, mover_rays, numpy_rays, segments_reach_sphere, sphere_bits
+
+    rng = np.random.default_rng(6)
+    n = 1500
+    pos = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    s = TraceSettings(rays=8, ao_distance=1.2)
+    org, dirs = (a.copy() for a in _chunk_rays(pos, nrm, np.arange(n), s, 0))
+    spheres = [(rng.uniform(-4, 4, 3), float(rng.uniform(0.1, 0.8))) for _ in range(40)]
+    hit = rng.random(len(org)) < 0.2
+    compiled = mover_rays(org, dirs, s.ao_distance, hit, s.rays, spheres)
+    with numpy_rays():
+        reference = mover_rays(org, dirs, s.ao_distance, hit, s.rays, spheres)
+    np.testing.assert_array_equal(compiled, reference)
+    assert not compiled[hit].any() and compiled.any()
+    bits = sphere_bits(len(spheres))
+    for (c, r), bit in zip(spheres, bits):  # every ray not hit that reaches a sphere carries its bit
+        assert ((compiled & bit) != 0)[segments_reach_sphere(org, dirs, s.ao_distance, c, r) & ~hit].all()
 
 
 @pytest.mark.parametrize("moving", ["rigid", "deforming", "both"])

@@ -58,9 +58,7 @@ class _Rigid:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         self.scene = _build_scene(vertices, faces)
         v = np.asarray(vertices, np.float64)
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        self.centre = (lo + hi) / 2 if len(v) else np.zeros(3)  # a bounding sphere, local frame
+        self.centre = (v.min(axis=0) + v.max(axis=0)) / 2 if len(v) else np.zeros(3)  # a bounding sphere, local frame
         self.radius = float(np.sqrt(((v - self.centre) ** 2).sum(axis=1).max())) if len(v) else 0.0
         self._pose_key: bytes | None = None  # the pose _placed last worked out, and its answer
         self._pose_placed = None
@@ -68,7 +66,7 @@ class _Rigid:
     def _placed(self, pose: np.ndarray):
         """(world sphere centre, radius, inverse pose) at `pose`: the chunks of one call share a pose, so it
         is worked out once per pose (a 3x3 singular value decomposition and an inverse cost more than a
-        small chunk's box test)."""
+        small chunk's sphere test)."""
         key = pose.tobytes()
         if key != self._pose_key:
             scale = float(np.linalg.norm(pose[:3, :3], 2))  # the largest stretch, shear included
@@ -76,30 +74,21 @@ class _Rigid:
             self._pose_key = key
         return self._pose_placed
 
-    def occlude(self, pose: np.ndarray, origins, dirs, tmax, hit: np.ndarray, rays_per_point: int) -> None:
-        """Mark in `hit` the rays (world, re-centred) this mesh at `pose` (4x4 local -> world) occludes.
-        Rays come in runs of `rays_per_point` sharing one origin: the box test (origin within tmax of the
-        mesh's world box) runs once per point, and only the near points' rays not yet hit are gathered and
-        traced, so a mover far from most of a batch costs little beyond one pass over the points."""
-        if self.scene is None:
-            return
-        w = self.corners @ pose[:3, :3].T + pose[:3, 3]
-        lo, hi = w.min(axis=0) - tmax, w.max(axis=0) + tmax
-        points = origins[::rays_per_point]
-        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        if len(near) == 0:
+    def placed_sphere(self, pose: np.ndarray) -> tuple[np.ndarray, float]:
+        """The world bounding sphere (centre, radius) at `pose`."""
+        centre, radius, _ = self._placed(pose)
+        return centre, radius
+
+    def occlude(self, pose: np.ndarray, origins, dirs, tmax, hit: np.ndarray, rays: np.ndarray,
+                retest: bool = False) -> None:
+        """Mark in `hit` which of the rays `rays` (indices of world, re-centred rays whose segments reach this
+        mesh's bounding sphere at `pose`: mover_rays; with `retest`, that may reach it) this mesh at `pose`
+        (4x4 local -> world) occludes: they are taken into the local frame and traced."""
+        if self.scene is None or len(rays) == 0:
             return
         centre, radius, inv = self._placed(pose)
-        # a point farther than tmax (unit directions) beyond the world bounding sphere reaches it with no ray:
-        # one test per point, before any ray is gathered
-        gap = points[near] - centre.astype(np.float32)
-        reach = np.float32(tmax + radius * (1 + 1e-4) + 1e-6)
-        near = near[np.einsum("pi,pi->p", gap, gap) <= reach * reach]
-        rays = (near[:, None] * rays_per_point + np.arange(rays_per_point)).ravel()
-        rays = rays[~hit[rays]]
-        # only rays whose segment comes within the mesh's bounding sphere (world) can hit: most rays of a
-        # point near the mover point away from it
-        rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, centre, radius)]
+        if retest:
+            rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, centre, radius)]
         if len(rays):
             o = (origins[rays] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
             d = (dirs[rays] @ inv[:3, :3].T).astype(np.float32)
@@ -115,8 +104,58 @@ def segments_reach_sphere(origins, dirs, tmax: float, centre, radius: float) -> 
     dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
     t = np.clip((d[0] * c[0] + d[1] * c[1] + d[2] * c[2]) / np.maximum(dd, np.float32(1e-30)), 0.0, tmax)
     gap = [c[k] - t * d[k] for k in range(3)]
-    r = np.float32(radius * (1 + 1e-4) + 1e-6)
+    r = np.float32(grown(radius))
     return gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2] <= r * r
+
+
+def grown(radius):
+    """A bounding sphere's radius with the slack that keeps the float32 segment tests conservative."""
+    return radius * (1 + 1e-4) + 1e-6
+
+
+def part_spheres(vertices: np.ndarray, parts) -> list[tuple[np.ndarray, float]]:
+    """Bounding spheres (centre, radius) of the deforming triangles' pieces: `parts` consecutive vertex counts
+    (None: one piece). Every triangle lies within its vertices' sphere."""
+    out, start = [], 0
+    if parts is None or sum(int(n) for n in parts) != len(vertices):
+        parts = [len(vertices)]  # (pieces that do not cover every vertex: one sphere for all)
+    for n in parts:
+        v = np.asarray(vertices[start:start + int(n)], np.float64)
+        start += int(n)
+        if len(v):
+            centre = (v.min(axis=0) + v.max(axis=0)) / 2
+            out.append((centre, float(np.sqrt(((v - centre) ** 2).sum(axis=1).max()))))
+    return out
+
+
+def sphere_bits(count: int) -> np.ndarray:
+    """(count,) uint32: the bit of sphere s in mover_rays' answer (s % 32: beyond 32 spheres, bits are shared
+    and a ray's bit only says that it may reach one of the spheres that share it)."""
+    return (np.uint32(1) << (np.arange(count) % 32).astype(np.uint32)).astype(np.uint32)
+
+
+def mover_rays(origins, dirs, tmax, hit, rays_per_point: int, spheres: list[tuple[np.ndarray, float]]) -> np.ndarray:
+    """(R,) uint32 per ray: sphere_bits of the spheres (centre, radius) its segment reaches, for rays not
+    `hit` yet (0 for the others). Rays come in runs of `rays_per_point` sharing an origin. Only these rays
+    can be occluded by a mover inside one of the spheres: the rest (most rays, even near a mover) are never
+    traced against the movers. Compiled (kernels.spheres_reached) where Warp is present."""
+    centres = np.array([c for c, _ in spheres], np.float64).reshape(-1, 3)
+    radii = np.array([r for _, r in spheres], np.float64)
+    if getattr(_RAYS, "buffers", None) is not False:
+        try:
+            from psao_server.tracer.kernels import spheres_reached
+            return spheres_reached(origins, dirs, hit, rays_per_point, tmax, centres, grown(radii))
+        except ImportError:
+            pass
+    out = np.zeros(len(origins), np.uint32)
+    points = origins[::rays_per_point]
+    for c, r, bit in zip(centres, radii, sphere_bits(len(radii))):
+        gap = points - c.astype(np.float32)
+        near = np.flatnonzero(np.einsum("pi,pi->p", gap, gap) <= (tmax + grown(r)) ** 2)
+        rays = (near[:, None] * rays_per_point + np.arange(rays_per_point)).ravel()
+        rays = rays[~hit[rays]]
+        out[rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, c, r)]] |= bit
+    return out
 
 
 class _Scenes:
@@ -128,6 +167,7 @@ class _Scenes:
         self.rigid = [_Rigid(v, f) for v, f in rigid]
         self.rigid_poses = None
         self.dynamic = None
+        self.dynamic_spheres: list[tuple[np.ndarray, float]] = []  # bounding spheres of its pieces
         self.dynamic_version = -1
         self._refit: RefitMesh | None = None
 
@@ -136,6 +176,7 @@ class _Scenes:
         separately moving pieces, see RefitMesh) and the rigid movers' poses."""
         if version != self.dynamic_version:
             self.dynamic = self._deforming(vertices, faces, parts) if vertices is not None else None
+            self.dynamic_spheres = part_spheres(vertices, parts) if self.dynamic is not None else []
             self.dynamic_version = version
         self.rigid_poses = rigid_poses
 
@@ -164,13 +205,22 @@ class _Scenes:
             hit = np.zeros(len(origins), dtype=bool)
         if static_out is not None:
             static_out[:] = hit
+        rigid = ([(mesh, pose) for mesh, pose in zip(self.rigid, self.rigid_poses) if mesh.scene is not None]
+                 if self.rigid_poses is not None else [])
+        spheres = self.dynamic_spheres + [mesh.placed_sphere(pose) for mesh, pose in rigid]
+        if not spheres:
+            return hit
+        bits = sphere_bits(len(spheres))
+        reach = mover_rays(origins, dirs, tmax, hit, rays_per_point, spheres)
+        todo = np.flatnonzero(reach)
         if self.dynamic is not None:
-            todo = np.flatnonzero(~hit)
-            if len(todo):
-                hit[todo] = self.dynamic.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
-        if self.rigid_poses is not None:
-            for mesh, pose in zip(self.rigid, self.rigid_poses):
-                mesh.occlude(pose, origins, dirs, tmax, hit, rays_per_point)
+            mine = todo[(reach[todo] & np.bitwise_or.reduce(bits[:len(self.dynamic_spheres)])) != 0]
+            if len(mine):
+                hit[mine] = self.dynamic.run(origins[mine], dirs[mine], dists=dists[mine], query="OCCLUDED") != -1
+        shared = len(spheres) > len(np.unique(bits))  # a bit then stands for several spheres: test each again
+        for (mesh, pose), bit in zip(rigid, bits[len(self.dynamic_spheres):]):
+            mine = todo[(reach[todo] & bit) != 0]
+            mesh.occlude(pose, origins, dirs, tmax, hit, mine[~hit[mine]], retest=shared)
         return hit
 
 

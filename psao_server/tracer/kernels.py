@@ -2,7 +2,8 @@
 
 `ray_direction` is the one definition of a point's j-th ray in Warp; `directions_kernel` fills the ray
 buffers the Embree workers trace (numpy temporaries cost as much as Embree's own traversal), and
-`visibility_kernel` traces in Warp itself. tests/test_tracer.py checks both against the numpy reference.
+`visibility_kernel` traces in Warp itself; `reach_kernel` finds the rays that can reach a mover's bounding
+sphere (the only ones the Embree back-end traces against the movers). tests/test_tracer.py checks both against the numpy reference.
 """
 from __future__ import annotations
 
@@ -130,6 +131,59 @@ def visibility_kernel(
             if occluded(dynamic_mesh, o, d, ao_distance) == 0:
                 free += 1
     out_visibility[i] = float(free) / float(count)
+
+
+@wp.kernel
+def reach_kernel(
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    hit: wp.array(dtype=wp.uint8),
+    count: int,
+    tmax: float,
+    centres: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    spheres: int,
+    out: wp.array(dtype=wp.uint32),
+):
+    # One thread per point (its `count` rays share an origin): per ray not hit yet, bit s % 32 set for each
+    # sphere s its segment o + t d, t in [0, tmax], comes within radii[s] of (embree.segments_reach_sphere,
+    # whose numpy form is the reference); a sphere out of the point's reach is skipped for all its rays.
+    i = wp.tid()
+    o = origins[i * count]
+    for k in range(count):
+        out[i * count + k] = wp.uint32(0)
+    for s in range(spheres):
+        c = centres[s] - o
+        r = radii[s]
+        reach = tmax + r
+        if wp.dot(c, c) <= reach * reach:
+            bit = wp.uint32(1) << wp.uint32(s % 32)
+            for k in range(count):
+                j = i * count + k
+                if hit[j] == wp.uint8(0):
+                    d = dirs[j]
+                    t = wp.clamp(wp.dot(d, c) / wp.max(wp.dot(d, d), 1e-30), 0.0, tmax)
+                    g = c - d * t
+                    if wp.dot(g, g) <= r * r:
+                        out[j] = out[j] | bit
+
+
+def spheres_reached(origins: np.ndarray, dirs: np.ndarray, hit: np.ndarray, rays_per_point: int, tmax: float,
+                    centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(R,) uint32: per ray (runs of `rays_per_point` sharing an origin) not `hit` yet, bit s % 32 for each
+    sphere s (centres (S, 3), radii (S,), already grown by any slack) its segment reaches; 0 for hit rays."""
+    out = np.empty(len(origins), np.uint32)
+    if len(origins) == 0:
+        return out
+    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+    wp.launch(reach_kernel, dim=len(origins) // rays_per_point, device="cpu", inputs=[
+        wp.array(f32(origins), dtype=wp.vec3, device="cpu", copy=False),
+        wp.array(f32(dirs), dtype=wp.vec3, device="cpu", copy=False),
+        wp.array(np.ascontiguousarray(hit).view(np.uint8), dtype=wp.uint8, device="cpu", copy=False),
+        int(rays_per_point), float(tmax), wp.array(f32(centres), dtype=wp.vec3, device="cpu"),
+        wp.array(f32(radii), dtype=float, device="cpu"), len(radii),
+        wp.array(out, dtype=wp.uint32, device="cpu", copy=False)])
+    return out
 
 
 class RayBuffers:
