@@ -1,9 +1,10 @@
 """Every model at its default settings, and at 4x the default density: one table, one chart.
 
 For each scene (every mesh file under ../shared/scenes and every built-in scene) and each density scale,
-a child process bakes at the scene's default (scale-aware) density times the scale, with the bake's default
-rays per point unless --rays, and reports: points, bake seconds, points dropped to grid overflow,
-reconstruction MAE and hole fraction at random surface probes against AO traced there directly, PSNR of
+a child process bakes at the scene's default (scale-aware) density times the scale, with the default
+density's detail levels (psao_server/sampling.py: small triangles up to DETAIL_FACTOR times denser) and
+the bake's default rays per point unless --rays, and reports: points, bake seconds, points dropped to grid
+overflow, reconstruction MAE and hole fraction at random surface probes against AO traced there directly, PSNR of
 PSAO, SSAO and GTAO against an RTAO reference on the same frames, and the child's peak resident memory.
 Probes on surfaces buried inside closed geometry (psao_server/buried.py, every one-sided instance as
 posed at time 0) are seen from nowhere and left out of MAE and holes; their share is the "buried"
@@ -49,15 +50,15 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     from psao_server.bake import bake_scene, reconstruction_error, sample_probes
     from psao_server.buried import visible_probes
     from psao_server.settings import BakeSettings, DensifySettings, GapFillSettings
-    from psao_server.sampling import default_density
+    from psao_server.sampling import DETAIL_FACTOR, default_density
 
     scene = load_scene(spec)
     density = default_density(scene) * scale
     t0 = time.perf_counter()
     rays = {} if cfg["rays"] is None else {"rays": cfg["rays"]}
     fill = GapFillSettings(passes=cfg.get("gap_fill", 0), first_step=cfg.get("gap_fill_first_step", False))
-    res = bake_scene(scene, BakeSettings(density=density, gap_fill=fill, densify=DensifySettings(rounds=cfg.get("densify", 0)),
-                                         **rays), show_progress=False)
+    res = bake_scene(scene, BakeSettings(density=density, detail_factor=DETAIL_FACTOR, gap_fill=fill,
+                                         densify=DensifySettings(rounds=cfg.get("densify", 0)), **rays), show_progress=False)
     seconds = time.perf_counter() - t0
     probes = visible_probes(scene, sample_probes(scene, cfg["probes"]))
     try:

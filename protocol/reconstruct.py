@@ -8,8 +8,8 @@ KEY_CELLS consecutive entries of its bucket), points zeroed when n_p . n_x <= T_
 (n_p . (p - x))^2 >= T_d |p - x|^2 (p != x), weights max(0, 1 - d / rho)^WEIGHT_POWER, and the
 weighted mean of the first of three steps that finds weight: radius r with n_p . n_x > FIRST_T_N and
 (n_p . (p - x))^2 < FIRST_T_D |p - x|^2 too; radius R = FALLBACK_SCALE * r with n_p . n_x > SECOND_T_N;
-radius R with eq. 3 alone. Where none does, the 3x3x3 block floor(g) + {-1,0,1}^3 with radius R and the
-normal threshold RING_T_N instead of T_n, and 1 where that finds no weight. Positions are in grid units (one
+radius R with eq. 3 alone. Where none does, the 3x3x3 block floor(g) + {-1,0,1}^3 with the
+normal threshold RING_T_N instead of T_n at radius RING_SCALE * r, and 1 where that finds no weight. Positions are in grid units (one
 cell = 1), as the shader computes them: g = (x - origin) / cell_size, a point's offset from the fragment
 (cell + (q + 0.5) / 32) - g. On double-sided instances (FLAG_DOUBLE_SIDED) a fragment with `back` set
 (the G-buffer's back-side flag) looks up the back-side cells (key | BACK_BIT) instead, as the shader
@@ -57,7 +57,7 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
 def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
     """[(AO, weight sum)] of the 2x2x2 block's three steps (radius r with FIRST_T_N and FIRST_T_D,
     FALLBACK_SCALE * r with SECOND_T_N, FALLBACK_SCALE * r with eq. 3 alone), or (ring) of the 3x3x3 block
-    around the fragment's cell at FALLBACK_SCALE * r with the normal threshold RING_T_N."""
+    around the fragment's cell at RING_SCALE * r with the normal threshold RING_T_N."""
     rec = instances[inst]
     origin = rec["origin"].astype(np.float32)
     s = rec["cell_size"].astype(np.float32)
@@ -67,7 +67,7 @@ def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=N
     g = ((x - origin) / s[:, None]).astype(np.float32)
     if ring:
         t_n = gf.RING_T_N
-        steps = [(wide, t_n, t_d)]
+        steps = [((r * np.float32(gf.RING_SCALE)).astype(np.float32), t_n, t_d)]
         cell = np.floor(g).astype(np.int64)[:, None, :] + _RING[None, :, :]  # (M, 27, 3)
     else:
         # (radius, the step's normal threshold, its tangent-plane threshold)

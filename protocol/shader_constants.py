@@ -49,6 +49,7 @@ def define_values(t_n: float = gf.T_N, t_d: float = gf.T_D, table_width: int | N
         "PSAO_SECOND_T_N": _float(gf.SECOND_T_N),
         "PSAO_WEIGHT_POWER": str(gf.WEIGHT_POWER),  # int: a loop bound
         "PSAO_RING_T_N": _float(gf.RING_T_N),
+        "PSAO_RING_SCALE": _float(gf.RING_SCALE),
         "PSAO_EMPTY": _uint(gf.EMPTY),
         "PSAO_BACK_BIT": _uint(gf.BACK_BIT),
         "PSAO_FLAG_DOUBLE_SIDED": _uint(gf.FLAG_DOUBLE_SIDED),

@@ -195,7 +195,7 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         task = bar.add_task("points", total=len(scene.instances)) if bar else None
         buried = BuriedTest(scene) if settings.skip_buried else None
         point_settings = PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
-                                       spawn_ratio=settings.spawn_ratio)
+                                       spawn_ratio=settings.spawn_ratio, detail_factor=settings.sampling().factor())
         progress = (lambda done, total: bar.update(task, completed=done)) if bar else None
         workers = settings.workers or os.cpu_count() or 1
         if workers > 1 and len(scene.instances) > 1 and stats["points_estimated"] >= PARALLEL_POINTS:

@@ -62,7 +62,8 @@ def bake_arguments(settings: BakeSettings) -> list[str]:
     """The options of add_bake_arguments that give `settings` (for a `psao bake` or `psao serve` process)."""
     points = (["--density", f"{settings.density:g}"] if settings.density is not None else
               ["--points", f"{settings.points:g}"] if settings.points is not None else [])
-    return [*points, "--max-points", f"{settings.max_points:g}", "--rays", str(settings.rays), "--seed", str(settings.seed),
+    detail = ["--detail-factor", str(settings.detail_factor)] if settings.detail_factor is not None else []
+    return [*points, "--max-points", f"{settings.max_points:g}", *detail, "--rays", str(settings.rays), "--seed", str(settings.seed),
             "--spawn-ratio", f"{settings.spawn_ratio:g}", "--gap-fill", str(settings.gap_fill.passes),
             "--gap-fill-ratio", f"{settings.gap_fill.ratio:g}", "--tracer", settings.tracer,
             "--workers", str(settings.workers), "--densify", str(settings.densify.rounds),

@@ -3,6 +3,9 @@
 Spawn `spawn_ratio * N` (2N) uniform random points per world unit area, area-weighted over the
 triangles and uniform in barycentrics, then remove half of them by weighted sample elimination
 (Yuksel 2015, "Sample Elimination for Generating Poisson Disk Sample Sets") so N per unit area remain.
+With a detail factor above 1 (the bake's default density) triangles small against the point spacing are
+sampled denser, at a power of two times N (psao_server.sampling.level_counts): each density level is
+spawned and eliminated on its own triangles.
 Double-sided meshes get every kept point twice, once per side, with opposite normals.
 
 Areas and distances are measured on the world-transformed surface (so a scaled instance gets the right
@@ -20,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from psao_scene.model import Mesh, Scene
 from psao_server.errors import ConfigError
+from psao_server.sampling import level_counts
 from psao_server.settings import PointSettings
 
 _HEX = 2.0 * np.sqrt(3.0)  # area of the hexagonal cell per sample is _HEX * r^2 for Poisson radius r
@@ -139,23 +143,16 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
     if not world_area > 0 or not local_area > 0:
         raise ConfigError(f"mesh {mesh.name!r} has zero surface area (all triangles degenerate or scaled to 0)")
 
-    keep = max(int(settings.min_points), int(round(settings.density * world_area)))
-    spawn = int(round(settings.spawn_ratio * keep))
     rng = np.random.default_rng(settings.seed if seed is None else seed)
-    faces, bary = spawn_uniform(rng, world_areas, spawn)
-
     normals_local = mesh.face_normals()
-    world_positions = _on_triangles(world_vertices, mesh.faces, faces, bary)
     world_normals = _unit(np.cross(*_edges(world_vertices, mesh.faces)))
-    area_left, keep_left = world_area, keep
-    if reject is not None and spawn:
-        out = reject(world_positions + np.asarray(transform, np.float64)[:3, 3], world_normals[faces])
-        share = 1.0 - float(np.count_nonzero(out)) / spawn
-        faces, bary, world_positions = faces[~out], bary[~out], world_positions[~out]
-        area_left, keep_left = world_area * share, min(len(faces), int(round(keep * share)))
-    kept = eliminate(world_positions, world_normals[faces], area_left, keep_left, settings) if keep_left else \
-        np.zeros(len(faces), bool)
-    faces, bary = faces[kept], bary[kept]
+    levels = level_counts(world_areas, settings.density, settings.min_points, settings.detail_factor)
+    parts = [_level_points(rng, world_vertices, world_areas, world_normals, mesh.faces, on, keep, settings,
+                           transform, reject) for keep, on in levels]
+    faces = np.concatenate([f for f, _, _ in parts])
+    bary = np.concatenate([b for _, b, _ in parts])
+    spawn = sum(n for _, _, n in parts)
+    keep = sum(k for k, _ in levels)
 
     positions = _on_triangles(mesh.vertices, mesh.faces, faces, bary)
     normals = normals_local[faces]
@@ -176,6 +173,26 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
         poisson_radius=float(np.sqrt(local_area / (_HEX * keep))),
         spawned=spawn * sides,
     )
+
+
+def _level_points(rng, world_vertices, world_areas, world_normals, tris, on, keep, settings, transform, reject):
+    """(faces, barycentrics, spawned) of `keep` points on the triangles `on` selects (None: all): spawned
+    spawn_ratio times over and thinned by the elimination. `reject` removes spawned points before the
+    elimination and shrinks the kept count in proportion (generate_points)."""
+    areas = world_areas if on is None else np.where(on, world_areas, 0.0)
+    area = float(areas.sum())
+    spawn = int(round(settings.spawn_ratio * keep))
+    faces, bary = spawn_uniform(rng, areas, spawn)
+    world_positions = _on_triangles(world_vertices, tris, faces, bary)
+    area_left, keep_left = area, keep
+    if reject is not None and spawn:
+        out = reject(world_positions + np.asarray(transform, np.float64)[:3, 3], world_normals[faces])
+        share = 1.0 - float(np.count_nonzero(out)) / spawn
+        faces, bary, world_positions = faces[~out], bary[~out], world_positions[~out]
+        area_left, keep_left = area * share, min(len(faces), int(round(keep * share)))
+    kept = eliminate(world_positions, world_normals[faces], area_left, keep_left, settings) if keep_left else \
+        np.zeros(len(faces), bool)
+    return faces[kept], bary[kept], spawn
 
 
 def _edges(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

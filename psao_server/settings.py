@@ -21,7 +21,7 @@ from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.updates import Layout
 from psao_server.budget import BudgetSettings
 from psao_server.errors import ConfigError, GridError, TracerError
-from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings
+from psao_server.sampling import DEFAULT_MAX_POINTS, SamplingSettings, check_detail_factor
 
 
 @dataclass
@@ -55,11 +55,13 @@ class PointSettings:
     # Neighbours whose normals make a cosine <= this do not weigh on each other, so the two faces of a thin
     # slab (cosine -1) keep their own density instead of sharing one. -1.0 or less turns the gate off.
     normal_cos_min: float = -0.5
+    detail_factor: int = 1  # most times `density` a small triangle gets (sampling.level_counts); 1: N everywhere
 
     def check(self) -> None:
         """ConfigError for a setting out of range, naming it."""
         if not np.isfinite(self.density) or self.density <= 0:
             raise ConfigError(f"density must be > 0, got {self.density}")
+        check_detail_factor(self.detail_factor)
         if self.min_points < 1:
             raise ConfigError(f"min_points must be >= 1, got {self.min_points}")
         if not self.spawn_ratio >= 1.0:
@@ -159,6 +161,9 @@ class BakeSettings:
     density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
     points: float | None = None  # total point budget instead of a density
     max_points: float = DEFAULT_MAX_POINTS  # refuse a setting whose estimate exceeds this many points
+    # most times the density a small triangle gets (sampling.py), 1: off; None: on with the default density or
+    # a point budget, off with an explicit density
+    detail_factor: int | None = None
     rays: int = TraceSettings.rays  # rays per point
     seed: int = 0  # points and rays
     tracer: str = "embree"  # back-end name, see psao_server.tracer
@@ -192,7 +197,8 @@ class BakeSettings:
         self.densify.check()
 
     def sampling(self) -> SamplingSettings:
-        return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points)
+        return SamplingSettings(density=self.density, points=self.points, max_points=self.max_points,
+                                detail_factor=self.detail_factor)
 
 
 @dataclass

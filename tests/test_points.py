@@ -19,6 +19,7 @@ from psao_server.points import (
     instance_seed,
     neighbour_graph,
     spawn_uniform,
+    triangle_areas,
 )
 from psao_server.points_elim import eliminate_csr
 
@@ -304,7 +305,7 @@ def test_bunny_points_when_present():
     if not path.exists():
         pytest.skip("bunny not present")
     tm = trimesh.load(path, force="mesh")
-    ps = generate_points(mesh_of(tm), np.eye(4), PointSettings(density=2e5))
+    ps = generate_points(mesh_of(tm), np.eye(4), PointSettings(density=2e5, detail_factor=1))
     assert len(ps) == round(2e5 * tm.area)
     nn = nn_distance(ps.positions)
     assert nn.min() > 0.7 * ps.poisson_radius
@@ -327,3 +328,58 @@ def test_parallel_generation_equals_serial():
         for name in ("positions", "normals", "faces", "barycentrics", "back"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
         assert (a.poisson_radius, a.spawned) == (b.poisson_radius, b.spawned)
+
+
+# ---------------------------------------------------------------- detail levels
+
+
+def folded_and_flat() -> Mesh:
+    """One mesh: a flat 1 x 1 square (two triangles, z = -1) and a strip folded like an accordion (x 0..1,
+    folds 0.05 apart at right angles, 0.05 deep, 0.2 long in z in four rows): small triangles meeting at
+    90 degrees."""
+    flat_v = np.array([[0, 0, -1.0], [1, 0, -1], [1, 1, -1], [0, 1, -1]])
+    flat_f = np.array([[0, 1, 2], [0, 2, 3]])
+    xs = np.arange(21) * 0.05
+    ys = (np.arange(21) % 2) * 0.05
+    zs = np.arange(5) * 0.05
+    v = np.array([[x, y, z] for z in zs for x, y in zip(xs, ys)])
+    f = []
+    for j in range(4):
+        for i in range(20):
+            a, b, c, d = j * 21 + i, j * 21 + i + 1, (j + 1) * 21 + i + 1, (j + 1) * 21 + i
+            f += [[a, b, c], [a, c, d]]
+    return Mesh("folded", np.vstack([flat_v, v + [0, 2, 0]]), np.vstack([flat_f, np.array(f) + 4]).astype(np.int64))
+
+
+def test_small_triangles_get_the_detail_factor_and_large_ones_the_density():
+    from psao_server.sampling import DETAIL_POINTS, detail_factors
+
+    mesh = folded_and_flat()
+    areas = triangle_areas(mesh.vertices, mesh.faces)
+    factor = detail_factors(areas, 400.0, 4)
+    assert 400.0 * areas[0] > DETAIL_POINTS and list(factor[:2]) == [1, 1] and np.all(factor[2:] == 4)
+    # the largest power of two that keeps a triangle within DETAIL_POINTS points
+    sizes = DETAIL_POINTS * np.array([1.0, 0.6, 0.4, 0.2, 0.01]) / 400.0
+    assert list(detail_factors(sizes, 400.0, 4)) == [1, 1, 2, 4, 4]
+    assert list(detail_factors(sizes, 400.0, 1)) == [1] * 5
+    ps = generate_points(mesh, np.eye(4), PointSettings(density=400.0, seed=2, detail_factor=4))
+    on_flat = ps.faces < 2
+    assert on_flat.sum() == round(400.0 * areas[:2].sum())
+    assert (~on_flat).sum() == round(4 * 400.0 * areas[2:].sum())
+    # one level: the paper's uniform density everywhere
+    plain = generate_points(mesh, np.eye(4), PointSettings(density=400.0, seed=2))
+    assert len(plain) == round(400.0 * areas.sum())
+    # the lookup radius follows the mean spacing of all the instance's points
+    assert ps.poisson_radius == pytest.approx(np.sqrt(areas.sum() / (HEX * len(ps))))
+
+
+def test_estimate_equals_generated_points_with_detail_levels():
+    from psao_scene.model import Instance, Scene
+    from psao_server.sampling import estimate_points
+
+    mesh = folded_and_flat()
+    scene = Scene("folded", [mesh], [Instance("a", 0, np.eye(4)), Instance("b", 0, scale(2.0))], ao_distance=0.5)
+    s = PointSettings(density=100.0, seed=1, detail_factor=4)
+    total = sum(len(generate_points(mesh, inst.transform, s)) for inst in scene.instances)
+    assert total == estimate_points(scene, 100.0, s.min_points, 4)
+    assert total > estimate_points(scene, 100.0, s.min_points, 1)

@@ -12,8 +12,8 @@ def brute_force(grid: Grid, inst, x, n_x):
     """eq. 2-4 over ALL decoded points of the instance whose normal also passes FIRST_T_N and whose offset
     passes FIRST_T_D, no grid lookup; where no point has weight, the points of the 2x2x2 block around x
     with the radius times FALLBACK_SCALE whose normal passes SECOND_T_N, then all those passing eq. 3;
-    where none of those has weight, all points with that radius and the normal threshold RING_T_N (the
-    3x3x3 ring holds every point within it). Weights (radius - d) / radius to the power WEIGHT_POWER."""
+    where none of those has weight, the points of the 3x3x3 block around x's cell within RING_SCALE times the
+    radius with the normal threshold RING_T_N. Weights (radius - d) / radius to the power WEIGHT_POWER."""
     rec = grid.instances[inst]
     slots = np.flatnonzero(grid.cell_instance == inst)
     words = grid.cells[slots, : gf.POINTS_PER_CELL]
@@ -33,10 +33,12 @@ def brute_force(grid: Grid, inst, x, n_x):
         ring = ((n_p @ ni) > gf.RING_T_N) & (cosd ** 2 < T_D)
         block = gf.lookup_block_base(gf.grid_coords(xi, rec["origin"], rec["cell_size"]))
         in_block = np.all((point_cell >= block) & (point_cell <= block + 1), axis=1)
+        own = np.floor(gf.grid_coords(xi, rec["origin"], rec["cell_size"])).astype(np.int64)
+        in_ring = np.all(np.abs(point_cell - own) <= 1, axis=1)
         first = counts & gf.in_first_step(n_p @ ni, (n_p * d).sum(1), dist * dist, r)
         second = counts & in_block & ((n_p @ ni) > gf.SECOND_T_N)
         wide = r * gf.FALLBACK_SCALE
-        for radius, among in ((r, first), (wide, second), (wide, counts & in_block), (wide, ring)):
+        for radius, among in ((r, first), (wide, second), (wide, counts & in_block), (r * gf.RING_SCALE, ring & in_ring)):
             w = np.where(among, np.maximum(0, (radius - dist) / radius) ** gf.WEIGHT_POWER, 0)
             if w.sum() > 0:
                 break
@@ -67,8 +69,8 @@ def test_lookup_equals_brute_force_on_random_surfaces():
 
 def test_fallback_ring_fills_gaps_wider_than_r_and_nothing_beyond_its_radius():
     """Points on a lattice 1.6 r apart: probes in the middle of a square are farther than r from every
-    point (a hole for eq. 2-4 alone), the ring finds the four corners; a probe 2.5 r off the plane
-    finds nothing (AO 1)."""
+    point (a hole for eq. 2-4 alone), the ring finds the four corners; a probe half a radius farther off the
+    plane than the ring reaches finds nothing (AO 1)."""
     r_poisson = 0.01
     grid = Grid.build([(np.zeros((1, 3)), np.array([[0, 0, 1.0]]), r_poisson, 0)])
     r = float(grid.instances[0]["radius"])
@@ -81,7 +83,7 @@ def test_fallback_ring_fills_gaps_wider_than_r_and_nothing_beyond_its_radius():
     rng = np.random.default_rng(5)
     grid.set_ao(t.slot, t.index, rng.integers(0, 256, len(t)))
     centres = np.column_stack([u[3:15] + 0.8 * r, u[3:15] + 0.8 * r, np.zeros(12)])
-    x = np.vstack([centres, [[u[8], u[8], 2.5 * r]]])
+    x = np.vstack([centres, [[u[8], u[8], (gf.RING_SCALE + 0.5) * r]]])
     n = np.tile([0, 0, 1.0], (len(x), 1))
     ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, np.zeros(len(x), int), x, n)
     assert np.all(np.linalg.norm(t.local_pos[None, :, :] - centres[:, None, :], axis=2).min(axis=1) > r)

@@ -11,8 +11,8 @@ import pytest
 
 from psao_scene import load_scene
 from psao_server.errors import ConfigError
-from psao_server.sampling import (POINTS_PER_AO_AREA, SamplingSettings, default_density, estimate_points,
-                                  resolve_density)
+from psao_server.sampling import (DETAIL_FACTOR, POINTS_PER_AO_AREA, SamplingSettings, default_density,
+                                  estimate_points, resolve_density)
 from serving import HANG_S
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,6 +49,46 @@ def test_point_budget_sets_the_density(tmp_path):
     scene = load_scene(write_box_obj(tmp_path / "b.obj", 3.0))
     density, count = resolve_density(scene, SamplingSettings(points=5000), 1)
     assert density == pytest.approx(5000 / 54.0) and count == pytest.approx(5000, abs=6)
+
+
+def quad_and_fine_strip():
+    """One mesh: a 1 x 1 quad (two large triangles) and a 1 x 0.1 strip cut into 0.01 x 0.01 squares."""
+    from psao_scene.model import Instance, Mesh, Scene
+
+    v = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    f = [[0, 1, 2], [0, 2, 3]]
+    for i in range(100):
+        for j in range(10):
+            k = len(v)
+            x, y = i * 0.01, 2 + j * 0.01
+            v += [[x, y, 0], [x + 0.01, y, 0], [x + 0.01, y + 0.01, 0], [x, y + 0.01, 0]]
+            f += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
+    mesh = Mesh("strip", np.array(v, float), np.array(f, np.int64))
+    return Scene("strip", [mesh], [Instance("strip", 0, np.eye(4))], ao_distance=0.5)
+
+
+def test_default_density_samples_small_triangles_denser_and_counts_them():
+    scene = quad_and_fine_strip()
+    n = default_density(scene)
+    density, count = resolve_density(scene, SamplingSettings(), 1)
+    assert density == n and count == estimate_points(scene, n, 1, DETAIL_FACTOR)
+    assert count == round(n * 1.0) + round(DETAIL_FACTOR * n * 0.1)  # the quad at N, the strip at 4 N
+    # an explicit density is the same on every triangle unless the levels are asked for
+    assert resolve_density(scene, SamplingSettings(density=n), 1)[1] == round(n * 1.1)
+    assert resolve_density(scene, SamplingSettings(density=n, detail_factor=4), 1)[1] == count
+    assert resolve_density(scene, SamplingSettings(detail_factor=1), 1)[1] == round(n * 1.1)
+
+
+def test_point_budget_counts_the_detail_levels():
+    scene = quad_and_fine_strip()
+    density, count = resolve_density(scene, SamplingSettings(points=3000), 1)
+    assert 0.97 * 3000 <= count <= 3000 and count == estimate_points(scene, density, 1, DETAIL_FACTOR)
+
+
+@pytest.mark.parametrize("factor", [0, 3, -2, 128, 2.0, True])
+def test_bad_detail_factors_are_refused(factor):
+    with pytest.raises(ConfigError):
+        SamplingSettings(detail_factor=factor).check()
 
 
 @pytest.mark.parametrize("kw", [dict(density=0.0), dict(density=-3.0), dict(density=math.nan), dict(density=math.inf),

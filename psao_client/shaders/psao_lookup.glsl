@@ -125,9 +125,9 @@ float psao_cell_distance2(vec3 g, vec3 c) {
 //      near its tangent plane (PSAO_FIRST_T_D): the fragment's own face, not the other face at a crease;
 //   2. radius R = PSAO_FALLBACK_SCALE * r, normals within PSAO_SECOND_T_N (a face narrower than r);
 //   3. radius R and eq. 3 alone;
-//   4. the 3x3x3 block floor(g) + {-1,0,1}^3 (every point within one cell, s >= R, of x) with radius R and
-//      eq. 3's normal threshold loosened to PSAO_RING_T_N (the faces across a sharp edge). Only groups of
-//      fragments holding such a fragment run these 27 cells.
+//   4. the 3x3x3 block floor(g) + {-1,0,1}^3 (every point within one cell, s >= R, of x) with radius
+//      PSAO_RING_SCALE * r and eq. 3's normal threshold loosened to PSAO_RING_T_N (the faces across a sharp
+//      edge). Only groups of fragments holding such a fragment run these 27 cells.
 // Returns (AO, weight sum of the step that answered); AO is 1 when even step 4 finds no weight. `back`:
 // the fragment shows the back side of a double-sided surface (the G-buffer flipped its normal), so only
 // back-side cells can hold points that pass eq. 3's normal test: one key per cell, as for one-sided
@@ -161,7 +161,9 @@ vec2 psao_reconstruct(uint inst_id, vec3 x, vec3 nx, bool back) {
             base = ivec3(floor(g)) - 1;
             side = 3;
             o = ivec3(0);
-            inv_radii = inv_radii.yy;  // every step now sums the ring's points alike
+            float ring = radii.x * PSAO_RING_SCALE;
+            inv_radii = vec2(1.0 / ring);  // every step now sums the ring's points alike
+            reach2 = (ring * 1.001) * (ring * 1.001);
             t_n = vec3(PSAO_RING_T_N);
             first_t_d = PSAO_T_D;
         }
