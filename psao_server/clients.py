@@ -133,8 +133,10 @@ class PendingSet:
         elif self._added is None:
             out = np.flatnonzero(self.mask)
         else:
-            rows = np.concatenate(self._added)
-            out = np.unique(rows[self.mask[rows]])
+            rows = self._added[0] if len(self._added) == 1 else np.concatenate(self._added)
+            out = np.sort(rows[self.mask[rows]])
+            if len(self._added) > 1:  # an index unset and set again is listed twice
+                out = out[np.concatenate(([True], out[1:] != out[:-1]))]
         self._added, self._added_rows = [out], len(out)
         return out
 
@@ -235,11 +237,19 @@ class Client:
     def pending_anything(self) -> bool:
         return bool(self.buckets_pending.count or self.cells_pending.count)
 
+    def planes_stale(self) -> bool:
+        """Whether its camera changed since view_planes last worked out its frustum."""
+        return self._planes_of is not self.camera
+
     def view_planes(self, make: Callable[[tuple], np.ndarray | None]) -> np.ndarray | None:
         """The extended frustum of the last camera (`make(camera)`), kept until the camera changes."""
         if self._planes_of is not self.camera:
-            self._planes_of, self._planes = self.camera, make(self.camera)
+            self.keep_planes(make(self.camera))
         return self._planes
+
+    def keep_planes(self, planes: np.ndarray | None) -> None:
+        """Keep `planes` as the extended frustum of its current camera (worked out for many clients at once)."""
+        self._planes_of, self._planes = self.camera, planes
 
     def unread(self) -> int:
         """Messages sent that its client has not yet been shown to have read."""

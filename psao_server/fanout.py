@@ -40,7 +40,7 @@ from protocol.session import ServerConfig, SharedParts, SharedStream
 from protocol.updates import GridDelta
 
 from .clients import Client, changed_transform_ids, read_delta
-from .sendview import CellPlaces, client_planes
+from .sendview import CellPlaces, client_planes, clients_planes
 from .settings import FanoutSettings
 
 
@@ -151,6 +151,15 @@ class Fanout:
             return None
         return client.view_planes(lambda camera: client_planes(camera, self.settings.view))
 
+    def refresh_planes(self, clients: list[Client]) -> None:
+        """Work out the extended frustum of every client whose camera changed since its planes were, in one
+        pass: a client sends cameras faster than ticks come, so each tick finds most of them changed."""
+        if not self.settings.cull:
+            return
+        moved = [c for c in clients if c.planes_stale()]
+        for c, planes in zip(moved, clients_planes([c.camera for c in moved], self.settings.view)):
+            c.keep_planes(planes)
+
     def places(self, grid, transforms: np.ndarray) -> CellPlaces:
         """Where every cell slot is, for all the clients: worked out in full when the pool changes size,
         else again only for the slots the ticks changed, and the cells of instances whose transform
@@ -229,23 +238,22 @@ class Fanout:
         tids = changed_transform_ids(self.head_transforms, now_t)
         head = read_delta(grid, now_t, tids, bucket_ids, [])
         head_transforms = now_t.copy()
-        recipes = []
-        for c in clients:
+        planes = [self.planes(c) for c in clients]
+        visible = self._tiles_in_views(planes, places, slots, order, starts)  # (clients, tiles)
+        hidden_rows = np.repeat(~visible, counts, axis=1)  # (clients, dirty cells in tile order)
+        catch = []  # clients whose pending cells are looked at again (their camera moved)
+        for c, pl in zip(clients, planes):
             c._fit(capacity)
-            planes = self.planes(c)
-            if planes is None or not len(slots):
-                visible = np.ones(len(starts), bool)
-            else:
-                inside = places.in_view(planes, self.settings.view, slots)[order]
-                visible = np.logical_or.reduceat(inside, starts)
-            tiles = np.flatnonzero(visible)
-            hidden = sorted_slots[np.repeat(~visible, counts)]
             c.on_parts = True
             c.cells_pending.unset(slots)  # what is sent now carries the latest content; the rest is marked again
-            own_part = None
-            if c.cells_pending.count and (planes is not c.caught_up_with or c.caught_up_with is None):
-                own_part = self._catch_up(c, grid, now_t, places, planes)
-            c.cells_pending.set(hidden)
+            if c.cells_pending.count and (pl is not c.caught_up_with or c.caught_up_with is None):
+                catch.append(c)
+        own_parts = self._catch_ups(catch, grid, now_t, places, planes=[self.planes(c) for c in catch])
+        recipes, rows_of = [], []  # (rows_of: each recipe's client's row of `visible`)
+        for k, c in enumerate(clients):
+            tiles = np.flatnonzero(visible[k])
+            c.cells_pending.set(sorted_slots[hidden_rows[k]])
+            own_part = own_parts.get(c.id)
             if c.sent_transforms is self.head_transforms and self.head_transforms is not None \
                     and not c.buckets_pending.count:
                 own_head = None
@@ -258,30 +266,53 @@ class Fanout:
             if own_head is None and not (len(tids) or len(bucket_ids) or len(tiles) or own_part is not None):
                 continue  # nothing for it this tick
             recipes.append(PartsRecipe(c, own_head, tiles, own_part, not c.pending_anything()))
+            rows_of.append(k)
         self.head_transforms = head_transforms
         if not recipes:
             return None
-        used = np.unique(np.concatenate([r.tiles for r in recipes])).astype(np.int64)
+        used = np.flatnonzero(visible[rows_of].any(axis=0))  # the tiles some recipe takes
         rows = grid.cells[sorted_slots]  # one gather; a tile's cells are a run of it (slots ascending in each)
         tile_deltas = {int(t): GridDelta(capacity, cell_slots=sorted_slots[starts[t]:ends[t]],
                                          cells=rows[starts[t]:ends[t]]) for t in used}
         return PartsPlan(self.parts, tick, server_time, head, tile_deltas, recipes)
 
-    def _catch_up(self, c: Client, grid, transforms: np.ndarray, places, planes) -> GridDelta | None:
-        """The client's pending cells now in its view (none of this tick's: they go in tiles), as its own
-        part; looked at again only when its camera moves, or at once when a message could not hold them."""
-        limits = self.config_limits
-        cand = c.cells_pending.indices()  # (this tick's cells were taken off it: they go in tiles)
-        if places is not None and planes is not None and len(cand):
-            cand = cand[places.in_view(planes, self.settings.view, cand)]
-        room = limits.max_cells_per_message // 2
-        c.caught_up_with = planes if len(cand) <= room else None
-        cand = cand[:room]
-        if not len(cand):
-            return None
-        c.cells_pending.unset(cand)
-        self.counters.catch_ups += 1
-        return read_delta(grid, transforms, [], [], cand)
+    def _tiles_in_views(self, planes: list, places, slots: np.ndarray, order: np.ndarray,
+                        starts: np.ndarray) -> np.ndarray:
+        """Bool (clients, tiles): whether a client's extended view holds any of a tile's dirty cells (the
+        tiles are runs of slots[order] from `starts`); every client's in one pass."""
+        visible = np.ones((len(planes), len(starts)), bool)
+        culled = [k for k, p in enumerate(planes) if p is not None]
+        if places is None or not (culled and len(slots)):
+            return visible
+        inside = places.in_views(np.stack([planes[k] for k in culled]), self.settings.view, slots)
+        visible[culled] = np.logical_or.reduceat(inside[:, order], starts, axis=1)
+        return visible
+
+    def _catch_ups(self, clients: list[Client], grid, transforms: np.ndarray, places,
+                   planes: list) -> dict[int, GridDelta]:
+        """Per client id: its pending cells now in its view (none of this tick's: they go in tiles), as its
+        own part, where there are any; every client's cells tested in one pass. Looked at again only when
+        its camera moves, or at once when a message could not hold them."""
+        cands = [c.cells_pending.indices() for c in clients]  # (this tick's cells were taken off them)
+        culled = [k for k, p in enumerate(planes) if p is not None and len(cands[k])]
+        if places is not None and culled:
+            rows = np.concatenate([cands[k] for k in culled])
+            lens = [len(cands[k]) for k in culled]
+            each = np.repeat(np.stack([planes[k] for k in culled]), lens, axis=0)
+            inside = np.split(places.in_view_each(each, self.settings.view, rows), np.cumsum(lens)[:-1])
+            for k, ins in zip(culled, inside):
+                cands[k] = cands[k][ins]
+        room = self.config_limits.max_cells_per_message // 2
+        out = {}
+        for c, pl, cand in zip(clients, planes, cands):
+            c.caught_up_with = pl if len(cand) <= room else None
+            cand = cand[:room]
+            if not len(cand):
+                continue
+            c.cells_pending.unset(cand)
+            self.counters.catch_ups += 1
+            out[c.id] = read_delta(grid, transforms, [], [], cand)
+        return out
 
     def deliver_parts(self, plan: PartsPlan, frames: list[list[bytes]]) -> list[tuple[PartsRecipe, int]]:
         """Put each client's Update of parts in its outbox; returns (recipe, message index) per client."""
@@ -308,6 +339,7 @@ class Fanout:
         (returned, for plan_parts: when at least settings.parts_from clients may take them); mark them
         pending for everyone else. Reads the grid (on the loop, before anything else may change it)."""
         others: list[Client] = []
+        self.refresh_planes(clients)
         share = self._plan_stream(clients, grid, bucket_ids, cell_slots, transforms, tick, server_time, now, others)
         parted = [c for c in others if self.takes_parts(c)]
         if len(parted) < self.settings.parts_from:

@@ -27,15 +27,21 @@ import numpy as np
 def frustum_planes(view: np.ndarray, proj: np.ndarray, fov_margin: float = 0.0) -> np.ndarray:
     """(5, 4) world-space planes (a, b, c, d) with unit normals pointing inwards: left, right, bottom,
     top, far (the near plane is left out: points just in front of the eye matter). For a perspective
-    projection the field of view is widened by `fov_margin` degrees first (half on each side)."""
-    p = np.asarray(proj, np.float64).copy()
-    if fov_margin and p[3, 2] != 0 and p[3, 3] == 0:  # perspective
-        for k in (0, 1):
-            half = np.arctan(1.0 / p[k, k]) + np.radians(fov_margin) / 2
-            p[k, k] = 1.0 / np.tan(min(half, np.radians(89.0)))
-    m = p @ np.asarray(view, np.float64)
-    planes = np.array([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] - m[2]])
-    norms = np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    projection the field of view is widened by `fov_margin` degrees first (half on each side).
+    `view` and `proj` may also be stacks (..., 4, 4): planes (..., 5, 4), one numpy pass for all."""
+    p = np.array(proj, np.float64)  # (a copy: widened in place)
+    v = np.asarray(view, np.float64)
+    if fov_margin:
+        persp = (p[..., 3, 2] != 0) & (p[..., 3, 3] == 0)
+        for k in (0, 1):  # (where not perspective, worked out and not used: no warning for it)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                half = np.arctan(1.0 / p[..., k, k]) + np.radians(fov_margin) / 2
+                widened = 1.0 / np.tan(np.minimum(half, np.radians(89.0)))
+            p[..., k, k] = np.where(persp, widened, p[..., k, k])
+    m = p @ v
+    r0, r1, r2, r3 = m[..., 0, :], m[..., 1, :], m[..., 2, :], m[..., 3, :]
+    planes = np.stack([r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 - r2], axis=-2)
+    norms = np.sqrt((planes[..., :3] ** 2).sum(axis=-1, keepdims=True))
     return planes / np.maximum(norms, 1e-300)
 
 
@@ -53,13 +59,26 @@ def in_frustum(points: np.ndarray, planes: np.ndarray, distance_margin: float = 
 
 def camera_planes(view, proj, fov_margin: float) -> np.ndarray | None:
     """frustum_planes of a client's camera, or None (sees everything) for matrices that do not make
-    a frustum (not finite, singular): a bad camera costs tracing, never a missed update."""
-    v, p = np.asarray(view, np.float64), np.asarray(proj, np.float64)
-    if v.shape != (4, 4) or p.shape != (4, 4) or not (np.isfinite(v).all() and np.isfinite(p).all()):
-        return None
+    a frustum (not 4x4, not finite, singular): a bad camera costs tracing, never a missed update."""
+    return cameras_planes([(view, proj)], fov_margin)[0]
+
+
+def cameras_planes(cameras, fov_margin: float) -> list[np.ndarray | None]:
+    """camera_planes of each (view, projection) pair, worked out in one numpy pass for all."""
+    out: list[np.ndarray | None] = [None] * len(cameras)
+    rows = [k for k, (v, p) in enumerate(cameras) if np.shape(v) == (4, 4) and np.shape(p) == (4, 4)]
+    if not rows:
+        return out
+    v = np.array([cameras[k][0] for k in rows], np.float64)
+    p = np.array([cameras[k][1] for k in rows], np.float64)
+    finite = np.isfinite(v).all(axis=(1, 2)) & np.isfinite(p).all(axis=(1, 2))
     with np.errstate(all="ignore"):
         planes = frustum_planes(v, p, fov_margin)
-    return planes if np.isfinite(planes).all() and (np.abs(planes[:, :3]).sum(axis=1) > 0.5).all() else None
+    ok = finite & np.isfinite(planes).all(axis=(1, 2)) & (np.abs(planes[..., :3]).sum(axis=2) > 0.5).all(axis=1)
+    for k, pl, good in zip(rows, planes, ok):
+        if good:
+            out[k] = pl
+    return out
 
 
 def in_any_view(points: np.ndarray, planes_list: list[np.ndarray | None] | None, distance_margin: float) -> np.ndarray:

@@ -55,7 +55,7 @@ from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
-from psao_server.selection import (BlockIndex, MotionInput, NearCache, camera_planes, in_any_view, reach_boxes,
+from psao_server.selection import (BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view, reach_boxes,
                                    merge_disjoint, rigid_in_company, sorted_union)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.static_hits import StaticHits
@@ -322,10 +322,14 @@ class ServerTick:
         """Cameras as (view 4x4, projection 4x4) pairs (OpenGL conventions); [] means: every point visible,
         and so does a camera whose matrices make no frustum (NaN, singular)."""
         held, self._planes_held = self._planes_held, {}
+        new = []
         for c in cameras:  # a camera given again (the same object: its client sent no new one) keeps its planes
             kept = held.get(id(c))
-            planes = (kept[1] if kept is not None and kept[0] is c
-                      else camera_planes(c[0], c[1], self.settings.view.fov_margin))
+            if kept is not None and kept[0] is c:
+                self._planes_held[id(c)] = kept
+            else:
+                new.append(c)
+        for c, planes in zip(new, cameras_planes(new, self.settings.view.fov_margin)):  # the new ones in one pass
             self._planes_held[id(c)] = (c, planes)
         self.cameras = [self._planes_held[id(c)][1] for c in cameras]
 

@@ -207,6 +207,7 @@ def test_cell_places_kept_across_ticks_equal_places_worked_out_anew():
         np.testing.assert_array_equal(kept.reach, fresh.reach)
         np.testing.assert_array_equal(kept.xyz, fresh.xyz)
         np.testing.assert_array_equal(kept.slack, fresh.slack)
+        np.testing.assert_array_equal(kept.owner, fresh.owner)
 
 
 def test_in_view_is_the_plane_test_of_every_cell():
@@ -224,9 +225,11 @@ def test_in_view_is_the_plane_test_of_every_cell():
     view = ViewSettings()
     from psao_scene.camera import look_at, perspective
 
-    for eye, target in [((0, 1, 0), (5, 1, 0)), ((0, 1, 0), (-5, 1, 0)), ((3, 4, -8), (0, 0, 0))]:
-        planes = camera_planes(look_at(np.array(eye, float), np.array(target, float)), perspective(60.0, 1.5, 0.05, 100.0),
-                               view.fov_margin)
+    cameras = [(look_at(np.array(eye, float), np.array(target, float)), perspective(60.0, 1.5, 0.05, 100.0))
+               for eye, target in [((0, 1, 0), (5, 1, 0)), ((0, 1, 0), (-5, 1, 0)), ((3, 4, -8), (0, 0, 0))]]
+    wants = []
+    for view_m, proj in cameras:
+        planes = camera_planes(view_m, proj, view.fov_margin)
         want = np.array([not np.isfinite(c).all()
                          or all(float(p[:3] @ c + p[3]) >= -(view.distance_margin + r) for p in planes)
                          for c, r in zip(places.centres, places.reach)])
@@ -235,6 +238,20 @@ def test_in_view_is_the_plane_test_of_every_cell():
         np.testing.assert_array_equal(places.in_view(planes, view), want)
         np.testing.assert_array_equal(places.in_view(planes, view, rows), want[rows])
         assert places.in_view(None, view, rows).all()
+        wants.append(want)
+    # many cameras at once: the same answers (planes of several clients worked out together, each cell
+    # against every camera, or each cell against its own camera)
+    from psao_server.sendview import clients_planes
+
+    stacked = clients_planes([None, (np.full((4, 4), np.nan), np.eye(4))] + cameras, view)
+    assert stacked[0] is None and stacked[1] is None  # no camera yet; one that makes no frustum
+    for (view_m, proj), planes in zip(cameras, stacked[2:]):
+        np.testing.assert_array_equal(planes, camera_planes(view_m, proj, view.fov_margin))
+    planes = np.stack(stacked[2:])
+    rows = rng.choice(len(places.slack), 500)
+    np.testing.assert_array_equal(places.in_views(planes, view, rows), np.array(wants)[:, rows])
+    own = rng.integers(0, len(cameras), len(rows))
+    np.testing.assert_array_equal(places.in_view_each(planes[own], view, rows), np.array(wants)[own, rows])
 
 
 def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):
