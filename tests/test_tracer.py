@@ -310,8 +310,8 @@ def test_segments_reach_sphere_against_dense_sampling():
 
 
 def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_answers():
-    """The deforming part is traced only on the rays that reach one of its pieces' bounding spheres
-    (part_spheres): the answers equal tracing every ray against it, for pieces near some points and far
+    """The deforming part is traced only on the rays that reach one of the bounding spheres of its pieces'
+    runs of triangles (part_spheres): the answers equal tracing every ray against it, for pieces near some points and far
     from most, and for pieces that do not cover every vertex (one sphere for all then)."""
     from psao_server.tracer.embree import _Scenes
 

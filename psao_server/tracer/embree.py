@@ -113,18 +113,32 @@ def grown(radius):
     return radius * (1 + 1e-4) + 1e-6
 
 
-def part_spheres(vertices: np.ndarray, parts) -> list[tuple[np.ndarray, float]]:
-    """Bounding spheres (centre, radius) of the deforming triangles' pieces: `parts` consecutive vertex counts
-    (None: one piece). Every triangle lies within its vertices' sphere."""
-    out, start = [], 0
-    if parts is None or sum(int(n) for n in parts) != len(vertices):
-        parts = [len(vertices)]  # (pieces that do not cover every vertex: one sphere for all)
-    for n in parts:
-        v = np.asarray(vertices[start:start + int(n)], np.float64)
-        start += int(n)
-        if len(v):
-            centre = (v.min(axis=0) + v.max(axis=0)) / 2
-            out.append((centre, float(np.sqrt(((v - centre) ** 2).sum(axis=1).max()))))
+PIECE_SLABS = 4  # bounding spheres per deforming piece (part_spheres): tighter spheres, fewer rays traced
+
+
+def part_spheres(vertices: np.ndarray, faces: np.ndarray, parts, slabs: int = PIECE_SLABS) -> list[tuple[np.ndarray, float]]:
+    """Bounding spheres (centre, radius) of the deforming triangles: per piece (`parts`: consecutive vertex
+    counts, a triangle belonging to the piece of its first vertex; None: one piece), its triangles cut into
+    `slabs` runs along the piece's longest axis by their centroids, one sphere around each run's corners. A
+    limb far from the body then gets a sphere of its own, so fewer rays reach a sphere. Every triangle lies
+    within the sphere of its run."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return []
+    if parts is None or sum(int(n) for n in parts) != len(v):
+        parts = [len(v)]  # (pieces that do not cover every vertex: one piece)
+    piece = np.searchsorted(np.cumsum([int(n) for n in parts]), f[:, 0], side="right")
+    corners = v[f]  # (T, 3, 3)
+    out = []
+    for k in np.unique(piece):
+        mine = corners[piece == k]
+        lo, hi = mine.min(axis=(0, 1)), mine.max(axis=(0, 1))
+        along = mine.mean(axis=1)[:, int(np.argmax(hi - lo))]
+        for run in np.array_split(np.argsort(along, kind="stable"), min(slabs, len(mine))):
+            p = mine[run].reshape(-1, 3)
+            centre = (p.min(axis=0) + p.max(axis=0)) / 2
+            out.append((centre, float(np.sqrt(((p - centre) ** 2).sum(axis=1).max()))))
     return out
 
 
@@ -176,7 +190,7 @@ class _Scenes:
         separately moving pieces, see RefitMesh) and the rigid movers' poses."""
         if version != self.dynamic_version:
             self.dynamic = self._deforming(vertices, faces, parts) if vertices is not None else None
-            self.dynamic_spheres = part_spheres(vertices, parts) if self.dynamic is not None else []
+            self.dynamic_spheres = part_spheres(vertices, faces, parts) if self.dynamic is not None else []
             self.dynamic_version = version
         self.rigid_poses = rigid_poses
 
