@@ -46,8 +46,9 @@ class Mirror:
         # when the snapshot of a static server holds points of the rest pose
         self.server_time: float | None = None
         self.version = 0
-        self.dirty_buckets: set[int] = set()
-        self.dirty_cells: set[int] = set()
+        # per bucket and cell row: changed since the renderer last took them (as long as the arrays)
+        self._dirty_buckets = np.zeros(len(self.buckets), bool)
+        self._dirty_cells = np.zeros(len(self.cells), bool)
         self._fresh = True  # a new mirror (a new connection): everything differs from any older copy
         self._check_instances()
 
@@ -86,6 +87,7 @@ class Mirror:
             grown = np.full((rows, BUCKET_ENTRIES, 2), EMPTY, dtype=np.uint32)
             grown[:n] = self.buckets
             self.buckets = grown
+            self._dirty_buckets = _resized(self._dirty_buckets, rows)
 
     def resize_cells(self, capacity: int) -> None:
         """Grow with free cells or cut to the capacity a message carries (the protocol allows a smaller one;
@@ -96,6 +98,7 @@ class Mirror:
             self.cells = np.concatenate([self.cells, np.tile(FREE_CELL, (capacity - n, 1))])
         elif capacity < n:
             self.cells = self.cells[:capacity].copy()
+        self._dirty_cells = _resized(self._dirty_cells, len(self.cells))
 
     def complete(self) -> None:
         """The snapshot is complete: the arrays take the server's full sizes (digests compare them)."""
@@ -124,8 +127,8 @@ class Mirror:
         self.transforms[delta.transform_ids] = delta.transforms
         self.buckets[delta.bucket_ids] = delta.buckets
         self.cells[delta.cell_slots] = delta.cells
-        self.dirty_buckets.update(delta.bucket_ids.tolist())
-        self.dirty_cells.update(delta.cell_slots.tolist())
+        self._dirty_buckets[delta.bucket_ids] = True
+        self._dirty_cells[delta.cell_slots] = True
         self.version += 1
 
     def take_dirty(self) -> tuple[np.ndarray, np.ndarray]:
@@ -136,11 +139,11 @@ class Mirror:
             b = np.arange(len(self.buckets), dtype=np.uint32)
             c = np.arange(len(self.cells), dtype=np.uint32)
         else:
-            b = np.array(sorted(self.dirty_buckets), dtype=np.uint32)
-            c = np.array(sorted(i for i in self.dirty_cells if i < len(self.cells)), dtype=np.uint32)
+            b = np.flatnonzero(self._dirty_buckets).astype(np.uint32)
+            c = np.flatnonzero(self._dirty_cells).astype(np.uint32)
         self._fresh = False
-        self.dirty_buckets.clear()
-        self.dirty_cells.clear()
+        self._dirty_buckets[:] = False
+        self._dirty_cells[:] = False
         return b, c
 
     def allocated_cells(self) -> int:
@@ -151,3 +154,10 @@ class Mirror:
 
     def digest(self) -> str:
         return state_digest(self.instances, self.buckets, self.cells, self.transforms)
+
+
+def _resized(mask: np.ndarray, rows: int) -> np.ndarray:
+    """A per-row mask cut or grown (False) to `rows`."""
+    if rows <= len(mask):
+        return mask[:rows].copy()
+    return np.concatenate([mask, np.zeros(rows - len(mask), bool)])
