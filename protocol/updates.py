@@ -202,13 +202,14 @@ def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray
     last = np.flatnonzero(ends)
     if len(last) != count or not ends[-1]:
         raise PayloadError(f"{what}: varint section does not hold exactly {count} values")
-    first = np.concatenate([[0], last[:-1] + 1])
-    if (last - first).max() > 4:
+    lengths = np.diff(last, prepend=-1)  # bytes of each value
+    if lengths.max() > 5:
         raise PayloadError(f"{what}: varint longer than 5 bytes")
-    # each value's (up to) 5 groups as a row: the bytes from its first on, those past its last masked out
-    at = first[:, None] + _VARINT_GROUP
-    groups = np.where(at <= last[:, None], b[np.minimum(at, b.size - 1)] & 0x7F, 0).astype(np.uint64)
-    v = (groups << _VARINT_SHIFTS.astype(np.uint64)).sum(axis=1)
+    # every byte's 7 bits shifted to its place in its value, summed per value: work in proportion to the
+    # bytes (no row of 5 groups per value)
+    first = last - lengths + 1
+    place = np.arange(b.size, dtype=np.int64) - np.repeat(first, lengths)
+    v = np.add.reduceat((b & 0x7F).astype(np.uint64) << (7 * place).astype(np.uint64), first)
     if v.max() > 0xFFFFFFFF:
         raise PayloadError(f"{what}: varint value beyond 32 bits")
     return v.astype(np.uint32)

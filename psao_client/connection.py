@@ -360,7 +360,7 @@ def _why(exc: BaseException) -> str:
 def scene_camera_feed(scene, aspect: float = 16 / 9, path_name: str | None = None) -> CameraFeed:
     """Camera poses along the scene's camera path (the named one, its first, or the default orbit), as
     float32 matrices."""
-    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+    from psao_scene.camera import look_at, path_sampler, perspective, scene_camera
 
     try:
         path = scene_camera(scene, path_name)
@@ -369,9 +369,10 @@ def scene_camera_feed(scene, aspect: float = 16 / 9, path_name: str | None = Non
     lo, hi = scene.world_bounds()
     far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
     proj = perspective(path.fov_y, aspect, far * 1e-4, far).astype(np.float32)
+    camera_at = path_sampler(path)
 
     def feed(t: float) -> tuple[np.ndarray, np.ndarray]:
-        eye, target = camera_at(path, t)
+        eye, target = camera_at(t)
         return look_at(eye, target).astype(np.float32), proj
 
     return feed

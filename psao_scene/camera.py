@@ -36,29 +36,39 @@ def _closed(path: CameraPath) -> bool:
 
 def camera_at(path: CameraPath, t: float, interpolation: str = "catmull_rom") -> tuple[np.ndarray, np.ndarray]:
     """(eye, target) at time t seconds, float64 (3,) each."""
+    return path_sampler(path, interpolation)(t)
+
+
+def path_sampler(path: CameraPath, interpolation: str = "catmull_rom"):
+    """camera_at(path, t, interpolation) as a function of t, with the keys read once (a client sending its
+    camera 30 times a second along a path need not rebuild them each time)."""
     if interpolation not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation '{interpolation}' (known: {', '.join(INTERPOLATIONS)})")
     keys = path.keys
     if not keys:
         raise ValueError(f"camera path '{path.name}' has no keys")
     pts = np.array([[*k.eye, *k.target] for k in keys], dtype=np.float64)  # (K, 6)
-    if len(keys) == 1:
-        return pts[0, :3].copy(), pts[0, 3:].copy()
     times = np.array([k.time for k in keys], dtype=np.float64)
-    t = _wrap_time(path, float(t))
-    i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(keys) - 2))
-    span = times[i + 1] - times[i]
-    u = 0.0 if span <= 0 else (t - times[i]) / span
-    p1, p2 = pts[i], pts[i + 1]
-    if interpolation == "linear":
-        p = p1 + (p2 - p1) * u
-    else:
-        closed = _closed(path)
-        m1 = _tangent(times, pts, i, closed) * span
-        m2 = _tangent(times, pts, i + 1, closed) * span
-        h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
-        p = h00 * p1 + h10 * m1 + h01 * p2 + h11 * m2
-    return p[:3], p[3:]
+    closed = len(keys) > 1 and _closed(path)
+
+    def at(t: float) -> tuple[np.ndarray, np.ndarray]:
+        if len(keys) == 1:
+            return pts[0, :3].copy(), pts[0, 3:].copy()
+        t = _wrap_time(path, float(t))
+        i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(keys) - 2))
+        span = times[i + 1] - times[i]
+        u = 0.0 if span <= 0 else (t - times[i]) / span
+        p1, p2 = pts[i], pts[i + 1]
+        if interpolation == "linear":
+            p = p1 + (p2 - p1) * u
+        else:
+            m1 = _tangent(times, pts, i, closed) * span
+            m2 = _tangent(times, pts, i + 1, closed) * span
+            h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+            p = h00 * p1 + h10 * m1 + h01 * p2 + h11 * m2
+        return p[:3], p[3:]
+
+    return at
 
 
 def _tangent(times: np.ndarray, pts: np.ndarray, i: int, closed: bool) -> np.ndarray:
