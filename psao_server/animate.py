@@ -90,11 +90,15 @@ def world_box(vertices_local: np.ndarray, transform: np.ndarray) -> tuple[np.nda
 
 
 def bounds_of(world_vertices: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, float]]:
-    """World AABB (lo, hi) and bounding sphere (centre, radius) of world vertices."""
-    lo, hi = world_vertices.min(axis=0), world_vertices.max(axis=0)
+    """World AABB (lo, hi) and bounding sphere (centre, radius) of world vertices. Worked on the
+    coordinates as three rows: numpy reduces a (V, 3) array along its long axis several times slower
+    than a (3, V) one along its rows, and this runs for every moving instance every tick."""
+    rows = np.ascontiguousarray(np.asarray(world_vertices, np.float64).reshape(-1, 3).T)
+    lo, hi = rows.min(axis=1), rows.max(axis=1)
     centre = 0.5 * (lo + hi)
-    d = world_vertices - centre
-    return (lo, hi), (centre, float(np.sqrt(np.einsum("pi,pi->p", d, d).max())))
+    d = rows - centre[:, None]
+    d *= d
+    return (lo, hi), (centre, float(np.sqrt((d[0] + d[1] + d[2]).max())))
 
 
 class SceneAnimator:

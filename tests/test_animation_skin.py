@@ -295,3 +295,19 @@ def test_merged_channels_sample_as_one_by_one(shared_scene):
             got = np.asarray(m.sample(t)).reshape(np.size(m.node), -1)
             for k, node in enumerate(np.atleast_1d(m.node)):
                 np.testing.assert_array_equal(got[k], own[(int(node), m.path)].sample(t))
+
+
+def test_moving_bounds_equal_the_plain_reductions():
+    # animate.bounds_of (rows of coordinates) against min / max along the vertices (bit for bit) and the
+    # largest distance from the box centre (to rounding: the sums of squares may round differently)
+    from psao_server.animate import bounds_of
+
+    rng = np.random.default_rng(11)
+    for n in (1, 3, 820, 5000):
+        v = rng.normal(size=(n, 3)) * rng.uniform(0.01, 100.0, 3) + rng.uniform(-50, 50, 3)
+        (lo, hi), (centre, radius) = bounds_of(v)
+        np.testing.assert_array_equal(lo, v.min(axis=0))
+        np.testing.assert_array_equal(hi, v.max(axis=0))
+        np.testing.assert_array_equal(centre, 0.5 * (v.min(axis=0) + v.max(axis=0)))
+        d = v - centre
+        assert radius == pytest.approx(float(np.sqrt(np.einsum("pi,pi->p", d, d).max())), rel=1e-14, abs=0.0)
