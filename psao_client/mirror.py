@@ -98,7 +98,8 @@ class Mirror:
             self.cells = np.concatenate([self.cells, np.tile(FREE_CELL, (capacity - n, 1))])
         elif capacity < n:
             self.cells = self.cells[:capacity].copy()
-        self._dirty_cells = _resized(self._dirty_cells, len(self.cells))
+        if len(self._dirty_cells) != len(self.cells):
+            self._dirty_cells = _resized(self._dirty_cells, len(self.cells))
 
     def complete(self) -> None:
         """The snapshot is complete: the arrays take the server's full sizes (digests compare them)."""

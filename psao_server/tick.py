@@ -44,7 +44,7 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -89,7 +89,7 @@ class TickStats:
     refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {f.name: getattr(self, f.name) for f in fields(self)}  # (scalars: no deep copy, 4x cheaper than asdict)
 
 
 @dataclass
