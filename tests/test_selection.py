@@ -296,3 +296,18 @@ def test_union_of_views_equals_each_view_tested(n_views):
         np.testing.assert_array_equal(got < HIDDEN_S / 2, want)
     np.testing.assert_array_equal(ViewUnion()(world, np.stack(views), margin), want)  # the same without the key
     assert ViewUnion()(world, None, margin).all()
+
+
+def test_in_box_equals_the_plain_test_on_faces_and_nan():
+    # in_box (column by column) against all(lo <= p <= hi) over the coordinates, with points on the faces
+    rng = np.random.default_rng(4)
+    lo, hi = np.array([-1.0, 0.5, 2.0]), np.array([3.0, 0.5, 7.5])  # a flat box: y on its face only
+    pts = rng.uniform(-3, 9, (4000, 3))
+    pts[::7, 1] = 0.5
+    pts[::11, 0] = lo[0]
+    pts[::13, 2] = hi[2]
+    pts[5, 1] = np.nan
+    want = np.all((pts >= lo) & (pts <= hi), axis=1)
+    assert 0 < want.sum() < len(pts)
+    np.testing.assert_array_equal(in_box(pts, (lo, hi)), want)
+    np.testing.assert_array_equal(in_box(pts[:0], (lo, hi)), want[:0])
