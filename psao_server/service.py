@@ -279,7 +279,9 @@ class Service:
             return
         drained = (share is not None and any(not c.pending_anything() for c in share.members)) or (
             parts is not None and any(r.drained for r in parts.recipes))
-        digest = self._state_digest() if self._digests and drained else None  # the state the Updates bring them to
+        # the state the Updates bring them to, hashed on the encode thread (a whole-grid sha256 takes
+        # milliseconds: on the loop it would hold up the next tick)
+        digest = self._digest_later() if self._digests and drained else None
         receivers = (share.members if share else []) + ([r.client for r in parts.recipes] if parts else [])
         for c in receivers:
             c.in_flight += 1
@@ -287,17 +289,18 @@ class Service:
         def encode():
             t0 = time.perf_counter()
             out = (share.encode() if share else None, parts.encode() if parts else None)
-            return out, time.perf_counter() - t0
+            seconds = time.perf_counter() - t0
+            return out, seconds, digest() if digest is not None else None
 
         encoded = asyncio.get_running_loop().run_in_executor(self._encode_thread, encode)
-        self._delivery = asyncio.create_task(self._deliver(self._delivery, encoded, share, parts, digest,
+        self._delivery = asyncio.create_task(self._deliver(self._delivery, encoded, share, parts,
                                                            len(bucket_ids), len(cell_slots)))
 
-    async def _deliver(self, previous, encoded, share, parts, digest, n_buckets: int, n_cells: int) -> None:
+    async def _deliver(self, previous, encoded, share, parts, n_buckets: int, n_cells: int) -> None:
         """Put one tick's encoded Updates in the receivers' outboxes, after the previous tick's."""
         if previous is not None:
             await previous
-        (data, frames), seconds = await encoded
+        (data, frames), seconds, digest = await encoded
         self.counters.encode_seconds += seconds
         if share is not None:
             for client in share.members:
@@ -564,6 +567,17 @@ class Service:
             g = self.grid
             self._digest_of = (key, state_digest(g.instances, g.buckets, g.cells, self.transforms()))
         return self._digest_of[1]
+
+    def _digest_later(self) -> Callable[[], str]:
+        """The state digest now, as a function to call on another thread: the one kept for this state, or
+        a hash of a copy of the arrays taken now (the next tick's apply writes the grid in place)."""
+        key = (self.tick, self.counters.edits)
+        if self._digest_of is not None and self._digest_of[0] == key:
+            kept = self._digest_of[1]
+            return lambda: kept
+        g = self.grid
+        arrays = (g.instances.copy(), g.buckets.copy(), g.cells.copy(), np.array(self.transforms(), copy=True))
+        return lambda: state_digest(*arrays)
 
     def _log_digest(self, client: Client, seq: int) -> None:
         """After the message `seq`, which leaves nothing pending, the client's mirror must equal this state."""
