@@ -63,6 +63,9 @@ class BudgetSettings:
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
+    rays_per_tick: float = 0.0  # > 0: trace this many rays a tick (of the fitted rate: whole traces count
+    # exact_cost a ray) whatever the time they take, instead of what the time budget allows; for quality
+    # studies that must not depend on the machine's load (benchmarks.bench_realtime --fixed-rays)
 
 
 ALIKE = 0.1  # call sizes whose spread is below this share of their mean cannot separate rate and overhead
@@ -103,6 +106,8 @@ class TraceBudget:
         """Rays this tick's budget allows at the fitted rate, after the per-call overhead. An overhead
         beyond the budget is paid whenever anything is traced: then half a budget's worth of rays goes on
         top of it, or the tick would crawl along at min_points."""
+        if self.settings.rays_per_tick > 0:
+            return self.settings.rays_per_tick
         budget = self.budget_s()
         return max(budget - self.overhead_s, 0.5 * budget) * self.rays_per_second
 
@@ -111,7 +116,7 @@ class TraceBudget:
         fitted rate) of it given to whole traces, but at least what is not exact_share of it (at least min_points)."""
         whole = self.rays_in_budget()
         n = max(whole - spent_rays, (1 - self.settings.exact_share) * whole) / max(rays_per_point, 1)
-        if self._alike():
+        if self._alike() and self.settings.rays_per_tick <= 0:
             # Calls of one size cannot tell the rate from the overhead: a rate believed too high would stay
             # (its error taken for overhead) and every tick would trace past its budget. Batches a quarter
             # larger and smaller in turn give the fit the spread it needs.

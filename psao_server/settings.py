@@ -269,6 +269,8 @@ class TickSettings:
                 raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
             if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
                 raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
+            if not (math.isfinite(b.rays_per_tick) and b.rays_per_tick >= 0):
+                raise ConfigError(f"rays per tick must be a number >= 0 (0: from the time budget), got {b.rays_per_tick}")
             if b.round_rays < 1 or b.min_points < 1 or b.scan_points < 1:
                 raise ConfigError(f"round rays, min points and scan points must be >= 1, got {b.round_rays}, "
                                   f"{b.min_points}, {b.scan_points}")

@@ -173,7 +173,8 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
                                          ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3),
                                          ("exact_share", 1.5), ("exact_share", -0.1), ("exact_share", math.nan),
                                          ("exact_points", -1), ("exact_cost", 0.0), ("exact_cost", -0.5),
-                                         ("exact_cost", math.nan), ("refill_points", -1)])
+                                         ("exact_cost", math.nan), ("refill_points", -1), ("rays_per_tick", -1.0),
+                                         ("rays_per_tick", math.nan), ("rays_per_tick", math.inf)])
 def test_bad_budget_settings_are_refused(field, value):
     budget = BudgetSettings(**{field: value})
     with pytest.raises(ConfigError):
@@ -438,6 +439,19 @@ def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
     assert b.points(8, spent_rays=1e9) == b.points(8, spent_rays=6000) == 625
     b.settings.exact_share = 0.0
     assert b.exact_points(32) == 0
+
+
+def test_a_set_number_of_rays_a_tick_holds_whatever_the_tracer_speed():
+    """BudgetSettings.rays_per_tick: the batch is that many rays whatever rate and overhead the trace
+    calls teach the budget, with no alternating batch sizes (the quality study's load-independent budget)."""
+    from psao_server.budget import TraceBudget
+
+    b = TraceBudget(BudgetSettings(budget_ms=10.0, rays_per_tick=8000.0, exact_share=0.5), rays_per_second=1e6)
+    for rays, seconds in ((8000, 0.5), (8000, 0.01), (8000, 0.2)):  # alike calls, any speed
+        b.observe_trace(rays, seconds)
+        assert b.rays_in_budget() == 8000.0 and b.points(8) == 1000 and b.points(8, spent_rays=4000) == 500
+    b.settings.rays_per_tick = 0.0  # back to the time budget: the learned rate decides
+    assert b.rays_in_budget() != 8000.0
 
 
 def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
