@@ -105,6 +105,7 @@ def test_cli_json_has_every_field(tmp_path):
     (("bake", "builtin:nope"), "unknown scene"),
     (("bake", "builtin:cornell", "--density", "0"), "density must be a finite number > 0"),
     (("bake", "builtin:cornell", "--density", "-5"), "density must be a finite number > 0"),
+    (("bake", "builtin:cornell", "--detail-factor", "3"), "detail factor must be a power of two"),
     (("bake", "scene.xyz"), "unsupported"),
 ])
 def test_cli_bad_input_is_one_line(args, needle):
