@@ -311,8 +311,9 @@ def test_segments_reach_sphere_against_dense_sampling():
 
 def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_answers():
     """The deforming part is traced only on the rays that reach one of the bounding spheres of its pieces'
-    runs of triangles (part_spheres): the answers equal tracing every ray against it, for pieces near some points and far
-    from most, and for pieces that do not cover every vertex (one sphere for all then)."""
+    runs of triangles (PieceSlabs): the answers equal tracing every ray against it, for pieces near some points
+    and far from most, for pieces that do not cover every vertex (one piece then), and in a second pose where
+    the runs chosen in the first are kept and only their spheres move."""
     from psao_server.tracer.embree import _Scenes
 
     v, f = slab(1.5)
@@ -320,16 +321,46 @@ def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_a
              for c in ((-6, 0, 0.5), (0, 1, 0.3), (5, -1, 0.6))]
     verts = np.concatenate([b.vertices for b in balls]).astype(np.float32)
     faces = np.concatenate([b.faces + sum(len(x.vertices) for x in balls[:k]) for k, b in enumerate(balls)])
+    counts = [len(b.vertices) for b in balls]
+    # the second pose: each ball stretched along y and carried 2 to +x (the middle one then reaches x = 2)
+    moved = verts * np.float32([1, 2.5, 1]) + np.float32([2, 0, 0])
     n, pos, s, org, dirs = strip_rays(4)
-    for parts in ([len(b.vertices) for b in balls], None, [len(balls[0].vertices)]):
+    for parts in (counts, None, [counts[0]]):
         scenes = _Scenes(np.asarray(v[:8], np.float32), np.asarray(f[:12], np.int32))
-        scenes.update_dynamic(0, verts, faces.astype(np.int32), None, parts)
-        hit = scenes.occluded(org, dirs, s.ao_distance, s.rays)
-        dists = np.full(len(org), 1.0, np.float32)
-        every = ((scenes.static.run(org, dirs, dists=dists, query="OCCLUDED") != -1)
-                 | (scenes.dynamic.run(org, dirs, dists=dists, query="OCCLUDED") != -1))
-        assert np.array_equal(hit, every)
-        assert hit.reshape(n, -1)[np.abs(pos[:, 0] - 5) < 1.4].any()
+        for version, pose in enumerate((verts, moved)):
+            scenes.update_dynamic(version, pose, faces.astype(np.int32), None, parts)
+            hit = scenes.occluded(org, dirs, s.ao_distance, s.rays)
+            dists = np.full(len(org), 1.0, np.float32)
+            every = ((scenes.static.run(org, dirs, dists=dists, query="OCCLUDED") != -1)
+                     | (scenes.dynamic.run(org, dirs, dists=dists, query="OCCLUDED") != -1))
+            assert np.array_equal(hit, every)
+            assert hit.reshape(n, -1)[np.abs(pos[:, 0] - (5 + 2 * version)) < 1.4].any()
+
+
+def test_piece_slab_spheres_hold_every_triangle_in_any_pose():
+    """PieceSlabs' runs, chosen in one pose, give spheres that hold every corner of their triangles in
+    another pose (randomly deformed), and every triangle belongs to one run."""
+    from psao_server.tracer.embree import PIECE_SLABS, PieceSlabs
+
+    rng = np.random.default_rng(3)
+    limb = trimesh.creation.cylinder(radius=0.2, height=4.0, sections=12)
+    body = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    verts = np.concatenate([limb.vertices, body.vertices])
+    faces = np.concatenate([limb.faces, body.faces + len(limb.vertices)])
+    parts = [len(limb.vertices), len(body.vertices)]
+    slabs = PieceSlabs(verts, faces, parts)
+    assert len(slabs.sizes) == 2 * PIECE_SLABS
+    for _ in range(5):
+        pose = verts + rng.normal(scale=0.3, size=verts.shape)
+        spheres = slabs.spheres(pose)
+        for k, (centre, radius) in enumerate(spheres):
+            corners = pose[slabs.index[slabs.starts[k]:slabs.starts[k] + slabs.sizes[k]]]
+            assert (np.linalg.norm(corners - centre, axis=1) <= radius * (1 + 1e-12)).all()
+        # every triangle's three corners belong to one run
+        for tri in faces[rng.choice(len(faces), 50)]:
+            assert any(set(tri) <= set(slabs.index[a:a + b]) for a, b in zip(slabs.starts, slabs.sizes))
+    assert slabs.same_mesh(faces, parts) and not slabs.same_mesh(faces, None)
+    assert not slabs.same_mesh(faces[::-1], parts)
 
 
 def test_mover_rays_compiled_equals_numpy_and_bits_may_be_shared():

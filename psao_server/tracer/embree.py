@@ -113,33 +113,54 @@ def grown(radius):
     return radius * (1 + 1e-4) + 1e-6
 
 
-PIECE_SLABS = 4  # bounding spheres per deforming piece (part_spheres): tighter spheres, fewer rays traced
+PIECE_SLABS = 4  # bounding spheres per deforming piece (PieceSlabs): tighter spheres, fewer rays traced
 
 
-def part_spheres(vertices: np.ndarray, faces: np.ndarray, parts, slabs: int = PIECE_SLABS) -> list[tuple[np.ndarray, float]]:
-    """Bounding spheres (centre, radius) of the deforming triangles: per piece (`parts`: consecutive vertex
-    counts, a triangle belonging to the piece of its first vertex; None: one piece), its triangles cut into
-    `slabs` runs along the piece's longest axis by their centroids, one sphere around each run's corners. A
-    limb far from the body then gets a sphere of its own, so fewer rays reach a sphere. Every triangle lies
-    within the sphere of its run."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if len(f) == 0:
-        return []
-    if parts is None or sum(int(n) for n in parts) != len(v):
-        parts = [len(v)]  # (pieces that do not cover every vertex: one piece)
-    piece = np.searchsorted(np.cumsum([int(n) for n in parts]), f[:, 0], side="right")
-    corners = v[f]  # (T, 3, 3)
-    out = []
-    for k in np.unique(piece):
-        mine = corners[piece == k]
-        lo, hi = mine.min(axis=(0, 1)), mine.max(axis=(0, 1))
-        along = mine.mean(axis=1)[:, int(np.argmax(hi - lo))]
-        for run in np.array_split(np.argsort(along, kind="stable"), min(slabs, len(mine))):
-            p = mine[run].reshape(-1, 3)
-            centre = (p.min(axis=0) + p.max(axis=0)) / 2
-            out.append((centre, float(np.sqrt(((p - centre) ** 2).sum(axis=1).max()))))
-    return out
+class PieceSlabs:
+    """The deforming triangles cut into runs, each bounded by a sphere per pose. Per piece (`parts`:
+    consecutive vertex counts, a triangle belonging to the piece of its first vertex; None: one piece), its
+    triangles are cut into `slabs` runs along the piece's longest axis by their centroids in the first pose,
+    so a limb far from the body gets a sphere of its own and fewer rays reach a sphere. The runs are chosen
+    once per mesh; each pose only gathers every run's vertices and reduces them (min, max, farthest corner),
+    so a skinned mesh's spheres cost a few vectorised passes a tick. Every triangle lies within the sphere
+    of its run in every pose, whatever the pose the runs were chosen in."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, parts, slabs: int = PIECE_SLABS):
+        v = np.asarray(vertices, np.float64)
+        f = np.asarray(faces, np.int64)
+        self.faces = np.array(faces, copy=True)
+        self.parts = None if parts is None else tuple(int(n) for n in parts)
+        if parts is None or sum(int(n) for n in parts) != len(v):
+            parts = [len(v)]  # (pieces that do not cover every vertex: one piece)
+        piece = np.searchsorted(np.cumsum([int(n) for n in parts]), f[:, 0], side="right")
+        runs = []
+        for k in np.unique(piece):
+            mine = np.flatnonzero(piece == k)
+            corners = v[f[mine]]  # (T, 3, 3)
+            lo, hi = corners.min(axis=(0, 1)), corners.max(axis=(0, 1))
+            along = corners.mean(axis=1)[:, int(np.argmax(hi - lo))]
+            for run in np.array_split(mine[np.argsort(along, kind="stable")], min(slabs, len(mine))):
+                runs.append(np.unique(f[run]))  # the run's corners, each vertex once
+        self.index = np.concatenate(runs) if runs else np.zeros(0, np.int64)
+        sizes = np.array([len(r) for r in runs], np.int64)
+        self.starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        self.sizes = sizes
+
+    def same_mesh(self, faces: np.ndarray, parts) -> bool:
+        """Whether `faces` and `parts` are the ones the runs were chosen for."""
+        same_parts = (parts is None and self.parts is None
+                      or parts is not None and self.parts is not None and tuple(int(n) for n in parts) == self.parts)
+        return same_parts and faces.shape == self.faces.shape and np.array_equal(faces, self.faces)
+
+    def spheres(self, vertices: np.ndarray) -> list[tuple[np.ndarray, float]]:
+        """(centre, radius) per run in the pose `vertices`."""
+        if len(self.sizes) == 0:
+            return []
+        p = np.asarray(vertices, np.float64)[self.index]
+        centre = (np.minimum.reduceat(p, self.starts, axis=0) + np.maximum.reduceat(p, self.starts, axis=0)) / 2
+        gap = p - np.repeat(centre, self.sizes, axis=0)
+        radius = np.sqrt(np.maximum.reduceat(np.einsum("pi,pi->p", gap, gap), self.starts))
+        return [(c, float(r)) for c, r in zip(centre, radius)]
 
 
 def sphere_bits(count: int) -> np.ndarray:
@@ -181,7 +202,8 @@ class _Scenes:
         self.rigid = [_Rigid(v, f) for v, f in rigid]
         self.rigid_poses = None
         self.dynamic = None
-        self.dynamic_spheres: list[tuple[np.ndarray, float]] = []  # bounding spheres of its pieces
+        self.dynamic_spheres: list[tuple[np.ndarray, float]] = []  # bounding spheres of its pieces' runs
+        self._slabs: PieceSlabs | None = None  # the runs of the deforming mesh, kept while it only moves
         self.dynamic_version = -1
         self._refit: RefitMesh | None = None
 
@@ -190,9 +212,16 @@ class _Scenes:
         separately moving pieces, see RefitMesh) and the rigid movers' poses."""
         if version != self.dynamic_version:
             self.dynamic = self._deforming(vertices, faces, parts) if vertices is not None else None
-            self.dynamic_spheres = part_spheres(vertices, faces, parts) if self.dynamic is not None else []
+            self.dynamic_spheres = self._spheres(vertices, faces, parts) if self.dynamic is not None else []
             self.dynamic_version = version
         self.rigid_poses = rigid_poses
+
+    def _spheres(self, vertices, faces, parts):
+        if len(faces) == 0:
+            return []
+        if self._slabs is None or not self._slabs.same_mesh(faces, parts):
+            self._slabs = PieceSlabs(vertices, faces, parts)
+        return self._slabs.spheres(vertices)
 
     def _deforming(self, vertices, faces, parts):
         if self._refit is not None and self._refit.same_mesh(vertices, faces, parts):
