@@ -298,8 +298,9 @@ class Fanout:
         if places is not None and culled:
             rows = np.concatenate([cands[k] for k in culled])
             lens = [len(cands[k]) for k in culled]
-            each = np.repeat(np.stack([planes[k] for k in culled]), lens, axis=0)
-            inside = np.split(places.in_view_each(each, self.settings.view, rows), np.cumsum(lens)[:-1])
+            camera = np.repeat(np.arange(len(culled)), lens)  # each row's client among the culled
+            inside = np.split(places.in_view_each(np.stack([planes[k] for k in culled]), camera, self.settings.view, rows),
+                              np.cumsum(lens)[:-1])
             for k, ins in zip(culled, inside):
                 cands[k] = cands[k][ins]
         room = self.config_limits.max_cells_per_message // 2

@@ -6,7 +6,7 @@ see its bounding sphere now or before: selection.may_see_sphere) over a mover's 
 with each point's world position and its test against the union of the clients' extended views
 (selection.in_any_view; by blocks of space classified once per call, so the test costs about one view's,
 not one per client) computed on the way and written out beside the key (the budgeted tick chooses its
-whole traces and its rounds from that one pass); `union_kernel` (ViewUnion) is that union test alone. They compute in float64 with the numpy versions'
+whole traces and its rounds from that one pass). They compute in float64 with the numpy versions'
 formulas; tests/test_selection.py and tests/test_tick_budget.py check them equal to those.
 
 Numpy would make ~30 passes over each array (one per comparison and logical operation), each with its
@@ -243,16 +243,6 @@ def in_union(p: wp.vec3d, planes: wp.array(dtype=wp.vec4d), cameras: int, margin
 
 
 @wp.kernel
-def union_kernel(pos: wp.array(dtype=wp.vec3d), planes: wp.array(dtype=wp.vec4d), cameras: int, margin: wp.float64,
-                 lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
-                 first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
-                 used: wp.array(dtype=wp.int32), seen: wp.array(dtype=wp.uint8)):
-    for j in range(pos.shape[0]):
-        seen[j] = wp.uint8(1) if in_union(pos[j], planes, cameras, margin, lo, size, nx, ny, nz, state, first, count,
-                                          listed, used) else wp.uint8(0)
-
-
-@wp.kernel
 def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3d), local: wp.array(dtype=wp.vec3d),
                     instance: wp.array(dtype=wp.int64), moving: wp.array(dtype=wp.bool),
                     transforms: wp.array(dtype=wp.mat44d), planes: wp.array(dtype=wp.vec4d), cameras: int,
@@ -341,17 +331,6 @@ class ViewUnion:
                 wp.float64(size), *dims, state[1], self._scratch("first", n_blocks)[1],
                 self._scratch("count", n_blocks)[1], self._scratch("listed", min(n_blocks, points) * max(cams, 1))[1],
                 used[1]]
-
-    def __call__(self, points: np.ndarray, planes: np.ndarray | None, margin: float) -> np.ndarray:
-        """Bool (P,): selection.in_any_view of world points (P, 3) for views `planes` ((C, 5, 4) or None)."""
-        pos = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
-        seen = np.ones(len(pos), np.uint8)
-        if len(pos) and planes is not None and len(planes):
-            box = (pos.min(axis=0), pos.max(axis=0))
-            wp.launch(union_kernel, dim=1, device="cpu", inputs=[
-                wp.array(pos, dtype=wp.vec3d, device="cpu", copy=False), *self.inputs(planes, margin, box, len(pos)),
-                wp.array(seen, dtype=wp.uint8, device="cpu", copy=False)])
-        return seen.view(bool)
 
 
 class PriorityKey:

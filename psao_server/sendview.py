@@ -16,6 +16,8 @@ from protocol import gridformat as gf
 from .selection import camera_planes, cameras_planes
 from .settings import ViewSettings
 
+BLOCK = 1 << 16  # (camera, cell) pairs a plane test works on at once: each temporary a few MB
+
 
 class CellPlaces:
     """World-space centres and reach (half diagonal) of a set of cell slots under given transforms."""
@@ -88,18 +90,32 @@ class CellPlaces:
         return self.in_views(planes[None], view, rows)[0]
 
     def in_views(self, planes: np.ndarray, view: ViewSettings, rows: np.ndarray | None = None) -> np.ndarray:
-        """in_view for several cameras' planes (C, 5, 4) at once: bool (C, slots or rows)."""
-        xyz = self.xyz if rows is None else self.xyz[:, rows]
-        slack = self.slack if rows is None else self.slack[rows]
-        p = planes[:, :, :, None]  # (cameras, planes, coefficient, cells)
-        return _inside(p[:, :, 0], p[:, :, 1], p[:, :, 2], p[:, :, 3], xyz[0], xyz[1], xyz[2], slack, view)
+        """in_view for several cameras' planes (C, 5, 4) at once: bool (C, slots or rows), in blocks of
+        cameras and rows of about BLOCK pairs each (the plane test's temporaries stay a few MB however many
+        clients and cells)."""
+        n = len(self.slack) if rows is None else len(rows)
+        out = np.empty((len(planes), n), bool)
+        step = max(1, BLOCK // max(1, len(planes)))  # rows a block: every camera at once where they fit
+        cams = max(1, BLOCK // max(1, min(step, n)))
+        for lo in range(0, n, step):
+            at = slice(lo, lo + step) if rows is None else rows[lo:lo + step]
+            xyz, slack = self.xyz[:, at], self.slack[at]
+            for c0 in range(0, len(planes), cams):
+                p = planes[c0:c0 + cams, :, :, None]  # (cameras, planes, coefficient, cells)
+                out[c0:c0 + cams, lo:lo + step] = _inside(p[:, :, 0], p[:, :, 1], p[:, :, 2], p[:, :, 3],
+                                                          xyz[0], xyz[1], xyz[2], slack, view)
+        return out
 
-    def in_view_each(self, planes: np.ndarray, view: ViewSettings, rows: np.ndarray) -> np.ndarray:
-        """Bool per one of `rows`, each tested against its own camera's planes (len(rows), 5, 4): the
-        cells of many clients in one pass."""
-        p = np.ascontiguousarray(planes.transpose(2, 1, 0))  # (coefficient, plane, cell)
-        xyz = self.xyz[:, rows]
-        return _inside(p[0], p[1], p[2], p[3], xyz[0], xyz[1], xyz[2], self.slack[rows], view)
+    def in_view_each(self, planes: np.ndarray, camera: np.ndarray, view: ViewSettings, rows: np.ndarray) -> np.ndarray:
+        """Bool per one of `rows`, each tested against the planes (C, 5, 4) of its own camera (`camera`:
+        an index into them per row): the cells of many clients in one pass, in blocks of BLOCK rows."""
+        out = np.empty(len(rows), bool)
+        for lo in range(0, len(rows), BLOCK):
+            p = np.ascontiguousarray(planes[camera[lo:lo + BLOCK]].transpose(2, 1, 0))  # (coefficient, plane, cell)
+            at = rows[lo:lo + BLOCK]
+            xyz = self.xyz[:, at]
+            out[lo:lo + BLOCK] = _inside(p[0], p[1], p[2], p[3], xyz[0], xyz[1], xyz[2], self.slack[at], view)
+        return out
 
 
 def _inside(a, b, c, d0, x, y, z, slack, view: ViewSettings) -> np.ndarray:
@@ -119,7 +135,6 @@ def client_planes(camera, view: ViewSettings) -> np.ndarray | None:
     if camera is None:
         return None
     return camera_planes(camera[0], camera[1], view.fov_margin)
-
 
 
 def clients_planes(cameras: list, view: ViewSettings) -> list[np.ndarray | None]:

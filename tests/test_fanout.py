@@ -6,6 +6,7 @@ import asyncio
 import json
 
 import numpy as np
+import pytest
 
 from protocol.gridformat import poisson_radius
 from protocol.updates import state_digest
@@ -253,7 +254,16 @@ def test_in_view_is_the_plane_test_of_every_cell():
     rows = rng.choice(len(places.slack), 500)
     np.testing.assert_array_equal(places.in_views(planes, view, rows), np.array(wants)[:, rows])
     own = rng.integers(0, len(cameras), len(rows))
-    np.testing.assert_array_equal(places.in_view_each(planes[own], view, rows), np.array(wants)[own, rows])
+    np.testing.assert_array_equal(places.in_view_each(planes, own, view, rows), np.array(wants)[own, rows])
+    # the same answers when the tests run in blocks smaller than the cameras and rows (a crowd of clients)
+    from psao_server import sendview
+
+    for block in (2, 7):  # 2: fewer cameras a block than there are; 7: rows in blocks, every camera at once
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(sendview, "BLOCK", block)
+            np.testing.assert_array_equal(places.in_views(planes, view, rows), np.array(wants)[:, rows])
+            np.testing.assert_array_equal(places.in_views(planes, view), np.array(wants))
+            np.testing.assert_array_equal(places.in_view_each(planes, own, view, rows), np.array(wants)[own, rows])
 
 
 def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):

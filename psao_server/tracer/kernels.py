@@ -1,9 +1,11 @@
 """Warp kernels shared by the tracer back-ends: the per-ray direction of directions.py, compiled.
 
-`ray_direction` is the one definition of a point's j-th ray in Warp; `directions_kernel` fills the ray
-buffers the Embree workers trace (numpy temporaries cost as much as Embree's own traversal), and
+`ray_direction` is the one definition of a point's j-th ray in Warp; `rays_kernel` fills the ray buffers
+the Embree workers trace (numpy temporaries cost as much as Embree's own traversal), and
 `visibility_kernel` traces in Warp itself; `reach_kernel` finds the rays that can reach a mover's bounding
-sphere (the only ones the Embree back-end traces against the movers). tests/test_tracer.py checks both against the numpy reference.
+sphere (the only ones the Embree back-end traces against the movers). tests/test_tracer.py checks the ray
+and reach kernels against their numpy references, and the Warp back-end's answers against Embree's where
+that back-end runs.
 """
 from __future__ import annotations
 
