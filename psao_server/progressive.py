@@ -34,11 +34,12 @@ class ProgressiveSettings:
 
 
 def coarse_bake_settings(full: BakeSettings, first_points: int, rays: int) -> BakeSettings:
-    """The coarse first grid's bake: a total of `first_points`, spawned uniformly and kept as spawned (no
+    """The coarse first grid's bake: a total of `first_points`, spawned uniformly (no detail levels: at so few
+    points nearly every triangle would be one) and kept as spawned (no
     elimination), no buried-surface test, no gap fill, `rays` rays, traced in this process (starting worker
     processes would cost more than its few rays)."""
-    return dataclasses.replace(full, density=None, points=float(first_points), rays=rays, spawn_ratio=1.0,
-                               skip_buried=False, gap_fill=GapFillSettings(passes=0), workers=1)
+    return dataclasses.replace(full, density=None, points=float(first_points), detail_factor=1, rays=rays,
+                               spawn_ratio=1.0, skip_buried=False, gap_fill=GapFillSettings(passes=0), workers=1)
 
 
 def wants_coarse_grid(scene: Scene, full: BakeSettings, settings: ProgressiveSettings) -> bool:

@@ -142,7 +142,7 @@ def default_density(scene: Scene) -> float:
     return POINTS_PER_AO_AREA / float(scene.ao_distance) ** 2
 
 
-def estimate_points(scene: Scene, density: float, min_points: int, detail_factor: int = DETAIL_FACTOR,
+def estimate_points(scene: Scene, density: float, min_points: int, detail_factor: int,
                     triangle_areas: list[np.ndarray] | None = None) -> int:
     """Final points generation will produce at plain density `density` (before any overflow): per instance
     and side the sum of level_counts."""
@@ -157,10 +157,11 @@ def estimate_points(scene: Scene, density: float, min_points: int, detail_factor
 
 def budget_density(scene: Scene, budget: float, min_points: int, detail_factor: int,
                    triangle_areas: list[np.ndarray], total_area: float) -> float:
-    """The plain density whose points, detail levels included, come to about `budget`: budget / area where no
-    triangle is detailed there, else the largest density found by bisection whose estimate stays within it."""
+    """The plain density whose points, detail levels included, come to at most `budget`: budget / area where
+    its estimate is within it (no triangle detailed there, no rounding up), else the largest density found by
+    bisection whose estimate stays within it."""
     lo, hi = budget / (total_area * detail_factor), budget / total_area
-    if estimate_points(scene, hi, min_points, detail_factor, triangle_areas) <= budget * 1.001 + len(scene.instances):
+    if estimate_points(scene, hi, min_points, detail_factor, triangle_areas) <= budget:
         return hi
     for _ in range(40):
         mid = math.sqrt(lo * hi)

@@ -37,6 +37,7 @@ def test_coarse_grid_only_when_the_full_one_is_much_larger():
     coarse = coarse_bake_settings(full, 2000, 2)
     assert (coarse.density, coarse.points, coarse.rays, coarse.spawn_ratio, coarse.skip_buried) == (None, 2000.0, 2, 1.0,
                                                                                                    False)
+    assert coarse.sampling().factor() == 1  # spawned uniformly: no detail levels at so few points
 
 
 def test_progressive_start_replaces_the_coarse_grid_and_mirrors_stay_exact(tmp_path):

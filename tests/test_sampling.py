@@ -31,7 +31,7 @@ def test_courtyard_default_is_its_measured_density():
     scene = load_scene("builtin:courtyard")
     assert default_density(scene) == pytest.approx(256.0)
     density, count = resolve_density(scene, SamplingSettings(), min_points=64)
-    assert density == pytest.approx(256.0) and count == estimate_points(scene, 256.0, 64)
+    assert density == pytest.approx(256.0) and count == estimate_points(scene, 256.0, 64, DETAIL_FACTOR)
 
 
 def test_default_sampling_does_not_depend_on_units(tmp_path):
@@ -77,6 +77,24 @@ def test_default_density_samples_small_triangles_denser_and_counts_them():
     assert resolve_density(scene, SamplingSettings(density=n), 1)[1] == round(n * 1.1)
     assert resolve_density(scene, SamplingSettings(density=n, detail_factor=4), 1)[1] == count
     assert resolve_density(scene, SamplingSettings(detail_factor=1), 1)[1] == round(n * 1.1)
+
+
+def test_a_budget_equal_to_the_limit_is_never_refused():
+    """A point budget P with --max-points P resolves (its estimate is at most P, rounding included), and the
+    density a refusal advises fits the limit."""
+    from psao_scene.model import Instance, Mesh, Scene
+
+    quad = Mesh("quad", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
+    quads = Scene("quads", [quad], [Instance(f"q{k}", 0, np.eye(4)) for k in range(3)], ao_distance=0.5)
+    for scene in (quad_and_fine_strip(), quads):  # 3 quads at 3002: each rounds 1000.67 up (3003 at budget / area)
+        for budget in (1000, 2999, 3000, 3001, 3002, 12345):
+            density, count = resolve_density(scene, SamplingSettings(points=budget, max_points=budget), 1)
+            assert count <= budget
+    scene = quad_and_fine_strip()
+    with pytest.raises(ConfigError, match="pass --density") as refused:
+        resolve_density(scene, SamplingSettings(density=default_density(scene) * 10, max_points=3000), 1)
+    advised = float(str(refused.value).split("pass --density ")[1].split()[0])
+    assert resolve_density(scene, SamplingSettings(density=advised, max_points=3000), 1)[1] <= 3000
 
 
 def test_point_budget_counts_the_detail_levels():
