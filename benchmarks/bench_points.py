@@ -118,12 +118,10 @@ def greedy_spacing_bound(spawn_ratio: float, keep: int = 5000, seed: int = 0) ->
 
 
 def world_area(scene) -> float:
-    from psao_server.points import triangle_areas
-
     total = 0.0
     for inst in scene.instances:
         mesh = scene.meshes[inst.mesh]
-        a = triangle_areas(mesh.vertices @ inst.transform[:3, :3].T, mesh.faces).sum()
+        a = mesh.area(inst.transform[:3, :3])
         total += a * (2 if mesh.double_sided else 1)
     return float(total)
 
@@ -195,7 +193,8 @@ def run_pcu(v: np.ndarray, f: np.ndarray, samples: int, seed: int) -> tuple[floa
 
 def run_ours_merged(v: np.ndarray, f: np.ndarray, count: int, settings) -> tuple[float, object]:
     from psao_scene.model import Mesh
-    from psao_server.points import generate_points, triangle_areas
+    from psao_scene.model import triangle_areas
+    from psao_server.points import generate_points
 
     merged = Mesh("merged", v, f)
     area = float(triangle_areas(v, f).sum())

@@ -12,6 +12,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area of each triangle `faces` (F, 3) of `vertices` (V, 3): half the norm of its edges' cross product."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
 @dataclass
 class Mesh:
     name: str
@@ -26,11 +32,15 @@ class Mesh:
         n = np.cross(b - a, c - a)
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
+    def triangle_areas(self, linear: np.ndarray | None = None) -> np.ndarray:
+        """Area of each triangle (one side), of the mesh as placed by the 3x3 `linear` part of a transform
+        when given (translation does not change areas)."""
+        v = self.vertices if linear is None else self.vertices @ np.asarray(linear, np.float64).T
+        return triangle_areas(v, self.faces)
+
     def area(self, linear: np.ndarray | None = None) -> float:
         """Surface area, of the mesh as placed by the 3x3 `linear` part of a transform when given."""
-        v = self.vertices if linear is None else self.vertices @ np.asarray(linear, np.float64).T
-        a, b, c = (v[self.faces[:, i]] for i in range(3))
-        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+        return float(self.triangle_areas(linear).sum())
 
 
 @dataclass

@@ -20,7 +20,7 @@ from psao_server.buried import BuriedTest
 from psao_server.densify import densify
 from psao_server.gapfill import fill_gaps
 from psao_server.grid import Grid, PointTable
-from psao_server.points import PointSet, generate_scene_points, spawn_uniform, triangle_areas
+from psao_server.points import PointSet, generate_scene_points, spawn_uniform
 from psao_server.points_pool import generate_scene_points_parallel
 from psao_server.sampling import resolve_density
 from psao_server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
@@ -287,7 +287,7 @@ def sample_probes(scene: Scene, count: int, seed: int = 12345) -> Probes:
     per_inst = []
     for inst in scene.instances:
         mesh = scene.meshes[inst.mesh]
-        per_inst.append(triangle_areas(mesh.vertices @ inst.transform[:3, :3].T, mesh.faces))
+        per_inst.append(mesh.triangle_areas(inst.transform[:3, :3]))
     totals = np.array([a.sum() for a in per_inst])
     counts = rng.multinomial(count, totals / totals.sum())
     out = {k: [] for k in ("instance", "world_pos", "world_normal", "local_pos", "local_normal")}

@@ -36,7 +36,7 @@ from protocol.reconstruct import reconstruct_ao
 from psao_scene.model import Scene
 from psao_server.grid import Grid
 from psao_server.settings import GapFillSettings
-from psao_server.points import PointSet, spawn_uniform, triangle_areas
+from psao_server.points import PointSet, spawn_uniform
 
 # The k-d pre-test is stricter than the lookup (distance 0.8 r, margins on eq. 3's tests) because it sees
 # exact positions where the lookup sees positions quantised to 1/32 of a cell; what it does not accept
@@ -62,7 +62,7 @@ def surface_candidates(scene: Scene, i: int, ratio: float, per_side: int, rng: n
     kept point (`per_side` points on one side)."""
     inst = scene.instances[i]
     mesh = scene.meshes[inst.mesh]
-    areas = triangle_areas(mesh.vertices @ inst.transform[:3, :3].T, mesh.faces)
+    areas = mesh.triangle_areas(inst.transform[:3, :3])
     faces, bary = spawn_uniform(rng, areas, max(1, int(round(ratio * per_side))))
     pos = np.einsum("pk,pkj->pj", bary, mesh.vertices[mesh.faces[faces]])
     return Candidates(faces, bary, pos, mesh.face_normals()[faces].astype(np.float32))

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from psao_scene.model import Mesh, Scene
+from psao_scene.model import Mesh, Scene, triangle_areas
 from psao_server.errors import ConfigError
 from psao_server.sampling import level_counts
 from psao_server.settings import PointSettings
@@ -46,10 +46,6 @@ class PointSet:
 def instance_seed(seed: int, instance_index: int) -> int:
     """Seed of one instance: the scene seed mixed with the instance index, so instances differ."""
     return int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(instance_index)]).generate_state(1)[0])
-
-
-def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    return 0.5 * np.linalg.norm(np.cross(*_edges(vertices, faces)), axis=1)
 
 
 def _check_geometry(mesh: Mesh, transform: np.ndarray) -> np.ndarray:
@@ -139,7 +135,7 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
     world_vertices = mesh.vertices @ _check_geometry(mesh, transform).T  # translation left out, see above
     world_areas = triangle_areas(world_vertices, mesh.faces)
     world_area = float(world_areas.sum())
-    local_area = float(triangle_areas(mesh.vertices, mesh.faces).sum())
+    local_area = mesh.area()
     if not world_area > 0 or not local_area > 0:
         raise ConfigError(f"mesh {mesh.name!r} has zero surface area (all triangles degenerate or scaled to 0)")
 

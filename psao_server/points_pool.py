@@ -14,7 +14,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 from psao_scene.model import Scene
-from psao_server.points import PointSet, instance_points, triangle_areas
+from psao_server.points import PointSet, instance_points
 from psao_server.settings import PointSettings
 from psao_server.tracer.embree import worker_context
 
@@ -41,8 +41,7 @@ def generate_scene_points_parallel(scene: Scene, settings: PointSettings, worker
     """generate_scene_points(scene, settings, progress, BuriedTest(scene) if skip_buried else None) in
     `workers` processes (the largest instances first, so none is left running alone at the end)."""
     n = len(scene.instances)
-    area = [float(triangle_areas(scene.meshes[i.mesh].vertices @ np.asarray(i.transform)[:3, :3].T,
-                                 scene.meshes[i.mesh].faces).sum()) for i in scene.instances]
+    area = [scene.meshes[i.mesh].area(np.asarray(i.transform)[:3, :3]) for i in scene.instances]
     out: list[PointSet | None] = [None] * n
     with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_init,
                              initargs=(os.getpid(), scene, settings, skip_buried)) as pool:

@@ -130,10 +130,7 @@ def scene_triangle_areas(scene: Scene) -> list[np.ndarray]:
         linear = np.asarray(inst.transform, np.float64)[:3, :3]
         key = (inst.mesh, linear.tobytes())
         if key not in seen:
-            mesh = scene.meshes[inst.mesh]
-            v = mesh.vertices @ linear.T
-            a, b, c = (v[mesh.faces[:, i]] for i in range(3))
-            seen[key] = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+            seen[key] = scene.meshes[inst.mesh].triangle_areas(linear)
         out.append(seen[key])
     return out
 

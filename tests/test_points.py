@@ -19,7 +19,6 @@ from psao_server.points import (
     instance_seed,
     neighbour_graph,
     spawn_uniform,
-    triangle_areas,
 )
 from psao_server.points_elim import eliminate_csr
 
@@ -355,7 +354,7 @@ def test_small_triangles_get_the_detail_factor_and_large_ones_the_density():
     from psao_server.sampling import DETAIL_POINTS, detail_factors
 
     mesh = folded_and_flat()
-    areas = triangle_areas(mesh.vertices, mesh.faces)
+    areas = mesh.triangle_areas()
     factor = detail_factors(areas, 400.0, 4)
     assert 400.0 * areas[0] > DETAIL_POINTS and list(factor[:2]) == [1, 1] and np.all(factor[2:] == 4)
     # the largest power of two that keeps a triangle within DETAIL_POINTS points
@@ -383,3 +382,16 @@ def test_estimate_equals_generated_points_with_detail_levels():
     total = sum(len(generate_points(mesh, inst.transform, s)) for inst in scene.instances)
     assert total == estimate_points(scene, 100.0, s.min_points, 4)
     assert total > estimate_points(scene, 100.0, s.min_points, 1)
+
+
+def test_triangle_areas_match_trimesh_as_placed_by_a_linear_part():
+    """Mesh.triangle_areas (the one area formula of sampling, points, probes and gap filling) equals
+    trimesh's per-face areas of the mesh as placed, whatever the transform's linear part."""
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    mesh = mesh_of(tm)
+    rng = np.random.default_rng(4)
+    linear = rng.normal(size=(3, 3))
+    placed = trimesh.Trimesh(tm.vertices @ linear.T, tm.faces, process=False)
+    assert np.allclose(mesh.triangle_areas(linear), placed.area_faces, rtol=1e-12)
+    assert np.allclose(mesh.triangle_areas(), tm.area_faces, rtol=1e-12)
+    assert mesh.area(linear) == pytest.approx(placed.area, rel=1e-12)
