@@ -2,8 +2,10 @@
 
 A real `psao serve builtin:courtyard --animate` process (N=64 by default); clients are the project's own
 MirrorClient (protocol code and a mirror, no renderer; real websockets on loopback), `--per-process` of
-them in each client process (`--client-host`), each sending its camera at 30 Hz along the scene's
-camera path, shifted in time so the clients look in different directions. The clients join in stages
+them in each client process (`--client-host`; the clients fill the processes in order, so a stage uses as
+few processes as its clients need: every busy process costs CPU of its own on the server's machine), each
+sending its camera at 30 Hz along the scene's camera path, shifted in time so the clients look in
+different directions. The clients join in stages
 (1, then 10, 30, 100 in all); at each stage, once every client has its snapshot, a window of `--seconds`
 is measured: the server's ticks/s (its own --stats-json), updates/s per client, clients on the shared
 stream, server CPU (its process and its tracer processes, share of one core; per extra client, its growth from the 1-client stage over the
@@ -105,8 +107,8 @@ def tree_cpu(pid: int) -> float:
 
 # ------------------------------------------------------------------------------------------ client host
 async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: Path, control: Path, host: int,
-                      hosts: int, digest_every: int) -> None:
-    """Run the MirrorClients k with k % hosts == host, adding them stage by stage when `control` says so;
+                      per_host: int, digest_every: int) -> None:
+    """Run the MirrorClients k with k // per_host == host, adding them stage by stage when `control` says so;
     report per stage on stdout. Runs at a lower CPU priority than the server (CLIENT_NICE)."""
     os.nice(CLIENT_NICE)
     from protocol.session import scene_hash_bytes
@@ -148,7 +150,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
             await asyncio.sleep(0.1)
         new = []
         for k in range(counts[stage - 1] if stage else 0, n):
-            if k % hosts != host:
+            if k // per_host != host:
                 continue
             shift = 7.3 * k  # seconds along the camera path: clients look different ways
             c = MirrorClient(url, scene_hash_bytes(scene.content_hash()),
@@ -298,13 +300,13 @@ def main(argv: list[str] | None = None) -> int:
                    "logged one for, and (k > 0) of every k-th message")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_clients")
     p.add_argument("--no-cull", action="store_true", help="serve with --no-cull (every client is sent every change)")
-    p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "HOSTS", "EVERY"),
+    p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "PER_HOST", "EVERY"),
                    help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.client_host:
-        url, scene, counts, d, host, hosts, every = args.client_host
+        url, scene, counts, d, host, per_host, every = args.client_host
         asyncio.run(client_host(url, scene, [int(c) for c in counts.split(",")], Path(d), Path(d) / "control",
-                                int(host), int(hosts), int(every)))
+                                int(host), int(per_host), int(every)))
         return 0
     counts = [int(c) for c in args.counts.split(",")]
     if not counts or counts[0] < 1 or args.per_process < 1 or args.digest_every < 0:
@@ -336,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     control.write_text("0")
     n_hosts = -(-max(counts) // args.per_process)
     hosts = [subprocess.Popen([sys.executable, "-m", "benchmarks.bench_clients", "--client-host",
-                               f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work), str(h), str(n_hosts),
+                               f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work), str(h), str(args.per_process),
                                str(args.digest_every)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
              for h in range(n_hosts)]
     print(f"{n_hosts} client processes of up to {args.per_process} clients each (MirrorClient: protocol and mirror, "
