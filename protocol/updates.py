@@ -225,20 +225,58 @@ def gaps_encode(sorted_ids: np.ndarray) -> bytes:
     return varint_encode(gaps)
 
 
+# Varint sections of at most this many bytes (all of an Update's sections together) are decoded by a loop
+# over their bytes: a usual Update's cell slots are a few dozen bytes, where the fixed cost of the
+# vectorised decode's numpy calls is many times the work. Both ways give the same ids and refuse the same input.
+LOOP_VARINT_BYTES = 512
+
+
 def gaps_decode(data, count: int, what: str) -> np.ndarray:
-    if count == 0 and not len(data):
-        return _empty_u32(0)
-    ids = np.cumsum(varint_decode(data, count, what).astype(np.int64) + 1) - 1
-    if count and ids[-1] > 0xFFFFFFFF:
-        raise PayloadError(f"{what}: index beyond 32 bits")
-    return ids.astype(np.uint32)
+    return gaps_decode_parts([data], [count], what)
 
 
 def gaps_decode_parts(datas: list, counts: list[int], what: str) -> np.ndarray:
     """Several sections as gaps_encode writes them (each its own run of ids, `counts[i]` of them) -> all
-    their ids, in order, decoded at once; each section must hold exactly its count."""
+    their ids, in order; each section must hold exactly its count."""
+    if sum(len(d) for d in datas) <= LOOP_VARINT_BYTES:
+        return _gaps_loop(datas, counts, what)
+    return _gaps_numpy(datas, counts, what)
+
+
+def _gaps_loop(datas: list, counts: list[int], what: str) -> np.ndarray:
+    """gaps_decode_parts by a loop over the bytes (7 bits each, lowest group first, high bit: more follows)."""
+    ids: list[int] = []
+    for data, count in zip(datas, counts):
+        start, last, value, shift = len(ids), -1, 0, 0
+        for byte in bytes(data):
+            value |= (byte & 0x7F) << shift
+            if byte & 0x80:
+                shift += 7
+                if shift == 35:
+                    raise PayloadError(f"{what}: varint longer than 5 bytes")
+                continue
+            if value > 0xFFFFFFFF:
+                raise PayloadError(f"{what}: varint value beyond 32 bits")
+            last += value + 1
+            ids.append(last)
+            value = shift = 0
+        if shift or len(ids) - start != count:
+            raise PayloadError(f"{what}: varint section does not hold exactly {count} values")
+        if last > 0xFFFFFFFF:
+            raise PayloadError(f"{what}: index beyond 32 bits")
+    return np.array(ids, np.uint32)
+
+
+def _gaps_numpy(datas: list, counts: list[int], what: str) -> np.ndarray:
+    """gaps_decode_parts vectorised: every section's varints decoded at once."""
     if len(datas) == 1:
-        return gaps_decode(datas[0], counts[0], what)
+        data, count = datas[0], counts[0]
+        if count == 0 and not len(data):
+            return _empty_u32(0)
+        ids = np.cumsum(varint_decode(data, count, what).astype(np.int64) + 1) - 1
+        if count and ids[-1] > 0xFFFFFFFF:
+            raise PayloadError(f"{what}: index beyond 32 bits")
+        return ids.astype(np.uint32)
     lengths = np.array([len(d) for d in datas], np.int64)
     n = np.asarray(counts, np.int64)
     b = np.frombuffer(b"".join(datas), np.uint8)

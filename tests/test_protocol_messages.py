@@ -358,6 +358,41 @@ def test_gaps_of_several_sections_decode_as_each_alone():
         gaps_decode_parts([datas[0][:-1], datas[0][-1:] + datas[2]], [5, 1], "ids")  # a varint split between
 
 
+def test_varint_sections_decode_alike_by_loop_and_vectorised():
+    """Small sections are decoded by a loop over their bytes, large ones vectorised: on random valid and
+    random malformed sections both give the same ids or both refuse."""
+    from protocol.updates import LOOP_VARINT_BYTES, _gaps_loop, _gaps_numpy, gaps_decode_parts
+
+    rng = np.random.default_rng(13)
+    for trial in range(300):
+        top = int(rng.choice([200, 1 << 14, 1 << 32]))
+        runs = [np.sort(rng.choice(top, int(rng.integers(0, 30)), replace=False)) for _ in range(int(rng.integers(1, 6)))]
+        datas = [gaps_encode(r) for r in runs]
+        counts = [len(r) for r in runs]
+        want = np.concatenate(runs).astype(np.uint32)
+        for decode in (_gaps_loop, _gaps_numpy, gaps_decode_parts):
+            got = decode(datas, counts, "ids")
+            assert got.dtype == np.uint32 and got.tolist() == want.tolist()
+        # malformed: random bytes, a count off by one, a byte cut or added, a 6-byte varint, a value past 32 bits
+        bad = [bytes(rng.integers(0, 256, int(rng.integers(0, 12)), dtype=np.uint8)) for _ in datas]
+        k = int(rng.integers(len(datas)))
+        cases = [(bad, counts), (datas, [c + (i == k) for i, c in enumerate(counts)]),
+                 ([d[:-1] if i == k else d for i, d in enumerate(datas)], counts),
+                 ([d + b"\x80" if i == k else d for i, d in enumerate(datas)], counts),
+                 ([H("808080808001")], [1]), ([H("ffffffff7f")], [1]), ([H("ffffffff0f") + H("00")], [2])]
+        for ds, cs in cases:
+            answers = []
+            for decode in (_gaps_loop, _gaps_numpy):
+                try:
+                    answers.append(decode(ds, cs, "ids").tolist())
+                except PayloadError:
+                    answers.append("refused")
+            assert answers[0] == answers[1], (ds, cs, answers)
+    assert _gaps_loop([H("ffffffff0f")], [1], "ids").tolist() == [0xFFFFFFFF]
+    big = np.arange(0, 40 * LOOP_VARINT_BYTES, 40)  # gaps of 39: one byte each, more bytes than the loop takes
+    assert gaps_decode_parts([gaps_encode(big)], [len(big)], "ids").tolist() == big.tolist()
+
+
 def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone():
     from protocol.updates import union_of_parts
 
