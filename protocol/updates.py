@@ -216,13 +216,35 @@ def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray
 
 
 def gaps_encode(sorted_ids: np.ndarray) -> bytes:
-    """Strictly increasing ids -> varints of the first id and of every gap minus one."""
+    """Strictly increasing ids -> varints of the first id and of every gap minus one (a few hundred ids
+    by a loop, as their decode: numpy's per-call cost is most of the work there; the same bytes)."""
     ids = np.asarray(sorted_ids, dtype=np.int64).reshape(-1)
+    if len(ids) <= LOOP_VARINT_BYTES:
+        out = _gaps_encode_loop(ids.tolist())
+        if out is not None:
+            return out
     gaps = np.empty_like(ids)
     if len(ids):
         gaps[0] = ids[0]
         np.subtract(ids[1:], ids[:-1] + 1, out=gaps[1:])
     return varint_encode(gaps)
+
+
+def _gaps_encode_loop(ids: list[int]) -> bytes | None:
+    """gaps_encode by a loop over the ids; None where they are not strictly increasing from 0 (the
+    vectorised encode then writes what it writes for them)."""
+    out = bytearray()
+    last = -1
+    for i in ids:
+        gap = i - last - 1
+        if gap < 0:
+            return None
+        last = i
+        while gap >= 0x80:
+            out.append((gap & 0x7F) | 0x80)
+            gap >>= 7
+        out.append(gap)
+    return bytes(out)
 
 
 # Varint sections of at most this many bytes (all of an Update's sections together) are decoded by a loop

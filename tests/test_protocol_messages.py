@@ -393,6 +393,22 @@ def test_varint_sections_decode_alike_by_loop_and_vectorised():
     assert gaps_decode_parts([gaps_encode(big)], [len(big)], "ids").tolist() == big.tolist()
 
 
+def test_small_id_sections_encode_to_the_bytes_of_the_vectorised_encode():
+    """A few hundred ids are encoded by a loop: the same bytes as the vectorised varints of their gaps."""
+    from protocol.updates import LOOP_VARINT_BYTES, _gaps_encode_loop
+
+    rng = np.random.default_rng(17)
+    for trial in range(300):
+        top = int(rng.choice([300, 1 << 14, 1 << 32]))
+        ids = np.sort(rng.choice(top, int(rng.integers(0, 60)), replace=False))
+        gaps = np.diff(ids, prepend=-1) - 1
+        assert _gaps_encode_loop(ids.tolist()) == varint_encode(gaps) == gaps_encode(ids)
+    assert gaps_encode(np.array([0, 1, 2, 200, 0xFFFFFFFF])) == H("000000c501b6feffff0f")
+    assert _gaps_encode_loop([3, 3]) is None and _gaps_encode_loop([5, 2]) is None  # not strictly increasing
+    many = np.arange(0, 3 * LOOP_VARINT_BYTES, 3)  # more ids than the loop takes: vectorised, same decode
+    assert gaps_decode(gaps_encode(many), len(many), "ids").tolist() == many.tolist()
+
+
 def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone():
     from protocol.updates import union_of_parts
 
