@@ -61,11 +61,13 @@ def occlusion(p: wp.vec3d, n: wp.vec3d, c: wp.vec3d, r: wp.float64, ao: wp.float
 
 @wp.kernel
 def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.float64),
-                place: wp.array(dtype=wp.int64), hit: wp.array(dtype=wp.uint8), total: wp.array(dtype=wp.float32)):
+                place: wp.array(dtype=wp.int64), hit: wp.array(dtype=wp.uint8), total: wp.array(dtype=wp.float32),
+                out: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32)):
     # q: box 0 lo, hi, box 1 lo, hi (12), sphere 0 centre, radius, sphere 1 centre, radius (8), AO distance,
     # boxes, spheres. One thread loops over every point: a CPU launch runs its threads one after another,
     # and each thread is a call that copies the arguments. A point that passes is marked in `hit` at its
-    # place in the movers' union, and its change added to `total` there (float32, as numpy's +=).
+    # place, and its change added to `total` there (float32, as numpy's +=); a place marked first by this
+    # launch is appended to `out` (count[0] of them, in the points' order).
     lo0 = wp.vec3d(q[0], q[1], q[2])
     hi0 = wp.vec3d(q[3], q[4], q[5])
     lo1 = wp.vec3d(q[6], q[7], q[8])
@@ -77,16 +79,17 @@ def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q:
     ao = q[20]
     boxes = int(q[21])
     spheres = int(q[22])
+    n = int(0)
     for j in range(pos.shape[0]):
         p = pos[j]
         inside = in_box(p, lo0, hi0)
         if boxes > 1 and not inside:
             inside = in_box(p, lo1, hi1)
         if inside and spheres > 0:
-            n = nrm[j]
-            see = may_see(p, n, c0, r0, ao)
+            nj = nrm[j]
+            see = may_see(p, nj, c0, r0, ao)
             if spheres > 1 and not see:
-                see = may_see(p, n, c1, r1, ao)
+                see = may_see(p, nj, c1, r1, ao)
             inside = see
         if inside:
             # selection.occlusion_change: how much the sphere's share of the point's hemisphere changed
@@ -96,49 +99,53 @@ def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q:
                 if spheres > 1:
                     dc = wp.abs(dc - occlusion(p, nrm[j], c1, r1, ao))
             k = place[j]
-            hit[k] = wp.uint8(1)
+            if hit[k] == wp.uint8(0):
+                hit[k] = wp.uint8(1)
+                out[n] = k
+                n = n + 1
             total[k] = total[k] + wp.float32(dc)
+    count[0] = wp.int32(n)
 
 
 class NearTest:
-    """near_kernel over one candidate set (positions and normals (P, 3) float64, kept alive here), its
-    launch recorded once per set of places it writes to (bind): a call writes the boxes and spheres into
-    the launch's parameter array."""
+    """near_kernel over one candidate set (positions and normals (P, 3) float64, kept alive here) whose
+    places in the work arrays are `places` (int64 (P,), increasing), launched as a recorded command: a
+    call writes the boxes and spheres into the launch's parameter array and returns the places it marked
+    first (increasing)."""
 
-    def __init__(self, positions: np.ndarray, normals: np.ndarray):
+    def __init__(self, positions: np.ndarray, normals: np.ndarray, places: np.ndarray, hit: np.ndarray,
+                 total: np.ndarray):
         self._pos_np = np.ascontiguousarray(positions, np.float64)
         self._nrm_np = np.ascontiguousarray(normals, np.float64)
+        self._places = np.ascontiguousarray(places, np.int64)
+        self._out = np.empty(len(self._places), np.int64)
+        self._count = np.zeros(1, np.int32)
         self.q = np.zeros(23, np.float64)
-        self._bound: tuple | None = None  # (place, hit, total) the launch writes to
+        self._work = (hit, total)  # (kept alive here)
         self._launch = None
+        if len(self._pos_np):
+            self._launch = wp.launch(near_kernel, dim=1, device="cpu", record_cmd=True, inputs=[
+                wp.array(self._pos_np, dtype=wp.vec3d, device="cpu", copy=False),
+                wp.array(self._nrm_np, dtype=wp.vec3d, device="cpu", copy=False),
+                wp.array(self.q, dtype=wp.float64, device="cpu", copy=False),
+                wp.array(self._places, dtype=wp.int64, device="cpu", copy=False),
+                wp.array(hit, dtype=wp.uint8, device="cpu", copy=False),
+                wp.array(total, dtype=wp.float32, device="cpu", copy=False),
+                wp.array(self._out, dtype=wp.int64, device="cpu", copy=False),
+                wp.array(self._count, dtype=wp.int32, device="cpu", copy=False)])
 
     def __len__(self) -> int:
         return len(self._pos_np)
 
-    def bind(self, place: np.ndarray, hit: np.ndarray, total: np.ndarray) -> None:
-        """Where calls write: each candidate k passing the test sets hit[place[k]] = 1 and adds its
-        occlusion change to total[place[k]] (place int64 (P,), hit uint8, total float32; kept alive here)."""
-        if self._bound is not None and all(a is b for a, b in zip(self._bound, (place, hit, total))):
-            return
-        self._bound = (place, hit, total)
-        self._launch = wp.launch(near_kernel, dim=1, device="cpu", record_cmd=True, inputs=[
-            wp.array(self._pos_np, dtype=wp.vec3d, device="cpu", copy=False),
-            wp.array(self._nrm_np, dtype=wp.vec3d, device="cpu", copy=False),
-            wp.array(self.q, dtype=wp.float64, device="cpu", copy=False),
-            wp.array(place, dtype=wp.int64, device="cpu", copy=False),
-            wp.array(hit, dtype=wp.uint8, device="cpu", copy=False),
-            wp.array(total, dtype=wp.float32, device="cpu", copy=False)])
-
     def __call__(self, boxes: list[tuple[np.ndarray, np.ndarray]], spheres: list[tuple[np.ndarray, float]],
-                 ao_distance: float) -> None:
-        """Mark (bind) the candidates inside one of `boxes` (1 or 2) and, with spheres (at most 2), able to
-        see one, adding their occlusion change (1 without spheres)."""
+                 ao_distance: float) -> np.ndarray:
+        """Mark the candidates inside one of `boxes` (1 or 2) and, with spheres (at most 2), able to see
+        one: hit[place] = 1, and their occlusion change (1 without spheres) added to total[place]. Returns
+        the places this call marked that were not marked before (a view, valid until the next call)."""
         if not 1 <= len(boxes) <= 2 or len(spheres) > 2:
             raise ValueError(f"near_kernel tests 1 or 2 boxes and up to 2 spheres, not {len(boxes)} and {len(spheres)}")
-        if self._bound is None:
-            raise ValueError("NearTest.bind() must say where the results go before a call")
-        if len(self._pos_np) == 0:
-            return
+        if self._launch is None:
+            return self._out[:0]
         q = self.q
         for k, (lo, hi) in enumerate(boxes):
             q[6 * k:6 * k + 3], q[6 * k + 3:6 * k + 6] = lo, hi
@@ -146,6 +153,7 @@ class NearTest:
             q[12 + 4 * k:15 + 4 * k], q[15 + 4 * k] = c, r
         q[20:23] = ao_distance, len(boxes), len(spheres)
         self._launch.launch()
+        return self._out[:int(self._count[0])]
 
 
 @wp.func

@@ -16,6 +16,7 @@ in proportion to the points near moving things, not to the scene.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,23 +147,6 @@ def sum_by_index(parts: list[np.ndarray], values: list[np.ndarray]) -> tuple[np.
     total = np.zeros(len(ids), np.float32)
     np.add.at(total, at, v)  # unbuffered, in element order: the parts' order per index
     return ids, total
-
-
-def union_places(parts: list[np.ndarray], parts_sorted: bool = False) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(sorted_union of index arrays in any order, per part the place of each of its entries in the
-    union): one sort of them all (numpy's default sort; np.unique and a stable sort of unsorted runs
-    cost many times more). With `parts_sorted` (each part sorted) a stable sort merges the runs (about a
-    third of the default sort's time)."""
-    if not parts:
-        return np.zeros(0, np.int64), []
-    c = np.concatenate(parts)
-    order = np.argsort(c, kind="stable" if parts_sorted else None)
-    s = c[order]
-    new = np.ones(len(s), bool)
-    np.not_equal(s[1:], s[:-1], out=new[1:])
-    at = np.empty(len(c), np.int64)
-    at[order] = np.cumsum(new) - 1
-    return s[new], np.split(at, np.cumsum([len(p) for p in parts])[:-1])
 
 
 def merge_disjoint(base: np.ndarray, base_values: np.ndarray | None, runs: list[np.ndarray],
@@ -346,9 +330,10 @@ class NearCache:
     contiguous arrays in index order; with the movers' spheres, only those within a ball that bounds every point that may
     see them) serve every following tick whose reach stays inside that grown box and ball. Each tick
     then tests only those candidates (in a reach box, may see the mover's sphere now or before: one pass
-    of select_kernels.near_kernel), never the block index or the whole point set. The movers' candidate
-    sets are merged once into their sorted union (kept until one of them is refilled), so a tick sums
-    the movers' estimates on places in it instead of sorting what they found."""
+    of select_kernels.near_kernel), never the block index or the whole point set. The tests mark and sum
+    into work arrays over every static point (allocated once, cleared where a tick marked them), so a
+    mover's refill touches its own candidates alone; each test lists the points it marked first (in
+    index order), and the tick's answer is the merge of those sorted lists."""
 
     def __init__(self, index: BlockIndex, normals: np.ndarray, ao_distance: float, margin: float):
         self.index = index
@@ -358,74 +343,73 @@ class NearCache:
         self.margin = float(margin)
         self._held: dict[int, tuple] = {}  # mover -> (query box lo, hi, ball centre, radius, candidate indices,
         # select_kernels.NearTest over their positions and normals)
-        # the movers' candidates together: (the held entries they come from, their sorted union, per mover
-        # the place of each of its candidates in the union), made again when any mover's candidates change
-        self._union: tuple | None = None
         self._last: dict[int, tuple] = {}  # mover -> its reach (lo, hi) at the last call
+        # per static point: marked by this call's tests, and the movers' change estimates summed (zero again
+        # after each call)
+        self._hit = np.zeros(len(index.positions), np.uint8)
+        self._total = np.zeros(len(index.positions), np.float32)
         self.queries = 0  # block-index queries made (each a cache refill)
 
     def _candidates(self, i: int, boxes: list[tuple[np.ndarray, np.ndarray]], spheres: list) -> tuple:
-        lo = np.min([b[0] for b in boxes], axis=0)
-        hi = np.max([b[1] for b in boxes], axis=0)
+        if len(boxes) == 1:
+            lo, hi = boxes[0]
+        else:
+            lo, hi = np.minimum(boxes[0][0], boxes[1][0]), np.maximum(boxes[0][1], boxes[1][1])
         held = self._held.get(i)
         last = self._last.get(i)
         self._last[i] = lo, hi
         # a point that may see a sphere (c, r) is within r + ao of c, so within R of the held ball's
         # centre while |c - centre| + r + ao <= R: the ball bounds the candidates as well as the box
-        ball_ok = held is not None and all(float(np.linalg.norm(c - held[2])) + r + self.ao_distance <= held[3]
-                                           for c, r in spheres)
-        if not ball_ok or np.any(lo < held[0]) or np.any(hi > held[1]):
-            # grown by the margin, or by a few of the mover's last steps when it moves farther per tick
-            # (a slow tick rate): the candidates then still serve several ticks
-            step = 0.0 if last is None else float(max(np.abs(lo - last[0]).max(), np.abs(hi - last[1]).max()))
-            grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
-            q = (lo - grow, hi + grow)
-            k = self.index.query_box_sorted(q)  # block order: positions and normals read in runs
-            pos = self.index.sorted_positions[k]
-            centre, radius = 0.5 * (lo + hi), np.inf
-            if spheres:
-                centre = spheres[0][0]
-                radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres) + self.ao_distance + grow
-                d = pos - centre
-                # (slack: the per-tick test's own rounding must never reach past the ball)
-                ball = np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2
-                k, pos = k[ball], pos[ball]
-            ids = self.index.order[k]
-            by_id = np.argsort(ids)  # sorted by index: the movers' union merges sorted runs
-            ids, k, pos = ids[by_id], k[by_id], pos[by_id]
-            from psao_server.select_kernels import NearTest  # (Warp: imported when something first moves)
-            held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, ids,
-                                    NearTest(pos, self.sorted_normals[k]))
-            self.queries += 1
+        if held is not None:
+            ok = not ((lo < held[0]).any() or (hi > held[1]).any())
+            for c, r in spheres if ok else ():
+                d = c - held[2]
+                if math.sqrt(float(d @ d)) + r + self.ao_distance > held[3]:
+                    ok = False
+                    break
+            if ok:
+                return held[4:]
+        # grown by the margin, or by a few of the mover's last steps when it moves farther per tick
+        # (a slow tick rate): the candidates then still serve several ticks
+        step = 0.0 if last is None else float(max(np.abs(lo - last[0]).max(), np.abs(hi - last[1]).max()))
+        grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
+        q = (lo - grow, hi + grow)
+        k = self.index.query_box_sorted(q)  # block order: positions and normals read in runs
+        pos = self.index.sorted_positions[k]
+        centre, radius = 0.5 * (lo + hi), np.inf
+        if spheres:
+            centre = spheres[0][0]
+            radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres) + self.ao_distance + grow
+            d = pos - centre
+            # (slack: the per-tick test's own rounding must never reach past the ball)
+            ball = np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2
+            k, pos = k[ball], pos[ball]
+        ids = self.index.order[k]
+        by_id = np.argsort(ids)  # sorted by index: what a test marks comes out sorted
+        ids, k, pos = ids[by_id], k[by_id], pos[by_id]
+        from psao_server.select_kernels import NearTest  # (Warp: imported when something first moves)
+        held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, ids,
+                                NearTest(pos, self.sorted_normals[k], ids, self._hit, self._total))
+        self.queries += 1
         return held[4:]
 
     def near(self, reach: dict, motion: MotionInput, with_change: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Sorted indices (into the block index's points) of static_points_near(index, reach, motion,
         normals, ao_distance), and per index the occlusion_change of the movers' spheres, summed over the
         movers (None without `with_change`: the indices alone, merged without summing)."""
-        tests = []
+        marked = []
+        # sum_by_index of the movers' parts: summed in the movers' order, each mover's test marking and
+        # adding in place (select_kernels.near_kernel)
         for i, boxes in reach.items():
             spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
-            self._candidates(i, boxes, spheres)
-            tests.append((self._held[i], boxes, spheres))
-        union, places, hit, total = self._union_of([held for held, _, _ in tests])
-        # sum_by_index of the movers' parts, on the union's places: summed in the movers' order, each
-        # mover's test marking and adding in place (select_kernels.near_kernel)
-        hit.fill(0)
-        total.fill(0)
-        for (held, boxes, spheres), place in zip(tests, places):
-            test = held[5]
-            test.bind(place, hit, total)
-            test(boxes, spheres, self.ao_distance)
-        at = np.flatnonzero(hit)
-        return union[at], total[at] if with_change else None
-
-    def _union_of(self, held: list[tuple]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
-        """(sorted union of the candidate indices of these held entries, per entry its candidates' places in
-        the union, a uint8 and a float32 work array over the union), kept while the same entries serve."""
-        was = self._union
-        if was is None or len(was[0]) != len(held) or any(a is not b for a, b in zip(was[0], held)):
-            # (the entries themselves are kept: compared by identity)
-            union, places = union_places([h[4] for h in held], parts_sorted=True)
-            self._union = (held, union, places, np.zeros(len(union), np.uint8), np.zeros(len(union), np.float32))
-        return self._union[1:]
+            test = self._candidates(i, boxes, spheres)[1]
+            first = test(boxes, spheres, self.ao_distance)
+            if len(first):
+                marked.append(first.copy())
+        if not marked:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32) if with_change else None
+        ids = marked[0] if len(marked) == 1 else np.sort(np.concatenate(marked), kind="stable")  # (sorted runs: merged)
+        change = self._total[ids] if with_change else None
+        self._hit[ids] = 0
+        self._total[ids] = 0.0
+        return ids, change

@@ -6,7 +6,7 @@ import pytest
 from psao_scene.camera import look_at, perspective
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view, in_box, in_frustum,
                                    reach_boxes, rigid_in_company, sorted_union, static_points_near,
-                                   merge_disjoint, occlusion_change, sum_by_index, union_places)
+                                   merge_disjoint, occlusion_change, sum_by_index)
 
 
 def random_points(n, seed=0, scale=20.0):
@@ -186,22 +186,6 @@ def test_merge_disjoint_is_sum_by_index_of_disjoint_runs():
         alone, none = merge_disjoint(base, None, runs)
         assert none is None
         np.testing.assert_array_equal(alone, sorted_union([base, *runs]))
-
-
-def test_union_places_are_the_parts_entries_in_their_sorted_union():
-    rng = np.random.default_rng(2)
-    for _ in range(50):
-        parts = [rng.permutation(np.unique(rng.integers(0, 300, int(rng.integers(0, 80))))) for _ in range(int(rng.integers(1, 6)))]
-        union, places = union_places(parts)
-        np.testing.assert_array_equal(union, np.unique(np.concatenate(parts)))
-        for p, at in zip(parts, places):
-            np.testing.assert_array_equal(union[at], p)
-        ordered = [np.sort(p) for p in parts]  # sorted runs, merged by a stable sort: the same answer
-        union_s, places_s = union_places(ordered, parts_sorted=True)
-        np.testing.assert_array_equal(union_s, union)
-        for p, at in zip(ordered, places_s):
-            np.testing.assert_array_equal(union_s[at], p)
-    assert len(union_places([])[0]) == 0
 
 
 def test_block_index_query_box_is_the_points_in_the_box():
