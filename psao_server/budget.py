@@ -4,7 +4,8 @@
 changed (the history) and their unoccluded count. A point whose history holds fewer rays than the target
 waits in the queue; every trace adds one round: the next interleaved slice of the point's target ray set
 (`round_rays` rays of the `rays` the bake and the unbudgeted tick trace, same seed), and the stored AO is
-the running mean. So the rounds of a point that stands still add up to exactly its full trace: the
+the running mean (the tick gives a point reset by a change all its slices in one go: one slice blended
+with a history from before the change lags behind it). So the rounds of a point add up to exactly its full trace: the
 budgeted tick converges to the unbudgeted tick's very AO (and a scene at rest to the bake's, sending
 nothing). A change around a point resets its history (`reset`), so the point goes to the
 front of the queue; with `keep_rays` its estimate so far stands in for at most that many rays until as
@@ -182,6 +183,17 @@ def first_by_key(ids: np.ndarray, key: np.ndarray, k: int) -> np.ndarray:
         part = np.argpartition(key, k - 1)[:k]
         return ids[part[np.argsort(key[part], kind="stable")]]
     return ids[np.argsort(key, kind="stable")]
+
+
+def first_within(ids: np.ndarray, key: np.ndarray, cost: np.ndarray, total: float, least: int = 0) -> np.ndarray:
+    """The ids of smallest key, in key order (ties: as first_by_key), as many as their `cost`s (one per id, > 0)
+    add up to without passing `total`, but at least `least` of them."""
+    if len(ids) == 0:
+        return ids
+    most = max(int(total / max(float(cost.min()), 1e-12)), least)  # no more can fit: sort only these
+    order = first_by_key(np.arange(len(ids)), key, most)
+    n = int(np.searchsorted(np.cumsum(cost[order]), total, side="right"))
+    return ids[order[:max(n, min(least, len(order)))]]
 
 
 class RefineQueue:

@@ -30,9 +30,11 @@ Two ways to trace (TickSettings.budget):
     None      every selected point in a view is re-traced with `rays` rays in this very tick, however
               long that takes (the reference the budgeted tick is measured against)
     settings  the time-budgeted tick of psao_server.budget: selected points have their ray history reset
-              and wait in a priority queue; each tick traces as many as its time budget allows with one
-              slice (`round_rays` rays) of each point's `rays`-ray set, accumulating up to `rays` per
-              point: a point's rounds together are exactly its unbudgeted trace. First, exact_share of
+              and wait in a priority queue; each tick traces as many as its time budget allows: a point
+              reset since its last trace gets its whole `rays`-ray set at once (the unbudgeted trace; a
+              static one with kept static hits as an exact trace, below), a point refining a history
+              (a few-ray first grid) one slice (`round_rays` rays) of it, accumulating up to `rays`:
+              a point's rounds together are exactly its unbudgeted trace. First, exact_share of
               the budget traces static points near movers whole from the bake's static hits (only the
               rays the static scene lets through, against the movers: the full trace's AO), in the
               same tracer call. A scene at rest converges and then traces nothing; idle budget refines
@@ -52,7 +54,7 @@ from protocol import pointword as pw
 from protocol.errors import EditError
 from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, affine, bounds_of, to_world_points
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
-from psao_server.budget import RefineQueue, TraceBudget, first_by_key, measure_tracer
+from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view, reach_boxes,
@@ -84,8 +86,8 @@ class TickStats:
     queue_oldest_ms: float = 0.0  # how long the longest-waiting of them has waited
     budget_ms: float = 0.0  # the trace budget of this tick (0: unbudgeted)
     budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
-    batch: int = 0  # points the budget allowed this tick
-    exact: int = 0  # static points near movers given their whole ray set from kept static hits (in traced)
+    batch: int = 0  # points the rounds' part of the budget allowed this tick (slices, whole ray sets, exact ones)
+    exact: int = 0  # static points near movers given their whole ray set from kept static hits first (exact_share; in traced)
     refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
 
     def to_dict(self) -> dict:
@@ -100,7 +102,7 @@ class TickPlan:
     ids: np.ndarray  # ids traced
     codes: np.ndarray  # their new AO codes
     seconds: tuple[float, float, float]  # animate, select, trace
-    batch: int = 0  # points the budget allowed (budgeted tick)
+    batch: int = 0  # points the rounds' part of the budget allowed (budgeted tick)
     budget_s: float = 0.0
     exact: int = 0  # of ids: static points near movers traced whole from their kept static hits (the last)
     refilled: int = 0  # of ids: static points traced whole with their static hits kept again (before those)
@@ -430,23 +432,31 @@ class ServerTick:
             rest = np.ones(len(looked), bool)
             rest[np.searchsorted(looked, whole)] = False
             looked, key = looked[rest], key[rest]
-        chosen = first_by_key(looked, key, k)
+        chosen, fresh, cheap = self._rounds(looked, key, k * round_settings.rays_traced)
+        batch, n_exact = len(chosen) + len(fresh) + len(cheap), len(exact)
+        exact = np.sort(np.concatenate([exact, cheap]))
+        whole = np.concatenate([fresh, refill, exact])
+        spent = len(exact) * self.budget.exact_rays(s.rays) + (len(refill) + len(fresh)) * s.rays
         t_sel = time.perf_counter()
         codes, whole_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
         if len(chosen) or len(whole):  # one call: the workers' hand-over is paid once
             pos, nrm = self.world_points(frame, chosen)
+            fresh_pos, fresh_nrm = self.world_points(frame, fresh)
             parts = [TracePart(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen]),
+                     TracePart(fresh_pos, fresh_nrm, fresh, s),
                      TracePart(self.world_pos[refill], self.world_nrm[refill], refill, s, keep_static=True),
                      TracePart(self.world_pos[exact], self.world_nrm[exact], exact, s,
                                static_hit=self._static_hits.packed(exact) if len(exact) else None)]
             self.pose_tracer(frame)
-            vis = self._trace_parts(parts if len(whole) else parts[:1])
+            live = [k for k, p in enumerate(parts) if k == 0 or len(p.point_ids)]  # (empty parts: not sent)
+            vis = dict(zip(live, self._trace_parts([parts[k] for k in live])))
+            vis = [vis.get(k, (np.zeros(0, np.float32), None)) for k in range(len(parts))]
             now = time.perf_counter()
             codes = self.queue.add(chosen, vis[0][0], round_settings.rays_traced, now)
             if len(whole):  # the full trace's AO: the point's whole ray set at once
                 if len(refill):
-                    self._static_hits.keep(refill, vis[1][1])
-                whole_codes = self.queue.add(whole, np.concatenate([vis[1][0], vis[2][0]]), s.rays, now,
+                    self._static_hits.keep(refill, vis[2][1])
+                whole_codes = self.queue.add(whole, np.concatenate([vis[1][0], vis[2][0], vis[3][0]]), s.rays, now,
                                              slices=self.queue.slices)
         t_trace = time.perf_counter()
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel)
@@ -457,7 +467,7 @@ class ServerTick:
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
         chosen, codes = np.concatenate([chosen, refined[0], whole]), np.concatenate([codes, refined[1], whole_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
-                        batch=k, budget_s=self.budget.budget_s(), exact=len(exact), refilled=len(refill))
+                        batch=batch, budget_s=self.budget.budget_s(), exact=n_exact, refilled=len(refill))
 
     def _whole_static(self, waiting: np.ndarray, visible: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
@@ -478,6 +488,24 @@ class ServerTick:
         left = (most - len(exact)) * self.budget.exact_rays(rays) / max(rays, 1)
         refill = top[~known][:min(self.settings.budget.refill_points, int(left))]
         return np.sort(exact), np.sort(refill)
+
+    def _rounds(self, looked: np.ndarray, key: np.ndarray, rays: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rounds' points: those of `looked` first in key order whose traces cost at most `rays` rays of
+        the fitted rate (at least min_points), as (rounds, fresh, cheap). A point refining a history gets
+        one slice (`rounds`: round_rays rays); a point with nothing since its last reset gets its whole ray
+        set at once (`fresh`: a few-ray slice blended with a history from before the change lags behind
+        it), or, a static point with kept static hits, an exact whole trace (`cheap`: the same answer for
+        exact_rays of them, BudgetSettings.exact_cost)."""
+        per_round = self._round_settings().rays_traced
+        rays_all = self.settings.rays
+        hits = self._static_hits
+        reset = (self.queue.rays[looked] == 0) & (self.queue.done[looked] == 0) & ~self.queue.first_grid(looked)
+        exactable = reset & (hits.static[looked] & hits.known[looked] if hits is not None else False)
+        cost = np.where(exactable, self.budget.exact_rays(rays_all), np.where(reset, float(rays_all), float(per_round)))
+        at = np.searchsorted(looked, first_within(looked, key, cost, rays, self.settings.budget.min_points))
+        ids = looked[at]
+        fresh, cheap = reset[at] & ~exactable[at], exactable[at]
+        return ids[~fresh & ~cheap], np.sort(ids[fresh]), np.sort(ids[cheap])
 
     def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the

@@ -101,12 +101,13 @@ def test_motion_resets_history_near_the_mover_only_and_queue_stays_bounded(budge
         reset = tick.queue.rays < rays_before
         assert 0 < reset.sum() < n // 2  # a neighbourhood, not the scene
         # one round of 4 rays completes a traced point; static points near the movers traced whole wait no more
-        assert s.traced == 64 + s.exact and s.queue == reset.sum()
+        # (the rounds' budget reaches at least min_points, more where static points cost an exact trace)
+        assert s.batch >= 64 and s.traced == s.batch + s.exact and s.queue == reset.sum()
         lengths = []
         for k in range(60):  # fast motion (a second of scene time per tick) with a tiny budget
             s = tick(tick.grid, 1.0 + k)
             lengths.append(s.queue)
-            assert s.queue <= n and s.traced == 64 + s.exact
+            assert s.queue <= n and s.batch >= 64 and s.traced == s.batch + s.exact
         assert len(tick.stats_history) <= tick.settings.history
         assert tick.queue.rays.shape == (len(tick.tracked),)
         # motion stops: the queue drains (nothing was dropped, it waited) and no point is left short
@@ -471,5 +472,39 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
             with pytest.raises(ConfigError, match="takes no static hits"):
                 tick._trace_parts([TracePart(tick.world_pos[ids], tick.world_nrm[ids], ids, tick.trace_settings,
                                              **extra)])
+    finally:
+        tick.close()
+
+
+def test_first_within_takes_the_key_order_while_the_costs_fit():
+    from psao_server.budget import first_within
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        n = int(rng.integers(0, 40))
+        ids = rng.permutation(1000)[:n]
+        key = rng.permutation(n).astype(np.float64)
+        cost = rng.choice([2.4, 4.0, 1.0], n)
+        total, least = float(rng.uniform(0, 40)), int(rng.integers(0, 5))
+        order = ids[np.argsort(key, kind="stable")]
+        fits = int(np.searchsorted(np.cumsum(cost[np.argsort(key, kind="stable")]), total, side="right"))
+        np.testing.assert_array_equal(first_within(ids, key, cost, total, least), order[:max(fits, min(least, n))])
+
+
+def test_points_reset_by_motion_get_their_whole_ray_set_in_one_tick(budgeted_tick):
+    """A point whose neighbourhood changed gets its whole ray set at once (static points with kept static
+    hits as exact traces), not one slice blended with a history from before the change: with rays for
+    all of them, every point holds exactly the full trace of the scene as it stands after each moving
+    tick, and nothing waits."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1)
+    tick.settings.budget.rays_per_tick = 1e9
+    try:
+        for t in (0.1, 0.2, 0.3):
+            s = tick(tick.grid, t)
+            assert s.batch > 0 and s.queue == 0
+            assert (tick.queue.done[tick.tracked] == tick.queue.slices).all()
+            ids = np.flatnonzero(tick.present())
+            accumulated, full = estimates(tick, ids)
+            np.testing.assert_array_equal(accumulated, full)
     finally:
         tick.close()
