@@ -2,8 +2,9 @@
 
 A real `psao serve builtin:courtyard --animate` process (N=64 by default); clients are the project's own
 MirrorClient (protocol code and a mirror, no renderer; real websockets on loopback), `--per-process` of
-them in each client process (`--client-host`; the clients fill the processes in order, so a stage uses as
-few processes as its clients need: every busy process costs CPU of its own on the server's machine), each
+them in each client process (`--client-host`; the clients fill the processes in order, each process started
+at the first stage that has one of its clients, so a stage runs as few processes as its clients need: every
+process costs CPU of its own on the server's machine), each
 sending its camera at 30 Hz along the scene's camera path, shifted in time so the clients look in
 different directions. The clients join in stages
 (1, then 10, 30, 100 in all); at each stage, once every client has its snapshot, a window of `--seconds`
@@ -109,7 +110,8 @@ def tree_cpu(pid: int) -> float:
 async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: Path, control: Path, host: int,
                       per_host: int, digest_every: int) -> None:
     """Run the MirrorClients k with k // per_host == host, adding them stage by stage when `control` says so;
-    report per stage on stdout. Runs at a lower CPU priority than the server (CLIENT_NICE)."""
+    report per stage on stdout, from the first stage that has one of them (the driver starts the process
+    then). Runs at a lower CPU priority than the server (CLIENT_NICE)."""
     os.nice(CLIENT_NICE)
     from protocol.session import scene_hash_bytes
     from psao_client.connection import MirrorClient, scene_camera_feed
@@ -146,6 +148,8 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
         return (int(text.rstrip("m")), text.endswith("m")) if text.rstrip("m").isdigit() else (-1, False)
 
     for stage, n in enumerate(counts):
+        if n <= host * per_host:  # none of this process's clients yet: it was not started for this stage
+            continue
         while said()[0] < stage:
             await asyncio.sleep(0.1)
         new = []
@@ -337,16 +341,17 @@ def main(argv: list[str] | None = None) -> int:
     threading.Thread(target=lambda: log_lines.extend(iter(server.stderr.readline, "")), daemon=True).start()
     control = work / "control"
     control.write_text("0")
-    n_hosts = -(-max(counts) // args.per_process)
-    hosts = [subprocess.Popen([sys.executable, "-m", "benchmarks.bench_clients", "--client-host",
-                               f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work), str(h), str(args.per_process),
-                               str(args.digest_every)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
-             for h in range(n_hosts)]
-    print(f"{n_hosts} client processes of up to {args.per_process} clients each (MirrorClient: protocol and mirror, "
-          f"no renderer)", flush=True)
+    hosts: list[subprocess.Popen] = []  # started as the stages need them (idle ones would take CPU too)
     rows, finals = [], []
     try:
         for stage, n in enumerate(counts):
+            while len(hosts) < -(-n // args.per_process):
+                hosts.append(subprocess.Popen([sys.executable, "-m", "benchmarks.bench_clients", "--client-host",
+                                               f"ws://127.0.0.1:{port}", args.scene, args.counts, str(work),
+                                               str(len(hosts)), str(args.per_process), str(args.digest_every)],
+                                              cwd=ROOT, stdout=subprocess.PIPE, text=True))
+            print(f"{n} clients in {len(hosts)} client processes of up to {args.per_process} (MirrorClient: protocol "
+                  f"and mirror, no renderer)", flush=True)
             control.write_text(str(stage))
             ready = host_lines(hosts)
             if ready is None:  # a client host ended (its error is on stderr): judge what was measured
