@@ -361,16 +361,15 @@ class Fanout:
         self._stale[cell_slots] = True  # their places may have changed
         self._stale_any |= bool(len(cell_slots))
         members, joiners = [], []
-        for c in clients:
-            may_join = (not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
-                        and not self.behind(c) and not c.pending_anything())
-            if not (c.shared or may_join):  # (the view test below is the costly part: only where it decides)
+        flags = [(c, not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
+                  and not self.behind(c) and not c.pending_anything()) for c in clients]
+        # (the view test is the costly part: only where it decides, every such client's in one pass)
+        sees = self._sees_all([c for c, may_join in flags if c.shared or may_join], grid, transforms, cell_slots)
+        for c, may_join in flags:
+            if not (c.shared or may_join):
                 others.append(c)
                 continue
-            planes = self.planes(c)
-            sees_all = True
-            if planes is not None and len(cell_slots):
-                sees_all = bool(self.places(grid, transforms).in_view(planes, self.settings.view, cell_slots).all())
+            sees_all = sees[c.id]
             if c.shared:
                 if sees_all and len(c.outbox) + c.in_flight < self.settings.max_queued and not self.behind(c):
                     members.append(c)
@@ -403,6 +402,20 @@ class Fanout:
         self.shared_messages += 1
         return SharePlan(self.stream, tick, server_time, read_delta(grid, now_t, tids, bucket_ids, cell_slots), members,
                          restart)
+
+    def _sees_all(self, clients: list[Client], grid, transforms: np.ndarray, cell_slots: np.ndarray) -> dict[int, bool]:
+        """Per client id: whether its extended view holds every one of these cells (a client without planes
+        sees all); the plane tests of all the clients in one pass."""
+        out = {c.id: True for c in clients}
+        if not len(cell_slots):
+            return out
+        culled = [(c, p) for c in clients if (p := self.planes(c)) is not None]
+        if culled:
+            inside = self.places(grid, transforms).in_views(np.stack([p for _, p in culled]), self.settings.view,
+                                                           np.asarray(cell_slots, np.int64))
+            for (c, _), every in zip(culled, inside.all(axis=1)):
+                out[c.id] = bool(every)
+        return out
 
     def deliver(self, plan: SharePlan, data: bytes) -> list[tuple[Client, int]]:
         """Put the encoded Update in every member's outbox; returns (client, message index) per member.

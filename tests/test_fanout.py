@@ -266,6 +266,38 @@ def test_in_view_is_the_plane_test_of_every_cell():
             np.testing.assert_array_equal(places.in_view_each(planes, own, view, rows), np.array(wants)[own, rows])
 
 
+def test_who_sees_every_dirty_cell_is_worked_out_for_all_clients_at_once():
+    """The shared stream's view test (whether a client's extended view holds every dirty cell), done for
+    many clients in one pass, answers as the plane test of each client alone does."""
+    from protocol.session import ServerConfig
+    from psao_server.clients import Client
+    from psao_server.fanout import Fanout
+
+    grid = TwoSides.grid(2000)
+    rng = np.random.default_rng(9)
+    pos = np.column_stack([rng.uniform(-20, 20, 300), np.zeros(300), rng.uniform(-2.5, 2.5, 300)])
+    grid.insert_points(0, pos, np.tile(np.float32([0, 1, 0]), (300, 1)), np.full(300, 128, np.uint32))
+    settings = ServeSettings()
+    fanout = Fanout(ServerConfig(HASH, "", "", settings.codec, settings.layout, settings.zstd, settings.limits),
+                    settings.fanout)
+    transforms = np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1))
+    clients = []
+    for k in range(12):  # some see one side, some the other, some all; one has no camera yet
+        c = Client("test", len(grid.buckets), len(grid.cells))
+        if k:
+            eye = np.array([rng.uniform(-30, 30), rng.uniform(1, 15), rng.uniform(-30, 30)])
+            c.camera = (look_at(eye, np.array([rng.uniform(-20, 20), 0.0, 0.0])), perspective(50.0, 1.5, 0.05, 100.0))
+        clients.append(c)
+    used = np.flatnonzero(grid.cells[:, -1] != 0xFFFFFFFF)
+    for trial in range(20):
+        dirty = np.sort(rng.choice(used, int(rng.integers(1, 40)), replace=False)).astype(np.uint32)
+        places = fanout.places(grid, transforms)
+        want = {c.id: bool(places.in_view(fanout.planes(c), settings.fanout.view, dirty).all()) for c in clients}
+        assert fanout._sees_all(clients, grid, transforms, dirty) == want
+        assert 0 < sum(want.values()) < len(clients) or trial  # (the first draw has both answers)
+    assert fanout._sees_all(clients, grid, transforms, np.zeros(0, np.uint32)) == {c.id: True for c in clients}
+
+
 def test_clients_with_different_views_share_parts_and_mirror_exactly(tmp_path):
     """Three clients, two looking at -x and one at +x, while ticks change cells on both sides: their
     Updates are made of tiles compressed once (a tile goes to every client whose view holds it), what
