@@ -89,6 +89,8 @@ class TickStats:
     batch: int = 0  # points the rounds' part of the budget allowed this tick (slices, whole ray sets, exact ones)
     exact: int = 0  # static points near movers given their whole ray set from kept static hits first (exact_share; in traced)
     refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
+    cpu_prepare: float = 0.0  # CPU seconds the thread that ran prepare (animate, select, trace) spent in it: the
+    # wall seconds of those stages less this is time spent waiting (for the GIL, a core, the tracer's workers)
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # (scalars: no deep copy, 4x cheaper than asdict)
@@ -106,6 +108,7 @@ class TickPlan:
     budget_s: float = 0.0
     exact: int = 0  # of ids: static points near movers traced whole from their kept static hits (the last)
     refilled: int = 0  # of ids: static points traced whole with their static hits kept again (before those)
+    cpu_s: float = 0.0  # CPU seconds of the preparing thread (TickStats.cpu_prepare)
 
 
 class ServerTick:
@@ -383,6 +386,12 @@ class ServerTick:
     def prepare(self, t: float) -> "TickPlan":
         """Animate, select and trace at scene time t without writing the grid: it may run in a worker
         thread while the event loop reads the grid for sending. `apply` must follow before the next one."""
+        cpu_start = time.thread_time()
+        plan = self._prepare(t)
+        plan.cpu_s = time.thread_time() - cpu_start
+        return plan
+
+    def _prepare(self, t: float) -> "TickPlan":
         t_start = time.perf_counter()
         edited = self._take_edits()
         last = self.last_frame
@@ -573,7 +582,8 @@ class ServerTick:
             changed=changed, moved=plan.moved,
             cells_dirty=int(np.count_nonzero(self.grid.dirty_cells)),
             seconds_animate=animate, seconds_select=select, seconds_trace=trace, seconds_grid=seconds_grid,
-            seconds_total=animate + select + trace + seconds_grid, **self._queue_stats(plan, trace))
+            seconds_total=animate + select + trace + seconds_grid, cpu_prepare=plan.cpu_s,
+            **self._queue_stats(plan, trace))
         self.tick_count += 1
         self.stats_history.append(stats)
         return stats
