@@ -508,3 +508,25 @@ def test_points_reset_by_motion_get_their_whole_ray_set_in_one_tick(budgeted_tic
             np.testing.assert_array_equal(accumulated, full)
     finally:
         tick.close()
+
+
+def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monkeypatch):
+    """The budgeted tick pays the select stage's one-time costs when it is made (its kernels loaded, the
+    movers' nearby static points gathered), and its moving ticks then pick and trace exactly what a tick
+    made without that warm-up does."""
+    from psao_server.tick import ServerTick
+
+    warm = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=300)
+    monkeypatch.setattr(ServerTick, "_warm_up_select", lambda self: None)
+    cold = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=300)
+    try:
+        assert warm._priority is not None and cold._priority is None
+        for t in (0.05, 0.1, 0.15):
+            a, b = warm.prepare(t), cold.prepare(t)
+            np.testing.assert_array_equal(a.ids, b.ids)
+            np.testing.assert_array_equal(a.codes, b.codes)
+            warm.apply(a)
+            cold.apply(b)
+    finally:
+        warm.close()
+        cold.close()
