@@ -143,7 +143,9 @@ class SceneAnimator:
             out[i] = self.placed[i] if i in self.placed else instance_transform(self.scene, i, t)
         return out
 
-    def frame(self, t: float) -> Frame:
+    def frame(self, t: float, bind_pose: bool = False) -> Frame:
+        """The scene at time t; with `bind_pose`, its skinned meshes in their bind pose (as a bake traces
+        them) instead of deformed at t."""
         import time
         transforms = self.transforms(t)
         t0 = time.perf_counter()
@@ -151,7 +153,8 @@ class SceneAnimator:
         for i in self.kinds.skinned:
             m = self.scene.instances[i].mesh
             if m not in mesh_vertices:  # a copy: the deformer may hand out the same buffer every call
-                mesh_vertices[m] = np.array(self.skinner.vertices(m, t), np.float64)
+                mesh_vertices[m] = np.array(self.scene.meshes[m].vertices if bind_pose else self.skinner.vertices(m, t),
+                                            np.float64)
         seconds_skinning = time.perf_counter() - t0
         bounds, spheres, verts, faces, base = {}, {}, [], [], 0
         skinned_v, skinned_f, skinned_base, skinned_parts = [], [], 0, []

@@ -144,13 +144,16 @@ class ServerTick:
                      and bake.stats.get("seed", self.settings.seed) == self.settings.seed)
         # (the budgeted tick always takes it, as so many rays of each point's history)
         if baked_time is not None and (same_rays or trust_bake or self.settings.budget is not None):
-            self.last_frame: Frame | None = self.animator.frame(baked_time)
+            # what the bake traced: the movers placed at baked_time, skinned meshes in their bind pose (the
+            # first tick then re-traces what posing them changed)
+            self.last_frame: Frame | None = self.animator.frame(baked_time, bind_pose=True)
+            self._bake_frame = self.last_frame
         else:
             if baked_time is not None:
                 log.info("bake traced %s rays (seed %s), the tick %d (seed %d): the first tick re-traces every "
                          "visible point", bake.stats.get("rays"), bake.stats.get("seed", "?"), self.settings.rays,
                          self.settings.seed)
-            self.last_frame = None
+            self.last_frame = self._bake_frame = None
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
         # the bake's static hits, for ray sets like the tick's (the static scene's answers, for the whole traces
@@ -408,7 +411,8 @@ class ServerTick:
         edited = self._take_edits()
         last = self.last_frame
         # the same time and no edit (a scene held at rest): the same frame, not worked out again
-        frame = last if last is not None and last.t == t and not edited else self.animator.frame(t)
+        frame = (last if last is not None and last.t == t and not edited and last is not self._bake_frame
+                 else self.animator.frame(t))
         moved = self._deform(frame)
         t_anim = time.perf_counter()
         if self.budget is not None:

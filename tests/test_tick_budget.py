@@ -530,3 +530,23 @@ def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monk
     finally:
         warm.close()
         cold.close()
+
+
+def test_first_tick_retraces_what_posing_the_skinned_meshes_changed(make_tick):
+    """A bake traces skinned meshes in their bind pose; the tick's first frame poses them (here at the
+    bake's own time), so its first tick re-traces what that changed: afterwards every point's stored AO
+    is a full trace of the posed scene (within the store threshold), as it was not when the tick took the
+    bake for the posed frame."""
+    tick, _ = make_tick("robots", 8, 8)
+    try:
+        tick.set_cameras([])
+        s = tick(tick.grid, 0.0)
+        assert s.traced > 0
+        ids = np.flatnonzero(tick.present())
+        pos, nrm = tick.world_points(tick.last_frame, ids)
+        tick.pose_tracer(tick.last_frame)
+        full = pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
+        stored = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF).astype(np.int64)
+        assert np.abs(stored - full).max() <= tick.settings.threshold
+    finally:
+        tick.close()
