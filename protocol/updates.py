@@ -215,11 +215,16 @@ def varint_decode(data: bytes | memoryview, count: int, what: str) -> np.ndarray
     return v.astype(np.uint32)
 
 
+# Up to this many ids, gaps_encode writes their varints by a loop: the tile parts and heads the encode thread
+# writes every tick are a few dozen ids each, where numpy's per-call cost is most of the work.
+LOOP_GAPS_IDS = 512
+
+
 def gaps_encode(sorted_ids: np.ndarray) -> bytes:
     """Strictly increasing ids -> varints of the first id and of every gap minus one (a few hundred ids
     by a loop, as their decode: numpy's per-call cost is most of the work there; the same bytes)."""
     ids = np.asarray(sorted_ids, dtype=np.int64).reshape(-1)
-    if len(ids) <= LOOP_VARINT_BYTES:
+    if len(ids) <= LOOP_GAPS_IDS:
         out = _gaps_encode_loop(ids.tolist())
         if out is not None:
             return out

@@ -400,12 +400,19 @@ class NearCache:
         marked = []
         # sum_by_index of the movers' parts: summed in the movers' order, each mover's test marking and
         # adding in place (select_kernels.near_kernel)
-        for i, boxes in reach.items():
-            spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
-            test = self._candidates(i, boxes, spheres)[1]
-            first = test(boxes, spheres, self.ao_distance)
-            if len(first):
-                marked.append(first.copy())
+        try:
+            for i, boxes in reach.items():
+                spheres = [sp[i] for sp in (motion.spheres_now, motion.spheres_before) if sp and i in sp] if motion.spheres_now else []
+                test = self._candidates(i, boxes, spheres)[1]
+                first = test(boxes, spheres, self.ao_distance)
+                if len(first):
+                    marked.append(first.copy())
+        except BaseException:
+            # the movers tested before the failure left marks: a point left marked would never be listed
+            # again, so every mark goes (a failure is rare; clearing all of it is cheap beside it)
+            self._hit.fill(0)
+            self._total.fill(0.0)
+            raise
         if not marked:
             return np.zeros(0, np.int64), np.zeros(0, np.float32) if with_change else None
         ids = marked[0] if len(marked) == 1 else np.sort(np.concatenate(marked), kind="stable")  # (sorted runs: merged)

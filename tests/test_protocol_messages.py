@@ -395,7 +395,7 @@ def test_varint_sections_decode_alike_by_loop_and_vectorised():
 
 def test_small_id_sections_encode_to_the_bytes_of_the_vectorised_encode():
     """A few hundred ids are encoded by a loop: the same bytes as the vectorised varints of their gaps."""
-    from protocol.updates import LOOP_VARINT_BYTES, _gaps_encode_loop
+    from protocol.updates import LOOP_GAPS_IDS, _gaps_encode_loop
 
     rng = np.random.default_rng(17)
     for trial in range(300):
@@ -405,7 +405,7 @@ def test_small_id_sections_encode_to_the_bytes_of_the_vectorised_encode():
         assert _gaps_encode_loop(ids.tolist()) == varint_encode(gaps) == gaps_encode(ids)
     assert gaps_encode(np.array([0, 1, 2, 200, 0xFFFFFFFF])) == H("000000c501b6feffff0f")
     assert _gaps_encode_loop([3, 3]) is None and _gaps_encode_loop([5, 2]) is None  # not strictly increasing
-    many = np.arange(0, 3 * LOOP_VARINT_BYTES, 3)  # more ids than the loop takes: vectorised, same decode
+    many = np.arange(0, 3 * LOOP_GAPS_IDS, 3)  # more ids than the loop takes: vectorised, same decode
     assert gaps_decode(gaps_encode(many), len(many), "ids").tolist() == many.tolist()
 
 

@@ -205,6 +205,28 @@ def test_sorted_union_is_unique_of_the_parts():
     assert len(sorted_union([])) == 0 and len(sorted_union([np.zeros(0, np.int64)])) == 0
 
 
+def test_near_cache_after_a_failed_call_lists_every_point_again():
+    """A call that fails after some movers were tested leaves no marks behind: the next call lists and sums
+    exactly what a fresh cache does (a point left marked would never be listed again)."""
+    rng = np.random.default_rng(8)
+    pts = random_points(20000, seed=6, scale=10.0)
+    nrm = rng.normal(size=pts.shape)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ao = 1.2
+    index = BlockIndex(pts, ao)
+    cache = NearCache(index, nrm, ao, margin=0.25 * ao)
+    motion = next(m for t, m in enumerate(moving_spheres(rng, 3, 2, 0.1)) if t == 2)
+    reach = reach_boxes(motion, ao)
+    assert len(cache.near({0: reach[0]}, motion)[0])  # the first mover marks points before the second fails
+    with pytest.raises(ValueError):
+        cache.near({0: reach[0], 1: reach[1] * 3}, motion)  # three boxes: the near test refuses them
+    got, change = cache.near(reach, motion)
+    want, want_change = NearCache(index, nrm, ao, margin=0.25 * ao).near(reach, motion)
+    assert len(want)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(change, want_change)
+
+
 def test_rigid_instance_in_company_only_when_near_another_box():
     static = {1: box([10, 0, 0], [11, 1, 1])}
     lonely = MotionInput({0: box([0, 0, 0], [1, 1, 1])}, {}, rigid=[0], skinned=[])
