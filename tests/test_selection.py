@@ -114,14 +114,19 @@ def moving_spheres(rng, ticks, movers, step):
         before = boxes, spheres
 
 
-def test_near_cache_matches_static_points_near_over_a_motion():
-    rng = np.random.default_rng(7)
-    pts = random_points(60000, seed=5, scale=10.0)
+def near_setup(rng, n: int, seed: int, ao: float = 1.2):
+    """(points, unit normals, their BlockIndex, a NearCache) of `n` random points in a 20-unit cube."""
+    pts = random_points(n, seed=seed, scale=10.0)
     nrm = rng.normal(size=pts.shape)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    ao = 1.2
     index = BlockIndex(pts, ao)
-    cache = NearCache(index, nrm, ao, margin=0.25 * ao)
+    return pts, nrm, index, NearCache(index, nrm, ao, margin=0.25 * ao)
+
+
+def test_near_cache_matches_static_points_near_over_a_motion():
+    rng = np.random.default_rng(7)
+    ao = 1.2
+    pts, nrm, index, cache = near_setup(rng, 60000, 5, ao)
     for motion in moving_spheres(rng, 40, 3, 0.1):
         reach = reach_boxes(motion, ao)
         want = np.flatnonzero(static_points_near(index, reach, motion, nrm, ao))
@@ -209,12 +214,8 @@ def test_near_cache_after_a_failed_call_lists_every_point_again():
     """A call that fails after some movers were tested leaves no marks behind: the next call lists and sums
     exactly what a fresh cache does (a point left marked would never be listed again)."""
     rng = np.random.default_rng(8)
-    pts = random_points(20000, seed=6, scale=10.0)
-    nrm = rng.normal(size=pts.shape)
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     ao = 1.2
-    index = BlockIndex(pts, ao)
-    cache = NearCache(index, nrm, ao, margin=0.25 * ao)
+    _, nrm, index, cache = near_setup(rng, 20000, 6, ao)
     motion = next(m for t, m in enumerate(moving_spheres(rng, 3, 2, 0.1)) if t == 2)
     reach = reach_boxes(motion, ao)
     assert len(cache.near({0: reach[0]}, motion)[0])  # the first mover marks points before the second fails
