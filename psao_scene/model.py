@@ -12,10 +12,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def _edge_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3): the cross product of each triangle's edges b - a and c - a (counter-clockwise: the front side)."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
+
+
 def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area of each triangle `faces` (F, 3) of `vertices` (V, 3): half the norm of its edges' cross product."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    return 0.5 * np.linalg.norm(_edge_cross(vertices, faces), axis=1)
+
+
+def triangle_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit front-side normal of each triangle `faces` (F, 3) of `vertices` (V, 3) (degenerate ones: zero)."""
+    n = _edge_cross(vertices, faces)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 @dataclass
@@ -28,9 +39,7 @@ class Mesh:
     skin: object | None = None  # psao_scene.skin.Skin for skinned meshes
 
     def face_normals(self) -> np.ndarray:
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        n = np.cross(b - a, c - a)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return triangle_normals(self.vertices, self.faces)
 
     def triangle_areas(self, linear: np.ndarray | None = None) -> np.ndarray:
         """Area of each triangle (one side), of the mesh as placed by the 3x3 `linear` part of a transform

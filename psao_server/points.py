@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from psao_scene.model import Mesh, Scene, triangle_areas
+from psao_scene.model import Mesh, Scene, triangle_areas, triangle_normals
 from psao_server.errors import ConfigError
 from psao_server.sampling import level_counts
 from psao_server.settings import PointSettings
@@ -141,7 +141,7 @@ def generate_points(mesh: Mesh, transform: np.ndarray, settings: PointSettings, 
 
     rng = np.random.default_rng(settings.seed if seed is None else seed)
     normals_local = mesh.face_normals()
-    world_normals = _unit(np.cross(*_edges(world_vertices, mesh.faces)))
+    world_normals = triangle_normals(world_vertices, mesh.faces)
     levels = level_counts(world_areas, settings.density, settings.min_points, settings.detail_factor)
     parts = [_level_points(rng, world_vertices, world_areas, world_normals, mesh.faces, on, keep, settings,
                            transform, reject) for keep, on in levels]
@@ -191,13 +191,7 @@ def _level_points(rng, world_vertices, world_areas, world_normals, tris, on, kee
     return faces[kept], bary[kept], spawn
 
 
-def _edges(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return b - a, c - a
 
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def instance_points(scene: Scene, settings: PointSettings, k: int, buried=None) -> PointSet:
