@@ -170,12 +170,12 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
                 raise RuntimeError(f"a client ended: {[t.exception() for t in tasks if t.done()][0]}")
             await asyncio.sleep(0.1)
         snap = max((c.stats.snapshot_seconds for c in new), default=0.0)
-        print(json.dumps({"stage": stage, "clients": n, "ready": True, "snapshot_s_max": snap,
+        print(json.dumps({"stage": stage, "clients": n, "ready": True, "snapshot_s_max": snap, "at": time.monotonic(),
                           "updates": [c.stats.updates for c in clients],
                           "reconnects": [c.stats.reconnects for c in clients]}), flush=True)
         while said() < (stage, True):
             await asyncio.sleep(0.05)
-        print(json.dumps({"stage": stage, "clients": n, "measured": True,
+        print(json.dumps({"stage": stage, "clients": n, "measured": True, "at": time.monotonic(),
                           "updates": [c.stats.updates for c in clients],
                           "reconnects": [c.stats.reconnects for c in clients],
                           "ticks": [c.mirror.tick if c.mirror is not None else -1 for c in clients]}), flush=True)
@@ -250,6 +250,7 @@ def host_lines(hosts: list[subprocess.Popen]) -> dict | None:
     return {"updates": [u for p in parts for u in p["updates"]],
             "reconnects": [r for p in parts for r in p["reconnects"]],
             "ticks": [t for p in parts for t in p.get("ticks", [])],
+            "at": [p["at"] for p in parts for _ in p["updates"]],  # when its host counted each client's updates
             "snapshot_s_max": max(p.get("snapshot_s_max", 0.0) for p in parts)}
 
 
@@ -379,7 +380,10 @@ def main(argv: list[str] | None = None) -> int:
             a, b = recs0[-1], recs1[-1]
             window = [r for r in recs1 if a["service_tick"] < r["service_tick"] <= b["service_tick"]]
             ticks = (b["service_tick"] - a["service_tick"]) / max(b["time"] - a["time"], 1e-9)
-            ups = [(u1 - u0) / wall for u0, u1 in zip(ready["updates"], measured["updates"])]
+            # each client's updates over the span its host counted them in (hosts report ready as their own
+            # clients have their snapshots, before the window starts: over `wall` they would count too many)
+            ups = [(u1 - u0) / max(t1 - t0, 1e-9)
+                   for u0, u1, t0, t1 in zip(ready["updates"], measured["updates"], ready["at"], measured["at"])]
             rows.append({"clients": n, "ticks_per_s": ticks, "updates_per_s_per_client": sum(ups) / len(ups),
                          "shared_members": sum(r.get("shared_members", 0) for r in window) / max(len(window), 1),
                          "server_cpu": (cpu1 - cpu0) / wall, "clients_cpu": (ccpu1 - ccpu0) / wall,
