@@ -164,6 +164,7 @@ class Client:
     takes_parts: bool = False  # its client decodes Updates made of shared parts (ZSTD)
     on_parts: bool = False  # its Updates come as shared parts (fanout.plan_parts), through `outbox` only
     caught_up_with: object = None  # the view planes its pending cells were last looked at for (plan_parts)
+    caught_up_at: int = -(1 << 62)  # the tick they were last looked at (plan_parts)
     outbox: deque = field(default_factory=deque)  # shared Update bytes waiting to be sent, in order
     in_flight: int = 0  # shared Updates planned for it and still being encoded (they reach `outbox` in order)
     assigned: int = 0  # messages made for this connection so far (Welcome is message 0)

@@ -246,7 +246,9 @@ class Fanout:
             c._fit(capacity)
             c.on_parts = True
             c.cells_pending.unset(slots)  # what is sent now carries the latest content; the rest is marked again
-            if c.cells_pending.count and (pl is not c.caught_up_with or c.caught_up_with is None):
+            if c.cells_pending.count and (c.caught_up_with is None or (
+                    pl is not c.caught_up_with and tick - c.caught_up_at >= self.settings.catch_up_every)):
+                c.caught_up_at = tick
                 catch.append(c)
         own_parts = self._catch_ups(catch, grid, now_t, places, planes=[self.planes(c) for c in catch])
         recipes, rows_of = [], []  # (rows_of: each recipe's client's row of `visible`)
@@ -291,8 +293,9 @@ class Fanout:
     def _catch_ups(self, clients: list[Client], grid, transforms: np.ndarray, places,
                    planes: list) -> dict[int, GridDelta]:
         """Per client id: its pending cells now in its view (none of this tick's: they go in tiles), as its
-        own part, where there are any; every client's cells tested in one pass. Looked at again only when
-        its camera moves, or at once when a message could not hold them."""
+        own part, where there are any; every client's cells tested in one pass. Looked at again when its
+        camera moved (at most every settings.catch_up_every ticks), or at once when a message could not
+        hold them."""
         cands = [c.cells_pending.indices() for c in clients]  # (this tick's cells were taken off them)
         culled = [k for k, p in enumerate(planes) if p is not None and len(cands[k])]
         if places is not None and culled:

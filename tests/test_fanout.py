@@ -447,3 +447,54 @@ def test_a_client_that_stops_reading_is_sent_nothing_more_then_one_merged_catch_
     assert max(unread_seen) == fan.max_unread  # (and it was reached: the client was held back)
     assert service.counters.ticks > 60
     assert updates_after >= 1
+
+
+def test_a_crowd_sending_cameras_every_tick_has_its_pending_cells_looked_at_every_few_ticks():
+    """Clients on shared parts whose cameras change every tick (as a crowd's do): each one's pending cells
+    are tested against its view at most once per catch_up_every ticks, and the cells a client turns
+    towards still reach it within that many ticks, with the grid's latest content."""
+    from protocol.session import ServerConfig
+    from psao_server.clients import Client
+    from psao_server.fanout import Fanout
+
+    grid = TwoSides.grid(2000)
+    settings = ServeSettings()
+    every = settings.fanout.catch_up_every
+    assert every > 1
+    fanout = Fanout(ServerConfig(HASH, "", "", settings.codec, settings.layout, settings.zstd, settings.limits),
+                    settings.fanout)
+    transforms = np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1))
+    clients = [Client("test", len(grid.buckets), len(grid.cells), streaming=True, takes_parts=True)
+               for _ in range(settings.fanout.parts_from)]
+    looked_at: dict[int, list[int]] = {c.id: [] for c in clients}
+    real_catch_ups, tick = fanout._catch_ups, [0]
+
+    def catch_ups(who, *args, **kwargs):  # the real test, with who was looked at recorded
+        for c in who:
+            looked_at[c.id].append(tick[0])
+        return real_catch_ups(who, *args, **kwargs)
+
+    fanout._catch_ups = catch_ups
+    hook, rng = TwoSides(ticks=10 ** 6, seed=3), np.random.default_rng(4)
+    plus = np.flatnonzero(np.isfinite(fanout.places(grid, transforms).centres[:, 0])
+                          & (fanout.places(grid, transforms).centres[:, 0] > 0))
+    sent_plus: dict[int, int] = {}  # client id -> the first tick a +x cell pending for it was sent to it
+    for tick[0] in range(1, 41):
+        turned = tick[0] > 20  # the last client turns towards +x at tick 21
+        for k, c in enumerate(clients):  # a camera a little different every tick
+            c.camera = camera_towards((10.0 if turned and k == 0 else -10.0) + 1e-3 * tick[0])
+        hook(grid, 0.0)
+        b, cells = grid.take_dirty()
+        share, parted = fanout.plan(clients, grid, b, cells, transforms, tick[0], 0.0, float(tick[0]))
+        assert share is None and len(parted) == len(clients)  # every client keeps +x cells back: all on parts
+        plan = fanout.plan_parts(parted, grid, b, cells, transforms, tick[0], 0.0)
+        for r in plan.recipes:
+            own = r.own_part.cell_slots if r.own_part is not None else np.zeros(0)
+            if len(np.intersect1d(own, plus)) and r.client.id not in sent_plus:
+                sent_plus[r.client.id] = tick[0]
+                np.testing.assert_array_equal(r.own_part.cells, grid.cells[r.own_part.cell_slots])
+    for c in clients:
+        ticks = looked_at[c.id]
+        assert len(ticks) >= 40 // every - 1
+        assert min(np.diff(ticks)) >= every, ticks  # never more often than every `every` ticks
+    assert sent_plus == {clients[0].id: sent_plus[clients[0].id]} and 21 <= sent_plus[clients[0].id] < 21 + every
