@@ -18,9 +18,12 @@ from psao_server.tick import ServerTick
 
 @pytest.fixture
 def budgeted_tick(make_tick):
-    """The server tick with a budget so small that every tick traces its minimum batch (`min_points`)."""
-    def make(name, density, bake_rays, rays, round_rays, min_points, budget_ms=1e-3):
-        budget = BudgetSettings(budget_ms=budget_ms, round_rays=round_rays, min_points=min_points)
+    """The server tick with a budget so small that every tick traces its minimum batch (`min_points`): one
+    ray a tick, not a time (a time's rays follow the tracer's measured speed, and with them how many whole
+    traces from static hits fit), unless `budget_ms` is given."""
+    def make(name, density, bake_rays, rays, round_rays, min_points, budget_ms=None):
+        budget = BudgetSettings(budget_ms=1e-3 if budget_ms is None else budget_ms, round_rays=round_rays,
+                                min_points=min_points, rays_per_tick=1.0 if budget_ms is None else 0.0)
         return make_tick(name, density, rays, bake_rays=bake_rays, budget=budget)[0]
     return make
 
