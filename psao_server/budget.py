@@ -60,8 +60,7 @@ class BudgetSettings:
     # cost but occludes only 6-11% of those rays, so a whole trace from them saves about 0.3-0.4 of a full one)
     refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
     # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
-    exact_min_change: float = 0.0  # estimated AO change (selection.occlusion_change, summed) worth it (0: any; the
-    # movers' bounding spheres underrate it: robots at 32,000 rays a tick lost 5.0 dB with 1/255, 2.5 dB with 0)
+    exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
@@ -172,8 +171,7 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
 
 HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,
 REFINING_S = 2e9  # a point that holds rays since its last reset
-CHANGE_S = 10.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key (the
-# estimates are rough: a tenth of a second's wait outweighs 0.01 of them, so no point waits long behind them)
+CHANGE_S = 100.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key
 MAX_CHANGE = 1000.0  # change estimates accumulate up to this
 
 

@@ -449,7 +449,7 @@ class ServerTick:
                                               self.settings.budget.scan_points))
         s = self.trace_settings
         key, visible = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
-        exact, refill = self._whole_static(looked, visible, key, self.budget.exact_points(s.rays), s.rays)
+        exact, refill = self._whole_static(looked, visible, self.budget.exact_points(s.rays), s.rays)
         spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
         k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
         whole = np.concatenate([refill, exact])
@@ -494,12 +494,10 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=batch, budget_s=self.budget.budget_s(), exact=n_exact, refilled=len(refill))
 
-    def _whole_static(self, waiting: np.ndarray, visible: np.ndarray, key: np.ndarray, most: int,
-                      rays: int) -> tuple[np.ndarray, np.ndarray]:
+    def _whole_static(self, waiting: np.ndarray, visible: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
         of static instances in some client's extended view (`visible`, per waiting point) with an estimated AO change since their last
-        trace of at least exact_min_change, the `most` first by the priority `key` (per waiting point), as
-        (exact, refill), each sorted.
+        trace of at least exact_min_change, the `most` changed most, as (exact, refill), each sorted.
         `exact`: those whose static hits are kept: only the rays the static scene lets through are traced,
         against the moving parts (TracePart.static_hit). `refill`: those whose hits an edit voided, at most
         refill_points of them and what is left of the `most` exact traces' rays, each a full trace of
@@ -508,8 +506,8 @@ class ServerTick:
         hits = self._static_hits
         if most <= 0 or hits is None:
             return waiting[:0], waiting[:0]
-        take = visible & hits.static[waiting] & (self.queue.change[waiting] >= self.settings.budget.exact_min_change)
-        top = first_by_key(waiting[take], key[take], most)
+        ids = waiting[visible & hits.static[waiting] & (self.queue.change[waiting] >= self.settings.budget.exact_min_change)]
+        top = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
         known = hits.known[top]
         exact = top[known]
         left = (most - len(exact)) * self.budget.exact_rays(rays) / max(rays, 1)
