@@ -13,7 +13,7 @@ Parts (--parts, comma list; all by default):
            N=256 and N=512, the skinned model (target >= 55); also the bytes per second it sends, the
            stages' wall milliseconds per tick and the CPU milliseconds of the thread that prepares the tick
            (animate + select + trace, TickStats.cpu_prepare: wall above it is time spent waiting for the
-           GIL or a core, which other work on the machine adds)
+           GIL, a core or the tracer's worker processes)
   quality  budgeted tick at 60 Hz (real time) against the unbudgeted tick (every selected point fully
            re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
            points in the camera's view against a --ref-rays reference trace, while moving and one second
@@ -208,7 +208,7 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
               f"{r['rest_unbudgeted_db']:.2f} dB", flush=True)
         m = r["budgeted_ticks_moving"]
         print(f"    budgeted tick while moving: {r['ticks_per_s']:.1f} ticks/s, {m['traced']:.0f} points traced a tick "
-              f"({m['exact']:.0f} whole from static hits, {m['batch']:.0f} rounds), budget {m['budget_ms']:.1f} ms, "
+              f"({m['exact']:.0f} whole from static hits first, {m['batch']:.0f} picked by the rounds), budget {m['budget_ms']:.1f} ms, "
               f"select {1e3 * m['seconds_select']:.1f} ms, trace {1e3 * m['seconds_trace']:.1f} ms, tick "
               f"{1e3 * m['seconds_total']:.1f} ms")
         for kind, e in r["error_split_moving"].items():

@@ -9,8 +9,9 @@ with a history from before the change lags behind it). So the rounds of a point 
 budgeted tick converges to the unbudgeted tick's very AO (and a scene at rest to the bake's, sending
 nothing). A change around a point resets its history (`reset`), so the point goes to the
 front of the queue; with `keep_rays` its estimate so far stands in for at most that many rays until as
-many fresh rays have come (a point in a moving neighbourhood blends a few rounds, like temporal
-anti-aliasing, instead of showing one round's noise; once still, it converges on fresh rays alone). Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
+many fresh rays have come, for a user that traces a reset point slice by slice (it then blends a few
+rounds instead of showing one round's noise). The server tick traces a reset point's whole ray set in
+one go, which outweighs the kept estimate at once. Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
 over the point ids, so it can never hold more entries than the scene has points.
 
 Priority (`pick`): points in some client's extended view before those outside it; among those, points
@@ -44,8 +45,8 @@ class BudgetSettings:
     round_rays: int = 8  # rays per point per trace round, a divisor of the target rays (the history accumulates
     # rounds, one slice of the target ray set each, up to the target)
     keep_rays: int = 24  # on a change around a point, its estimate so far stands in for this many rays (at
-    # most) until as many fresh rays have come: a moving neighbourhood blends a few rounds instead of
-    # showing one round's noise; 0 = forget at once
+    # most) until as many fresh rays have come (RefineQueue); the server tick gives a reset point its whole
+    # ray set at once, so there it never shows; 0 = forget at once
     min_points: int = 1  # traced every tick whatever the budget, so the queue always moves
     exact_points: int = 100_000  # static points near movers given their whole ray set at once each tick, from
     # the rays the static scene lets through (the bake's static hits, static_hits.StaticHits) traced against

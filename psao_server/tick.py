@@ -90,7 +90,8 @@ class TickStats:
     exact: int = 0  # static points near movers given their whole ray set from kept static hits first (exact_share; in traced)
     refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
     cpu_prepare: float = 0.0  # CPU seconds the thread that ran prepare (animate, select, trace) spent in it: the
-    # wall seconds of those stages less this is time spent waiting (for the GIL, a core, the tracer's workers)
+    # wall seconds of those stages less this is time spent waiting (for the GIL, a core, the tracer's worker
+    # processes, whose CPU is not counted here)
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # (scalars: no deep copy, 4x cheaper than asdict)
@@ -106,8 +107,8 @@ class TickPlan:
     seconds: tuple[float, float, float]  # animate, select, trace
     batch: int = 0  # points the rounds' part of the budget allowed (budgeted tick)
     budget_s: float = 0.0
-    exact: int = 0  # of ids: static points near movers traced whole from their kept static hits (the last)
-    refilled: int = 0  # of ids: static points traced whole with their static hits kept again (before those)
+    exact: int = 0  # static points near movers the whole traces' share (exact_share) traced from kept static hits
+    refilled: int = 0  # static points traced whole with their static hits kept again
     cpu_s: float = 0.0  # CPU seconds of the preparing thread (TickStats.cpu_prepare)
 
 
