@@ -18,11 +18,13 @@ import numpy as np
 import warp as wp
 
 from psao_server.budget import CHANGE_S, HIDDEN_S, REFINING_S
+from psao_server.selection import INSIDE_CHANGE
 
 wp.config.quiet = True
 HIDDEN = wp.constant(HIDDEN_S)
 REFINING = wp.constant(REFINING_S)
 CHANGE = wp.constant(CHANGE_S)
+INSIDE = wp.constant(INSIDE_CHANGE)
 # priority_kernel's verdicts on a block of space against the union of the clients' extended views
 UNKNOWN = wp.constant(0)  # not classified yet (this call)
 SEEN = wp.constant(1)  # wholly inside some view
@@ -57,6 +59,14 @@ def occlusion(p: wp.vec3d, n: wp.vec3d, c: wp.vec3d, r: wp.float64, ao: wp.float
     elif d <= r + ao:
         o = wp.min(wp.float64(1.0), (r / d) * (r / d) * wp.max(wp.float64(0.0), (d0 * n[0] + d1 * n[1] + d2 * n[2]) / d))
     return o
+
+
+@wp.func
+def inside_sphere(p: wp.vec3d, c: wp.vec3d, r: wp.float64) -> bool:
+    d0 = c[0] - p[0]
+    d1 = c[1] - p[1]
+    d2 = c[2] - p[2]
+    return wp.sqrt(d0 * d0 + d1 * d1 + d2 * d2) <= r  # (as occlusion's test: the same rounding)
 
 
 @wp.kernel
@@ -98,6 +108,8 @@ def near_kernel(pos: wp.array(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), q:
                 dc = occlusion(p, nrm[j], c0, r0, ao)
                 if spheres > 1:
                     dc = wp.abs(dc - occlusion(p, nrm[j], c1, r1, ao))
+                    if inside_sphere(p, c0, r0) or inside_sphere(p, c1, r1):
+                        dc = wp.max(dc, wp.float64(INSIDE))
             k = place[j]
             if hit[k] == wp.uint8(0):
                 hit[k] = wp.uint8(1)

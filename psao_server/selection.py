@@ -243,12 +243,18 @@ def may_see_sphere(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, 
     return (dist2 <= (radius + ao_distance) ** 2) & (ahead >= -radius)
 
 
+INSIDE_CHANGE = 0.5  # occlusion_change of a point inside a mover's bounding sphere now or before: half its
+# hemisphere changed, as a deforming mover's own points count (the tick's _mover_change)
+
+
 def occlusion_change(points: np.ndarray, normals: np.ndarray, spheres: list[tuple[np.ndarray, float]],
                      ao_distance: float) -> np.ndarray:
     """Float (P,): how much a mover's bounding sphere changed its share of each point's cosine-weighted
     hemisphere, |o(now) - o(before)| with spheres [now, before] ([now]: o(now); none: 1, unknown), where
     o = (r / d)^2 max(0, cos angle to the normal), 1 inside the sphere and 0 beyond the AO distance: a
-    cheap measure of how much the point's AO may have changed, for the order of re-tracing."""
+    cheap measure of how much the point's AO may have changed, for the order of re-tracing. A point
+    inside the sphere now or before counts at least INSIDE_CHANGE: the mover's surface there (a robot's
+    feet over the floor) moves around it while o stays 1."""
     if not spheres:
         return np.ones(len(points))
 
@@ -258,10 +264,14 @@ def occlusion_change(points: np.ndarray, normals: np.ndarray, spheres: list[tupl
         with np.errstate(all="ignore"):
             cos = np.maximum(np.einsum("pi,pi->p", d, np.asarray(normals, np.float64)) / dist, 0.0)
             v = np.minimum((r / dist) ** 2 * cos, 1.0)
-        return np.where(dist <= r, 1.0, np.where(dist <= r + ao_distance, v, 0.0))
+        return np.where(dist <= r, 1.0, np.where(dist <= r + ao_distance, v, 0.0)), dist <= r
 
-    now = o(*spheres[0])
-    return now if len(spheres) == 1 else np.abs(now - o(*spheres[1]))
+    now, inside = o(*spheres[0])
+    if len(spheres) == 1:
+        return now
+    before, was_inside = o(*spheres[1])
+    change = np.abs(now - before)
+    return np.where(inside | was_inside, np.maximum(change, INSIDE_CHANGE), change)
 
 
 def reach_boxes(motion: MotionInput, ao_distance: float, merge_slack: float = 0.25) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:

@@ -57,8 +57,8 @@ from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
-from psao_server.selection import (BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view, reach_boxes,
-                                   merge_disjoint, rigid_in_company, sorted_union)
+from psao_server.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view,
+                                   reach_boxes, merge_disjoint, rigid_in_company, sorted_union)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.static_hits import StaticHits
 from psao_server.tracer import make_tracer
@@ -689,17 +689,17 @@ class ServerTick:
 
     def _mover_change(self, i: int, frame: Frame) -> float:
         """How much the AO of a moving instance's own points may have changed since the last tick, on the
-        scale of selection.occlusion_change: half (a point's hemisphere half changed) once it has moved
-        by its bounding radius or turned a radian; a deforming mesh counts as that much."""
+        scale of selection.occlusion_change: half (INSIDE_CHANGE: a point's hemisphere half changed) once it
+        has moved by its bounding radius or turned a radian; a deforming mesh counts as that much."""
         if i in self.kinds.skinned:
-            return 0.5
+            return INSIDE_CHANGE
         a, b = frame.transforms[i], self.last_frame.transforms[i]
         (c, r), (c0, _) = frame.spheres[i], self.last_frame.spheres[i]
         with np.errstate(all="ignore"):
             turn = np.linalg.solve(b[:3, :3].T, a[:3, :3].T).T  # a b^-1: the rotation between the frames
             angle = float(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0)))
         step = float(np.linalg.norm(np.asarray(c) - np.asarray(c0))) / max(float(r), 1e-9)
-        return 0.5 * min(1.0, step + (angle if np.isfinite(angle) else 1.0))
+        return INSIDE_CHANGE * min(1.0, step + (angle if np.isfinite(angle) else 1.0))
 
     def _moving_groups(self, ids: np.ndarray):
         """(instance, positions in ids) of the moving instances' points among `ids`."""

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from psao_scene.camera import look_at, perspective
-from psao_server.selection import (BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view, in_box, in_frustum,
-                                   reach_boxes, rigid_in_company, sorted_union, static_points_near,
+from psao_server.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view,
+                                   in_box, in_frustum, reach_boxes, rigid_in_company, sorted_union, static_points_near,
                                    merge_disjoint, occlusion_change, sum_by_index)
 
 
@@ -154,6 +154,33 @@ def test_near_cache_matches_static_points_near_over_a_motion():
     got, change = cache.near(reach, motion)
     np.testing.assert_array_equal(got, np.flatnonzero(static_points_near(index, reach)))
     assert (change == 1).all()  # no spheres: the change is unknown, counted as whole
+
+
+def test_a_point_inside_a_movers_sphere_counts_as_changed():
+    """A point inside the mover's bounding sphere before or now (o is 1 there, so |o(now) - o(before)| is 0
+    for one inside at both times) counts at least INSIDE_CHANGE: the mover's surface moves around it (a
+    robot's feet over the floor). Elsewhere the estimate is |o(now) - o(before)|; the near test's compiled
+    estimate is the same."""
+    rng = np.random.default_rng(11)
+    ao, r = 1.0, 0.8
+    before, now = np.array([0.0, 0.75, 0.0]), np.array([0.02, 0.75, 0.0])  # a small step: both spheres overlap
+    pts = rng.uniform(-2.5, 2.5, size=(20000, 3))
+    nrm = rng.normal(size=pts.shape)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    inside_now = np.linalg.norm(pts - now, axis=1) <= r
+    inside_before = np.linalg.norm(pts - before, axis=1) <= r
+    assert (inside_now & inside_before).sum() > 100
+    change = occlusion_change(pts, nrm, [(now, r), (before, r)], ao)
+    assert (change[inside_now | inside_before] >= INSIDE_CHANGE).all()
+    out = ~(inside_now | inside_before)
+    np.testing.assert_array_equal(change[out], np.abs(occlusion_change(pts[out], nrm[out], [(now, r)], ao)
+                                                      - occlusion_change(pts[out], nrm[out], [(before, r)], ao)))
+    # the near test (select_kernels.near_kernel) over the same points
+    motion = MotionInput({0: (now - r, now + r)}, {0: (before - r, before + r)}, [], [0], {0: (now, r)}, {0: (before, r)})
+    index = BlockIndex(pts, 0.25 * ao)
+    got, got_change = NearCache(index, nrm, ao, margin=0.25 * ao).near(reach_boxes(motion, ao), motion)
+    assert inside_now[got].sum() == inside_now.sum()  # every point inside is near
+    np.testing.assert_allclose(got_change, change[got], rtol=1e-6, atol=1e-7)
 
 
 def test_sum_by_index_sums_the_values_of_each_index():
