@@ -14,8 +14,8 @@ rounds instead of showing one round's noise). The server tick traces a reset poi
 one go, which outweighs the kept estimate at once. Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
 over the point ids, so it can never hold more entries than the scene has points.
 
-Priority (`pick`): points in some client's extended view before those outside it; among those, points
-whose history was reset (nothing traced since their neighbourhood changed) before points being refined;
+Priority (`pick`): points in some client's view (without the view's margins) before those only in the
+margins of its extended view, and those before points outside it; among those, points whose history was reset (nothing traced since their neighbourhood changed) before points being refined;
 then the points whose AO changed most since they were last traced (estimates the resets give), the
 oldest waiting first where those are alike.
 
@@ -171,7 +171,8 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[flo
 
 
 HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,
-REFINING_S = 2e9  # a point that holds rays since its last reset
+REFINING_S = 2e9  # a point that holds rays since its last reset,
+MARGIN_S = 1e9  # a point in a view's margin only (fov and distance margins: seen once the camera turns)
 CHANGE_S = 100.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key
 MAX_CHANGE = 1000.0  # change estimates accumulate up to this
 
@@ -355,18 +356,20 @@ class RefineQueue:
             w = part
         return w[self.done[w] < self.slices]
 
-    def pick(self, ids: np.ndarray, visible: np.ndarray, k: int) -> np.ndarray:
-        """The first `k` of `ids` in priority order (visible, reset, oldest)."""
+    def pick(self, ids: np.ndarray, visible: np.ndarray, k: int, core: np.ndarray | None = None) -> np.ndarray:
+        """The first `k` of `ids` in priority order (visible, in a view's core, reset, oldest)."""
         if len(ids) == 0:
             return ids
-        return first_by_key(ids, self.key(ids, visible, float(self.waiting_since[ids].min())), k)
+        return first_by_key(ids, self.key(ids, visible, float(self.waiting_since[ids].min()), core), k)
 
-    def key(self, ids: np.ndarray, visible: np.ndarray, base: float) -> np.ndarray:
-        """Priority key of `ids` (smaller first): HIDDEN_S if out of every view, plus REFINING_S if the point
-        holds rays since its last reset, plus its wait start less `base`, less CHANGE_S per unit of
-        estimated change since its last trace. (select_kernels.priority_kernel computes the same in one
-        pass, with the views.)"""
-        return (((~visible) * HIDDEN_S + (self.rays[ids] > 0) * REFINING_S)
+    def key(self, ids: np.ndarray, visible: np.ndarray, base: float, core: np.ndarray | None = None) -> np.ndarray:
+        """Priority key of `ids` (smaller first): HIDDEN_S if out of every view, MARGIN_S if visible only in
+        a view's margins (not in `core`; None: every visible point is), plus REFINING_S if the point holds
+        rays since its last reset, plus its wait start less `base`, less CHANGE_S per unit of estimated
+        change since its last trace. (select_kernels.priority_kernel computes the same in one pass, with
+        the views.)"""
+        tier = np.where(visible, 0.0 if core is None else np.where(core, 0.0, MARGIN_S), HIDDEN_S)
+        return ((tier + (self.rays[ids] > 0) * REFINING_S)
                 + ((self.waiting_since[ids] - base) - self.change[ids].astype(np.float64) * CHANGE_S))
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:

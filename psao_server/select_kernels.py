@@ -17,11 +17,12 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from psao_server.budget import CHANGE_S, HIDDEN_S, REFINING_S
+from psao_server.budget import CHANGE_S, HIDDEN_S, MARGIN_S, REFINING_S
 from psao_server.selection import INSIDE_CHANGE
 
 wp.config.quiet = True
 HIDDEN = wp.constant(HIDDEN_S)
+MARGIN = wp.constant(MARGIN_S)
 REFINING = wp.constant(REFINING_S)
 CHANGE = wp.constant(CHANGE_S)
 INSIDE = wp.constant(INSIDE_CHANGE)
@@ -270,8 +271,13 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     change: wp.array(dtype=wp.float32), base: wp.float64, key: wp.array(dtype=wp.float64),
                     lo: wp.vec3d, size: wp.float64, nx: int, ny: int, nz: int, state: wp.array(dtype=wp.int32),
                     first: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32),
-                    used: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8)):
-    # visibility: in_union (blocks of space classified against the views once per launch), also written out
+                    used: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8),
+                    core_planes: wp.array(dtype=wp.vec4d), core_cameras: int, core_state: wp.array(dtype=wp.int32),
+                    core_first: wp.array(dtype=wp.int32), core_count: wp.array(dtype=wp.int32),
+                    core_listed: wp.array(dtype=wp.int32), core_used: wp.array(dtype=wp.int32),
+                    in_core: wp.array(dtype=wp.uint8)):
+    # visibility: in_union (blocks of space classified against the views once per launch), also written out;
+    # of the visible points, those in some view without its margins (core_cameras 0: all of them) likewise
     for j in range(ids.shape[0]):
         i = ids[j]
         p = world[i]
@@ -289,10 +295,22 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     seen = False
         elif cameras > 1:
             seen = in_union(p, planes, cameras, margin, lo, size, nx, ny, nz, state, first, count, listed, used)
+        core = seen
+        if seen and core_cameras == 1:
+            for k in range(5):
+                pl = core_planes[k]
+                if p[0] * pl[0] + p[1] * pl[1] + p[2] * pl[2] + pl[3] < wp.float64(0.0):
+                    core = False
+        elif seen and core_cameras > 1:
+            core = in_union(p, core_planes, core_cameras, wp.float64(0.0), lo, size, nx, ny, nz, core_state, core_first,
+                            core_count, core_listed, core_used)
         tier = wp.float64(0.0)
         visible[j] = wp.uint8(1) if seen else wp.uint8(0)
+        in_core[j] = wp.uint8(1) if core else wp.uint8(0)
         if not seen:
             tier = wp.float64(HIDDEN)
+        elif not core:
+            tier = wp.float64(MARGIN)
         if rays[i] > 0:
             tier = tier + wp.float64(REFINING)
         key[j] = tier + ((since[i] - base) - wp.float64(change[i]) * wp.float64(CHANGE))
@@ -360,24 +378,30 @@ class PriorityKey:
     def __init__(self, blocks: int = 12):
         self.views = Arrays()
         self.union = ViewUnion(blocks)
+        self.core_union = ViewUnion(blocks)
         self.visible = np.zeros(0, bool)  # the last call's in_any_view per id (the key's visibility tier)
+        self.core = np.zeros(0, bool)  # the last call's in_any_view of the views without margins per id
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
                  rays: np.ndarray, since: np.ndarray, change: np.ndarray, base: float,
-                 box: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                 box: tuple[np.ndarray, np.ndarray] | None = None, core_planes: np.ndarray | None = None) -> np.ndarray:
         """Priority key (float64, per id; smaller first): RefineQueue.key with each point's visibility
-        in_any_view of its world position. `planes`: (C, 5, 4) float64, or None (every point visible);
-        `box` (lo, hi): where the points are (world), for the union's blocks (None: each view is tested).
-        Each id's visibility is left in `visible`."""
+        in_any_view of its world position, and its place in the views' cores: in_any_view of `core_planes`
+        (the same views without their margins, (C, 5, 4) float64, distance margin 0; None: every visible
+        point). `planes`: (C, 5, 4) float64, or None (every point visible); `box` (lo, hi): where the points
+        are (world), for the unions' blocks (None: each view is tested). Each id's visibility is left in
+        `visible`, and whether it is in a core in `core`."""
         ids = np.ascontiguousarray(ids, np.int64)
         key = np.empty(len(ids), np.float64)
         seen = np.empty(len(ids), np.uint8)
-        self.visible = seen.view(bool)
+        in_core = np.empty(len(ids), np.uint8)
+        self.visible, self.core = seen.view(bool), in_core.view(bool)
         if len(ids) == 0:
             return key
         v = self.views
         u = self.union.inputs(planes, margin, box, len(ids))
+        c = self.core_union.inputs(core_planes if planes is not None else None, 0.0, box, len(ids))
         wp.launch(priority_kernel, dim=1, device="cpu", inputs=[
             wp.array(ids, dtype=wp.int64, device="cpu", copy=False),
             v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
@@ -385,5 +409,6 @@ class PriorityKey:
             wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
             *u[:3], v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32),
             wp.float64(base), wp.array(key, dtype=wp.float64, device="cpu", copy=False), *u[3:],
-            wp.array(seen, dtype=wp.uint8, device="cpu", copy=False)])
+            wp.array(seen, dtype=wp.uint8, device="cpu", copy=False), c[0], c[1], *c[8:],
+            wp.array(in_core, dtype=wp.uint8, device="cpu", copy=False)])
         return key

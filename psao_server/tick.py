@@ -135,7 +135,8 @@ class ServerTick:
         self._init_tracer()
         self.static_boxes = self.animator.static_bounds()
         self.cameras: list[np.ndarray] = []
-        self._planes_held: dict[int, tuple] = {}  # id(camera) -> (camera, its planes), from the last set_cameras
+        self.core_cameras: list[np.ndarray] = []  # the same views without margins (fov margin 0)
+        self._planes_held: dict[int, tuple] = {}  # id(camera) -> (camera, its planes, without margins), from the last set_cameras
         self._edits: dict[int, np.ndarray] = {}  # instance -> transform, from the event loop, until the next prepare
         self._edits_lock = threading.Lock()
         self.stats_history: deque[TickStats] = deque(maxlen=max(1, self.settings.history))
@@ -350,9 +351,11 @@ class ServerTick:
                 self._planes_held[id(c)] = kept
             else:
                 new.append(c)
-        for c, planes in zip(new, cameras_planes(new, self.settings.view.fov_margin)):  # the new ones in one pass
-            self._planes_held[id(c)] = (c, planes)
+        # the new ones in one pass; each camera's view without margins too (the budgeted tick's priority)
+        for c, planes, core in zip(new, cameras_planes(new, self.settings.view.fov_margin), cameras_planes(new, 0.0)):
+            self._planes_held[id(c)] = (c, planes, core)
         self.cameras = [self._planes_held[id(c)][1] for c in cameras]
+        self.core_cameras = [self._planes_held[id(c)][2] for c in cameras]
 
     def edit(self, instance: int, transform: np.ndarray) -> None:
         """A scene edit (already authorised and range-checked by the session): instance `instance` is at
@@ -449,8 +452,8 @@ class ServerTick:
         looked = self._looked_at(changed, max(16 * self.budget.points(round_settings.rays_traced),
                                               self.settings.budget.scan_points))
         s = self.trace_settings
-        key, visible = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
-        exact, refill = self._whole_static(looked, visible, self.budget.exact_points(s.rays), s.rays)
+        key, _, core = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
+        exact, refill = self._whole_static(looked, core, self.budget.exact_points(s.rays), s.rays)
         spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
         k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
         whole = np.concatenate([refill, exact])
@@ -495,9 +498,10 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=batch, budget_s=self.budget.budget_s(), exact=n_exact, refilled=len(refill))
 
-    def _whole_static(self, waiting: np.ndarray, visible: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
+    def _whole_static(self, waiting: np.ndarray, seen: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
-        of static instances in some client's extended view (`visible`, per waiting point) with an estimated AO change since their last
+        of static instances in some client's view without its margins (`seen`, per waiting point: the
+        margins' points wait for the rounds) with an estimated AO change since their last
         trace of at least exact_min_change, the `most` changed most, as (exact, refill), each sorted.
         `exact`: those whose static hits are kept: only the rays the static scene lets through are traced,
         against the moving parts (TracePart.static_hit). `refill`: those whose hits an edit voided, at most
@@ -507,7 +511,7 @@ class ServerTick:
         hits = self._static_hits
         if most <= 0 or hits is None:
             return waiting[:0], waiting[:0]
-        ids = waiting[visible & hits.static[waiting] & (self.queue.change[waiting] >= self.settings.budget.exact_min_change)]
+        ids = waiting[seen & hits.static[waiting] & (self.queue.change[waiting] >= self.settings.budget.exact_min_change)]
         top = first_by_key(ids, -self.queue.change[ids].astype(np.float64), most)
         known = hits.known[top]
         exact = top[known]
@@ -550,30 +554,33 @@ class ServerTick:
         return looked
 
     def pick(self, frame: Frame, waiting: np.ndarray, k: int) -> np.ndarray:
-        """RefineQueue.pick of `k` of `waiting` with their visibility in the clients' extended views at
-        `frame` (priority)."""
+        """RefineQueue.pick of `k` of `waiting` with their visibility in the clients' extended views and in
+        those views' cores at `frame` (priority)."""
         if len(waiting) == 0:
             return waiting
         return first_by_key(waiting, self.priority(frame, waiting)[0], k)
 
-    def priority(self, frame: Frame, waiting: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(RefineQueue.key of `waiting`, bool in_any_view of each) with their visibility in the clients'
-        extended views at `frame`, in one compiled pass over them (select_kernels.priority_kernel)."""
+    def priority(self, frame: Frame, waiting: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(RefineQueue.key of `waiting`, bool in_any_view of each, bool in a view without its margins) with
+        their visibility in the clients' extended views and in those views' cores at `frame`, in one compiled
+        pass over them (select_kernels.priority_kernel)."""
         if len(waiting) == 0:
-            return np.zeros(0), np.zeros(0, bool)
+            return np.zeros(0), np.zeros(0, bool), np.zeros(0, bool)
         from psao_server.select_kernels import PriorityKey  # (Warp: imported at the first pick)
         if self._priority is None:
             self._priority = PriorityKey()
         key = self._priority(waiting, self.world_pos, self.local_pos, self.inst_of, self.moving_point, frame.transforms,
                              self._view_planes(), self.settings.view.distance_margin, self.queue.rays,
                              self.queue.waiting_since, self.queue.change,
-                             float(self.queue.waiting_since[waiting].min()), self._points_box(frame))
-        return key, self._priority.visible
+                             float(self.queue.waiting_since[waiting].min()), self._points_box(frame),
+                             self._view_planes(self.core_cameras))
+        return key, self._priority.visible, self._priority.core
 
-    def _view_planes(self) -> np.ndarray | None:
-        """The clients' extended views as (C, 5, 4) planes, or None: every point counts as visible (no
-        camera, or one that makes no frustum)."""
-        return None if not self.cameras or any(c is None for c in self.cameras) else np.stack(self.cameras)
+    def _view_planes(self, cameras: list | None = None) -> np.ndarray | None:
+        """The clients' extended views (or `cameras`' planes) as (C, 5, 4) planes, or None: every point
+        counts as visible (no camera, or one that makes no frustum)."""
+        cameras = self.cameras if cameras is None else cameras
+        return None if not cameras or any(c is None for c in cameras) else np.stack(cameras)
 
     def _points_box(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         """A world box around the points (the static ones' and the movers' bounds at `frame`): where the

@@ -304,13 +304,14 @@ def test_union_of_views_equals_each_view_tested(n_views):
     # select_kernels.PriorityKey (through ViewUnion's blocks) tests points against the union of the views by
     # blocks of a box: its visibility must be in_any_view's exactly, also for points on a plane's margin,
     # on block faces and outside the box
-    from psao_server.budget import HIDDEN_S
+    from psao_server.budget import HIDDEN_S, MARGIN_S
     from psao_server.select_kernels import PriorityKey
 
     rng = np.random.default_rng(n_views)
-    views = [frustum_planes(look_at(rng.uniform(-25, 25, 3), rng.uniform(-8, 8, 3)),
-                            perspective(rng.uniform(5, 40), 16 / 9, 0.01, rng.uniform(3, 30)), 20.0)
-             for _ in range(n_views)]
+    cams = [(look_at(rng.uniform(-25, 25, 3), rng.uniform(-8, 8, 3)),
+             perspective(rng.uniform(5, 40), 16 / 9, 0.01, rng.uniform(3, 30))) for _ in range(n_views)]
+    views = [frustum_planes(v, p, 20.0) for v, p in cams]
+    cores = [frustum_planes(v, p, 0.0) for v, p in cams]  # the same views without margins
     margin = 1.0
     pts = [rng.uniform(-30, 30, (6000, 3))]
     for planes in views[:10]:  # on a plane's margin: n.p + d = -margin
@@ -324,11 +325,15 @@ def test_union_of_views_equals_each_view_tested(n_views):
     key = PriorityKey()
     for box in ((lo, hi), (world.min(axis=0), world.max(axis=0)), None):
         got = key(ids, world, world, np.zeros(n, np.int64), np.zeros(n, bool), np.eye(4)[None], np.stack(views), margin,
-                  np.zeros(n, np.int32), np.zeros(n), np.zeros(n, np.float32), 0.0, box)
+                  np.zeros(n, np.int32), np.zeros(n), np.zeros(n, np.float32), 0.0, box, np.stack(cores))
         want = in_any_view(world, views, margin)
         assert 0 < want.sum() < n
         np.testing.assert_array_equal(got < HIDDEN_S / 2, want)
         np.testing.assert_array_equal(key.visible, want)  # the visibility it leaves beside the key
+        core = want & in_any_view(world, cores, 0.0)
+        assert 0 < core.sum() < want.sum()
+        np.testing.assert_array_equal(key.core, core)  # and whether in a view without its margins
+        np.testing.assert_array_equal(got < MARGIN_S / 2, core)  # those first
 
 
 def test_in_box_equals_the_plain_test_on_faces_and_nan():

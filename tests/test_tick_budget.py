@@ -136,6 +136,14 @@ def test_priority_visible_then_reset_then_oldest():
     assert list(q.pick(ids, visible, 5)) == [2, 0, 1, 3, 4]
     assert list(q.pick(ids, visible, 2)) == [2, 0]
 
+    # a point only in a view's margins (not in its core) after the core's of its kind, whatever its wait
+    q = RefineQueue(4, target_rays=8, slices=2)
+    q.rays[:], q.done[:] = [0, 0, 0, 4], [0, 0, 0, 1]
+    q.waiting_since[:] = [1.0, 2.0, 3.0, 0.0]
+    ids, visible = np.arange(4), np.ones(4, bool)
+    assert list(q.pick(ids, visible, 4)) == [0, 1, 2, 3]
+    assert list(q.pick(ids, visible, 4, np.array([False, True, True, True]))) == [1, 2, 0, 3]
+
 
 def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
     # the tick's pick (select_kernels.priority_kernel: world positions, views, key in one pass) against
@@ -157,17 +165,25 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
             views = [[], [feed(t)], [feed(t), feed(t + 2.0)]][k]
             tick.set_cameras(views)
             planes = np.stack(tick.cameras) if tick.cameras else None
+            cores = np.stack(tick.core_cameras) if tick.core_cameras else None
             margin = tick.settings.view.distance_margin
             base = float(tick.queue.waiting_since[ids].min())
             priority = PriorityKey()
             got = priority(ids, tick.world_pos, tick.local_pos, tick.inst_of, tick.moving_point, frame.transforms,
-                            planes, margin, tick.queue.rays, tick.queue.waiting_since, tick.queue.change, base)
-            visible = in_any_view(tick.world_points(frame, ids)[0], tick.cameras, margin)
+                            planes, margin, tick.queue.rays, tick.queue.waiting_since, tick.queue.change, base,
+                            core_planes=cores)
+            pos = tick.world_points(frame, ids)[0]
+            visible = in_any_view(pos, tick.cameras, margin)
+            # the views without margins: their own planes (fov margin 0), no distance margin
+            core = visible & in_any_view(pos, [camera_planes(*c, 0.0) for c in views], 0.0)
             assert 0 < visible.sum() and (k == 0 or not visible.all())
-            np.testing.assert_array_equal(got, tick.queue.key(ids, visible, base))
-            np.testing.assert_array_equal(priority.visible, visible)  # the visibility the whole traces choose by
-            _, seen = tick.priority(frame, ids)
+            assert k == 0 or 0 < (visible & ~core).sum()  # some points only in the margins
+            np.testing.assert_array_equal(got, tick.queue.key(ids, visible, base, core))
+            np.testing.assert_array_equal(priority.visible, visible)
+            np.testing.assert_array_equal(priority.core, core)  # the view the whole traces choose from
+            _, seen, in_core = tick.priority(frame, ids)
             np.testing.assert_array_equal(seen, visible)
+            np.testing.assert_array_equal(in_core, core)
         assert camera_planes(np.full((4, 4), np.nan), np.eye(4), 0.0) is None  # such a view: tick passes planes=None
     finally:
         tick.close()
