@@ -244,10 +244,11 @@ class CountingScene:
     movers see few rays, not only that the answers are right (tracing every ray would give those too)."""
 
     def __init__(self, scene):
-        self.scene, self.rays = scene, 0
+        self.scene, self.rays, self.calls = scene, 0, 0
 
     def run(self, origins, dirs, **kw):
         self.rays += len(origins)
+        self.calls += 1
         return self.scene.run(origins, dirs, **kw)
 
 
@@ -515,3 +516,48 @@ def test_a_call_traced_in_process_equals_the_same_call_spread_over_workers():
         np.testing.assert_array_equal(here, spread)
     finally:
         tracer.close()
+
+
+def test_parts_traced_in_process_together_answer_as_each_alone():
+    """A call of several parts traced in the calling process (a tick's: slices of ray sets, whole ray sets,
+    whole ray sets that keep or are given their static hits) queries the static scene once, for the rays
+    whose static answers are not given, and each mover once; each part's answers (visibility, the static
+    hits it keeps) are the ones it gets traced alone, bit for bit."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=1)  # one process: every call is traced here
+    tracer.set_static(v, f)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    tracer.set_rigid([(ball.vertices, ball.faces)])
+    box = trimesh.creation.box(extents=(0.6, 0.4, 0.8))
+    pose = np.eye(4)
+    pose[:3, 3] = (0.3, 0.2, 0.45)
+    tracer.set_dynamic(box.vertices + (-0.5, -0.4, 0.5), box.faces, pose[None])
+    rng = np.random.default_rng(8)
+    n = 400
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    ids = np.arange(n) * 3 + 1
+    whole = TraceSettings(rays=32, ao_distance=1.5, seed=3)
+    sliced = TraceSettings(rays=32, ao_distance=1.5, seed=3, slices=4)
+    a, b, c, d = np.array_split(rng.permutation(n), 4)
+    hits = tracer.static_occluded(pos[d], nrm[d], ids[d], whole)
+    parts = [TracePart(pos[a], nrm[a], ids[a], sliced, slice_of=rng.integers(0, 4, len(a))),
+             TracePart(pos[b], nrm[b], ids[b], whole),
+             TracePart(pos[c], nrm[c], ids[c], whole, keep_static=True),
+             TracePart(pos[d], nrm[d], ids[d], whole, static_hit=np.packbits(hits, axis=1))]
+    alone = [tracer.visibility_parts([p])[0] for p in parts]
+    local = tracer._local
+    local.static = CountingScene(local.static)
+    local.dynamic = CountingScene(local.dynamic)
+    for mesh in local.rigid:
+        mesh.scene = CountingScene(mesh.scene)
+    together = tracer.visibility_parts(parts)
+    assert local.static.calls == 1 and local.static.rays == (len(a) * 8 + (len(b) + len(c)) * 32)
+    assert local.dynamic.calls == 1 and local.rigid[0].scene.calls == 1
+    for (vis, kept), (vis_alone, kept_alone), part in zip(together, alone, parts):
+        np.testing.assert_array_equal(vis, vis_alone)
+        assert (kept is None) == (kept_alone is None) == (not part.keep_static)
+        if kept is not None:
+            np.testing.assert_array_equal(kept, kept_alone)
+    assert min(v.min() for v, _ in together) < 0.7  # the movers and the ceiling are in the way
+    tracer.close()

@@ -176,12 +176,9 @@ def mover_rays(origins, dirs, tmax, hit, rays_per_point: int, spheres: list[tupl
     traced against the movers. Compiled (kernels.spheres_reached) where Warp is present."""
     centres = np.array([c for c, _ in spheres], np.float64).reshape(-1, 3)
     radii = np.array([r for _, r in spheres], np.float64)
-    if getattr(_RAYS, "buffers", None) is not False:
-        try:
-            from psao_server.tracer.kernels import spheres_reached
-            return spheres_reached(origins, dirs, hit, rays_per_point, tmax, centres, grown(radii))
-        except ImportError:
-            pass
+    buffers = _ray_buffers()
+    if buffers is not False:
+        return buffers.reached(origins, dirs, hit, rays_per_point, tmax, centres, grown(radii))
     out = np.zeros(len(origins), np.uint32)
     points = origins[::rays_per_point]
     for c, r, bit in zip(centres, radii, sphere_bits(len(radii))):
@@ -231,28 +228,45 @@ class _Scenes:
         return self._refit.scene if self._refit is not None else _build_scene(vertices, faces)
 
     def occluded(self, origins, dirs, tmax, rays_per_point: int = 1, static_hit: np.ndarray | None = None,
-                 static_out: np.ndarray | None = None) -> np.ndarray:
+                 static_out: np.ndarray | None = None, static_known: np.ndarray | None = None) -> np.ndarray:
         """A ray is occluded if any scene hits within tmax; each further scene only sees the rays the
         ones before let through. Rays come in runs of `rays_per_point` that share an origin (a point's).
         `static_hit`: per ray, whether the static scene occludes it, known already (static_occluded): the
-        static scene is not traced, the moving parts see only the other rays. `static_out`: filled with
-        the static scene's own answer per ray (what the static scene decides before the movers are asked)."""
+        static scene is not traced for those rays (all of them, or where `static_known` is True; it traces
+        the others), the moving parts see only the other rays. `static_out`: filled with the static
+        scene's own answer per ray (what the static scene decides before the movers are asked)."""
         if len(origins) % rays_per_point:
             raise TracerError(f"{len(origins)} rays are not runs of {rays_per_point}")
         dists = np.full(len(origins), tmax, np.float32)
-        if static_hit is not None:
-            hit = np.array(static_hit, dtype=bool)
-        elif self.static is not None:
-            hit = self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
-        else:
-            hit = np.zeros(len(origins), dtype=bool)
+        hit = self._static_answers(origins, dirs, dists, static_hit, static_known)
         if static_out is not None:
             static_out[:] = hit
+        self._movers_occlude(origins, dirs, tmax, dists, rays_per_point, hit)
+        return hit
+
+    def _static_answers(self, origins, dirs, dists, static_hit, static_known) -> np.ndarray:
+        """Per ray, whether the static scene occludes it: `static_hit` where known (all rays without
+        `static_known`), traced (one query for the rest) elsewhere."""
+        if static_hit is not None and static_known is None:
+            return np.array(static_hit, dtype=bool)
+        hit = np.zeros(len(origins), dtype=bool) if static_hit is None else np.array(static_hit, dtype=bool)
+        todo = None if static_known is None else np.flatnonzero(~np.asarray(static_known, bool))
+        if static_known is not None:
+            hit[todo] = False
+        if self.static is None or (todo is not None and len(todo) == 0):
+            return hit
+        if todo is None:
+            return self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
+        hit[todo] = self.static.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
+        return hit
+
+    def _movers_occlude(self, origins, dirs, tmax, dists, rays_per_point: int, hit: np.ndarray) -> None:
+        """Mark in `hit` the rays not hit yet that a mover occludes (only those reaching its spheres)."""
         rigid = ([(mesh, pose) for mesh, pose in zip(self.rigid, self.rigid_poses) if mesh.scene is not None]
                  if self.rigid_poses is not None else [])
         spheres = self.dynamic_spheres + [mesh.placed_sphere(pose) for mesh, pose in rigid]
         if not spheres:
-            return hit
+            return
         bits = sphere_bits(len(spheres))
         reach = mover_rays(origins, dirs, tmax, hit, rays_per_point, spheres)
         todo = np.flatnonzero(reach)
@@ -264,7 +278,6 @@ class _Scenes:
         for (mesh, pose), bit in zip(rigid, bits[len(self.dynamic_spheres):]):
             mine = todo[(reach[todo] & bit) != 0]
             mesh.occlude(pose, origins, dirs, tmax, hit, mine[~hit[mine]], retest=shared)
-        return hit
 
 
 # Per thread (so per process too): Warp ray buffers, or False when Warp is unavailable. Two tracers of one
@@ -285,10 +298,9 @@ def numpy_rays():
         _RAYS.buffers = before
 
 
-def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
-    """Origins and directions of directions.py, (P * K', 3) each, for the slice of each point's ray set
-    that starts at `first` (one int or one per point); through the compiled Warp kernel when Warp is
-    present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
+def _ray_buffers():
+    """This thread's kernels.RayBuffers (made at its first use), or False: numpy instead (no Warp here, or
+    within numpy_rays)."""
     rays = getattr(_RAYS, "buffers", None)
     if rays is None:
         try:
@@ -297,6 +309,14 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
         except ImportError:
             rays = False
         _RAYS.buffers = rays
+    return rays
+
+
+def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
+    """Origins and directions of directions.py, (P * K', 3) each, for the slice of each point's ray set
+    that starts at `first` (one int or one per point); through the compiled Warp kernel when Warp is
+    present (numpy temporaries cost about as much as Embree's traversal), else numpy."""
+    rays = _ray_buffers()
     if rays is False:
         dirs = cosine_directions(ids, nrm, s.rays, s.seed, first, s.slices).reshape(-1, 3)
         return np.repeat(ray_origins(pos, nrm, s.ao_distance), len(dirs) // max(len(pos), 1), axis=0), dirs
@@ -311,17 +331,49 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None, s
     when `keep_static` (else None). `static_bits`: those answers known already (whole ray sets only):
     the static scene is not traced. The tracer's throughput against bare Embree is measured as a run of
     its own (benchmarks/bench_realtime.py), not from these."""
+    return _trace_chunks(scenes, [(pos, nrm, ids, s, first, static_bits, keep_static)])[0]
+
+
+def _trace_chunks(scenes: _Scenes, chunks: list[tuple]) -> list[tuple]:
+    """_trace_chunk of each chunk (pos, nrm, ids, settings, first, static_bits, keep_static), the chunks of
+    one AO distance traced together: each chunk's rays are made as its own, then the static scene is
+    queried once for every ray whose answer is not given and the movers once for all of them, so a call of
+    several small parts (a tick's) pays each query's fixed cost once. A ray's answer does not depend on the
+    rays traced beside it: the answers are each chunk's own. The seconds are shared out by rays."""
+    if not chunks:
+        return []
+    if len({c[3].ao_distance for c in chunks}) > 1:
+        return [r for c in chunks for r in _trace_chunks(scenes, [c])]
     t0 = time.perf_counter()
-    org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
+    made = []
+    for pos, nrm, ids, s, first, _, _ in chunks:
+        org, dirs = _chunk_rays(pos, nrm, ids, s, s.slice if first is None else first)
+        made.append((org, dirs) if len(chunks) == 1 else (org.copy(), dirs.copy()))  # (buffers: reused per call)
+    counts = [len(org) for org, _ in made]
+    per_point = [max(n // max(len(c[0]), 1), 1) for n, c in zip(counts, chunks)]
+    org = made[0][0] if len(made) == 1 else np.concatenate([o for o, _ in made])
+    dirs = made[0][1] if len(made) == 1 else np.concatenate([d for _, d in made])
     t1 = time.perf_counter()
-    per_point = max(len(org) // max(len(pos), 1), 1)
-    given = None if static_bits is None else np.unpackbits(static_bits, axis=1, count=per_point).ravel().astype(bool)
-    static = np.empty(len(org), bool) if keep_static else None
-    hit = scenes.occluded(org, dirs, s.ao_distance, per_point, given, static)
+    given = [None if c[5] is None else np.unpackbits(c[5], axis=1, count=k).ravel().astype(bool)
+             for c, k in zip(chunks, per_point)]
+    static_hit = static_known = None
+    if any(g is not None for g in given):
+        static_hit = np.concatenate([np.zeros(n, bool) if g is None else g for g, n in zip(given, counts)])
+        if any(g is None for g in given):
+            static_known = np.concatenate([np.full(n, g is not None) for g, n in zip(given, counts)])
+    keep = any(c[6] for c in chunks)
+    static = np.empty(len(org), bool) if keep else None
+    run = int(np.gcd.reduce(per_point))  # every chunk's rays are runs of this many that share an origin
+    hit = scenes.occluded(org, dirs, chunks[0][3].ao_distance, run, static_hit, static, static_known)
     t2 = time.perf_counter()
-    vis = 1.0 - hit.reshape(len(pos), -1).mean(axis=1, dtype=np.float32)
-    bits = np.packbits(static.reshape(len(pos), -1), axis=1) if keep_static else None
-    return vis, t2 - t1, time.perf_counter() - t0, bits
+    out, at, total = [], 0, max(len(org), 1)
+    for c, n in zip(chunks, counts):
+        p = len(c[0])
+        vis = 1.0 - hit[at:at + n].reshape(p, -1).mean(axis=1, dtype=np.float32)
+        bits = np.packbits(static[at:at + n].reshape(p, -1), axis=1) if c[6] else None
+        out.append((vis, (t2 - t1) * n / total, (time.perf_counter() - t0) * n / total, bits))
+        at += n
+    return out
 
 
 # ---- worker-process side
@@ -526,7 +578,7 @@ class EmbreeTracer(Tracer):
             self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, dyn_parts)
         out = [([], []) for _ in parts]
         try:
-            results = pool.map(_worker_trace, jobs) if pool else (_trace_chunk(self._local, *job[5:]) for job in jobs)
+            results = pool.map(_worker_trace, jobs) if pool else _trace_chunks(self._local, [job[5:] for job in jobs])
             for k, (vis, cpu_query, cpu_total, kept) in zip(owner, results):
                 out[k][0].append(vis)
                 out[k][1].append(kept)

@@ -173,40 +173,42 @@ def reach_kernel(
 def spheres_reached(origins: np.ndarray, dirs: np.ndarray, hit: np.ndarray, rays_per_point: int, tmax: float,
                     centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """(R,) uint32: per ray (runs of `rays_per_point` sharing an origin) not `hit` yet, bit s % 32 for each
-    sphere s (centres (S, 3), radii (S,), already grown by any slack) its segment reaches; 0 for hit rays."""
-    out = np.empty(len(origins), np.uint32)
-    if len(origins) == 0:
-        return out
-    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-    wp.launch(reach_kernel, dim=len(origins) // rays_per_point, device="cpu", inputs=[
-        wp.array(f32(origins), dtype=wp.vec3, device="cpu", copy=False),
-        wp.array(f32(dirs), dtype=wp.vec3, device="cpu", copy=False),
-        wp.array(np.ascontiguousarray(hit).view(np.uint8), dtype=wp.uint8, device="cpu", copy=False),
-        int(rays_per_point), float(tmax), wp.array(f32(centres), dtype=wp.vec3, device="cpu"),
-        wp.array(f32(radii), dtype=float, device="cpu"), len(radii),
-        wp.array(out, dtype=wp.uint32, device="cpu", copy=False)])
-    return out
+    sphere s (centres (S, 3), radii (S,), already grown by any slack) its segment reaches; 0 for hit rays.
+    (One-off buffers; a thread that asks again and again keeps a RayBuffers and calls its `reached`.)"""
+    return RayBuffers().reached(origins, dirs, hit, rays_per_point, tmax, centres, radii)
+
+
+def _grown(held: "wp.array | None", n: int, dtype) -> "wp.array":
+    """`held` when it has room for n entries, else a new Warp array (CPU) of at least n (and 1)."""
+    return held if held is not None and held.shape[0] >= n else wp.empty(max(n, 1), dtype=dtype, device="cpu")
 
 
 class RayBuffers:
-    """Ray buffers allocated once and grown on demand; `rays()` only copies inputs and launches."""
+    """Ray buffers allocated once and grown on demand, with the kernels' launches recorded on them: a
+    call copies its inputs in and replays the launch (a launch's argument packing and the Warp array
+    wrappers of its inputs cost more than the kernels themselves at a tick's few thousand rays). CPU."""
 
     def __init__(self, device: str = "cpu"):
         self.device = device
         self.ray_capacity = 0
         self.point_capacity = 0
+        self._rays_launch = None  # rays_kernel recorded on the buffers (made again when they are replaced)
+        self._reach: dict[str, wp.array] = {}  # reach_kernel's buffers
+        self._reach_launch = None
 
     def _ensure(self, points: int, count: int, rays: int) -> None:
         if points * count > self.ray_capacity:
             self.ray_capacity = points * count
             self.origins = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
             self.dirs = wp.empty(self.ray_capacity, dtype=wp.vec3, device=self.device)
+            self._rays_launch = None
         if getattr(self, "phase_rays", None) != rays:
             j = np.arange(rays, dtype=np.float64)
             angle = 2.0 * np.pi * np.mod(j * GOLDEN, 1.0)
             self.phase = wp.array(np.stack([np.cos(angle), np.sin(angle)], axis=1).astype(np.float32),
                                   dtype=wp.vec2, device=self.device)
             self.phase_rays = rays
+            self._rays_launch = None
         if points > self.point_capacity:
             self.point_capacity = points
             self.positions = wp.empty(points, dtype=wp.vec3, device=self.device)
@@ -214,6 +216,7 @@ class RayBuffers:
             self.rot_a = wp.empty(points, dtype=float, device=self.device)
             self.rot_b = wp.empty(points, dtype=float, device=self.device)
             self.first = wp.empty(points, dtype=int, device=self.device)
+            self._rays_launch = None
 
     def rays(self, positions, normals, rot_a, rot_b, rays: int, ao_distance: float, first=0, step: int = 1):
         """(origins, directions), each (P * K', 3) float32 numpy views valid until the next call: the slice
@@ -229,10 +232,50 @@ class RayBuffers:
         self.rot_a.numpy()[:p] = rot_a
         self.rot_b.numpy()[:p] = rot_b
         self.first.numpy()[:p] = first
-        wp.launch(rays_kernel, dim=p,
-                  inputs=[self.positions, self.normals, self.rot_a, self.rot_b, self.phase, rays, self.first, step, count,
-                          float(ao_distance), float(OFFSET_REL), float(OFFSET_AO)],
-                  outputs=[self.origins, self.dirs], device=self.device)
+        if p:
+            inputs = [self.positions, self.normals, self.rot_a, self.rot_b, self.phase, rays, self.first, step, count,
+                      float(ao_distance), float(OFFSET_REL), float(OFFSET_AO)]
+            if self._rays_launch is None:
+                self._rays_launch = wp.launch(rays_kernel, dim=p, inputs=inputs, outputs=[self.origins, self.dirs],
+                                              device=self.device, record_cmd=True)
+            _replay(self._rays_launch, p, {5: rays, 7: step, 8: count, 9: float(ao_distance)})
         n = p * count
         return (self.origins.numpy()[:n].view(dtype="float32").reshape(-1, 3),
                 self.dirs.numpy()[:n].view(dtype="float32").reshape(-1, 3))
+
+    def reached(self, origins: np.ndarray, dirs: np.ndarray, hit: np.ndarray, rays_per_point: int, tmax: float,
+                centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """spheres_reached through reach_kernel recorded on this object's buffers (a new array each call)."""
+        n, spheres = len(origins), len(radii)
+        out = np.empty(n, np.uint32)
+        if n == 0:
+            return out
+        b = self._reach
+        sizes = {"origins": (n, wp.vec3), "dirs": (n, wp.vec3), "hit": (n, wp.uint8), "out": (n, wp.uint32),
+                 "centres": (spheres, wp.vec3), "radii": (spheres, float)}
+        for name, (size, dtype) in sizes.items():
+            grown = _grown(b.get(name), size, dtype)
+            if grown is not b.get(name):
+                b[name] = grown
+                self._reach_launch = None
+        b["origins"].numpy()[:n] = origins
+        b["dirs"].numpy()[:n] = dirs
+        b["hit"].numpy()[:n] = np.asarray(hit).view(np.uint8)
+        b["centres"].numpy()[:spheres] = centres
+        b["radii"].numpy()[:spheres] = radii
+        points = n // rays_per_point
+        if self._reach_launch is None:
+            self._reach_launch = wp.launch(reach_kernel, dim=points, device="cpu", record_cmd=True, inputs=[
+                b["origins"], b["dirs"], b["hit"], int(rays_per_point), float(tmax), b["centres"], b["radii"],
+                spheres, b["out"]])
+        _replay(self._reach_launch, points, {3: int(rays_per_point), 4: float(tmax), 7: spheres})
+        out[:] = b["out"].numpy()[:n]
+        return out
+
+
+def _replay(launch, dim: int, scalars: dict[int, int | float]) -> None:
+    """Run a recorded launch over `dim` threads with its scalar arguments (by index) set anew."""
+    launch.set_dim(dim)
+    for index, value in scalars.items():
+        launch.set_param_at_index(index, value)
+    launch.launch()
