@@ -275,10 +275,11 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
                     core_planes: wp.array(dtype=wp.vec4d), core_cameras: int, core_state: wp.array(dtype=wp.int32),
                     core_first: wp.array(dtype=wp.int32), core_count: wp.array(dtype=wp.int32),
                     core_listed: wp.array(dtype=wp.int32), core_used: wp.array(dtype=wp.int32),
-                    in_core: wp.array(dtype=wp.uint8)):
+                    in_core: wp.array(dtype=wp.uint8), n: int):
     # visibility: in_union (blocks of space classified against the views once per launch), also written out;
-    # of the visible points, those in some view without its margins (core_cameras 0: all of them) likewise
-    for j in range(ids.shape[0]):
+    # of the visible points, those in some view without its margins (core_cameras 0: all of them) likewise;
+    # the first n of ids (the arrays are buffers kept across calls)
+    for j in range(n):
         i = ids[j]
         p = world[i]
         if moving[i]:  # selection's world_positions: the local position through its transform
@@ -349,9 +350,10 @@ class ViewUnion:
         return held
 
     def inputs(self, planes: np.ndarray | None, margin: float, box: tuple[np.ndarray, np.ndarray] | None,
-               points: int) -> list:
+               points: int) -> tuple[np.ndarray, list]:
         """in_union's arguments for `points` points in `box` (lo, hi; None: no blocks, each view tested)
-        and views `planes` ((C, 5, 4), or None: every point visible); fresh block verdicts."""
+        and views `planes` ((C, 5, 4), or None: every point visible), with fresh block verdicts: the planes
+        as (C * 5, 4) float64 (at least one row), and the arguments after them (cameras ... used)."""
         cams = 0 if planes is None else len(planes)
         flat = np.zeros((1, 4)) if cams == 0 else np.ascontiguousarray(planes, np.float64).reshape(-1, 4)
         lo, size, dims = np.zeros(3), 1.0, (0, 0, 0)
@@ -365,22 +367,43 @@ class ViewUnion:
         state[0][:n_blocks] = 0  # UNKNOWN: classified anew for these views
         used = self._scratch("used", 1)
         used[0][0] = 0  # entries of `listed` taken
-        return [wp.array(flat, dtype=wp.vec4d, device="cpu"), cams, wp.float64(margin), wp.vec3d(*lo),
-                wp.float64(size), *dims, state[1], self._scratch("first", n_blocks)[1],
-                self._scratch("count", n_blocks)[1], self._scratch("listed", min(n_blocks, points) * max(cams, 1))[1],
-                used[1]]
+        return flat, [cams, wp.float64(margin), wp.vec3d(*lo), wp.float64(size), *dims, state[1],
+                      self._scratch("first", n_blocks)[1], self._scratch("count", n_blocks)[1],
+                      self._scratch("listed", min(n_blocks, points) * max(cams, 1))[1], used[1]]
+
+
+class Buffers:
+    """Numpy buffers kept across calls with their Warp views, grown on demand (never shrunk)."""
+
+    def __init__(self):
+        self._held: dict[str, tuple] = {}
+
+    def __call__(self, name: str, n: int, np_dtype, wp_dtype, shape=()) -> tuple[np.ndarray, "wp.array"]:
+        """(numpy buffer of at least n (and 1) rows of `shape`, its Warp view)."""
+        held = self._held.get(name)
+        if held is None or len(held[0]) < n:
+            a = np.zeros((max(n, 1), *shape), np_dtype)
+            held = self._held[name] = (a, wp.array(a, dtype=wp_dtype, device="cpu", copy=False))
+        return held
 
 
 class PriorityKey:
     """priority_kernel over a tick's point arrays: world positions of static points, local positions
-    (moving points), instance and moving flag per point id; visibility by ViewUnion's blocks of `box`."""
+    (moving points), instance and moving flag per point id; visibility by ViewUnion's blocks of `box`.
+    The launch is recorded once on buffers kept across calls (the ids, keys, transforms and planes are
+    copied in) and the point arrays given, and recorded again only when one of those is replaced or grown:
+    packing the kernel's arguments and wrapping its arrays cost about 0.4 ms a call, more than the kernel
+    over a few thousand points."""
 
     def __init__(self, blocks: int = 12):
         self.views = Arrays()
         self.union = ViewUnion(blocks)
         self.core_union = ViewUnion(blocks)
+        self.buffers = Buffers()
         self.visible = np.zeros(0, bool)  # the last call's in_any_view per id (the key's visibility tier)
         self.core = np.zeros(0, bool)  # the last call's in_any_view of the views without margins per id
+        self._launch = None  # priority_kernel recorded on the arrays of `_on`
+        self._on: tuple = ()
 
     def __call__(self, ids: np.ndarray, world: np.ndarray, local: np.ndarray, instance: np.ndarray,
                  moving: np.ndarray, transforms: np.ndarray, planes: np.ndarray | None, margin: float,
@@ -392,23 +415,36 @@ class PriorityKey:
         point). `planes`: (C, 5, 4) float64, or None (every point visible); `box` (lo, hi): where the points
         are (world), for the unions' blocks (None: each view is tested). Each id's visibility is left in
         `visible`, and whether it is in a core in `core`."""
-        ids = np.ascontiguousarray(ids, np.int64)
-        key = np.empty(len(ids), np.float64)
-        seen = np.empty(len(ids), np.uint8)
-        in_core = np.empty(len(ids), np.uint8)
-        self.visible, self.core = seen.view(bool), in_core.view(bool)
-        if len(ids) == 0:
-            return key
-        v = self.views
-        u = self.union.inputs(planes, margin, box, len(ids))
-        c = self.core_union.inputs(core_planes if planes is not None else None, 0.0, box, len(ids))
-        wp.launch(priority_kernel, dim=1, device="cpu", inputs=[
-            wp.array(ids, dtype=wp.int64, device="cpu", copy=False),
-            v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
-            v("moving", moving, wp.bool),
-            wp.array(np.ascontiguousarray(transforms, np.float64), dtype=wp.mat44d, device="cpu"),
-            *u[:3], v("rays", rays, wp.int32), v("since", since, wp.float64), v("change", change, wp.float32),
-            wp.float64(base), wp.array(key, dtype=wp.float64, device="cpu", copy=False), *u[3:],
-            wp.array(seen, dtype=wp.uint8, device="cpu", copy=False), c[0], c[1], *c[8:],
-            wp.array(in_core, dtype=wp.uint8, device="cpu", copy=False)])
-        return key
+        n = len(ids)
+        if n == 0:
+            self.visible, self.core = np.zeros(0, bool), np.zeros(0, bool)
+            return np.empty(0, np.float64)
+        v, b = self.views, self.buffers
+        flat, union = self.union.inputs(planes, margin, box, n)
+        core_flat, core = self.core_union.inputs(core_planes if planes is not None else None, 0.0, box, n)
+        ids_np, ids_wp = b("ids", n, np.int64, wp.int64)
+        key_np, key_wp = b("key", n, np.float64, wp.float64)
+        seen_np, seen_wp = b("seen", n, np.uint8, wp.uint8)
+        in_core_np, in_core_wp = b("in_core", n, np.uint8, wp.uint8)
+        tr_np, tr_wp = b("transforms", len(transforms), np.float64, wp.mat44d, (4, 4))
+        planes_np, planes_wp = b("planes", len(flat), np.float64, wp.vec4d, (4,))
+        core_np, core_wp = b("core_planes", len(core_flat), np.float64, wp.vec4d, (4,))
+        ids_np[:n] = ids
+        tr_np[:len(transforms)] = transforms
+        planes_np[:len(flat)] = flat
+        core_np[:len(core_flat)] = core_flat
+        args = [ids_wp, v("world", world, wp.vec3d), v("local", local, wp.vec3d), v("instance", instance, wp.int64),
+                v("moving", moving, wp.bool), tr_wp, planes_wp, *union[:2], v("rays", rays, wp.int32),
+                v("since", since, wp.float64), v("change", change, wp.float32), wp.float64(base), key_wp,
+                *union[2:], seen_wp, core_wp, core[0], *core[7:], in_core_wp, n]
+        arrays = tuple(a for a in args if isinstance(a, wp.array))
+        if self._launch is None or len(arrays) != len(self._on) or any(a is not h for a, h in zip(arrays, self._on)):
+            self._launch = wp.launch(priority_kernel, dim=1, device="cpu", inputs=args, record_cmd=True)
+            self._on = arrays
+        else:
+            for k, a in enumerate(args):
+                if not isinstance(a, wp.array):  # the scalars: views, margin, base, blocks, n
+                    self._launch.set_param_at_index(k, a)
+        self._launch.launch()
+        self.visible, self.core = seen_np[:n].view(bool).copy(), in_core_np[:n].view(bool).copy()
+        return key_np[:n].copy()

@@ -349,3 +349,58 @@ def test_in_box_equals_the_plain_test_on_faces_and_nan():
     assert 0 < want.sum() < len(pts)
     np.testing.assert_array_equal(in_box(pts, (lo, hi)), want)
     np.testing.assert_array_equal(in_box(pts[:0], (lo, hi)), want[:0])
+
+
+def test_priority_key_called_again_answers_as_a_fresh_one_and_records_its_launch_once(monkeypatch):
+    # PriorityKey keeps its launch recorded on buffers across calls: calls of other sizes (growing and
+    # shrinking), views (none, one, several), boxes and changed point data answer as a fresh PriorityKey
+    # each time, and wp.launch is called again (the launch recorded anew) only when an array it reads is
+    # replaced or grown
+    import warp as wp
+
+    from psao_server.select_kernels import PriorityKey
+
+    records = []
+    launch = wp.launch
+
+    def counting(*args, **kwargs):
+        records.append(kwargs.get("record_cmd", False))
+        return launch(*args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", counting)
+    rng = np.random.default_rng(11)
+    n = 5000
+    world = rng.uniform(-25, 25, (n, 3))
+    local = rng.uniform(-1, 1, (n, 3))
+    instance = rng.integers(0, 3, n).astype(np.int64)
+    moving = instance == 2
+    rays = rng.integers(0, 3, n).astype(np.int32)
+    since = rng.uniform(0, 10, n)
+    change = rng.uniform(0, 1, n).astype(np.float32)
+    cameras = [(look_at(rng.uniform(-25, 25, 3), rng.uniform(-8, 8, 3)),
+                perspective(rng.uniform(5, 40), 16 / 9, 0.01, rng.uniform(3, 30))) for _ in range(5)]
+    views = [frustum_planes(v, p, 20.0) for v, p in cameras]
+    cores = [frustum_planes(v, p, 0.0) for v, p in cameras]  # the same views without margins
+    kept = PriorityKey()
+    for call, (size, cams) in enumerate([(3000, 1), (40, 0), (4500, 5), (700, 2), (4999, 1), (1, 3)]):
+        ids = np.sort(rng.choice(n, size, replace=False))
+        transforms = np.tile(np.eye(4), (3, 1, 1))
+        transforms[2, :3, 3] = rng.uniform(-5, 5, 3)
+        planes = np.stack(views[:cams]) if cams else None
+        box = (world.min(axis=0), world.max(axis=0)) if call % 2 else None
+        since[ids[:10]] += 1.0  # the queue's arrays change in place between ticks
+        core = np.stack(cores[:cams]) if cams and call % 3 else None
+        args = (ids, world, local, instance, moving, transforms, planes, 0.5, rays, since, change, float(since[ids].min()),
+                box, core)
+        got = kept(*args)
+        fresh = PriorityKey()
+        np.testing.assert_array_equal(got, fresh(*args))
+        np.testing.assert_array_equal(kept.visible, fresh.visible)
+        np.testing.assert_array_equal(kept.core, fresh.core)
+        assert 0 < kept.visible.sum() and (cams == 0 or not kept.visible.all()) or size < 50
+    recorded = []
+    for size in (4999, 3000, 200, 4999):  # the same views: after the largest call, the calls replay the launch
+        ids = np.sort(rng.choice(n, size, replace=False))
+        kept(ids, world, local, instance, moving, transforms, planes, 0.5, rays, since, change, 0.0, box, core)
+        recorded.append(len(records))  # wp.launch calls (each a packing of every argument)
+    assert recorded[1:] == recorded[:1] * 3
