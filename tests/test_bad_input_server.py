@@ -75,10 +75,11 @@ async def updates_beyond(client, task, count):
         await asyncio.sleep(0.05)
 
 
-async def with_server(body, token="", **more):
-    """Run a server with random edits and one good client; `body(url)` runs meanwhile."""
+async def with_server(body, token="", hello_timeout=HANG_S, **more):
+    """Run a server with random edits and one good client; `body(url)` runs meanwhile. The Hello timeout
+    is long unless a test asks for one: a loaded machine may take seconds to carry a large first message."""
     grid = make_grid()
-    settings = ServeSettings(port=0, tick_hz=30, token=token, stats_interval=1e9, hello_timeout=2.0, **more)
+    settings = ServeSettings(port=0, tick_hz=30, token=token, stats_interval=1e9, hello_timeout=hello_timeout, **more)
     service = Service(grid, HASH, settings, tick=RandomEdits(20, seed=1))
     stop, ready = asyncio.Event(), asyncio.Event()
     server = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
@@ -239,7 +240,7 @@ def test_message_beyond_the_socket_limit(caplog):
 
 
 def test_silent_connection_times_out(caplog):
-    error, code, line = run_case(caplog, [])
+    error, code, line = run_case(caplog, [], hello_timeout=2.0)
     assert error.code == m.ErrorCode.TIMEOUT and code == 1008 and "no Hello" in line
 
 
