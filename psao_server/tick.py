@@ -254,7 +254,28 @@ class ServerTick:
         log.info("tick budget: tracer measured at %.2f Mrays/s (%.1f ms per call); %s", rate / 1e6, 1e3 * overhead,
                  f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
                  f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
+        self._pose_bake()
         self._warm_up_select()
+
+    def _pose_bake(self) -> None:
+        """The bake traced skinned meshes in their bind pose, which no tick shows: the points that posing
+        them at the bake's time changes are traced whole here, before the first tick (start-up, as the bake
+        is: not budgeted), and the ticks start from that posed frame. Else the first ticks would spend
+        their budgets on that one-off change, showing bind-pose AO meanwhile."""
+        if self.last_frame is None or not self.kinds.skinned:
+            return
+        posed = self.animator.frame(self.last_frame.t)
+        self._deform(posed)
+        changed, _ = self._motion_candidates(posed, with_change=False)
+        changed = changed[self.present()[changed]]
+        if len(changed):
+            pos, nrm = self.world_points(posed, changed)
+            self.pose_tracer(posed)
+            vis = self._trace(pos, nrm, changed, self.trace_settings)
+            now = time.perf_counter()
+            self.queue.reset(changed, now)
+            self._store(changed, self.queue.add(changed, vis, self.settings.rays, now, slices=self.queue.slices))
+        self.last_frame = posed
 
     def _warm_up_select(self) -> None:
         """The select stage's one-time costs (its compiled kernels' first loads, each mover's nearby static

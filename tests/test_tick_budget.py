@@ -573,3 +573,25 @@ def test_first_tick_retraces_what_posing_the_skinned_meshes_changed(make_tick):
         assert np.abs(stored - full).max() <= tick.settings.threshold
     finally:
         tick.close()
+
+
+def test_budgeted_tick_starts_from_the_posed_scene(budgeted_tick):
+    """A bake traces skinned meshes in their bind pose; the budgeted tick traces what posing them at the
+    bake's time changes before its first tick (start-up), so with a budget of one ray a tick every stored
+    AO is already a full trace of the posed scene (within the store threshold), nothing waits, and a
+    first tick at the bake's time finds no motion."""
+    tick = budgeted_tick("robots", 8, bake_rays=8, rays=8, round_rays=8, min_points=1)
+    try:
+        ids = np.flatnonzero(tick.present())
+        frame = tick.animator.frame(0.0)
+        pos, nrm = tick.world_points(frame, ids)
+        tick.pose_tracer(frame)
+        full = pw.quantise_ao(tick.tracer.visibility(pos, nrm, ids, tick.trace_settings)).astype(np.int64)
+        stored = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF).astype(np.int64)
+        assert np.abs(stored - full).max() <= tick.settings.threshold
+        assert tick.queue.count == 0
+        tick.set_cameras([])
+        s = tick(tick.grid, 0.0)
+        assert s.traced == 0 and s.queue == 0
+    finally:
+        tick.close()
