@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from psao_server.arrays import rows
+
 
 
 # ---------------------------------------------------------------------------------------- views
@@ -216,7 +218,7 @@ class BlockIndex:
         lo = np.searchsorted(self.sorted_keys, starts, side="left")
         hi = np.searchsorted(self.sorted_keys, starts + nx, side="left")
         k = _ranges(lo, hi)
-        return k[in_box(self.sorted_positions[k], box)]
+        return k[in_box(rows(self.sorted_positions, k), box)]
 
 
 # ---------------------------------------------------------------------------------------- policy
@@ -385,7 +387,7 @@ class NearCache:
         grow = max(self.margin, min(4.0 * step, 4.0 * self.margin))
         q = (lo - grow, hi + grow)
         k = self.index.query_box_sorted(q)  # block order: positions and normals read in runs
-        pos = self.index.sorted_positions[k]
+        pos = rows(self.index.sorted_positions, k)
         centre, radius = 0.5 * (lo + hi), np.inf
         if spheres:
             centre = spheres[0][0]
@@ -393,13 +395,13 @@ class NearCache:
             d = pos - centre
             # (slack: the per-tick test's own rounding must never reach past the ball)
             ball = np.einsum("pi,pi->p", d, d) <= (radius * (1 + 1e-9)) ** 2
-            k, pos = k[ball], pos[ball]
+            k, pos = k[ball], np.compress(ball, pos, axis=0)  # (as rows: a mask costs more)
         ids = self.index.order[k]
         by_id = np.argsort(ids)  # sorted by index: what a test marks comes out sorted
-        ids, k, pos = ids[by_id], k[by_id], pos[by_id]
+        ids, k, pos = ids[by_id], k[by_id], rows(pos, by_id)
         from psao_server.select_kernels import NearTest  # (Warp: imported when something first moves)
         held = self._held[i] = (q[0], q[1], np.asarray(centre, np.float64), radius, ids,
-                                NearTest(pos, self.sorted_normals[k], ids, self._hit, self._total))
+                                NearTest(pos, rows(self.sorted_normals, k), ids, self._hit, self._total))
         self.queries += 1
         return held[4:]
 

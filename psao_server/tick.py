@@ -53,6 +53,7 @@ import numpy as np
 from protocol import pointword as pw
 from protocol.errors import EditError
 from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, affine, bounds_of, to_world_points
+from psao_server.arrays import rows
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
 from psao_server.errors import ConfigError, TracerError
@@ -494,8 +495,8 @@ class ServerTick:
             fresh_pos, fresh_nrm = self.world_points(frame, fresh)
             parts = [TracePart(pos, nrm, chosen, round_settings, self.queue.next_slice[chosen]),
                      TracePart(fresh_pos, fresh_nrm, fresh, s),
-                     TracePart(self.world_pos[refill], self.world_nrm[refill], refill, s, keep_static=True),
-                     TracePart(self.world_pos[exact], self.world_nrm[exact], exact, s,
+                     TracePart(rows(self.world_pos, refill), rows(self.world_nrm, refill), refill, s, keep_static=True),
+                     TracePart(rows(self.world_pos, exact), rows(self.world_nrm, exact), exact, s,
                                static_hit=self._static_hits.packed(exact) if len(exact) else None)]
             self.pose_tracer(frame)
             live = [k for k, p in enumerate(parts) if k == 0 or len(p.point_ids)]  # (empty parts: not sent)
@@ -740,9 +741,10 @@ class ServerTick:
 
     def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions (P, 3) float64 and normals (P, 3) float32 of points `ids` in `frame`."""
-        pos, nrm = self.world_pos[ids], self.world_nrm[ids]  # (fancy indexing: copies)
+        pos, nrm = rows(self.world_pos, ids), rows(self.world_nrm, ids)  # (copies)
         for i, sel in self._moving_groups(ids):
-            pos[sel], nrm[sel] = to_world_points(frame.transforms[i], self.local_pos[ids[sel]], self.local_nrm[ids[sel]])
+            mine = ids[sel]
+            pos[sel], nrm[sel] = to_world_points(frame.transforms[i], rows(self.local_pos, mine), rows(self.local_nrm, mine))
         return pos, nrm
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:

@@ -404,3 +404,18 @@ def test_priority_key_called_again_answers_as_a_fresh_one_and_records_its_launch
         kept(ids, world, local, instance, moving, transforms, planes, 0.5, rays, since, change, 0.0, box, core)
         recorded.append(len(records))  # wp.launch calls (each a packing of every argument)
     assert recorded[1:] == recorded[:1] * 3
+
+
+def test_rows_equals_fancy_indexing_of_rows():
+    # psao_server.arrays.rows (np.take along the first axis, for speed) gives a[index] exactly: 2-D and 1-D
+    # arrays of several dtypes, repeated, unsorted, negative and empty indices
+    from psao_server.arrays import rows
+
+    rng = np.random.default_rng(12)
+    for a in (rng.random((500, 3)), rng.random((500, 3)).astype(np.float32), rng.integers(0, 255, (500, 4), np.uint8),
+              rng.random(500)):
+        for index in (rng.integers(0, 500, 300), np.sort(rng.choice(500, 200, replace=False)), np.arange(-5, 5),
+                      np.zeros(0, np.int64)):
+            got = rows(a, index)
+            assert got.dtype == a.dtype and got.shape == a[index].shape
+            np.testing.assert_array_equal(got, a[index])

@@ -20,6 +20,7 @@ import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
+from psao_server.arrays import rows
 from psao_server.tracer.base import TracePart, Tracer, recentre, recentre_poses
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 from psao_server.tracer.embree_refit import RefitMesh
@@ -88,10 +89,10 @@ class _Rigid:
             return
         centre, radius, inv = self._placed(pose)
         if retest:
-            rays = rays[segments_reach_sphere(origins[rays], dirs[rays], tmax, centre, radius)]
+            rays = rays[segments_reach_sphere(rows(origins, rays), rows(dirs, rays), tmax, centre, radius)]
         if len(rays):
-            o = (origins[rays] @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
-            d = (dirs[rays] @ inv[:3, :3].T).astype(np.float32)
+            o = (rows(origins, rays) @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
+            d = (rows(dirs, rays) @ inv[:3, :3].T).astype(np.float32)
             hit[rays] = self.scene.run(o, d, dists=np.full(len(rays), tmax, np.float32), query="OCCLUDED") != -1
 
 
@@ -257,7 +258,7 @@ class _Scenes:
             return hit
         if todo is None:
             return self.static.run(origins, dirs, dists=dists, query="OCCLUDED") != -1
-        hit[todo] = self.static.run(origins[todo], dirs[todo], dists=dists[todo], query="OCCLUDED") != -1
+        hit[todo] = self.static.run(rows(origins, todo), rows(dirs, todo), dists=dists[todo], query="OCCLUDED") != -1
         return hit
 
     def _movers_occlude(self, origins, dirs, tmax, dists, rays_per_point: int, hit: np.ndarray) -> None:
@@ -273,7 +274,8 @@ class _Scenes:
         if self.dynamic is not None:
             mine = todo[(reach[todo] & np.bitwise_or.reduce(bits[:len(self.dynamic_spheres)])) != 0]
             if len(mine):
-                hit[mine] = self.dynamic.run(origins[mine], dirs[mine], dists=dists[mine], query="OCCLUDED") != -1
+                hit[mine] = self.dynamic.run(rows(origins, mine), rows(dirs, mine), dists=dists[mine],
+                                             query="OCCLUDED") != -1
         shared = len(spheres) > len(np.unique(bits))  # a bit then stands for several spheres: test each again
         for (mesh, pose), bit in zip(rigid, bits[len(self.dynamic_spheres):]):
             mine = todo[(reach[todo] & bit) != 0]
