@@ -457,48 +457,103 @@ _CELL_COUNTS = bytes(range(POINTS_PER_CELL + 1)) + bytes([RAW])  # the count byt
 def _read_packed_cells(r: Reader, lc: int, nc: int) -> _CellSections:
     slot_gaps = r.take(lc)
     counts = r.take(nc)
-    # checked, and the sections' lengths, with bytes methods (a part is often a few dozen cells: numpy
-    # calls would cost more than the work)
-    b = counts.tobytes()
-    if b.translate(None, _CELL_COUNTS):
-        raise PayloadError(f"cell: entry count above {POINTS_PER_CELL}")
-    n_raw = b.count(RAW)
-    total = sum(b) if nc <= 256 else int(np.frombuffer(b, np.uint8).sum(dtype=np.int64))
-    n_points = total - RAW * n_raw
+    n_points, n_raw = _points_of_counts(counts)
     keys = r.take(4 * nc)
     pos = r.take(2 * n_points)
     return _CellSections(slot_gaps, nc, counts, keys, pos, r.take(n_points), r.take(n_points),
                          r.take(4 * POINTS_PER_CELL * n_raw))
 
 
+def _points_of_counts(counts: memoryview) -> tuple[int, int]:
+    """(points, raw cells) of a part's count bytes, checked; with bytes methods (a part is often a few dozen
+    cells: numpy calls would cost more than the work)."""
+    b = counts.tobytes()
+    if b.translate(None, _CELL_COUNTS):
+        raise PayloadError(f"cell: entry count above {POINTS_PER_CELL}")
+    n_raw = b.count(RAW)
+    total = sum(b) if len(b) <= 256 else int(np.frombuffer(b, np.uint8).sum(dtype=np.int64))
+    return total - RAW * n_raw, n_raw
+
+
+_CELLS_ONLY_HEAD = struct.Struct("<BIIIIIII")  # _COUNTS then _PACKED_LENGTHS, as a packed part begins
+_NO_IDS = _empty_u32(0)
+_NO_TRANSFORMS = np.zeros((0, 4, 4), np.float32)
+_NO_BUCKETS = _empty_u32(0, BUCKET_ENTRIES, 2)
+for _a in (_NO_IDS, _NO_TRANSFORMS, _NO_BUCKETS):
+    _a.flags.writeable = False  # shared by every part read by _read_cells_part
+
+
+def _read_cells_part(r: Reader, limits: Limits) -> tuple[_Part, Layout]:
+    """_read_part for a packed part of cells only (the tiles of an Update of parts): its sections are cut
+    straight off the payload from its counts, with one bounds check. Anything else (another layout or
+    content, a count over a limit, too few bytes) is read by _read_part, which reads or refuses it."""
+    view, start = r.view, r.pos
+    head = _CELLS_ONLY_HEAD.size
+    if len(view) - start < head:
+        return _read_part(r, limits)
+    layout, capacity, k, nb, nc, lt, lb, lc = _CELLS_ONLY_HEAD.unpack_from(view, start)
+    at = start + head + lc  # the count bytes
+    if (layout != Layout.PACKED or k or nb or lt or lb or capacity > limits.max_cell_capacity
+            or nc > limits.max_cells_per_message or at + nc > len(view)):
+        return _read_part(r, limits)
+    counts = view[at : at + nc]
+    n_points, n_raw = _points_of_counts(counts)
+    keys = at + nc
+    pos = keys + 4 * nc
+    normal = pos + 2 * n_points
+    ao = normal + n_points
+    raw = ao + n_points
+    end = raw + 4 * POINTS_PER_CELL * n_raw
+    if end > len(view):
+        return _read_part(r, limits)
+    r.pos = end
+    cells = _CellSections(view[start + head : at], nc, counts, view[keys:pos], view[pos:normal], view[normal:ao],
+                          view[ao:raw], view[raw:end])
+    return _Part(capacity, _NO_IDS, _NO_TRANSFORMS, _NO_IDS, _NO_BUCKETS, cells), Layout.PACKED
+
+
 def _planes_of(parts: list[memoryview], itemsize: int, dtype) -> np.ndarray:
-    """Byte planes written part by part (planes()) -> the values of all parts, in order."""
-    rows = [np.frombuffer(p, np.uint8).reshape(itemsize, -1) for p in parts]
-    joined = rows[0] if len(rows) == 1 else np.concatenate(rows, axis=1)
-    return np.ascontiguousarray(joined.T).view(np.dtype(dtype).newbyteorder("<")).reshape(-1).astype(dtype)
+    """Byte planes written part by part (planes()) -> the values of all parts, in order. Each part's planes
+    are cut apart by slicing and joined plane by plane (bytes work), so that one numpy pass turns them all
+    into values (per-part numpy calls would cost more than the work on parts of a few dozen cells)."""
+    if len(parts) == 1:
+        joined = parts[0]
+    else:
+        sizes = [len(p) // itemsize for p in parts]
+        joined = b"".join([p[j * n : (j + 1) * n] for j in range(itemsize) for p, n in zip(parts, sizes)])
+    rows = np.frombuffer(joined, np.uint8).reshape(itemsize, -1)
+    return np.ascontiguousarray(rows.T).view(np.dtype(dtype).newbyteorder("<")).reshape(-1).astype(dtype)
+
+
+_BELOW_0X80 = bytes(range(0x80))  # bytes.translate(None, _BELOW_0X80) leaves the bytes with the top bit set
 
 
 def _assemble_cells(sections: list[_CellSections]) -> tuple[np.ndarray, np.ndarray]:
-    """(cell slots, cells) of one or more parts' cell sections, in part order."""
-    one = len(sections) == 1
+    """(cell slots, cells) of one or more parts' cell sections, in part order. The parts' sections are
+    joined as bytes first, so that a few numpy calls put all the cells together."""
     slots = gaps_decode_parts([s.slot_gaps for s in sections], [s.n for s in sections], "cell slots")
-    c_count = np.frombuffer(sections[0].counts if one else b"".join(s.counts for s in sections), np.uint8)
     nc = len(slots)
     cells = np.zeros((nc, CELL_WORDS), dtype=np.uint32)
     if not nc:
         return slots, cells
-    c_canon = c_count != RAW
+    counts = b"".join(s.counts for s in sections)
+    c_count = np.frombuffer(counts, np.uint8)
     cells[:, KEY_WORD] = _planes_of([s.keys for s in sections], 4, np.uint32)
-    p_sel = _expand_leading(np.where(c_canon, c_count, 0), POINTS_PER_CELL)
-    pos = _planes_of([s.pos for s in sections], 2, np.uint16).astype(np.uint32)
-    normal = np.frombuffer(b"".join(s.normal for s in sections), np.uint8).astype(np.uint32)
-    ao = np.frombuffer(b"".join(s.ao for s in sections), np.uint8).astype(np.uint32)
-    if np.any(pos > 0x7FFF):
+    halves = [len(s.pos) // 2 for s in sections]  # a position's low byte plane, then its high one
+    high = b"".join([s.pos[h:] for s, h in zip(sections, halves)])
+    if high.translate(None, _BELOW_0X80):
         raise PayloadError("cell: position field above 15 bits")
+    # a point word's bytes, lowest first: AO, normal, the position's low byte, its high byte (the allocated
+    # bit is set after): one row of bytes each, for every point of every part
+    fields = b"".join([*(s.ao for s in sections), *(s.normal for s in sections),
+                       *(s.pos[:h] for s, h in zip(sections, halves)), high])
+    words = np.ascontiguousarray(np.frombuffer(fields, np.uint8).reshape(4, -1).T).view("<u4").reshape(-1)
+    n_raw = counts.count(RAW)
+    p_sel = _expand_leading(np.where(c_count != RAW, c_count, 0) if n_raw else c_count, POINTS_PER_CELL)
     points = cells[:, :POINTS_PER_CELL]
-    points[p_sel] = ALLOCATED_BIT | (pos << 16) | (normal << 8) | ao
-    if not c_canon.all():
-        points[~c_canon] = _planes_of([s.raw for s in sections], 4, np.uint32).reshape(-1, POINTS_PER_CELL)
+    points[p_sel] = words | ALLOCATED_BIT
+    if n_raw:
+        points[c_count == RAW] = _planes_of([s.raw for s in sections], 4, np.uint32).reshape(-1, POINTS_PER_CELL)
     return slots, cells
 
 
@@ -533,10 +588,15 @@ def decode_delta_parts(r: Reader, limits: Limits = DEFAULT_LIMITS) -> tuple[Grid
     """Read one or more grid deltas (parts) filling the rest of a payload, as an Update carries them, and
     give their union (`union_of_parts`). Every part is checked as a delta of its own would be; the cells
     of all parts are put together at once (a part costs little more than its bytes)."""
-    part, layout = _read_part(r, limits)
+    return _read_parts(r, limits, _read_cells_part)
+
+
+def _read_parts(r: Reader, limits: Limits, read_part) -> tuple[GridDelta, Layout]:
+    """decode_delta_parts with `read_part` reading each part (_read_part reads any part: tests compare)."""
+    part, layout = read_part(r, limits)
     parts = [part]
     while not r.at_end():
-        part, part_layout = _read_part(r, limits)
+        part, part_layout = read_part(r, limits)
         if part_layout != layout:
             raise PayloadError(f"grid delta parts in layouts {layout.name} and {part_layout.name}")
         parts.append(part)
@@ -565,7 +625,7 @@ def _union(parts: list[_Part], limits: Limits) -> GridDelta:
     for what, (ids, rows) in kinds.items():
         full = [j for j, i in enumerate(ids) if len(i)] or [0]  # (most parts carry cells only)
         if len(full) == 1:
-            out[what] = ids[full[0]], rows[full[0]]
+            out[what] = (ids[full[0]], rows[full[0]]) if len(ids[full[0]]) else (ids[0].copy(), rows[0].copy())
         else:
             out[what] = _sorted_union(what, [len(ids[j]) for j in full], np.concatenate([ids[j] for j in full]),
                                       np.concatenate([rows[j] for j in full]))

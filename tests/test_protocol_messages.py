@@ -454,3 +454,93 @@ def test_a_cell_count_over_the_points_per_cell_in_any_part_is_refused(bad_part):
     m.Update.parse(head + b"".join(p for k, p in enumerate(parts) if k != bad_part))  # the others decode
     with pytest.raises(PayloadError, match=f"entry count above {POINTS_PER_CELL}"):
         m.Update.parse(head + b"".join(parts))
+
+
+def _payload_of_parts(rng, layouts=(Layout.PACKED,)) -> bytes:
+    """An Update's delta bytes as the fanout writes them: a head (transforms, buckets, maybe cells), then
+    tiles of cells only (disjoint slots, some empty, some with raw cells), each part in a layout of `layouts`."""
+    cap = int(rng.integers(50, 5000))
+    n_tiles = int(rng.integers(0, 12))
+    sizes = rng.integers(0, 30, n_tiles + 1)
+    slots = rng.permutation(rng.choice(cap, min(cap, int(sizes.sum())), replace=False))
+    runs = np.split(slots, np.cumsum(sizes)[:-1].clip(max=len(slots)))
+    deltas = []
+    for i, run in enumerate(runs):
+        d = _random_delta(rng, nb=6, nc=2, cap=cap)
+        nb = int(rng.integers(0, 7)) if i == 0 else 0
+        cells = np.zeros((len(run), 8), np.uint32)
+        cells[:, 7] = rng.integers(0, 1 << 32, len(run), dtype=np.uint64)
+        for j, n in enumerate(rng.integers(0, 8, len(run))):
+            cells[j, :n] = 0x80000000 | rng.integers(0, 1 << 31, n)
+        raw = rng.random(len(run)) < 0.05
+        cells[raw, :7] = rng.integers(0, 1 << 32, (int(raw.sum()), 7), dtype=np.uint64)
+        keep_head = i == 0 and rng.random() < 0.7
+        deltas.append(GridDelta(cap, d.transform_ids if keep_head else [], d.transforms if keep_head else np.zeros((0, 4, 4)),
+                                d.bucket_ids[:nb], d.buckets[:nb],
+                                np.sort(run), cells[np.argsort(run)]))
+    return b"".join(encode_delta(d, layouts[int(rng.integers(len(layouts)))]) for d in deltas)
+
+
+def _decoded_both_ways(payload: bytes, limits: Limits):
+    """decode_delta_parts and the reader of any part (_read_part) on every part: each delta, or the refusal's
+    type and text."""
+    from protocol import updates
+
+    out = []
+    for read in (lambda r: updates.decode_delta_parts(r, limits), lambda r: updates._read_parts(r, limits, updates._read_part)):
+        try:
+            delta, layout = read(Reader(payload, "update"))
+            out.append((delta, layout))
+        except (PayloadError, LimitError) as e:
+            out.append((type(e), str(e)))
+    return out
+
+
+def _same(a, b) -> bool:
+    if isinstance(a[0], GridDelta) and isinstance(b[0], GridDelta):
+        return a[1] == b[1] and a[0].equals(b[0]) and all(
+            getattr(a[0], f).dtype == getattr(b[0], f).dtype and getattr(a[0], f).shape == getattr(b[0], f).shape
+            for f in ("transform_ids", "transforms", "bucket_ids", "buckets", "cell_slots", "cells"))
+    return a == b
+
+
+def test_parts_decoder_gives_the_delta_the_reader_of_any_part_gives():
+    rng = np.random.default_rng(13)
+    for _ in range(200):
+        payload = _payload_of_parts(rng)
+        fast, general = _decoded_both_ways(payload, Limits())
+        assert isinstance(fast[0], GridDelta) and _same(fast, general)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_parts_decoder_refuses_what_the_reader_of_any_part_refuses(seed):
+    """Truncated, extended, mutated, overlapping, mixed-layout and over-limit payloads: the same delta or
+    the same refusal (type and text) both ways."""
+    rng = np.random.default_rng(100 + seed)
+    tight = Limits(max_cell_capacity=3000, max_cells_per_message=20, max_buckets_per_message=4)
+    refused = 0
+    for _ in range(60):
+        payload = _payload_of_parts(rng, layouts=(Layout.PACKED, Layout.PACKED, Layout.PLAIN))
+        bad = [payload[: int(rng.integers(0, len(payload)))], payload + rng.bytes(int(rng.integers(1, 40))),
+               payload + payload[-int(rng.integers(1, len(payload))):]]  # (a repeated tail: overlapping parts)
+        for _ in range(8):
+            b = np.frombuffer(payload, np.uint8).copy()
+            at = rng.integers(0, len(b), int(rng.integers(1, 4)))
+            b[at] = rng.integers(0, 256, len(at))
+            bad.append(b.tobytes())
+        for data in [payload, *bad]:
+            for limits in (Limits(), tight):
+                fast, general = _decoded_both_ways(data, limits)
+                assert _same(fast, general), (fast, general)
+                refused += not isinstance(fast[0], GridDelta)
+    assert refused > 100
+
+
+def test_parts_decoder_refuses_every_truncation_as_the_reader_of_any_part():
+    rng = np.random.default_rng(7)
+    payloads = [p for p in (_payload_of_parts(rng) for _ in range(40)) if 200 < len(p) < 1500][:3]
+    assert payloads
+    for payload in payloads:
+        for n in range(len(payload)):
+            fast, general = _decoded_both_ways(payload[:n], Limits())
+            assert _same(fast, general), (n, fast, general)
