@@ -14,10 +14,11 @@ rounds instead of showing one round's noise). The server tick traces a reset poi
 one go, which outweighs the kept estimate at once. Nothing is dropped: a point waits until the budget reaches it. The queue is a mask
 over the point ids, so it can never hold more entries than the scene has points.
 
-Priority (`pick`): points in some client's view (without the view's margins) before those only in the
-margins of its extended view, and those before points outside it; among those, points whose history was reset (nothing traced since their neighbourhood changed) before points being refined;
-then the points whose AO changed most since they were last traced (estimates the resets give), the
-oldest waiting first where those are alike.
+Priority (`pick`): points in some client's extended view before points outside every view; among those,
+points whose history was reset (nothing traced since their neighbourhood changed) before points being
+refined; within each of those, points in a view itself (without its margins) before points only in its
+margins; then the points whose AO changed most since they were last traced (estimates the resets give),
+the oldest waiting first where those are alike.
 
 `TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
 both fitted to the ticks' own traces (exponentially weighted least squares), so a busier machine gets
@@ -357,7 +358,9 @@ class RefineQueue:
         return w[self.done[w] < self.slices]
 
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int, core: np.ndarray | None = None) -> np.ndarray:
-        """The first `k` of `ids` in priority order (visible, in a view's core, reset, oldest)."""
+        """The first `k` of `ids` in priority order: in some extended view before out of every view; among
+        those, reset before refining; within each, a view's own points (`core`) before those only in its
+        margins; then the largest estimated change, the oldest wait."""
         if len(ids) == 0:
             return ids
         return first_by_key(ids, self.key(ids, visible, float(self.waiting_since[ids].min()), core), k)

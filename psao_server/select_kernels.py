@@ -390,10 +390,10 @@ class Buffers:
 class PriorityKey:
     """priority_kernel over a tick's point arrays: world positions of static points, local positions
     (moving points), instance and moving flag per point id; visibility by ViewUnion's blocks of `box`.
-    The launch is recorded once on buffers kept across calls (the ids, keys, transforms and planes are
-    copied in) and the point arrays given, and recorded again only when one of those is replaced or grown:
-    packing the kernel's arguments and wrapping its arrays cost about 0.4 ms a call, more than the kernel
-    over a few thousand points."""
+    The launch is recorded once on buffers kept across calls (the ids, transforms and planes are copied in,
+    the keys copied out) and the point arrays given, and recorded again only when one of those is replaced
+    or grown: packing the kernel's arguments and wrapping its arrays cost more than the kernel over a few
+    thousand points."""
 
     def __init__(self, blocks: int = 12):
         self.views = Arrays()

@@ -718,8 +718,10 @@ class ServerTick:
 
     def _mover_change(self, i: int, frame: Frame) -> float:
         """How much the AO of a moving instance's own points may have changed since the last tick, on the
-        scale of selection.occlusion_change: half (INSIDE_CHANGE: a point's hemisphere half changed) once it
-        has moved by its bounding radius or turned a radian; a deforming mesh counts as that much."""
+        scale of selection.occlusion_change: INSIDE_CHANGE once it has moved by its bounding radius or turned
+        a radian; a deforming mesh counts as that much. The same constant as the floor of a static point
+        inside a mover's sphere, on purpose: both say "the mover's surface moves around this point", so the
+        two kinds rank alike."""
         if i in self.kinds.skinned:
             return INSIDE_CHANGE
         a, b = frame.transforms[i], self.last_frame.transforms[i]

@@ -561,3 +561,26 @@ def test_parts_traced_in_process_together_answer_as_each_alone():
             np.testing.assert_array_equal(kept, kept_alone)
     assert min(v.min() for v, _ in together) < 0.7  # the movers and the ceiling are in the way
     tracer.close()
+
+
+def test_a_large_call_in_process_is_traced_chunk_by_chunk():
+    """A call traced in the calling process (one process: a bake there) queries the static scene once per
+    chunk_points points, not once for all its rays, and reports progress after each chunk: memory stays
+    bounded and progress moves while it traces."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=1)
+    tracer.set_static(v, f)
+    rng = np.random.default_rng(9)
+    n, chunk = 1000, 256
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    s = TraceSettings(rays=16, ao_distance=1.5, seed=3, chunk_points=chunk)
+    alone = tracer.visibility(pos, nrm, np.arange(n), s)
+    local = tracer._local
+    local.static = counted = CountingScene(local.static)
+    seen = []
+    vis = tracer.visibility(pos, nrm, np.arange(n), s, progress=lambda k: seen.append((k, counted.calls)))
+    assert counted.calls == -(-n // chunk) and counted.rays == n * 16
+    assert [c for _, c in seen] == list(range(1, counted.calls + 1)) and sum(k for k, _ in seen) == n
+    np.testing.assert_array_equal(vis, alone)
+    tracer.close()

@@ -174,7 +174,7 @@ def mover_rays(origins, dirs, tmax, hit, rays_per_point: int, spheres: list[tupl
     """(R,) uint32 per ray: sphere_bits of the spheres (centre, radius) its segment reaches, for rays not
     `hit` yet (0 for the others). Rays come in runs of `rays_per_point` sharing an origin. Only these rays
     can be occluded by a mover inside one of the spheres: the rest (most rays, even near a mover) are never
-    traced against the movers. Compiled (kernels.spheres_reached) where Warp is present."""
+    traced against the movers. Compiled (kernels.RayBuffers.reached) where Warp is present."""
     centres = np.array([c for c, _ in spheres], np.float64).reshape(-1, 3)
     radii = np.array([r for _, r in spheres], np.float64)
     buffers = _ray_buffers()
@@ -580,7 +580,7 @@ class EmbreeTracer(Tracer):
             self._local.update_dynamic(self._dynamic_version, dyn_v, dyn_f, self._poses, dyn_parts)
         out = [([], []) for _ in parts]
         try:
-            results = pool.map(_worker_trace, jobs) if pool else _trace_chunks(self._local, [job[5:] for job in jobs])
+            results = pool.map(_worker_trace, jobs) if pool else self._trace_here(jobs)
             for k, (vis, cpu_query, cpu_total, kept) in zip(owner, results):
                 out[k][0].append(vis)
                 out[k][1].append(kept)
@@ -599,6 +599,20 @@ class EmbreeTracer(Tracer):
                 b = np.concatenate(kept) if kept else np.zeros((0, (part.settings.rays + 7) // 8), np.uint8)
             answers.append((v, b))
         return answers
+
+    def _trace_here(self, jobs: list[tuple]):
+        """_trace_chunks of `jobs` in this process, as it goes: consecutive jobs together up to chunk_points
+        points a query, so a tick's few small parts pay each query's fixed cost once while a large call (a
+        bake on one process) keeps its rays within chunk_points points and reports progress chunk by chunk."""
+        group, points = [], 0
+        for job in jobs:
+            chunk = job[5:]  # (pos, nrm, ids, settings, first, static_bits, keep_static)
+            if group and points + len(chunk[0]) > chunk[3].chunk_points:
+                yield from _trace_chunks(self._local, group)
+                group, points = [], 0
+            group.append(chunk)
+            points += len(chunk[0])
+        yield from _trace_chunks(self._local, group)
 
     def _local_rays(self, positions, normals, point_ids, settings: TraceSettings):
         """Origins and directions of each point's whole `settings.rays`-ray set, in this process."""
