@@ -398,12 +398,17 @@ def test_priority_key_called_again_answers_as_a_fresh_one_and_records_its_launch
         np.testing.assert_array_equal(kept.visible, fresh.visible)
         np.testing.assert_array_equal(kept.core, fresh.core)
         assert 0 < kept.visible.sum() and (cams == 0 or not kept.visible.all()) or size < 50
-    recorded = []
+    recorded, replayed = [], []
     for size in (4999, 3000, 200, 4999):  # the same views: after the largest call, the calls replay the launch
         ids = np.sort(rng.choice(n, size, replace=False))
-        kept(ids, world, local, instance, moving, transforms, planes, 0.5, rays, since, change, 0.0, box, core)
+        args = (ids, world, local, instance, moving, transforms, planes, 0.5, rays, since, change, 0.0, box, core)
+        replayed.append((args, kept(*args).copy(), kept.visible.copy()))
         recorded.append(len(records))  # wp.launch calls (each a packing of every argument)
     assert recorded[1:] == recorded[:1] * 3
+    for args, got, visible in replayed:  # and the replays answer as a fresh one
+        fresh = PriorityKey()
+        np.testing.assert_array_equal(got, fresh(*args))
+        np.testing.assert_array_equal(visible, fresh.visible)
 
 
 def test_rows_equals_fancy_indexing_of_rows():

@@ -595,3 +595,48 @@ def test_budgeted_tick_starts_from_the_posed_scene(budgeted_tick):
         assert s.traced == 0 and s.queue == 0
     finally:
         tick.close()
+
+
+def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_tick):
+    """The whole traces from static hits choose among the changed static points in a client's view without
+    its margins: a point only in the margins (fov and distance margins) waits for the rounds."""
+    from psao_client.connection import scene_camera_feed
+    from psao_server.selection import camera_planes, in_any_view
+
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
+    tick.settings.budget.exact_points = 300
+    tick.settings.budget.exact_share = 0.5
+    feed = scene_camera_feed(tick.scene)
+    margin = tick.settings.view.distance_margin
+    seen = {"exact": 0, "margin": 0}
+    whole_static = tick._whole_static
+
+    def checked(waiting, *args):
+        """The tick's own _whole_static, its answer checked against the views (the plan's tail also holds
+        the rounds' cheap whole traces, so it is checked here)."""
+        exact, refill = whole_static(waiting, *args)
+        frame, core = tick._frame_now, [camera_planes(*tick._view_now, 0.0)]
+        chosen = np.concatenate([exact, refill])
+        assert in_any_view(tick.world_points(frame, chosen)[0], core, 0.0).all()
+        # the changed static points it could have taken had it chosen among every visible point
+        could = waiting[(tick.queue.change[waiting] >= tick.settings.budget.exact_min_change)
+                        & ~tick.moving_point[waiting]]
+        pos = tick.world_points(frame, could)[0]
+        seen["margin"] += int((in_any_view(pos, tick.cameras, margin) & ~in_any_view(pos, core, 0.0)).sum())
+        seen["exact"] += len(chosen)
+        return exact, refill
+
+    tick._whole_static = checked
+    try:
+        for t in np.arange(0.1, 1.0, 0.1):
+            view, proj = feed(t)
+            proj = np.array(proj, np.float64)
+            proj[0, 0] *= 4  # a narrow view: its margins (fov + 20 degrees) hold changed points it does not show
+            proj[1, 1] *= 4
+            tick._view_now = (view, proj)
+            tick.set_cameras([tick._view_now])
+            tick._frame_now = tick.animator.frame(t)
+            tick.apply(tick.prepare(t))
+        assert seen["exact"] > 0 and seen["margin"] > 0
+    finally:
+        tick.close()
