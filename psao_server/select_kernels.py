@@ -330,6 +330,21 @@ class Arrays:
         return held[1]
 
 
+class Buffers:
+    """Numpy buffers kept across calls with their Warp views, grown on demand (never shrunk)."""
+
+    def __init__(self):
+        self._held: dict[str, tuple] = {}
+
+    def __call__(self, name: str, n: int, np_dtype, wp_dtype, shape=()) -> tuple[np.ndarray, "wp.array"]:
+        """(numpy buffer of at least n (and 1) rows of `shape`, its Warp view)."""
+        held = self._held.get(name)
+        if held is None or len(held[0]) < n:
+            a = np.zeros((max(n, 1), *shape), np_dtype)
+            held = self._held[name] = (a, wp.array(a, dtype=wp_dtype, device="cpu", copy=False))
+        return held
+
+
 class ViewUnion:
     """The union of the clients' extended views, tested by blocks (in_union): a box around the points is
     cut into cubic blocks (`blocks` along its longest side) and a block is classified once per launch
@@ -339,15 +354,11 @@ class ViewUnion:
 
     def __init__(self, blocks: int = 12):
         self.blocks = int(blocks)
-        self._work: dict[str, tuple] = {}
+        self._work = Buffers()
 
     def _scratch(self, name: str, n: int) -> tuple:
         """(int32 work array of at least n entries, its Warp view), kept across calls (not cleared)."""
-        held = self._work.get(name)
-        if held is None or len(held[0]) < n:
-            a = np.empty(max(n, 1), np.int32)
-            held = self._work[name] = (a, wp.array(a, dtype=wp.int32, device="cpu", copy=False))
-        return held
+        return self._work(name, n, np.int32, wp.int32)
 
     def inputs(self, planes: np.ndarray | None, margin: float, box: tuple[np.ndarray, np.ndarray] | None,
                points: int) -> tuple[np.ndarray, list]:
@@ -370,21 +381,6 @@ class ViewUnion:
         return flat, [cams, wp.float64(margin), wp.vec3d(*lo), wp.float64(size), *dims, state[1],
                       self._scratch("first", n_blocks)[1], self._scratch("count", n_blocks)[1],
                       self._scratch("listed", min(n_blocks, points) * max(cams, 1))[1], used[1]]
-
-
-class Buffers:
-    """Numpy buffers kept across calls with their Warp views, grown on demand (never shrunk)."""
-
-    def __init__(self):
-        self._held: dict[str, tuple] = {}
-
-    def __call__(self, name: str, n: int, np_dtype, wp_dtype, shape=()) -> tuple[np.ndarray, "wp.array"]:
-        """(numpy buffer of at least n (and 1) rows of `shape`, its Warp view)."""
-        held = self._held.get(name)
-        if held is None or len(held[0]) < n:
-            a = np.zeros((max(n, 1), *shape), np_dtype)
-            held = self._held[name] = (a, wp.array(a, dtype=wp_dtype, device="cpu", copy=False))
-        return held
 
 
 class PriorityKey:
