@@ -48,7 +48,7 @@ from .errors import (CodecError, EditError, HeaderError, LimitError, PayloadErro
                      RemoteError, UnexpectedMessage)
 from .limits import DEFAULT_LIMITS, HEADER_SIZE, Limits
 from .scenefile import SceneFile
-from .updates import GridDelta, Layout, encode_delta
+from .updates import GridDelta, Layout, encode_cell_runs, encode_delta
 
 
 def error_code_for(exc: ProtocolError) -> m.ErrorCode:
@@ -376,6 +376,10 @@ class SharedParts:
 
     def part(self, delta: GridDelta) -> bytes:
         return self._frames.compress(encode_delta(delta, self.config.layout))
+
+    def cell_runs(self, capacity: int, slots: np.ndarray, cells: np.ndarray, runs: list[tuple[int, int]]) -> list[bytes]:
+        """part() of the cells-only delta of each run (a, b) of these rows, encoded together (encode_cell_runs)."""
+        return [self._frames.compress(b) for b in encode_cell_runs(capacity, slots, cells, runs, self.config.layout)]
 
 
 # -------------------------------------------------------------------------------------------------- client

@@ -325,11 +325,16 @@ def _gaps_numpy(datas: list, counts: list[int], what: str) -> np.ndarray:
     return ids.astype(np.uint32)
 
 
+def _le_bytes(a: np.ndarray) -> np.ndarray:
+    """(n, itemsize) uint8: each value's little-endian bytes, a row per value (a row slice's transpose is
+    its byte planes, as planes() writes them)."""
+    a = np.ascontiguousarray(a).reshape(-1)
+    return a.astype(a.dtype.newbyteorder("<")).view(np.uint8).reshape(-1, a.dtype.itemsize)
+
+
 def planes(a: np.ndarray) -> bytes:
     """Little-endian multi-byte values -> their byte planes, lowest byte plane first."""
-    a = np.ascontiguousarray(a).reshape(-1)
-    le = a.astype(a.dtype.newbyteorder("<"))
-    return le.view(np.uint8).reshape(-1, a.dtype.itemsize).T.tobytes()
+    return _le_bytes(a).T.tobytes()
 
 
 def unplanes(r: Reader, dtype, count: int) -> np.ndarray:
@@ -365,25 +370,48 @@ def _packed_buckets(d: GridDelta) -> list[bytes]:
     return [gaps_encode(d.bucket_ids), b_count.tobytes(), planes(keys[b_sel]), planes(slots[b_sel]), raw]
 
 
+class _PackedCells:
+    """The packed cell sections of rows of cells, the per-row work done once for all of them, so that
+    each run of rows (an Update of parts' tiles: a few cells each) costs only slicing (`sections`)."""
+
+    def __init__(self, slots: np.ndarray, cells: np.ndarray):
+        self.slots, self.cells = slots, cells
+        points = cells[:, :POINTS_PER_CELL]
+        p_used = (points & ALLOCATED_BIT) != 0
+        self.counts = _leading_counts(p_used, points == 0)
+        self.canon = self.counts != RAW
+        sel = p_used & self.canon[:, None]
+        p = points[sel]  # the canonical cells' points, row by row: a run of rows has a run of these
+        self.p_end = np.cumsum(np.count_nonzero(sel, axis=1))  # points up to and with each row
+        self.raw_end = np.cumsum(~self.canon)  # raw cells up to and with each row
+        self.keys = _le_bytes(cells[:, KEY_WORD])
+        self.pos = _le_bytes(((p >> 16) & 0x7FFF).astype(np.uint16))  # 3 x 5-bit position
+        self.normal = ((p >> 8) & 0xFF).astype(np.uint8)  # octahedral normal
+        self.ao = (p & 0xFF).astype(np.uint8)
+
+    def sections(self, a: int, b: int) -> list[bytes]:
+        """The cell sections of rows a..b-1 (slots strictly increasing): slots, leading counts, keys,
+        canonical points' fields, raw cells."""
+        if a == b:
+            return [b""] * 7
+        pa, pb = (int(self.p_end[a - 1]) if a else 0), int(self.p_end[b - 1])
+        raw = int(self.raw_end[b - 1]) - (int(self.raw_end[a - 1]) if a else 0)
+        return [
+            gaps_encode(self.slots[a:b]),
+            self.counts[a:b].tobytes(),
+            self.keys[a:b].T.tobytes(),
+            self.pos[pa:pb].T.tobytes(),
+            self.normal[pa:pb].tobytes(),
+            self.ao[pa:pb].tobytes(),
+            planes(self.cells[a:b, :POINTS_PER_CELL][~self.canon[a:b]]) if raw else b"",
+        ]
+
+
 def _packed_cells(d: GridDelta) -> list[bytes]:
     """The cell sections: slots, leading counts, keys, canonical points' fields, raw cells."""
     if not len(d.cell_slots):
         return [b""] * 7
-    points = d.cells[:, :POINTS_PER_CELL]
-    p_used = (points & ALLOCATED_BIT) != 0
-    c_count = _leading_counts(p_used, points == 0)
-    c_canon = c_count != RAW
-    all_canon = bool(c_canon.all())
-    p = points[p_used if all_canon else p_used & c_canon[:, None]]
-    return [
-        gaps_encode(d.cell_slots),
-        c_count.tobytes(),
-        planes(d.cells[:, KEY_WORD]),
-        planes(((p >> 16) & 0x7FFF).astype(np.uint16)),  # 3 x 5-bit position
-        ((p >> 8) & 0xFF).astype(np.uint8).tobytes(),  # octahedral normal
-        (p & 0xFF).astype(np.uint8).tobytes(),  # AO
-        b"" if all_canon else planes(points[~c_canon]),
-    ]
+    return _PackedCells(d.cell_slots, d.cells).sections(0, len(d.cell_slots))
 
 
 def _encode_packed(d: GridDelta) -> bytes:
@@ -394,6 +422,24 @@ def _encode_packed(d: GridDelta) -> bytes:
     parts = [head, _PACKED_LENGTHS.pack(len(t_ids), len(b_ids), len(c_ids)), t_ids, planes(d.transforms),
              b_ids, *bucket_rest, c_ids, *cell_rest]
     return b"".join(parts)
+
+
+def encode_cell_runs(capacity: int, slots: np.ndarray, cells: np.ndarray, runs: list[tuple[int, int]],
+                     layout: Layout = Layout.PACKED) -> list[bytes]:
+    """encode_delta(GridDelta(capacity, cell_slots=slots[a:b], cells=cells[a:b]), layout) of each run (a, b)
+    of rows (each run's slots strictly increasing): the same bytes, with the per-row work done once for
+    all the runs (an Update of parts has a few tiles of a few cells each a tick, where numpy's per-call
+    cost is most of an encode) and only slicing per run."""
+    slots = np.ascontiguousarray(slots, np.uint32).reshape(-1)
+    cells = np.ascontiguousarray(cells, np.uint32).reshape(-1, CELL_WORDS)
+    if layout != Layout.PACKED or not len(slots):
+        return [encode_delta(GridDelta(capacity, cell_slots=slots[a:b], cells=cells[a:b]), layout) for a, b in runs]
+    packed = _PackedCells(slots, cells)
+    out = []
+    for a, b in runs:
+        ids, *rest = packed.sections(a, b)
+        out.append(b"".join([_CELLS_ONLY_HEAD.pack(Layout.PACKED, capacity, 0, 0, b - a, 0, 0, len(ids)), ids, *rest]))
+    return out
 
 
 def _expand_leading(counts: np.ndarray, width: int) -> np.ndarray:

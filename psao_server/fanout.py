@@ -82,14 +82,14 @@ class PartsRecipe:
 
     client: Client
     own_head: GridDelta | None  # None: the shared head
-    tiles: np.ndarray  # indices into PartsPlan.tile_deltas
+    tiles: np.ndarray  # indices into PartsPlan.tiles
     own_part: GridDelta | None  # cells that came into its view since they changed
     drained: bool  # nothing left pending afterwards: its mirror then equals the server
 
     def cells(self, plan: "PartsPlan") -> int:
         """Cell rows its Update carries."""
         own = len(self.own_part.cell_slots) if self.own_part is not None else 0
-        return own + sum(len(plan.tile_deltas[int(t)].cell_slots) for t in self.tiles)
+        return own + sum(b - a for a, b in (plan.tiles[int(t)] for t in self.tiles))
 
 
 @dataclass
@@ -100,12 +100,15 @@ class PartsPlan:
     tick: int
     server_time: float
     head: GridDelta
-    tile_deltas: dict[int, GridDelta]  # the tiles some client gets, by tile index
+    cell_slots: np.ndarray  # the tick's dirty cells, tile by tile (ascending in each tile)
+    cells: np.ndarray  # their rows, read when planned
+    tiles: dict[int, tuple[int, int]]  # the tiles some client gets, by tile index: their runs of those rows
     recipes: list[PartsRecipe]
 
     def encode(self) -> list[list[bytes]]:
         """Every recipe's frames: the shared head and tiles are compressed once, own pieces per client."""
-        tiles = {t: self.parts.part(d) for t, d in self.tile_deltas.items()}
+        runs = self.parts.cell_runs(self.head.cell_capacity, self.cell_slots, self.cells, list(self.tiles.values()))
+        tiles = dict(zip(self.tiles, runs))
         shared_head = None
         out = []
         for r in self.recipes:
@@ -274,9 +277,9 @@ class Fanout:
             return None
         used = np.flatnonzero(visible[rows_of].any(axis=0))  # the tiles some recipe takes
         rows = grid.cells[sorted_slots]  # one gather; a tile's cells are a run of it (slots ascending in each)
-        tile_deltas = {int(t): GridDelta(capacity, cell_slots=sorted_slots[starts[t]:ends[t]],
-                                         cells=rows[starts[t]:ends[t]]) for t in used}
-        return PartsPlan(self.parts, tick, server_time, head, tile_deltas, recipes)
+        first, end = starts.tolist(), ends.tolist()
+        tiles = {t: (first[t], end[t]) for t in used.tolist()}
+        return PartsPlan(self.parts, tick, server_time, head, sorted_slots, rows, tiles, recipes)
 
     def _tiles_in_views(self, planes: list, places, slots: np.ndarray, order: np.ndarray,
                         starts: np.ndarray) -> np.ndarray:
@@ -327,7 +330,7 @@ class Fanout:
             self.counters.part_updates += 1
             self.counters.parts_sent += len(r.tiles)
             out.append((r, r.client.next_seq()))
-        self.counters.parts_encoded += len(plan.tile_deltas)
+        self.counters.parts_encoded += len(plan.tiles)
         return out
 
     def in_view(self, client: Client, grid, transforms: np.ndarray):

@@ -409,6 +409,29 @@ def test_small_id_sections_encode_to_the_bytes_of_the_vectorised_encode():
     assert gaps_decode(gaps_encode(many), len(many), "ids").tolist() == many.tolist()
 
 
+@pytest.mark.parametrize("layout", list(Layout))
+def test_runs_of_cells_encoded_together_give_the_bytes_of_each_run_encoded_alone(layout):
+    """The tiles of an Update of parts are encoded in one pass over their rows (encode_cell_runs): each
+    tile's bytes equal encode_delta of its cells alone, raw (non-canonical) cells, empty tiles and
+    every run length included."""
+    from protocol.updates import encode_cell_runs
+
+    rng = np.random.default_rng(23)
+    for trial in range(60):
+        d = _random_delta(rng, nb=2, nc=int(rng.integers(2, 90)))
+        cut = 2 * (trial % 2)  # odd trials without the 2 raw cells: all canonical, no raw section in any tile
+        d = GridDelta(d.cell_capacity, cell_slots=d.cell_slots[cut:], cells=d.cells[cut:])
+        n = len(d.cell_slots)
+        cuts = np.sort(rng.integers(0, n + 1, int(rng.integers(0, 6)))).tolist()  # repeats: empty runs
+        bounds = [0, *cuts, n]
+        runs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        rng.shuffle(runs)  # tiles are encoded in any order, and some runs not at all
+        runs = runs[: int(rng.integers(0, len(runs) + 1))]
+        alone = [encode_delta(GridDelta(d.cell_capacity, cell_slots=d.cell_slots[a:b], cells=d.cells[a:b]), layout)
+                 for a, b in runs]
+        assert encode_cell_runs(d.cell_capacity, d.cell_slots, d.cells, runs, layout) == alone
+
+
 def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone():
     from protocol.updates import union_of_parts
 
