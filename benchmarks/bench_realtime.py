@@ -210,7 +210,8 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
         print(f"    budgeted tick while moving: {r['ticks_per_s']:.1f} ticks/s, {m['traced']:.0f} points traced a tick "
               f"({m['exact']:.0f} whole from static hits first, {m['batch']:.0f} picked by the rounds), budget {m['budget_ms']:.1f} ms, "
               f"select {1e3 * m['seconds_select']:.1f} ms, trace {1e3 * m['seconds_trace']:.1f} ms, tick "
-              f"{1e3 * m['seconds_total']:.1f} ms")
+              f"{1e3 * m['seconds_total']:.1f} ms; median budget used {100 * r['budget_used_median']:.0f}%, "
+              f"ticks longer than the period {100 * r['late_share']:.0f}%")
         for kind, e in r["error_split_moving"].items():
             print(f"    {kind:30s} {e['points_per_sample']:7.0f} points in view per sample, squared error "
                   f"{e['mse_budgeted']:.2e} budgeted, {e['mse_unbudgeted']:.2e} unbudgeted (mean over all points)")
@@ -335,6 +336,9 @@ def quality_scene(name: str, args) -> dict:
     return {"ticks_per_s": ticks_per_s, "wall_s": walls.tolist(), "psnr_budgeted": pb, "psnr_unbudgeted": pu,
             "budgeted_ticks_moving": {f: float(np.mean([getattr(st, f) for st in moving_stats]))
                                       for f in TICK_FIELDS} if moving_stats else {},
+            # (means above: a few long ticks weigh in them; these say how the ticks held the budget and the period)
+            "budget_used_median": float(np.median([st.budget_used for st in moving_stats])) if moving_stats else 0.0,
+            "late_share": float(np.mean([st.seconds_total > period for st in moving_stats])) if moving_stats else 0.0,
             "error_split_moving": split,
             "moving_budgeted_db": float(np.nanmean(np.array(pb)[moving])),
             "moving_unbudgeted_db": float(np.nanmean(np.array(pu)[moving])),

@@ -20,16 +20,16 @@ refined; within each of those, points in a view itself (without its margins) bef
 margins; then the points whose AO changed most since they were last traced (estimates the resets give),
 the oldest waiting first where those are alike.
 
-`TraceBudget` sizes the batch from the tracer's measured throughput: seconds = overhead + rays / rate,
-both fitted to the ticks' own traces (exponentially weighted least squares), so a busier machine gets
-smaller batches; while the recent calls are too alike in size to fit both, batches alternate a quarter
-above and below the estimate. A budget below one point's cost still traces `min_points` (progress is always made); the
-tick's statistics then show budget_used > 1.
+`TraceBudget` sizes the batch from the tracer's measured throughput: seconds = fixed cost + rays / rate,
+each the median of the recent ticks' own trace calls, the tracer telling the seconds its rays took apart
+from the call's (observe_trace), so a busier machine gets smaller batches. A budget below one point's cost
+still traces `min_points` (progress is always made); the tick's statistics then show budget_used > 1.
 """
 from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +41,7 @@ from protocol import pointword as pw
 class BudgetSettings:
     tick_hz: float = 60.0  # the service's tick rate: the automatic budget is a share of its period
     budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
-    headroom: float = 0.6  # automatic budget: this share of the tick period, less the other stages
+    headroom: float = 0.85  # automatic budget: this share of the tick period, less the other stages
     floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
     round_rays: int = 8  # rays per point per trace round, a divisor of the target rays (the history accumulates
     # rounds, one slice of the target ray set each, up to the target)
@@ -65,25 +65,27 @@ class BudgetSettings:
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
-    smoothing: float = 0.2  # weight of the newest tick in the throughput and stage-time averages
+    calls: int = 5  # recent trace calls whose median ray rate and fixed cost size the next batch (observe_trace)
+    window: int = 32  # recent ticks whose median of the other stages' seconds they are taken to take
+    local_rays: int = 65536  # the budgeted tick's trace calls of fewer rays run in its own process
+    # (TraceSettings.local_rays): at a tick's sizes, handing a call to the tracer's worker processes (pickled
+    # jobs, the moving part refitted in each) costs more than the second core gives back
     rays_per_tick: float = 0.0  # > 0: trace this many rays a tick (of the fitted rate: whole traces count
     # exact_cost a ray) whatever the time they take, instead of what the time budget allows; for quality
     # studies that must not depend on the machine's load (benchmarks.bench_realtime --fixed-rays)
 
 
-ALIKE = 0.1  # call sizes whose spread is below this share of their mean cannot separate rate and overhead
-
-
 class TraceBudget:
     """Points per tick from measured tracing speed."""
 
-    def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 2e-3):
+    def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 0.0):
         self.settings = settings
-        self.rays_per_second = max(float(rays_per_second), 1e3)
-        self.overhead_s = max(float(overhead_s), 0.0)
-        self.other_stages_s = 0.0  # animate + select + grid, averaged
-        self._moments: list[float] | None = None  # weighted means of rays, seconds, rays^2, rays*seconds
-        self._dither = -0.25  # share added to the next batch while the calls are alike (sign flips each time)
+        self.rays_per_second = max(float(rays_per_second), 1e3)  # the rays' own rate, fixed costs apart
+        self.overhead_s = max(float(overhead_s), 0.0)  # what a call costs besides its rays
+        self.other_stages_s = 0.0  # animate + select + grid: the median of the recent ticks
+        self._per_ray: deque[float] = deque(maxlen=settings.calls)  # seconds a ray of the recent calls
+        self._fixed: deque[float] = deque(maxlen=settings.calls)  # their seconds besides their rays
+        self._others: deque[float] = deque(maxlen=settings.window)
 
     def budget_s(self) -> float:
         s = self.settings
@@ -106,7 +108,7 @@ class TraceBudget:
         return min(s.exact_points, int(s.exact_share * self.rays_in_budget() / max(self.exact_rays(rays), 1e-9)))
 
     def rays_in_budget(self) -> float:
-        """Rays this tick's budget allows at the fitted rate, after the per-call overhead. An overhead
+        """Rays this tick's budget allows at the measured rate, after a call's fixed cost. A fixed cost
         beyond the budget is paid whenever anything is traced: then half a budget's worth of rays goes on
         top of it, or the tick would crawl along at min_points."""
         if self.settings.rays_per_tick > 0:
@@ -119,56 +121,37 @@ class TraceBudget:
         fitted rate) of it given to whole traces, but at least what is not exact_share of it (at least min_points)."""
         whole = self.rays_in_budget()
         n = max(whole - spent_rays, (1 - self.settings.exact_share) * whole) / max(rays_per_point, 1)
-        if self._alike() and self.settings.rays_per_tick <= 0:
-            # Calls of one size cannot tell the rate from the overhead: a rate believed too high would stay
-            # (its error taken for overhead) and every tick would trace past its budget. Batches a quarter
-            # larger and smaller in turn give the fit the spread it needs.
-            self._dither = -self._dither
-            n *= 1.0 + self._dither
         return max(int(n), self.settings.min_points)
 
-    def _alike(self) -> bool:
-        """Whether the recent calls' sizes are too alike to fit rate and overhead apart (observe_trace)."""
-        m = self._moments
-        return m is not None and m[2] - m[0] * m[0] <= (ALIKE * m[0]) ** 2
-
-    def observe_trace(self, rays: int, seconds: float) -> None:
-        """Learn from one trace call: seconds = overhead + rays / rate, fitted by exponentially weighted
-        least squares over the recent calls; while their sizes are too alike to tell the two apart, the
-        rate is kept and the overhead follows the calls."""
-        a = self.settings.smoothing
-        if rays <= 0 or not math.isfinite(seconds):
+    def observe_trace(self, rays: float, seconds: float, ray_seconds: float | None = None) -> None:
+        """Learn from one trace call of `rays` rays (whole traces from static hits counted at exact_cost) in
+        `seconds`, of which the tracer spent `ray_seconds` making and tracing the rays (the rest is the
+        call's fixed cost: handing it over, refitting the moving part, ...; None: not known, all of it
+        counts as the rays'). The rate and the fixed cost are the medians of the recent calls' (`calls`),
+        each measured, not fitted: a fit of seconds against rays is thrown by the calls' changing mix
+        (a ray from static hits, a static point's and a mover's cost apart by up to 3 times), and one
+        call slowed by something else (a busy core, a first call's set-up) changes neither."""
+        if rays <= 0 or not (math.isfinite(seconds) and seconds > 0):
             return
-        x, y = float(rays), float(seconds)
-        new = (x, y, x * x, x * y)
-        mx, my, mxx, mxy = self._moments = [(1 - a) * v + a * w for v, w in zip(self._moments or new, new)]
-        if not self._alike():
-            slope = (mxy - mx * my) / (mxx - mx * mx)
-            if slope > 0:
-                self.rays_per_second = max(1.0 / slope, 1e3)
-        self.overhead_s = max(my - mx / self.rays_per_second, 0.0)
+        ray_s = seconds if ray_seconds is None or not 0 < ray_seconds <= seconds else ray_seconds
+        self._per_ray.append(ray_s / rays)
+        self._fixed.append(seconds - ray_s)
+        self.rays_per_second = max(1.0 / float(np.median(self._per_ray)), 1e3)
+        self.overhead_s = float(np.median(self._fixed))
 
     def observe_other(self, seconds: float) -> None:
-        a = self.settings.smoothing
-        self.other_stages_s = (1 - a) * self.other_stages_s + a * max(seconds, 0.0)
+        """The other stages' seconds of one tick (their median over the recent ticks is what they take)."""
+        self._others.append(max(float(seconds), 0.0))
+        self.other_stages_s = float(np.median(self._others))
 
 
-def measure_tracer(tracer, positions, normals, ids, trace_settings) -> tuple[float, float]:
-    """(rays per second, seconds of one small call): a warm-up trace of the given points and of a few
-    (as many as the tracer's workers take in one call, so the small call pays the same hand-over)."""
-    few = max(1, 2 * int(getattr(tracer, "workers", 1)))
-    tracer.visibility(positions[:few], normals[:few], ids[:few], trace_settings)  # first call: lazy set-up
-    t0 = time.perf_counter()
-    tracer.visibility(positions[:few], normals[:few], ids[:few], trace_settings)
-    small = time.perf_counter() - t0
-    if len(ids) <= few:
-        return 2e6, small
+def measure_tracer(tracer, positions, normals, ids, trace_settings) -> float:
+    """Rays per second of one call tracing the given points (its fixed cost included, as TraceBudget
+    counts a call), after a warm-up call of a few of them (a first call's lazy set-up)."""
+    tracer.visibility(positions[:1], normals[:1], ids[:1], trace_settings)
     t0 = time.perf_counter()
     tracer.visibility(positions, normals, ids, trace_settings)
-    big = time.perf_counter() - t0
-    # the big call less the small one's overhead, but at least half the big call: on a busy machine the
-    # two can come out alike, and a near-zero difference would promise an absurd rate
-    return len(ids) * trace_settings.rays / max(big - small, 0.5 * big, 1e-6), small
+    return len(ids) * trace_settings.rays_traced / max(time.perf_counter() - t0, 1e-6)
 
 
 HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,

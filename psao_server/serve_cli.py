@@ -70,7 +70,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "first grid with them")
     p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
-                        "(60%% of the tick period less the other stages without it); waiting points queue")
+                        f"({100 * default(BudgetSettings, 'headroom'):g}%% of the tick period less the other stages without "
+                        "it); waiting points queue")
     p.add_argument("--progressive", action="store_true",
                    help="stream a coarse first grid (--first-points points traced with --tick-rays) at once, replace "
                         "it by the full grid traced with --tick-rays when that is baked (clients reconnect to it), "

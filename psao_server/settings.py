@@ -276,9 +276,9 @@ class TickSettings:
                 raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
             if not (math.isfinite(b.rays_per_tick) and b.rays_per_tick >= 0):
                 raise ConfigError(f"rays per tick must be a number >= 0 (0: from the time budget), got {b.rays_per_tick}")
-            if b.round_rays < 1 or b.min_points < 1 or b.scan_points < 1:
-                raise ConfigError(f"round rays, min points and scan points must be >= 1, got {b.round_rays}, "
-                                  f"{b.min_points}, {b.scan_points}")
+            if min(b.round_rays, b.min_points, b.scan_points, b.calls, b.window, b.local_rays) < 1:
+                raise ConfigError(f"round rays, min points, scan points, calls, window and local rays must be >= 1, got "
+                                  f"{b.round_rays}, {b.min_points}, {b.scan_points}, {b.calls}, {b.window}, {b.local_rays}")
             if not (0 <= b.exact_share <= 1) or b.exact_points < 0:
                 raise ConfigError(f"exact share must be within [0, 1] and exact points >= 0, got {b.exact_share}, "
                                   f"{b.exact_points}")

@@ -129,7 +129,7 @@ class ServerTick:
         self.animator = SceneAnimator(self.scene)
         self.kinds = self.animator.kinds
         self.trace_settings = TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance,
-                                            seed=self.settings.seed)
+                                            seed=self.settings.seed, **self._local_rays())
         if close_bake_tracer and bake.tracer is not None:
             bake.tracer.close()
         self._init_points(bake)
@@ -250,9 +250,9 @@ class ServerTick:
         frame = self.animator.frame(0.0)
         pos, nrm = self.world_points(frame, sample)
         self.pose_tracer(frame)
-        rate, overhead = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings())
-        self.budget = TraceBudget(self.settings.budget, rate, overhead)
-        log.info("tick budget: tracer measured at %.2f Mrays/s (%.1f ms per call); %s", rate / 1e6, 1e3 * overhead,
+        rate = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings())
+        self.budget = TraceBudget(self.settings.budget, rate)  # (its fixed cost: learnt from the ticks)
+        log.info("tick budget: tracer measured at %.2f Mrays/s (a call of %d points); %s", rate / 1e6, len(sample),
                  f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
                  f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
         self._pose_bake()
@@ -294,7 +294,12 @@ class ServerTick:
         `round_rays` rays; each point traces its next slice (RefineQueue.next_slice)."""
         slices = self.settings.rays // min(self.settings.budget.round_rays, self.settings.rays)
         return TraceSettings(rays=self.settings.rays, ao_distance=self.scene.ao_distance, seed=self.settings.seed,
-                             slices=slices)
+                             slices=slices, **self._local_rays())
+
+    def _local_rays(self) -> dict:
+        """The budgeted tick's TraceSettings.local_rays (BudgetSettings.local_rays), as keyword arguments;
+        none for the unbudgeted tick (the tracer's default)."""
+        return {} if self.settings.budget is None else {"local_rays": self.settings.budget.local_rays}
 
     def pose_tracer(self, frame: Frame, tracer=None) -> None:
         """The moving part at `frame` (the skinned meshes' triangles, the rigid ones' transforms) into the
@@ -315,6 +320,12 @@ class ServerTick:
         except TracerError as exc:
             log.warning("tracer failed (%s): restarting its workers and tracing this batch again", exc)
             return call()
+
+    def _ray_seconds(self) -> float | None:
+        """The seconds the tracer has spent making and tracing rays so far (in the workers, summed over
+        them), or None where it does not tell (the budget then counts a whole call as its rays')."""
+        account = getattr(self.tracer, "account", None)
+        return None if account is None else account.cpu_total
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
         """The tracer's visibility (with `slice_of`, the given slice of each point's ray set), retrying."""
@@ -489,7 +500,7 @@ class ServerTick:
         whole = np.concatenate([fresh, refill, exact])
         spent = len(exact) * self.budget.exact_rays(s.rays) + (len(refill) + len(fresh)) * s.rays
         t_sel = time.perf_counter()
-        codes, whole_codes = np.zeros(0, np.uint32), np.zeros(0, np.uint32)
+        codes, whole_codes, ray_s = np.zeros(0, np.uint32), np.zeros(0, np.uint32), None
         if len(chosen) or len(whole):  # one call: the workers' hand-over is paid once
             pos, nrm = self.world_points(frame, chosen)
             fresh_pos, fresh_nrm = self.world_points(frame, fresh)
@@ -500,7 +511,9 @@ class ServerTick:
                                static_hit=self._static_hits.packed(exact) if len(exact) else None)]
             self.pose_tracer(frame)
             live = [k for k, p in enumerate(parts) if k == 0 or len(p.point_ids)]  # (empty parts: not sent)
+            ray_s = self._ray_seconds()
             vis = dict(zip(live, self._trace_parts([parts[k] for k in live])))
+            ray_s = self._ray_seconds() - ray_s if ray_s is not None else None
             vis = [vis.get(k, (np.zeros(0, np.float32), None)) for k in range(len(parts))]
             now = time.perf_counter()
             codes = self.queue.add(chosen, vis[0][0], round_settings.rays_traced, now)
@@ -510,7 +523,7 @@ class ServerTick:
                 whole_codes = self.queue.add(whole, np.concatenate([vis[1][0], vis[2][0], vis[3][0]]), s.rays, now,
                                              slices=self.queue.slices)
         t_trace = time.perf_counter()
-        self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel)
+        self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel, ray_s)
         # the queue after this round (points out on the refiner wait too); the oldest wait among the points
         # looked at (all of them unless the queue is longer than a sweep's part)
         still = looked[self.queue.done[looked] < self.queue.slices]
