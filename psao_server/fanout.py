@@ -82,14 +82,14 @@ class PartsRecipe:
 
     client: Client
     own_head: GridDelta | None  # None: the shared head
-    tiles: np.ndarray  # indices into PartsPlan.tiles
+    tiles: list[int]  # keys of PartsPlan.tiles
     own_part: GridDelta | None  # cells that came into its view since they changed
     drained: bool  # nothing left pending afterwards: its mirror then equals the server
 
     def cells(self, plan: "PartsPlan") -> int:
         """Cell rows its Update carries."""
         own = len(self.own_part.cell_slots) if self.own_part is not None else 0
-        return own + sum(b - a for a, b in (plan.tiles[int(t)] for t in self.tiles))
+        return own + sum(b - a for a, b in (plan.tiles[t] for t in self.tiles))
 
 
 @dataclass
@@ -117,7 +117,7 @@ class PartsPlan:
                 frames = [shared_head]
             else:
                 frames = [self.parts.head(self.tick, self.server_time, r.own_head)]
-            frames += [tiles[int(t)] for t in r.tiles]
+            frames += [tiles[t] for t in r.tiles]
             if r.own_part is not None:
                 frames.append(self.parts.part(r.own_part))
             out.append(frames)
@@ -255,8 +255,11 @@ class Fanout:
                 catch.append(c)
         own_parts = self._catch_ups(catch, grid, now_t, places, planes=[self.planes(c) for c in catch])
         recipes, rows_of = [], []  # (rows_of: each recipe's client's row of `visible`)
+        seen_by, seen = visible.nonzero()  # every client's tiles in one pass (row-major: by client, ascending)
+        seen_at = np.searchsorted(seen_by, np.arange(len(clients) + 1)).tolist()
+        seen = seen.tolist()
         for k, c in enumerate(clients):
-            tiles = np.flatnonzero(visible[k])
+            tiles = seen[seen_at[k]:seen_at[k + 1]]
             c.cells_pending.set(sorted_slots[hidden_rows[k]])
             own_part = own_parts.get(c.id)
             if c.sent_transforms is self.head_transforms and self.head_transforms is not None \
@@ -305,10 +308,11 @@ class Fanout:
             rows = np.concatenate([cands[k] for k in culled])
             lens = [len(cands[k]) for k in culled]
             camera = np.repeat(np.arange(len(culled)), lens)  # each row's client among the culled
-            inside = np.split(places.in_view_each(np.stack([planes[k] for k in culled]), camera, self.settings.view, rows),
-                              np.cumsum(lens)[:-1])
-            for k, ins in zip(culled, inside):
-                cands[k] = cands[k][ins]
+            inside = places.in_view_each(np.stack([planes[k] for k in culled]), camera, self.settings.view, rows)
+            at = 0  # (slices, not np.split: its per-piece Python costs more than the test at a few dozen clients)
+            for k, n in zip(culled, lens):
+                cands[k] = cands[k][inside[at:at + n]]
+                at += n
         room = self.config_limits.max_cells_per_message // 2
         out = {}
         for c, pl, cand in zip(clients, planes, cands):
