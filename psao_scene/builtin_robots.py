@@ -18,7 +18,7 @@ from .meshfile import clean_geometry
 from .model import Mesh, Scene
 from .rigid import PathAnimation, Polyline
 from .scene_builder import SceneBuilder
-from .skin import Skin, topological_order
+from .skin import Skin, compose_hierarchy, hierarchy_order
 from .transforms import trs
 
 # (name, parent, rest position in model space)
@@ -57,37 +57,43 @@ class WalkCycle:
         return 1.0 / self.frequency
 
     def __post_init__(self):
-        self.order = topological_order(self.parents)
+        self.order = hierarchy_order(self.parents)
         self.offsets = np.array([self.rest[k] - (self.rest[p] if p >= 0 else 0.0)
                                  for k, p in enumerate(self.parents)])
 
-    def local_rotations(self, t: float) -> dict[int, tuple[str, float]]:
-        """Joint -> (axis "x" or "y", radians) of its rotation at time t; a positive x swings a limb backwards."""
-        phi = 2 * math.pi * self.frequency * t + self.phase
-        s, c = math.sin(phi), math.cos(phi)
-        return {
-            JOINT["hip_l"]: ("x", -self.hip_swing * s), JOINT["hip_r"]: ("x", self.hip_swing * s),
-            JOINT["knee_l"]: ("x", self.knee_bend * max(0.0, -c)), JOINT["knee_r"]: ("x", self.knee_bend * max(0.0, c)),
-            JOINT["shoulder_l"]: ("x", self.arm_swing * s), JOINT["shoulder_r"]: ("x", -self.arm_swing * s),
-            JOINT["elbow_l"]: ("x", -0.35 - 0.25 * max(0.0, s)), JOINT["elbow_r"]: ("x", -0.35 - 0.25 * max(0.0, -s)),
-            JOINT["chest"]: ("y", 0.12 * s),
-        }
+    @property
+    def batch_key(self) -> tuple:
+        """Walk cycles with equal keys are posed together by joint_matrices_of."""
+        return WalkCycle, self.parents.tobytes()
 
     def joint_matrices(self, t: float) -> np.ndarray:
-        bob = 0.03 * math.cos(2 * (2 * math.pi * self.frequency * t + self.phase))
-        local = np.zeros((len(self.parents), 4, 4))
-        local[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
-        local[:, :3, 3] = self.offsets
-        local[self.parents < 0, 1, 3] += bob
-        for k, (axis, angle) in self.local_rotations(t).items():
-            i, j = (1, 2) if axis == "x" else (2, 0)  # the plane it turns: y to z about x, z to x about y
-            c, s = math.cos(angle), math.sin(angle)
-            local[k, i, i] = local[k, j, j] = c
-            local[k, j, i], local[k, i, j] = s, -s
-        world = np.empty_like(local)
-        for k in self.order:
-            world[k] = local[k] if self.parents[k] < 0 else world[self.parents[k]] @ local[k]
-        return world
+        return self.joint_matrices_of([self], t)[0]
+
+    @staticmethod
+    def joint_matrices_of(walks: list["WalkCycle"], t: float) -> np.ndarray:
+        """(len(walks), J, 4, 4) joint matrices of several walk cycles at time t, in one batched pass (a
+        scene of many walkers poses them all each tick; walks of one batch_key, the same joint tree): legs and arms swing in opposition,
+        knees bend on the forward swing, the pelvis bobs twice per cycle and the chest counter-twists. A
+        positive angle about x swings a limb backwards."""
+        w = walks[0]
+        frequency, phase, hip, knee, arm = (np.array([getattr(v, a) for v in walks], np.float64) for a in
+                                            ("frequency", "phase", "hip_swing", "knee_bend", "arm_swing"))
+        phi = 2 * np.pi * frequency * t + phase
+        s, c = np.sin(phi), np.cos(phi)
+        local = np.zeros((len(walks), len(w.parents), 4, 4))
+        local[..., [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+        local[..., :3, 3] = np.stack([v.offsets for v in walks])
+        local[:, w.parents < 0, 1, 3] += (0.03 * np.cos(2 * phi))[:, None]
+        about_x = {"hip_l": -hip * s, "hip_r": hip * s, "knee_l": knee * np.maximum(0.0, -c),
+                   "knee_r": knee * np.maximum(0.0, c), "shoulder_l": arm * s, "shoulder_r": -arm * s,
+                   "elbow_l": -0.35 - 0.25 * np.maximum(0.0, s), "elbow_r": -0.35 - 0.25 * np.maximum(0.0, -s)}
+        for joints, angles, (i, j) in ((list(about_x), np.stack(list(about_x.values()), 1), (1, 2)),  # y to z
+                                       (["chest"], (0.12 * s)[:, None], (2, 0))):  # about y: z to x
+            k = [JOINT[n] for n in joints]
+            cos, sin = np.cos(angles), np.sin(angles)
+            local[:, k, i, i] = local[:, k, j, j] = cos
+            local[:, k, j, i], local[:, k, i, j] = sin, -sin
+        return compose_hierarchy(local, w.order, np.eye(4))
 
 
 def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:

@@ -15,13 +15,14 @@ Reading them from TOML is toml_animation.py.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .transforms import (axis_angle_matrix, linear_matrix, quat_mul, quat_pow, quat_to_matrix, slerp,
-                         translation_matrix)
+from .transforms import (axis_angle_matrix, placed_about, quat_mul, quat_pow, quat_to_matrix, slerp,
+                         translation_matrix, yaw_matrix)
 
 UP = np.array([0.0, 1.0, 0.0])
 
@@ -76,9 +77,8 @@ class KeyframeAnimation(RigidAnimation):
             u = float(np.clip((t - a.time) / (b.time - a.time), 0.0, 1.0))
         translate = a.translate + (b.translate - a.translate) * u
         scale = a.scale + (b.scale - a.scale) * u
-        rs = linear_matrix(quat_to_matrix(slerp(a.rotation, b.rotation, u)) * scale[None, :])
         origin = self.base[:3, 3]
-        return translation_matrix(translate + origin) @ rs @ translation_matrix(-origin)
+        return placed_about(translate + origin, quat_to_matrix(slerp(a.rotation, b.rotation, u)) * scale[None, :], origin)
 
 
 @dataclass
@@ -95,11 +95,12 @@ class Polyline:
         self.dirs = seg / np.maximum(self.lengths, 1e-300)[:, None]
         self.starts = np.concatenate([[0.0], np.cumsum(self.lengths)])
         self.length = float(self.starts[-1])
+        self._starts = self.starts.tolist()  # (bisect on Python floats: a mover locates itself every tick)
 
     def locate(self, s: float) -> tuple[int, float]:
         """Segment index and distance into it for arc length s in [0, length]."""
-        i = int(np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.lengths) - 1))
-        return i, s - self.starts[i]
+        i = min(max(bisect.bisect_right(self._starts, s) - 1, 0), len(self.lengths) - 1)
+        return i, s - self._starts[i]
 
     def travel(self, distance: float) -> tuple[float, int]:
         """(arc length along the polyline, direction +1 / -1) after travelling `distance` from the start."""
@@ -165,7 +166,7 @@ class RollAnimation(RigidAnimation):
         i, into = path.locate(s)
         centre = path.verts[i] + path.dirs[i] * into
         origin = self.base[:3, 3]
-        return translation_matrix(centre) @ linear_matrix(rot) @ translation_matrix(-origin)
+        return placed_about(centre, rot, origin)
 
 
 @dataclass
@@ -181,9 +182,7 @@ class PathAnimation(RigidAnimation):
         i, into = self.path.locate(s)
         pos = self.path.verts[i] + self.path.dirs[i] * into
         d = self.path.dirs[i] * direction
-        yaw = math.atan2(d[0], d[2])
-        origin = self.base[:3, 3]
-        return translation_matrix(pos) @ linear_matrix(axis_angle_matrix(UP, yaw)) @ translation_matrix(-origin)
+        return placed_about(pos, yaw_matrix(math.atan2(d[0], d[2])), self.base[:3, 3])
 
 
 @dataclass
@@ -198,7 +197,7 @@ class SwingAnimation(RigidAnimation):
 
     def motion(self, t: float) -> np.ndarray:
         angle = math.radians(self.amplitude) * math.sin(2 * math.pi * t / self.period + math.radians(self.phase))
-        return translation_matrix(self.pivot) @ linear_matrix(axis_angle_matrix(self.axis, angle)) @ translation_matrix(-self.pivot)
+        return placed_about(self.pivot, axis_angle_matrix(self.axis, angle), self.pivot)
 
 
 @dataclass

@@ -47,6 +47,22 @@ class Skin:
         return self.joint_matrices(t) @ self.inverse_bind
 
 
+def skinning_matrices_of(skins: list[Skin], t: float) -> np.ndarray:
+    """(sum of J, 4, 4) Skin.skinning_matrices of several skins at time t, concatenated in their order: the
+    joint matrices of animators with equal `batch_key` in one batched call (their class's joint_matrices_of),
+    an animator shared by several skins once, then one stacked product with the inverse binds."""
+    animators = list({id(s.animator): s.animator for s in skins}.values())
+    groups: dict = {}
+    for a in animators:
+        groups.setdefault(getattr(a, "batch_key", id(a)), []).append(a)
+    joints = {}
+    for group in groups.values():
+        posed = (type(group[0]).joint_matrices_of(group, float(t)) if hasattr(group[0], "batch_key")
+                 else [group[0].joint_matrices(float(t))])
+        joints.update({id(a): m for a, m in zip(group, posed)})
+    return np.concatenate([joints[id(s.animator)] for s in skins]) @ np.concatenate([s.inverse_bind for s in skins])
+
+
 def check_skin(joints: np.ndarray, weights: np.ndarray, joint_count: int,
                where: str) -> tuple[np.ndarray, np.ndarray]:
     """Validate per-vertex skin data; returns joints (unused slots set to joint 0, so every index is
@@ -132,7 +148,7 @@ class NodeAnimator:
     root: np.ndarray = field(default_factory=lambda: np.eye(4))  # applied above the root nodes
 
     def __post_init__(self):
-        self.order = topological_order(self.parents)
+        self.order = hierarchy_order(self.parents, self.joint_nodes)
         self._merged_of: list | None = None  # the channel list _merged was made from
 
     def _sampled(self) -> tuple[list[Channel], list[int]]:
@@ -169,12 +185,29 @@ class NodeAnimator:
             self.channels = channels
 
     def joint_matrices(self, t: float) -> np.ndarray:
-        local = self.local_matrices(t)
-        world = np.empty_like(local)
-        for n in self.order:
-            p = self.parents[n]
-            world[n] = (self.root if p < 0 else world[p]) @ local[n]
-        return world[self.joint_nodes]
+        return compose_hierarchy(self.local_matrices(t), self.order, self.root)[self.joint_nodes]
+
+
+def hierarchy_order(parents: np.ndarray, needed=None) -> list[tuple[int, int]]:
+    """(node, parent) of a hierarchy's nodes (parents as indices, -1 for roots), every parent before its
+    children; with `needed`, only those nodes and their ancestors."""
+    keep = np.zeros(len(parents), bool)
+    for n in range(len(parents)) if needed is None else np.asarray(needed, np.int64).tolist():
+        while n >= 0 and not keep[n]:
+            keep[n] = True
+            n = int(parents[n])
+    return [(n, int(parents[n])) for n in topological_order(parents) if keep[n]]
+
+
+def compose_hierarchy(local: np.ndarray, order: list[tuple[int, int]], root: np.ndarray) -> np.ndarray:
+    """World matrices (..., N, 4, 4) of a hierarchy's nodes from their local ones (..., N, 4, 4): root @ local
+    for a root, its parent's world @ local below, in `order` (hierarchy_order; nodes left out of it stay
+    undefined). Leading axes are separate hierarchies of the same shape, composed together. A node at a
+    time: numpy gathers stacked 4 x 4 matrices by index arrays several times slower than one product."""
+    world = np.empty_like(local)
+    for n, p in order:
+        world[..., n, :, :] = (root if p < 0 else world[..., p, :, :]) @ local[..., n, :, :]
+    return world
 
 
 def topological_order(parents: np.ndarray) -> list[int]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .skin import Skin
+from .skin import Skin, skinning_matrices_of
 
 
 @wp.kernel
@@ -140,12 +140,29 @@ def skin_normals_reference(matrices: np.ndarray, rest_nrm, joints, weights) -> n
 # ----------------------------------------------------------------------------- per-scene convenience
 
 class SceneSkinner:
-    """One SkinDeformer per skinned mesh of a scene, built on first use and reused every tick."""
+    """One SkinDeformer per skinned mesh of a scene, or per list of them skinned together (posed), built on
+    first use and reused every tick."""
 
     def __init__(self, scene, device: str | None = None):
         self.scene = scene
         self.device = device
         self._deformers: dict[int, SkinDeformer] = {}
+        self._batches: dict[tuple[int, ...], SkinDeformer] = {}
+
+    def posed(self, meshes: list[int], t: float) -> np.ndarray:
+        """(sum of V, 3) mesh-local vertices of the skinned meshes `meshes` at time t, concatenated in their
+        order (a new array): all of them in one kernel launch, their joint matrices batched
+        (skin.skinning_matrices_of). The same numbers as vertices() mesh by mesh."""
+        key = tuple(meshes)
+        if not key:
+            return np.zeros((0, 3))
+        skins = [self.scene.meshes[m].skin for m in key]
+        if key not in self._batches:
+            first = np.cumsum([0] + [s.joint_count for s in skins[:-1]])  # each skin's joints in the batch
+            self._batches[key] = SkinDeformer(np.concatenate([self.scene.meshes[m].vertices for m in key]),
+                                              np.concatenate([s.joints + f for s, f in zip(skins, first)]),
+                                              np.concatenate([s.weights for s in skins]), device=self.device)
+        return self._batches[key].deform(skinning_matrices_of(skins, t))[0].copy()
 
     def vertices(self, mesh_index: int, t: float) -> np.ndarray:
         """Mesh-local vertices of mesh `mesh_index` at time t (its rest vertices when not skinned)."""
@@ -158,62 +175,100 @@ class SceneSkinner:
         return self._deformers[mesh_index].deform(mesh.skin.skinning_matrices(t))[0]
 
 @wp.kernel
+def face_normals_kernel(vertices: wp.array(dtype=wp.vec3d), corners: wp.array(dtype=wp.vec3i),
+                        out_nrm: wp.array(dtype=wp.vec3d)):
+    # surface_points' unit normal of one triangle, or (0, 0, 0) where the skinned triangle has none
+    f = wp.tid()
+    c = corners[f]
+    a = vertices[c[0]]
+    n = wp.cross(vertices[c[1]] - a, vertices[c[2]] - a)
+    n = n / wp.max(wp.length(n), wp.float64(1e-300))
+    if wp.length(n) > wp.float64(0.5):
+        out_nrm[f] = n
+    else:
+        out_nrm[f] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
 def surface_points_kernel(vertices: wp.array(dtype=wp.vec3d), corners: wp.array(dtype=wp.vec3i),
+                          face: wp.array(dtype=wp.int32), face_nrm: wp.array(dtype=wp.vec3d),
                           bary: wp.array(dtype=wp.vec3d), side: wp.array(dtype=wp.float64),
                           rest_nrm: wp.array(dtype=wp.vec3d),
                           out_pos: wp.array(dtype=wp.vec3d), out_nrm: wp.array(dtype=wp.vec3f)):
-    # surface_points for one point, with SurfacePoints' side and fallback: the triangle's unit normal times
-    # the point's side, or its rest normal where the skinned triangle has none
+    # surface_points for one point, with SurfacePoints' side and fallback: its triangle's unit normal
+    # (face_normals_kernel) times the point's side, or its rest normal where the skinned triangle has none
     i = wp.tid()
-    c = corners[i]
-    a = vertices[c[0]]
-    b = vertices[c[1]]
-    d = vertices[c[2]]
+    c = corners[face[i]]
     w = bary[i]
-    out_pos[i] = a * w[0] + b * w[1] + d * w[2]
-    n = wp.cross(b - a, d - a)
-    n = n / wp.max(wp.length(n), wp.float64(1e-300))
-    if wp.length(n) > wp.float64(0.5):
-        n = n * side[i]
-    else:
+    out_pos[i] = vertices[c[0]] * w[0] + vertices[c[1]] * w[1] + vertices[c[2]] * w[2]
+    n = face_nrm[face[i]]
+    if n[0] == wp.float64(0.0) and n[1] == wp.float64(0.0) and n[2] == wp.float64(0.0):
         n = rest_nrm[i]
+    else:
+        n = n * side[i]
     out_nrm[i] = wp.vec3f(wp.float32(n[0]), wp.float32(n[1]), wp.float32(n[2]))
 
 
 class SurfacePoints:
     """Points fixed to triangles of a mesh whose vertices move (skinned AO points): positions and unit normals
-    for new vertices in one kernel pass. The points' triangles, barycentrics, sides (+1 / -1: the normal
-    along or against the triangle's) and rest normals (kept where a triangle is skinned flat) are uploaded
-    once; the outputs are buffers reused by every call. surface_points() is the numpy reference."""
+    for new vertices in two kernel passes, one over the triangles that hold points (their normals: many
+    points share a triangle), one over the points. The points' triangles, barycentrics, sides (+1 / -1: the
+    normal along or against the triangle's) and rest normals (kept where a triangle is skinned flat) are
+    uploaded once. surface_points() is the numpy reference."""
 
     def __init__(self, faces: np.ndarray, face_index: np.ndarray, bary: np.ndarray, side: np.ndarray,
                  rest_nrm: np.ndarray, device: str | None = "cpu"):
         self.device = d = wp.get_device(device)
         self.count = len(face_index)
-        corners = np.asarray(faces, np.int64)[np.asarray(face_index, np.int64)]
+        used, face = np.unique(np.asarray(face_index, np.int64), return_inverse=True)
+        corners = np.asarray(faces, np.int64).reshape(-1, 3)[used]
         self.corners = wp.array(np.ascontiguousarray(corners, np.int32), dtype=wp.vec3i, device=d)
+        self.face = wp.array(np.ascontiguousarray(face.reshape(-1), np.int32), dtype=wp.int32, device=d)
+        self.face_nrm = wp.empty(len(used), dtype=wp.vec3d, device=d)
         self.bary = wp.array(np.ascontiguousarray(bary, np.float64), dtype=wp.vec3d, device=d)
         self.side = wp.array(np.ascontiguousarray(side, np.float64), dtype=wp.float64, device=d)
         self.rest_nrm = wp.array(np.ascontiguousarray(rest_nrm, np.float64), dtype=wp.vec3d, device=d)
-        self.out_pos = wp.empty(self.count, dtype=wp.vec3d, device=d)
-        self.out_nrm = wp.empty(self.count, dtype=wp.vec3f, device=d)
+        self._own = (wp.empty(self.count, dtype=wp.vec3d, device=d), wp.empty(self.count, dtype=wp.vec3f, device=d))
         self._vertices: wp.array | None = None  # the mesh's vertices of the last call
+        self._launched_on = None  # (vertex count, output arrays) the recorded launches were made for
 
-    def follow(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (P, 3) float64 and unit normals (P, 3) float32 on the mesh with `vertices`: views of
-        the output buffers, valid until the next call."""
+    def follow(self, vertices: np.ndarray, out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (P, 3) float64 and unit normals (P, 3) float32 on the mesh with `vertices`: written into
+        `out` (C-contiguous (P, 3) float64 and float32 arrays; on the CPU the kernel writes them in place)
+        and returned, or without it views of buffers this object reuses, valid until the next call."""
+        own = out is None or not (self.device.is_cpu and _writable_in_place(out, self.count))
         if self.count:
             v = np.ascontiguousarray(vertices, np.float64)
-            if self._vertices is None or self._vertices.shape[0] != len(v):
-                self._vertices = wp.empty(len(v), dtype=wp.vec3d, device=self.device)
+            key = (len(v), None if own else tuple(a.__array_interface__["data"][0] for a in out))
+            if self._launched_on != key:
+                targets = self._own if own else (wp.array(out[0], dtype=wp.vec3d, device=self.device, copy=False),
+                                                 wp.array(out[1], dtype=wp.vec3f, device=self.device, copy=False))
+                if self._vertices is None or self._vertices.shape[0] != len(v):
+                    self._vertices = wp.empty(len(v), dtype=wp.vec3d, device=self.device)
                 # recorded once: a launch's argument packing costs more than the kernel on a few points
-                self._launch = wp.launch(surface_points_kernel, dim=self.count, device=self.device,
-                                         inputs=[self._vertices, self.corners, self.bary, self.side, self.rest_nrm],
-                                         outputs=[self.out_pos, self.out_nrm], record_cmd=True)
+                self._launches = [
+                    wp.launch(face_normals_kernel, dim=self.face_nrm.shape[0], device=self.device,
+                              inputs=[self._vertices, self.corners], outputs=[self.face_nrm], record_cmd=True),
+                    wp.launch(surface_points_kernel, dim=self.count, device=self.device,
+                              inputs=[self._vertices, self.corners, self.face, self.face_nrm, self.bary, self.side,
+                                      self.rest_nrm], outputs=list(targets), record_cmd=True)]
+                self._launched_on = key
             _write(self._vertices, v)
-            self._launch.launch()
-        return (self.out_pos.numpy().reshape(-1, 3)[: self.count],
-                self.out_nrm.numpy().reshape(-1, 3)[: self.count])
+            for launch in self._launches:
+                launch.launch()
+        if not own:
+            return out
+        pos, nrm = (a.numpy().reshape(-1, 3)[: self.count] for a in self._own)
+        if out is not None:
+            out[0][...], out[1][...] = pos, nrm
+            return out
+        return pos, nrm
+
+
+def _writable_in_place(out: tuple[np.ndarray, np.ndarray], count: int) -> bool:
+    """Whether a kernel can write (count, 3) float64 positions and float32 normals straight into `out`."""
+    return all(a.shape == (count, 3) and a.dtype == t and a.flags.c_contiguous and a.flags.writeable
+               for a, t in zip(out, (np.float64, np.float32)))
 
 
 def surface_points(vertices: np.ndarray, faces: np.ndarray, face_index: np.ndarray,

@@ -113,6 +113,22 @@ def translation_matrix(v) -> np.ndarray:
     return m
 
 
+def placed_about(translate, linear, origin) -> np.ndarray:
+    """4x4 translation_matrix(translate) @ linear_matrix(linear) @ translation_matrix(-origin): `linear` about
+    `origin`, which then lands at `translate`; built directly (rigid motions make one per mover per tick)."""
+    m = np.zeros((4, 4))
+    m[:3, :3] = linear
+    m[:3, 3] = np.asarray(translate, np.float64) - np.dot(linear, np.asarray(origin, np.float64))
+    m[3, 3] = 1.0
+    return m
+
+
+def yaw_matrix(radians: float) -> np.ndarray:
+    """3x3 rotation by `radians` about +Y (axis_angle_matrix about (0, 1, 0) on Python floats)."""
+    s, c = math.sin(radians), math.cos(radians)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
 def linear_matrix(r: np.ndarray) -> np.ndarray:
     """4x4 with the 3x3 linear part r."""
     m = np.eye(4)

@@ -66,6 +66,20 @@ class Frame:
     skinned_vertices: np.ndarray | None = None  # (V, 3) world, skinned instances merged (None: none)
     skinned_faces: np.ndarray | None = None  # (F, 3) int64
     skinned_parts: list[int] = field(default_factory=list)  # vertices of each skinned instance in skinned_vertices
+    posed: np.ndarray | None = None  # (S, 3) the skinned meshes' local vertices at t, merged (mesh_vertices: views)
+    layout: "MovingLayout | None" = None  # where each moving instance and skinned mesh sits in the merged arrays
+
+
+def changed_meshes(frame: Frame, last: Frame | None) -> set[int]:
+    """The skinned meshes whose vertices differ between `last` and `frame` (all of frame's without `last`), in
+    one comparison of their merged vertices."""
+    if last is None or last.posed is None or frame.posed is None or last.posed.shape != frame.posed.shape:
+        return set(frame.mesh_vertices)
+    if last.posed is frame.posed or not len(frame.posed):
+        return set()
+    layout = frame.layout
+    differs = np.logical_or.reduceat(frame.posed.reshape(-1) != last.posed.reshape(-1), 3 * layout.posed_starts)
+    return {m for m, d in zip(layout.skinned_meshes, differs.tolist()) if d}
 
 
 def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -110,6 +124,7 @@ class SceneAnimator:
         self.skinner = SceneSkinner(scene, device=device)
         self._rest_transforms = np.array([inst.transform for inst in scene.instances], dtype=np.float64).reshape(-1, 4, 4)
         self.placed: dict[int, np.ndarray] = {}  # instance -> transform a scene edit gave it (replaces its animation)
+        self._moving_layout: MovingLayout | None = None
 
     def place(self, instance: int, transform: np.ndarray) -> bool:
         """A scene edit: instance `instance` is at `transform` (local-to-world) from now on, whatever its
@@ -148,35 +163,109 @@ class SceneAnimator:
         them) instead of deformed at t."""
         import time
         transforms = self.transforms(t)
+        layout = self._layout()
         t0 = time.perf_counter()
-        mesh_vertices = {}
-        for i in self.kinds.skinned:
-            m = self.scene.instances[i].mesh
-            if m not in mesh_vertices:  # a copy: the deformer may hand out the same buffer every call
-                mesh_vertices[m] = np.array(self.scene.meshes[m].vertices if bind_pose else self.skinner.vertices(m, t),
-                                            np.float64)
+        posed = layout.bind_pose.copy() if bind_pose else self.skinner.posed(layout.skinned_meshes, t)
         seconds_skinning = time.perf_counter() - t0
-        bounds, spheres, verts, faces, base = {}, {}, [], [], 0
-        skinned_v, skinned_f, skinned_base, skinned_parts = [], [], 0, []
-        for i in self.kinds.moving:
-            inst = self.scene.instances[i]
-            mesh = self.scene.meshes[inst.mesh]
-            local = mesh_vertices.get(inst.mesh, mesh.vertices)
-            w = affine(local, transforms[i])  # the moving scene needs them anyway: exact bounds come for free
-            bounds[i], spheres[i] = bounds_of(w)
-            verts.append(w)
-            faces.append(mesh.faces + base)
-            base += len(w)
-            if inst.mesh in mesh_vertices:
-                skinned_v.append(w)
-                skinned_parts.append(len(w))
-                skinned_f.append(mesh.faces + skinned_base)
-                skinned_base += len(w)
-        dv = np.concatenate(verts) if verts else np.zeros((0, 3))
-        df = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
-        sv = np.concatenate(skinned_v) if skinned_v else None
-        sf = np.concatenate(skinned_f) if skinned_f else np.zeros((0, 3), np.int64)
-        return Frame(float(t), transforms, mesh_vertices, bounds, spheres, dv, df, seconds_skinning, sv, sf, skinned_parts)
+        world = layout.world(posed, transforms)
+        bounds, spheres = layout.bounds(world)
+        sv = np.take(world, layout.skinned_rows, axis=0) if len(layout.skinned_parts) else None
+        return Frame(float(t), transforms, {m: posed[rows] for m, rows in layout.mesh_rows.items()}, bounds, spheres,
+                     world, layout.faces, seconds_skinning, sv, layout.skinned_faces, list(layout.skinned_parts),
+                     posed, layout)
+
+    def _layout(self) -> "MovingLayout":
+        """The moving instances' layout in a frame's merged arrays, made again when the kinds change (an edit
+        made a static instance move)."""
+        if self._moving_layout is None or self._moving_layout.moving != self.kinds.moving:
+            self._moving_layout = MovingLayout.of(self.scene, self.kinds)
+        return self._moving_layout
+
+
+@dataclass
+class MovingLayout:
+    """Where the moving instances' vertices and triangles sit in a Frame's merged arrays (dynamic_vertices:
+    the moving instances in order, each its mesh's vertices), and what stays the same every frame: the
+    merged faces, the skinned instances' rows, faces and vertex counts, the rigid ones' mesh vertices."""
+    moving: list[int]
+    starts: np.ndarray  # (n + 1,) each moving instance's first row in dynamic_vertices, and the total
+    skinned_meshes: list[int]  # the skinned meshes, as SceneSkinner.posed concatenates them
+    mesh_rows: dict[int, slice]  # skinned mesh -> its rows in SceneSkinner.posed's vertices
+    posed_starts: np.ndarray  # each skinned mesh's first row there
+    bind_pose: np.ndarray  # (S, 3) the skinned meshes' own vertices, concatenated as posed
+    rigid_vertices: np.ndarray  # (R, 3) the rigid movers' mesh vertices, concatenated
+    sources: list[tuple[bool, int]]  # per moving instance: (skinned, its first row in posed / rigid_vertices)
+    faces: np.ndarray  # (F, 3) int64 merged faces (read-only)
+    skinned_rows: np.ndarray  # rows of the skinned instances in dynamic_vertices
+    skinned_faces: np.ndarray  # (Fs, 3) int64 their faces into those rows (read-only)
+    skinned_parts: tuple[int, ...]  # vertices of each skinned instance
+
+    @classmethod
+    def of(cls, scene: Scene, kinds: InstanceKinds) -> "MovingLayout":
+        moving = list(kinds.moving)
+        meshes = [scene.meshes[scene.instances[i].mesh] for i in moving]
+        skinned = [i in kinds.skinned for i in moving]
+        skinned_meshes = list(dict.fromkeys(scene.instances[i].mesh for i, s in zip(moving, skinned) if s))
+        first = _starts([len(scene.meshes[m].vertices) for m in skinned_meshes])
+        mesh_rows = {m: slice(int(a), int(b)) for m, a, b in zip(skinned_meshes, first[:-1], first[1:])}
+        rigid = [m for m, s in zip(meshes, skinned) if not s]
+        rigid_first = _starts([len(m.vertices) for m in rigid])
+        rigid_at = iter(rigid_first.tolist())
+        sources = [(True, mesh_rows[scene.instances[i].mesh].start) if s else (False, next(rigid_at))
+                   for i, s in zip(moving, skinned)]
+        starts = _starts([len(m.vertices) for m in meshes])
+        skinned_first = _starts([len(m.vertices) for m, s in zip(meshes, skinned) if s])
+        return cls(moving, starts, skinned_meshes, mesh_rows, first[:-1],
+                   _merged([scene.meshes[m].vertices for m in skinned_meshes], np.float64),
+                   _merged([m.vertices for m in rigid], np.float64), sources,
+                   _read_only(_merged([m.faces + a for m, a in zip(meshes, starts)], np.int64)),
+                   np.concatenate([np.arange(a, b) for a, b, s in zip(starts[:-1], starts[1:], skinned) if s]
+                                  or [np.zeros(0, np.int64)]),
+                   _read_only(_merged([m.faces + a for m, a in zip([m for m, s in zip(meshes, skinned) if s],
+                                                                    skinned_first)], np.int64)),
+                   tuple(len(m.vertices) for m, s in zip(meshes, skinned) if s))
+
+    def world(self, posed: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """(V, 3) dynamic_vertices: each moving instance's mesh vertices (skinned: as posed) through its
+        transform (affine's arithmetic, written in place)."""
+        world = np.empty((int(self.starts[-1]), 3))
+        for k, (i, (skinned, at)) in enumerate(zip(self.moving, self.sources)):
+            a, b = int(self.starts[k]), int(self.starts[k + 1])
+            m = transforms[i]
+            np.einsum("pj,ij->pi", (posed if skinned else self.rigid_vertices)[at:at + b - a], m[:3, :3], out=world[a:b])
+            world[a:b] += m[:3, 3]
+        return world
+
+    def bounds(self, world: np.ndarray) -> tuple[dict, dict]:
+        """bounds_of each moving instance's rows of `world`, all at once: (bounds, spheres) by instance."""
+        if not self.moving:
+            return {}, {}
+        rows = np.ascontiguousarray(world.T)
+        at = self.starts[:-1]
+        lo, hi = np.minimum.reduceat(rows, at, axis=1), np.maximum.reduceat(rows, at, axis=1)
+        centre = 0.5 * (lo + hi)
+        d = rows - np.repeat(centre, np.diff(self.starts), axis=1)
+        d *= d
+        radius = np.sqrt(np.maximum.reduceat(d[0] + d[1] + d[2], at))
+        lo, hi, centre = lo.T.copy(), hi.T.copy(), centre.T.copy()
+        return ({i: (lo[k], hi[k]) for k, i in enumerate(self.moving)},
+                {i: (centre[k], float(radius[k])) for k, i in enumerate(self.moving)})
+
+
+def _starts(counts: list[int]) -> np.ndarray:
+    """(n + 1,) int64 first row of each of n consecutive blocks of `counts` rows, and the total."""
+    return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+
+
+def _merged(arrays: list[np.ndarray], dtype) -> np.ndarray:
+    """(sum of rows, 3) `arrays` concatenated (none: no rows)."""
+    return np.concatenate(arrays).astype(dtype, copy=False) if arrays else np.zeros((0, 3), dtype)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """`a`, no longer writeable: arrays every Frame shares."""
+    a.flags.writeable = False
+    return a
 
 
 # ---------------------------------------------------------------------------------- skinned points
@@ -209,3 +298,29 @@ class SkinnedPoints:
         ok = np.linalg.norm(n, axis=1) > 0.5  # a triangle skinned flat keeps the point's rest normal
         nrm = np.where(ok[:, None], n * self.side[:, None], self.rest_normals)
         return pos, nrm.astype(np.float32)
+
+
+class PlacedPoints:
+    """The AO points of every skinned instance placed on their deformed triangles together: one SurfacePoints
+    over a Frame's merged skinned-mesh vertices (Frame.posed), writing each point's local position and normal
+    into the tick's arrays (in place where the instances' ids are one run)."""
+
+    def __init__(self, scene: Scene, points: dict[int, SkinnedPoints], ids_of: list[np.ndarray], layout: MovingLayout):
+        insts = list(points)
+        meshes = [scene.meshes[scene.instances[i].mesh] for i in insts]
+        face_base = np.concatenate([[0], np.cumsum([len(m.faces) for m in meshes])]).astype(np.int64)
+        faces = np.concatenate([m.faces + layout.mesh_rows[scene.instances[i].mesh].start for i, m in zip(insts, meshes)]
+                               or [np.zeros((0, 3), np.int64)])
+        pick = lambda name: np.concatenate([getattr(points[i], name) for i in insts])  # noqa: E731
+        self.kernel = SurfacePoints(faces, np.concatenate([points[i].faces + b for i, b in zip(insts, face_base)]),
+                                    pick("bary"), pick("side"), pick("rest_normals"))
+        ids = np.concatenate([ids_of[i] for i in insts])
+        run = len(ids) and np.array_equal(ids, np.arange(ids[0], ids[0] + len(ids)))
+        self.rows = slice(int(ids[0]), int(ids[0]) + len(ids)) if run else ids
+
+    def place(self, posed: np.ndarray, local_pos: np.ndarray, local_nrm: np.ndarray) -> None:
+        """The points on the skinned meshes with merged vertices `posed` into local_pos / local_nrm."""
+        if isinstance(self.rows, slice):
+            self.kernel.follow(posed, out=(local_pos[self.rows], local_nrm[self.rows]))
+        else:
+            local_pos[self.rows], local_nrm[self.rows] = self.kernel.follow(posed)

@@ -52,7 +52,8 @@ import numpy as np
 
 from protocol import pointword as pw
 from protocol.errors import EditError
-from psao_server.animate import Frame, SceneAnimator, SkinnedPoints, affine, bounds_of, to_world_points
+from psao_server.animate import (Frame, PlacedPoints, SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes,
+                                 to_world_points)
 from psao_server.arrays import rows
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
@@ -197,9 +198,10 @@ class ServerTick:
         self.tracked = self.slot >= 0  # points the grid held after the bake; dropped ones stay dropped
         self.n_tracked = int(self.tracked.sum())
         self.stale = np.zeros(n, dtype=bool)
-        self._posed_on: dict[int, np.ndarray] = {}  # skinned instance -> the mesh vertices its points were placed on
         self.skinned = {i: SkinnedPoints.from_pointset(self.scene.meshes[self.scene.instances[i].mesh], bake.pointsets[i])
                         for i in self.kinds.skinned}
+        self._placed: PlacedPoints | None = None  # all skinned points together, made at the first _deform
+        self._placed_on: Frame | None = None  # the frame whose skinned meshes the skinned points were placed on
         # static points: world positions and normals once, and a block index for box queries
         self.world_pos = np.zeros((n, 3))
         self.world_nrm = np.zeros((n, 3), np.float32)
@@ -659,21 +661,16 @@ class ServerTick:
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:
         """Skinned points to where they are at `frame` on their deformed triangles (the tick's local_pos /
-        local_nrm, which it traces from; the grid keeps their rest pose), for the instances whose mesh
-        changed since they were last placed; returns how many points were placed."""
-        moved = 0
-        for i, sp in self.skinned.items():
-            m = self.scene.instances[i].mesh
-            vertices = frame.mesh_vertices[m]
-            if np.array_equal(vertices, self._posed_on.get(i)):
-                continue
-            pos, nrm = sp.follow(self.scene.meshes[m].faces, vertices)
-            ids = self.ids_of[i]
-            mine = slice(int(ids[0]), int(ids[-1]) + 1) if len(ids) else slice(0, 0)  # consecutive ids: views
-            self.local_pos[mine], self.local_nrm[mine] = pos, nrm
-            self._posed_on[i] = vertices
-            moved += len(ids)
-        return moved
+        local_nrm, which it traces from; the grid keeps their rest pose), all in one kernel pass when a
+        skinned mesh changed since they were last placed; returns how many points the changed meshes hold."""
+        changed = changed_meshes(frame, self._placed_on) if self.skinned else set()
+        if not changed:
+            return 0
+        if self._placed is None:
+            self._placed = PlacedPoints(self.scene, self.skinned, self.ids_of, frame.layout)
+        self._placed.place(frame.posed, self.local_pos, self.local_nrm)
+        self._placed_on = frame
+        return sum(len(self.ids_of[i]) for i in self.skinned if self.scene.instances[i].mesh in changed)
 
     def _select(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Point ids to trace this tick (sorted) with their world positions and normals; updates the
@@ -692,14 +689,9 @@ class ServerTick:
 
     def _moved_since(self, frame: Frame, last: Frame) -> list[int]:
         """Moving instances whose transform or (skinned) mesh differs between the two frames."""
-        out = []
-        for i in self.kinds.moving:
-            m = self.scene.instances[i].mesh
-            same = np.array_equal(frame.transforms[i], last.transforms[i]) and (
-                m not in frame.mesh_vertices or np.array_equal(frame.mesh_vertices[m], last.mesh_vertices.get(m)))
-            if not same:
-                out.append(i)
-        return out
+        turned = (frame.transforms != last.transforms).any(axis=(1, 2))
+        changed = changed_meshes(frame, last)
+        return [i for i in self.kinds.moving if turned[i] or self.scene.instances[i].mesh in changed]
 
     def _motion_candidates(self, frame: Frame, with_change: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed,
