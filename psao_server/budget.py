@@ -127,7 +127,8 @@ class TraceBudget:
         """Learn from one trace call of `rays` rays (whole traces from static hits counted at exact_cost) in
         `seconds`, of which the tracer spent `ray_seconds` making and tracing the rays (the rest is the
         call's fixed cost: handing it over, refitting the moving part, ...; None: not known, all of it
-        counts as the rays'). The rate and the fixed cost are the medians of the recent calls' (`calls`),
+        counts as the rays', so a fixed cost near the budget shrinks the batches towards min_points: the
+        Warp tracer does not tell). The rate and the fixed cost are the medians of the recent calls' (`calls`),
         each measured, not fitted: a fit of seconds against rays is thrown by the calls' changing mix
         (a ray from static hits, a static point's and a mover's cost apart by up to 3 times), and one
         call slowed by something else (a busy core, a first call's set-up) changes neither."""
