@@ -256,9 +256,10 @@ def quality_scene(name: str, args) -> dict:
         codes[ok] = (tick.grid.cells[tick.slot[ids], tick.index[ids]] & 0xFF) / 255.0
         return codes
 
-    period = 1.0 / 60.0
+    tick_hz = 60.0
+    period = 1.0 / tick_hz
     budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
-                                             budget=BudgetSettings(tick_hz=60.0, round_rays=args.round_rays,
+                                             budget=BudgetSettings(tick_hz=tick_hz, round_rays=args.round_rays,
                                                                    exact_share=args.exact_share,
                                                                    rays_per_tick=args.fixed_rays)))
     times, samples_b, tick_times, sampled_ticks, kinds, stats = [], [], [], [], [], []

@@ -64,7 +64,7 @@ class WalkCycle:
     @property
     def batch_key(self) -> tuple:
         """Walk cycles with equal keys are posed together by joint_matrices_of."""
-        return WalkCycle, self.parents.tobytes()
+        return type(self), self.parents.tobytes()
 
     def joint_matrices(self, t: float) -> np.ndarray:
         return self.joint_matrices_of([self], t)[0]

@@ -70,7 +70,7 @@ class BudgetSettings:
     local_rays: int = 65536  # the budgeted tick's trace calls of fewer rays run in its own process
     # (TraceSettings.local_rays): at a tick's sizes, handing a call to the tracer's worker processes (pickled
     # jobs, the moving part refitted in each) costs more than the second core gives back
-    rays_per_tick: float = 0.0  # > 0: trace this many rays a tick (of the fitted rate: whole traces count
+    rays_per_tick: float = 0.0  # > 0: trace this many rays a tick (of the measured rate: whole traces count
     # exact_cost a ray) whatever the time they take, instead of what the time budget allows; for quality
     # studies that must not depend on the machine's load (benchmarks.bench_realtime --fixed-rays)
 
@@ -97,7 +97,7 @@ class TraceBudget:
                    s.floor / (1 - s.floor) * self.other_stages_s)
 
     def exact_rays(self, rays: int) -> float:
-        """What a whole trace of `rays` rays from static hits costs, in rays of the fitted rate."""
+        """What a whole trace of `rays` rays from static hits costs, in rays of the measured rate."""
         return rays * self.settings.exact_cost
 
     def exact_points(self, rays: int) -> int:
@@ -118,7 +118,7 @@ class TraceBudget:
 
     def points(self, rays_per_point: int, spent_rays: float = 0.0) -> int:
         """How many points of `rays_per_point` rays fit in this tick's budget, less `spent_rays` (rays of the
-        fitted rate) of it given to whole traces, but at least what is not exact_share of it (at least min_points)."""
+        measured rate) of it given to whole traces, but at least what is not exact_share of it (at least min_points)."""
         whole = self.rays_in_budget()
         n = max(whole - spent_rays, (1 - self.settings.exact_share) * whole) / max(rays_per_point, 1)
         return max(int(n), self.settings.min_points)
@@ -128,10 +128,9 @@ class TraceBudget:
         `seconds`, of which the tracer spent `ray_seconds` making and tracing the rays (the rest is the
         call's fixed cost: handing it over, refitting the moving part, ...; None: not known, all of it
         counts as the rays', so a fixed cost near the budget shrinks the batches towards min_points: the
-        Warp tracer does not tell). The rate and the fixed cost are the medians of the recent calls' (`calls`),
-        each measured, not fitted: a fit of seconds against rays is thrown by the calls' changing mix
-        (a ray from static hits, a static point's and a mover's cost apart by up to 3 times), and one
-        call slowed by something else (a busy core, a first call's set-up) changes neither."""
+        Warp tracer does not tell). The rate and the fixed cost are the medians of the recent calls' (`calls`):
+        the calls' mix changes (a ray from static hits, a static point's and a mover's cost apart by up to
+        3 times), and one call slowed by something else (a busy core, a first call's set-up) changes neither."""
         if rays <= 0 or not (math.isfinite(seconds) and seconds > 0):
             return
         ray_s = seconds if ray_seconds is None or not 0 < ray_seconds <= seconds else ray_seconds
@@ -147,8 +146,9 @@ class TraceBudget:
 
 
 def measure_tracer(tracer, positions, normals, ids, trace_settings) -> float:
-    """Rays per second of one call tracing the given points (its fixed cost included, as TraceBudget
-    counts a call), after a warm-up call of a few of them (a first call's lazy set-up)."""
+    """Rays per second of one call tracing the given points, its fixed cost included (TraceBudget's
+    starting rate, which the ticks' own calls replace), after a warm-up call of a few of them (a first
+    call's lazy set-up)."""
     tracer.visibility(positions[:1], normals[:1], ids[:1], trace_settings)
     t0 = time.perf_counter()
     tracer.visibility(positions, normals, ids, trace_settings)

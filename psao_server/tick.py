@@ -324,10 +324,11 @@ class ServerTick:
             return call()
 
     def _ray_seconds(self) -> float | None:
-        """The seconds the tracer has spent making and tracing rays so far (in the workers, summed over
-        them), or None where it does not tell (the budget then counts a whole call as its rays')."""
+        """The wall seconds the tracer's calls have spent making and tracing rays so far (CpuAccount.wall:
+        a pooled call's worker seconds over its workers), or None where it does not tell (the budget then
+        counts a whole call as its rays')."""
         account = getattr(self.tracer, "account", None)
-        return None if account is None else account.cpu_total
+        return None if account is None else account.wall
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
         """The tracer's visibility (with `slice_of`, the given slice of each point's ray set), retrying."""
@@ -558,7 +559,7 @@ class ServerTick:
 
     def _rounds(self, looked: np.ndarray, key: np.ndarray, rays: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rounds' points: those of `looked` first in key order whose traces cost at most `rays` rays of
-        the fitted rate (at least min_points), as (rounds, fresh, cheap). A point refining a history gets
+        the measured rate (at least min_points), as (rounds, fresh, cheap). A point refining a history gets
         one slice (`rounds`: round_rays rays); a point with nothing since its last reset gets its whole ray
         set at once (`fresh`: a few-ray slice blended with a history from before the change lags behind
         it), or, a static point with kept static hits, an exact whole trace (`cheap`: the same answer for
@@ -661,7 +662,7 @@ class ServerTick:
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:
         """Skinned points to where they are at `frame` on their deformed triangles (the tick's local_pos /
-        local_nrm, which it traces from; the grid keeps their rest pose), all in one kernel pass when a
+        local_nrm, which it traces from; the grid keeps their rest pose), all together (one PlacedPoints pass) when a
         skinned mesh changed since they were last placed; returns how many points the changed meshes hold."""
         changed = changed_meshes(frame, self._placed_on) if self.skinned else set()
         if not changed:

@@ -205,8 +205,11 @@ def test_surface_points_write_in_place_what_they_return():
     vertices = rng.normal(size=(50, 3))
     want = [a.copy() for a in sp.follow(vertices)]
     pos, nrm = np.zeros((600, 3)), np.zeros((600, 3), np.float32)
+    own = [a.copy() for a in sp.follow(vertices * 3)]  # what the object's own buffers hold now
     got = sp.follow(vertices, out=(pos[100:], nrm[100:]))
     assert got[0].base is pos and np.array_equal(pos[100:], want[0]) and np.array_equal(nrm[100:], want[1])
+    # written straight into `out`: the object's own buffers still hold the previous call's answer
+    assert all(np.array_equal(a.numpy().reshape(-1, 3)[:500], b) for a, b in zip(sp._own, own))
     assert not pos[:100].any() and not nrm[:100].any()
     strided = np.zeros((500, 6))[:, ::2]  # not one block: written through the object's own buffers
     sp.follow(vertices * 2, out=(strided, nrm[100:]))

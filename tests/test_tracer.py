@@ -518,6 +518,30 @@ def test_a_call_traced_in_process_equals_the_same_call_spread_over_workers():
         tracer.close()
 
 
+def test_the_account_counts_a_pooled_calls_worker_seconds_over_its_workers():
+    """CpuAccount.wall (the seconds of the callers' wall time the rays took, which the tick's budget takes
+    apart from a call's fixed cost): worker seconds as they are for a call traced in process, over the
+    two workers for one spread over them."""
+    v, f = slab(1.0)
+    tracer = make_tracer("embree", workers=2)
+    tracer.set_static(v[:8], f[:12])
+    rng = np.random.default_rng(6)
+    n = 400
+    pos = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    a = tracer.account
+    try:
+        for local_rays, over in ((10**9, 1), (1, 2)):
+            total, wall = a.cpu_total, a.wall
+            tracer.visibility(pos, nrm, np.arange(n), TraceSettings(rays=16, ao_distance=2.0, local_rays=local_rays,
+                                                                    chunk_points=64))
+            assert a.cpu_total > total
+            assert a.wall - wall == pytest.approx((a.cpu_total - total) / over, rel=1e-9)
+        assert tracer._pool is not None
+    finally:
+        tracer.close()
+
+
 def test_parts_traced_in_process_together_answer_as_each_alone():
     """A call of several parts traced in the calling process (a tick's: slices of ray sets, whole ray sets,
     whole ray sets that keep or are given their static hits) queries the static scene once, for the rays

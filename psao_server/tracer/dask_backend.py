@@ -377,7 +377,7 @@ class DaskTracer(Tracer):
 
     def _account(self, r: dict, rays: int) -> None:
         self.tasks_done += 1
-        self.account.add(len(r["vis"]) * rays, r["cpu_query"], r["cpu_total"])
+        self.account.add(len(r["vis"]) * rays, r["cpu_query"], r["cpu_total"], self.threads)
         self.peak_rss[r["pid"]] = max(self.peak_rss.get(r["pid"], 0), r["peak_rss"])
 
     def _run(self, jobs, out: np.ndarray, rays: int, window: int, progress) -> None:

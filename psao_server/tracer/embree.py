@@ -446,17 +446,20 @@ def _worker_ping(_):
 
 
 class CpuAccount:
-    """Rays traced and the seconds the workers spent on them, in the Embree query and in total."""
+    """Rays traced and the seconds the workers spent on them, in the Embree query and in total, and
+    (`wall`) the share of the callers' wall time those totals stand for."""
 
     def __init__(self):
         self.rays = 0
         self.cpu_query = 0.0
         self.cpu_total = 0.0
+        self.wall = 0.0  # each job's total over the processes that ran its call's jobs side by side
 
-    def add(self, rays: int, cpu_query: float, cpu_total: float) -> None:
+    def add(self, rays: int, cpu_query: float, cpu_total: float, side_by_side: int = 1) -> None:
         self.rays += rays
         self.cpu_query += cpu_query
         self.cpu_total += cpu_total
+        self.wall += cpu_total / max(side_by_side, 1)
 
     def rates(self, workers: int) -> dict:
         """Rays per second of the tracer and of bare Embree with `workers` processes fully busy."""
@@ -584,7 +587,8 @@ class EmbreeTracer(Tracer):
             for k, (vis, cpu_query, cpu_total, kept) in zip(owner, results):
                 out[k][0].append(vis)
                 out[k][1].append(kept)
-                self.account.add(len(vis) * parts[k].settings.rays_traced, cpu_query, cpu_total)
+                self.account.add(len(vis) * parts[k].settings.rays_traced, cpu_query, cpu_total,
+                                 self.workers if pool is not None else 1)
                 if progress is not None:
                     progress(len(vis))
         except BrokenProcessPool as exc:
