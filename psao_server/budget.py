@@ -41,7 +41,8 @@ from protocol import pointword as pw
 class BudgetSettings:
     tick_hz: float = 60.0  # the service's tick rate: the automatic budget is a share of its period
     budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
-    headroom: float = 0.85  # automatic budget: this share of the tick period, less the other stages
+    headroom: float = 0.85  # automatic budget: this share of the tick period, less the other stages (the tick's
+    # animate, select and grid, and what its service spends a tick besides: TraceBudget.observe_service)
     floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
     round_rays: int = 8  # rays per point per trace round, a divisor of the target rays (the history accumulates
     # rounds, one slice of the target ray set each, up to the target)
@@ -63,6 +64,9 @@ class BudgetSettings:
     refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
     # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
+    motion_hz: float = 30.0  # motion tests (the points near movers found and their histories reset) a second of
+    # scene time at most: a tick in between picks from what the last test reset and the queue's sweep; the
+    # next test compares with the last one's frame, so no motion goes untested; 0 = every tick
     scan_points: int = 20000  # waiting points a tick looks at (at least 16 per point it traces): all of them
     # while the queue is no longer, else the next part of a sweep over it (RefineQueue.candidates)
     calls: int = 5  # recent trace calls whose median ray rate and fixed cost size the next batch (observe_trace)
@@ -83,9 +87,11 @@ class TraceBudget:
         self.rays_per_second = max(float(rays_per_second), 1e3)  # the rays' own rate, fixed costs apart
         self.overhead_s = max(float(overhead_s), 0.0)  # what a call costs besides its rays
         self.other_stages_s = 0.0  # animate + select + grid: the median of the recent ticks
+        self.service_s = 0.0  # what the tick's service spends a tick besides them (fan-out, messages): the median
         self._per_ray: deque[float] = deque(maxlen=settings.calls)  # seconds a ray of the recent calls
         self._fixed: deque[float] = deque(maxlen=settings.calls)  # their seconds besides their rays
         self._others: deque[float] = deque(maxlen=settings.window)
+        self._service: deque[float] = deque(maxlen=settings.window)
 
     def budget_s(self) -> float:
         s = self.settings
@@ -93,8 +99,8 @@ class TraceBudget:
             return s.budget_ms / 1e3
         # Never below `floor` of the period, nor below `floor` of the tick as it really runs: when the
         # other stages alone overrun the period, tracing keeps its share instead of starving.
-        return max(s.headroom / s.tick_hz - self.other_stages_s, s.floor / s.tick_hz,
-                   s.floor / (1 - s.floor) * self.other_stages_s)
+        others = self.other_stages_s + self.service_s
+        return max(s.headroom / s.tick_hz - others, s.floor / s.tick_hz, s.floor / (1 - s.floor) * others)
 
     def exact_rays(self, rays: int) -> float:
         """What a whole trace of `rays` rays from static hits costs, in rays of the measured rate."""
@@ -143,6 +149,13 @@ class TraceBudget:
         """The other stages' seconds of one tick (their median over the recent ticks is what they take)."""
         self._others.append(max(float(seconds), 0.0))
         self.other_stages_s = float(np.median(self._others))
+
+    def observe_service(self, seconds: float) -> None:
+        """What the service running the tick spent on one tick besides its stages (sending its changes,
+        reading the clients' messages, waking the tick up): the tick's period holds that too."""
+        if math.isfinite(seconds):
+            self._service.append(max(float(seconds), 0.0))
+            self.service_s = float(np.median(self._service))
 
 
 def measure_tracer(tracer, positions, normals, ids, trace_settings) -> float:

@@ -115,7 +115,7 @@ class AtRest:
         self.tick = tick
         self.grid = tick.grid
         self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
-        self.edit = tick.edit
+        self.edit, self.observe_service = tick.edit, tick.observe_service
 
     def prepare(self, t: float):
         return self.tick.prepare(0.0)

@@ -238,9 +238,14 @@ class Service:
         start = time.perf_counter()
         next_at = start
         last_stats = start
+        own = None  # (end of the last tick's work, the sleep it asked for, its seconds besides the tick's stages)
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
+            if own is not None and hasattr(self.tick_fn, "observe_service"):
+                # the last tick's work besides its stages (hand-offs, fan-out, records), and how late the loop
+                # came back to this one (the clients' tasks ran)
+                self.tick_fn.observe_service(own[2] + max(t0 - own[0] - own[1], 0.0))
             if self._replacement is not None:
                 self._swap_grid()
             self._merge_cameras()
@@ -261,6 +266,7 @@ class Service:
                 self._log_stats(now - last_stats)
                 last_stats = now
             next_at = max(next_at + period, now)  # a late tick is not made up for
+            own = (now, next_at - now, now - t0 - getattr(stats, "seconds_total", 0.0))
             await asyncio.sleep(next_at - now)
 
     async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:

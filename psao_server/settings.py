@@ -276,6 +276,8 @@ class TickSettings:
                 raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
             if not (math.isfinite(b.rays_per_tick) and b.rays_per_tick >= 0):
                 raise ConfigError(f"rays per tick must be a number >= 0 (0: from the time budget), got {b.rays_per_tick}")
+            if not (math.isfinite(b.motion_hz) and b.motion_hz >= 0):
+                raise ConfigError(f"motion tests a second must be a number >= 0 (0: every tick), got {b.motion_hz}")
             if min(b.round_rays, b.min_points, b.scan_points, b.calls, b.window, b.local_rays) < 1:
                 raise ConfigError(f"round rays, min points, scan points, calls, window and local rays must be >= 1, got "
                                   f"{b.round_rays}, {b.min_points}, {b.scan_points}, {b.calls}, {b.window}, {b.local_rays}")

@@ -169,6 +169,10 @@ class ServerTick:
         self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
+        # the budgeted tick's motion test (BudgetSettings.motion_hz): the frame it last compared with, and
+        # the ids it reset then
+        self._tested_frame: Frame | None = None
+        self._tested_ids = np.zeros(0, np.int64)
         if self.settings.budget is not None:
             self._init_budget(bake)
         self.refiner = refiner
@@ -413,10 +417,10 @@ class ServerTick:
         log.info("scene edit: instance(s) %s now move; tracer rebuilt without them in its static scene", became_rigid)
         for i in became_rigid:
             self.static_boxes.pop(i, None)
-            if self.last_frame is not None:  # where it was: the first motion resets what it leaves too
+            for before in {id(f): f for f in (self.last_frame, self._tested_frame) if f is not None}.values():
+                # where it was: the first motion resets what it leaves too
                 mesh = self.scene.meshes[self.scene.instances[i].mesh]
-                self.last_frame.bounds[i], self.last_frame.spheres[i] = bounds_of(
-                    affine(mesh.vertices, self.last_frame.transforms[i]))
+                before.bounds[i], before.spheres[i] = bounds_of(affine(mesh.vertices, before.transforms[i]))
         self._index_static()
         self._load_tracer()
         if self._static_hits is not None:
@@ -456,7 +460,7 @@ class ServerTick:
         moved = self._deform(frame)
         t_anim = time.perf_counter()
         if self.budget is not None:
-            return self._prepare_budgeted(frame, moved, t_start, t_anim)
+            return self._prepare_budgeted(frame, moved, t_start, t_anim, edited)
         ids, pos, nrm = self._select(frame)
         t_sel = time.perf_counter()
         vis = np.zeros(0, np.float32)
@@ -474,19 +478,19 @@ class ServerTick:
         self.refiner.forget(changed)
         return self.refiner.step(self, frame)
 
-    def _prepare_budgeted(self, frame: Frame, moved: int, t_start: float, t_anim: float) -> "TickPlan":
-        """Reset the history of the points the motion may have changed, pick as many waiting points as
-        the budget allows (priority order of RefineQueue.pick), trace one round of rays for them."""
+    def _prepare_budgeted(self, frame: Frame, moved: int, t_start: float, t_anim: float,
+                          edited: bool = False) -> "TickPlan":
+        """Reset the history of the points the motion may have changed (when a motion test is due), pick as
+        many waiting points as the budget allows (priority order of RefineQueue.pick), trace one round of
+        rays for them."""
         now = t_anim
-        if self.last_frame is None or not self.settings.selection:
-            changed, change = np.flatnonzero(self.tracked), None
-        else:
-            changed, change = self._motion_candidates(frame)
-        self.queue.reset(changed, now, change)
+        changed = self._motion_reset(frame, now, edited)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
-        looked = self._looked_at(changed, max(16 * self.budget.points(round_settings.rays_traced),
-                                              self.settings.budget.scan_points))
+        # the points the last motion test reset are looked at every tick until it runs again (in between,
+        # a tick chooses from them and the queue's sweep as the tick after a test does)
+        looked = self._looked_at(changed if len(changed) else self._tested_ids,
+                                 max(16 * self.budget.points(round_settings.rays_traced), self.settings.budget.scan_points))
         s = self.trace_settings
         key, _, core = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
         exact, refill = self._whole_static(looked, core, self.budget.exact_points(s.rays), s.rays)
@@ -535,6 +539,32 @@ class ServerTick:
         chosen, codes = np.concatenate([chosen, refined[0], whole]), np.concatenate([codes, refined[1], whole_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=batch, budget_s=self.budget.budget_s(), exact=n_exact, refilled=len(refill))
+
+    def _motion_reset(self, frame: Frame, now: float, edited: bool) -> np.ndarray:
+        """Reset the queue's history of the points the motion since the last motion test may have changed,
+        when one is due (BudgetSettings.motion_hz, or a scene edit): their ids (sorted), else none. The test
+        compares `frame` with the frame of the last test, so motion in between is never missed: it is
+        tested over the ticks since at once."""
+        before = self._tested_frame or self.last_frame
+        if before is not None and self.settings.selection and not edited and not self._motion_due(frame):
+            return np.zeros(0, np.int64)
+        if before is None or not self.settings.selection:
+            changed, change = np.flatnonzero(self.tracked), None
+        else:
+            changed, change = self._motion_candidates(frame, before=before)
+        self.queue.reset(changed, now, change)
+        self._tested_frame, self._tested_ids = frame, changed
+        return changed
+
+    def _motion_due(self, frame: Frame) -> bool:
+        """Whether this tick tests motion: at most motion_hz times a second of scene time (the service's
+        scene time is its wall time), give or take a quarter of a tick's step (ticks at twice that rate
+        test every other one, whatever their jitter), and at once when the scene stops with motion since
+        the last test untested. Scene time, not the clock: the same scene times make the same tests."""
+        hz = self.settings.budget.motion_hz
+        step = abs(frame.t - self.last_frame.t) if self.last_frame is not None else 0.0
+        since = frame.t - self._tested_frame.t if self._tested_frame is not None else np.inf
+        return hz <= 0 or not 0 <= since < 1.0 / hz - 0.25 * step or (step == 0 and since > 0)
 
     def _whole_static(self, waiting: np.ndarray, seen: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those
@@ -650,6 +680,12 @@ class ServerTick:
         self.stats_history.append(stats)
         return stats
 
+    def observe_service(self, seconds: float) -> None:
+        """What the service spent on the last tick besides prepare and apply (its fan-out, the clients'
+        messages, waking the next tick): the automatic trace budget leaves it room (TraceBudget.observe_service)."""
+        if self.budget is not None:
+            self.budget.observe_service(seconds)
+
     def _queue_stats(self, plan: "TickPlan", trace_s: float) -> dict:
         if self.budget is None:
             return {"queue": int(np.count_nonzero(self.stale))}
@@ -694,20 +730,23 @@ class ServerTick:
         changed = changed_meshes(frame, last)
         return [i for i in self.kinds.moving if turned[i] or self.scene.instances[i].mesh in changed]
 
-    def _motion_candidates(self, frame: Frame, with_change: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """Ids (sorted, tracked) of the points whose AO the motion since the last tick may have changed,
+    def _motion_candidates(self, frame: Frame, with_change: bool = True,
+                           before: Frame | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Ids (sorted, tracked) of the points whose AO the motion since `before` (default: the last tick's
+        frame) may have changed,
         and per id an estimate of how much (static points: selection.occlusion_change of the movers'
         spheres; a mover's own points: _mover_change), or None without `with_change` (the unbudgeted tick
         re-traces them all, in no order). Movers that stood still since then count as static
         boxes for the company test and select nothing themselves. Costs in proportion to the points near
         movers (NearCache), not to the scene."""
-        moved = self._moved_since(frame, self.last_frame)
+        before = self.last_frame if before is None else before
+        moved = self._moved_since(frame, before)
         if not moved:
             return np.zeros(0, np.int64), np.zeros(0, np.float32) if with_change else None
         pick = lambda d: {i: d[i] for i in moved if i in d}  # noqa: E731
-        motion = MotionInput(pick(frame.bounds), pick(self.last_frame.bounds),
+        motion = MotionInput(pick(frame.bounds), pick(before.bounds),
                              [i for i in self.kinds.rigid if i in moved], [i for i in self.kinds.skinned if i in moved],
-                             pick(frame.spheres), pick(self.last_frame.spheres))
+                             pick(frame.spheres), pick(before.spheres))
         reach = reach_boxes(motion, self.scene.ao_distance)
         near, change = self.near_cache.near(reach, motion, with_change)
         runs, changes = [], []  # each mover's own points: consecutive ids, none of them static
@@ -718,20 +757,20 @@ class ServerTick:
             if len(ids):
                 runs.append(ids)
                 if with_change:
-                    changes.append(np.full(len(ids), self._mover_change(i, frame), np.float32))
+                    changes.append(np.full(len(ids), self._mover_change(i, frame, before), np.float32))
         # static ids are tracked
         return merge_disjoint(self.static_ids[near], change, runs, changes if with_change else None)
 
-    def _mover_change(self, i: int, frame: Frame) -> float:
-        """How much the AO of a moving instance's own points may have changed since the last tick, on the
+    def _mover_change(self, i: int, frame: Frame, before: Frame) -> float:
+        """How much the AO of a moving instance's own points may have changed since `before`, on the
         scale of selection.occlusion_change: INSIDE_CHANGE once it has moved by its bounding radius or turned
         a radian; a deforming mesh counts as that much. The same constant as the floor of a static point
         inside a mover's sphere, on purpose: both say "the mover's surface moves around this point", so the
         two kinds rank alike."""
         if i in self.kinds.skinned:
             return INSIDE_CHANGE
-        a, b = frame.transforms[i], self.last_frame.transforms[i]
-        (c, r), (c0, _) = frame.spheres[i], self.last_frame.spheres[i]
+        a, b = frame.transforms[i], before.transforms[i]
+        (c, r), (c0, _) = frame.spheres[i], before.spheres[i]
         with np.errstate(all="ignore"):
             turn = np.linalg.solve(b[:3, :3].T, a[:3, :3].T).T  # a b^-1: the rotation between the frames
             angle = float(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0)))

@@ -195,7 +195,8 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
                                          ("exact_points", -1), ("exact_cost", 0.0), ("exact_cost", -0.5),
                                          ("exact_cost", math.nan), ("refill_points", -1), ("rays_per_tick", -1.0),
                                          ("rays_per_tick", math.nan), ("rays_per_tick", math.inf), ("window", 0),
-                                         ("calls", 0), ("local_rays", 0)])
+                                         ("calls", 0), ("local_rays", 0), ("motion_hz", -1.0),
+                                         ("motion_hz", math.nan), ("motion_hz", math.inf)])
 def test_bad_budget_settings_are_refused(field, value):
     budget = BudgetSettings(**{field: value})
     with pytest.raises(ConfigError):
@@ -281,6 +282,21 @@ def test_trace_budget_keeps_a_share_when_late_and_progresses_below_one_point():
     assert b.other_stages_s == pytest.approx(0.8)
     tiny = TraceBudget(BudgetSettings(budget_ms=1e-3, min_points=7), rays_per_second=1e3)
     assert tiny.points(8) == 7
+
+
+def test_trace_budget_leaves_room_for_what_the_service_spends_a_tick():
+    """The automatic budget is the period's headroom less the tick's other stages and less the median of
+    what its service spent on the recent ticks besides them (observe_service)."""
+    from psao_server.budget import TraceBudget
+
+    b = TraceBudget(BudgetSettings(tick_hz=60.0, headroom=0.85), rays_per_second=2e6)
+    b.observe_other(4e-3)
+    alone = b.budget_s()
+    assert alone == pytest.approx(0.85 / 60 - 4e-3)
+    for s in (3e-3, 2e-3, 3e-3, 0.5, math.nan):  # one slow tick and a bad reading change nothing
+        b.observe_service(s)
+    assert b.service_s == pytest.approx(3e-3)
+    assert b.budget_s() == pytest.approx(alone - 3e-3)
 
 
 def test_budgeted_tick_traces_its_calls_in_its_own_process_below_local_rays():
@@ -580,6 +596,38 @@ def test_points_reset_by_motion_get_their_whole_ray_set_in_one_tick(budgeted_tic
             np.testing.assert_array_equal(accumulated, full)
     finally:
         tick.close()
+
+
+def test_motion_tests_run_at_motion_hz_and_miss_no_motion(budgeted_tick):
+    """At ticks of 6 Hz of scene time and motion_hz 3 (steps long enough that a mover leaves points behind
+    between two ticks), every other tick tests motion, comparing with the frame of the last test (not the
+    last tick's): with rays for every waiting point, each tested tick leaves every point holding exactly
+    the full trace of the scene as it stands, the motion of the untested tick before it included."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1)
+    tick.settings.budget.rays_per_tick = 1e9
+    tick.settings.budget.motion_hz = 3.0
+    tested = []
+    try:
+        for k in range(1, 8):
+            t = 0.1 + k / 6
+            s = tick(tick.grid, t)
+            tested.append(tick._tested_frame.t == t)
+            if tested[-1]:
+                assert s.batch > 0 and s.queue == 0
+                ids = np.flatnonzero(tick.present())
+                accumulated, full = estimates(tick, ids)
+                np.testing.assert_array_equal(accumulated, full)
+            else:
+                assert s.traced == 0  # nothing waits between the tests
+        s = tick(tick.grid, t + 1 / 6)  # a skipped tick, then the scene stops: its motion is tested at once
+        assert tick._tested_frame.t != t + 1 / 6
+        tick(tick.grid, t + 1 / 6)
+        assert tick._tested_frame.t == t + 1 / 6 and tick.queue.count == 0
+        accumulated, full = estimates(tick, np.flatnonzero(tick.present()))
+        np.testing.assert_array_equal(accumulated, full)
+    finally:
+        tick.close()
+    assert tested == [True, False, True, False, True, False, True]
 
 
 def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monkeypatch):
