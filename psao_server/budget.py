@@ -342,6 +342,12 @@ class RefineQueue:
         else the next `limit` entries of a sweep over the list (wrapping; `sweep` 0 is the tick's, 1 a
         refiner's), so a long queue (a first grid being refined) costs a bounded amount per tick and every
         waiting point is looked at once a sweep."""
+        w = self.window(limit, sweep)
+        return w[self.done[w] < self.slices]
+
+    def window(self, limit: int, sweep: int = 0) -> np.ndarray:
+        """The entries of the waiting list `candidates` chooses from (sorted, dead ones too), moving the
+        sweep's cursor as it does."""
         w = self._list
         if len(w) > limit:
             start = self._cursors[sweep]
@@ -352,7 +358,25 @@ class RefineQueue:
                 part = np.concatenate([w[:end], part])
             self._cursors[sweep] = end
             w = part
-        return w[self.done[w] < self.slices]
+        return w
+
+    def looked_at(self, limit: int, changed: np.ndarray, sweep: int = 0) -> np.ndarray:
+        """Sorted ids holding every waiting point of the union of candidates(limit, sweep) and `changed`
+        (sorted, distinct), maybe with some that no longer wait: the sweep's window (moving its cursor as
+        candidates does) and the ids of `changed` outside the window's range of ids, put where they fall
+        (no sort: a waiting point is listed, so a waiting id of `changed` within that range is in the
+        window already). Not to be modified (it may be the list itself)."""
+        w, start = self._list, self._cursors[sweep]
+        part = self.window(limit, sweep)
+        if len(w) <= limit or len(part) == 0:  # the whole list: every waiting point
+            return part
+        if start + limit <= len(w):  # part = w[start:start + limit]: the ids changed on either side of it
+            lo, hi = np.searchsorted(changed, part[0]), np.searchsorted(changed, part[-1], side="right")
+            return np.concatenate([changed[:lo], part, changed[hi:]])
+        end = start + limit - len(w)  # part = w[:end], w[start:]: the ids changed between the two
+        lo = np.searchsorted(changed, w[end - 1], side="right")
+        hi = np.searchsorted(changed, w[start]) if start < len(w) else len(changed)
+        return np.concatenate([w[:end], changed[lo:hi], w[start:]])
 
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int, core: np.ndarray | None = None) -> np.ndarray:
         """The first `k` of `ids` in priority order: in some extended view before out of every view; among

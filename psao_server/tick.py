@@ -60,7 +60,7 @@ from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_wit
 from psao_server.errors import ConfigError, TracerError
 from psao_server.grid import NO_POINT, Grid
 from psao_server.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view,
-                                   reach_boxes, merge_disjoint, rigid_in_company, sorted_union)
+                                   reach_boxes, merge_disjoint, rigid_in_company)
 from psao_server.settings import TickSettings, TraceSettings
 from psao_server.static_hits import StaticHits
 from psao_server.tracer import make_tracer
@@ -613,8 +613,7 @@ class ServerTick:
         n_list = self.queue.listed
         if len(changed) == 0 and self._swept_empty >= n_list:
             return changed
-        part = self.queue.candidates(scan)
-        looked = sorted_union([part, changed])
+        looked = self.queue.looked_at(scan, changed)
         looked = looked[self.tracked[looked] & (self.queue.done[looked] < self.queue.slices)]
         if self.refiner is not None:
             looked = looked[~self.refiner.busy[looked] & ~(self.refiner.static[looked] & self.queue.first_grid(looked))]
