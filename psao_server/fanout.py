@@ -44,6 +44,9 @@ from .sendview import CellPlaces, client_planes, clients_planes
 from .settings import FanoutSettings
 
 
+MERGE_ROWS = 1 << 16  # dirty cells noted for the places (Fanout._note_changed) before they are merged
+
+
 @dataclass
 class FanoutCounters:
     shared_updates: int = 0  # Updates encoded once for the shared stream
@@ -145,8 +148,9 @@ class Fanout:
         self._tile_size: float | None = None  # world units of a tile's side
         self._places: CellPlaces | None = None  # every slot's place, kept across ticks
         self._placed_with: np.ndarray | None = None  # the transforms it holds
-        self._stale = np.zeros(0, bool)  # per slot: changed since (the ticks' dirty cells)
-        self._stale_any = False  # whether any is (places() then scans and clears the mask)
+        self._changed: list[np.ndarray] = []  # the ticks' dirty cells since the places were last brought up to date
+        self._changed_rows = 0  # how many (with repeats) those arrays hold
+        self._merge_at = MERGE_ROWS  # when they are merged into one (repeats dropped)
 
     def planes(self, client: Client) -> np.ndarray | None:
         """The client's extended frustum, or None when it sees everything (no culling, no usable camera)."""
@@ -164,30 +168,49 @@ class Fanout:
             c.keep_planes(planes)
 
     def places(self, grid, transforms: np.ndarray) -> CellPlaces:
-        """Where every cell slot is, for all the clients: worked out in full when the pool changes size,
-        else again only for the slots the ticks changed, and the cells of instances whose transform
-        changed (bitwise) moved with them."""
+        """Where every cell slot is, for all the clients (every place worked out: `_places_kept`, settled)."""
+        places = self._places_kept(grid, transforms)
+        places.settle()
+        return places
+
+    def _places_kept(self, grid, transforms: np.ndarray) -> CellPlaces:
+        """The places kept across ticks: worked out in full when the pool changes size, else again only
+        for the slots the ticks changed; the cells of instances whose transform changed (bitwise) move
+        with them when they are next tested (CellPlaces.defer: a tick tests a few, most stay put)."""
         t = np.ascontiguousarray(transforms, np.float32)
         if (self._places is None or len(self._places.centres) != len(grid.cells)
                 or self._placed_with.shape != t.shape):
             self._places = CellPlaces(grid, np.arange(len(grid.cells)), t)
         else:
-            if self._stale_any:
-                self._places.refresh(grid, np.flatnonzero(self._stale), t)
             moved = changed_transform_ids(self._placed_with, t)
             if len(moved):  # their cells keep their places in the instance's space
-                is_moved = np.zeros(len(t) + 1, bool)  # (the last entry: owner -1, a slot with no place)
-                is_moved[moved] = True
-                self._places.place(np.flatnonzero(is_moved[self._places.owner]), t)
+                self._places.defer(moved, t)
+            if self._changed:
+                self._places.refresh(grid, self._changed_slots(), t)
         self._placed_with = t.copy()
-        if self._stale_any:
-            self._stale[:] = False
-            self._stale_any = False
+        self._changed, self._changed_rows, self._merge_at = [], 0, MERGE_ROWS
         return self._places
+
+    def _note_changed(self, cell_slots: np.ndarray) -> None:
+        """The tick's dirty cells: their places may have changed (looked at again by _places_kept). Kept as
+        the ticks' arrays (no pass over every slot each tick), merged when they grow (bounded however long
+        no place is asked for: by twice the slots changed, or MERGE_ROWS)."""
+        if not len(cell_slots):
+            return
+        self._changed.append(np.asarray(cell_slots, np.int64))
+        self._changed_rows += len(cell_slots)
+        if self._changed_rows > self._merge_at:
+            merged = self._changed_slots()
+            self._changed, self._changed_rows = [merged], len(merged)
+            self._merge_at = max(MERGE_ROWS, 2 * len(merged))
+
+    def _changed_slots(self) -> np.ndarray:
+        return np.unique(np.concatenate(self._changed))
 
     def tile_size(self, places: CellPlaces) -> float:
         """A tile's side: the extent of the placed cells over settings.tiles_per_axis (fixed once known)."""
         if self._tile_size is None:
+            places.settle()
             known = np.isfinite(places.centres).all(axis=1)
             if not known.any():
                 return 1.0
@@ -220,11 +243,12 @@ class Fanout:
                 c.mark(bucket_ids, cell_slots, capacity)
             return None
         now_t = np.ascontiguousarray(transforms, np.float32)
-        places = self.places(grid, now_t) if self.settings.cull else None
+        places = self._places_kept(grid, now_t) if self.settings.cull else None
         slots = np.sort(np.asarray(cell_slots, np.int64))
         # tiles: dirty cells sorted by tile, `starts` where each tile's run begins
         if places is not None and len(slots):
             size = self.tile_size(places)
+            places.settle(slots)
             centre = places.centres[slots]
             known = np.isfinite(centre).all(axis=1)
             cell = np.where(known[:, None], np.floor(np.nan_to_num(centre) / size), 0).astype(np.int64)
@@ -342,7 +366,7 @@ class Fanout:
         planes = self.planes(client)
         if planes is None:
             return None
-        return lambda slots: self.places(grid, transforms).in_view(planes, self.settings.view, slots)
+        return lambda slots: self._places_kept(grid, transforms).in_view(planes, self.settings.view, slots)
 
     def plan(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray, transforms: np.ndarray,
              tick: int, server_time: float, now: float) -> tuple[SharePlan | None, list[Client]]:
@@ -364,12 +388,8 @@ class Fanout:
                      transforms: np.ndarray, tick: int, server_time: float, now: float,
                      others: list[Client]) -> SharePlan | None:
         """The shared stream's members this tick (the rest are put in `others`)."""
-        capacity = len(grid.cells)
         changed_rows = bool(len(bucket_ids) or len(cell_slots))
-        if len(self._stale) < capacity:
-            self._stale = np.concatenate([self._stale, np.zeros(capacity - len(self._stale), bool)])
-        self._stale[cell_slots] = True  # their places may have changed
-        self._stale_any |= bool(len(cell_slots))
+        self._note_changed(cell_slots)
         members, joiners = [], []
         flags = [(c, not c.shared and c.stream_codec and c.streaming and not c.outbox and not c.in_flight
                   and not self.behind(c) and not c.pending_anything()) for c in clients]
@@ -421,7 +441,7 @@ class Fanout:
             return out
         culled = [(c, p) for c in clients if (p := self.planes(c)) is not None]
         if culled:
-            inside = self.places(grid, transforms).in_views(np.stack([p for _, p in culled]), self.settings.view,
+            inside = self._places_kept(grid, transforms).in_views(np.stack([p for _, p in culled]), self.settings.view,
                                                            np.asarray(cell_slots, np.int64))
             for (c, _), every in zip(culled, inside.all(axis=1)):
                 out[c.id] = bool(every)

@@ -20,7 +20,9 @@ BLOCK = 1 << 16  # (camera, cell) pairs a plane test works on at once: each temp
 
 
 class CellPlaces:
-    """World-space centres and reach (half diagonal) of a set of cell slots under given transforms."""
+    """World-space centres and reach (half diagonal) of a set of cell slots under given transforms. After
+    `defer` (instances moved) a row's attributes are current once it is settled: the plane tests settle
+    the rows they test, `settle()` all of them."""
 
     def __init__(self, grid, slots: np.ndarray, transforms: np.ndarray):
         slots = np.asarray(slots, np.int64)
@@ -47,25 +49,45 @@ class CellPlaces:
         # place is unknown, and the slack each plane test allows, infinite where unknown (always in view).
         self.xyz = np.zeros((3, n))
         self.slack = np.full(n, np.inf)
-        self.place(placed, transforms)
+        # Rows whose instance moved (`defer`) are placed again, under the latest transforms, only when they
+        # are next tested (`settle`): a tick tests a few cells, its dirty ones. Versions tell which: per
+        # instance the defer that last moved it (the extra last entry: owner -1, never moves), per row the
+        # version it was placed at.
+        self.version = 0
+        self.moved_at = np.zeros(len(transforms) + 1, np.int64)
+        self.placed_at = np.zeros(n, np.int64)
+        self.matrices = np.array(transforms, np.float64)
+        self.stretch = _stretch(self.matrices)
+        self._place(placed)
 
-    def place(self, rows: np.ndarray, transforms: np.ndarray) -> None:
-        """World centres and reach of these rows (slots with a known place) under `transforms`: what an
-        instance's move changes (its cells' places in its own space stay)."""
-        rows = np.asarray(rows, np.int64)
+    def _place(self, rows: np.ndarray) -> None:
+        """World centres and reach of these rows (slots with a known place) under the latest transforms:
+        what an instance's move changes (its cells' places in its own space stay)."""
         if not len(rows):
             return
-        owners = self.owner[rows]
-        used, at = np.unique(owners, return_inverse=True)
-        m = np.asarray(transforms, np.float64)[used]  # (instances, 4, 4)
-        stretch = np.linalg.norm(m[:, :3, :3], 2, axis=(1, 2))  # largest stretch of each, shear included
-        m = m[at]  # each row's instance's
+        at = self.owner[rows]
+        m = self.matrices[at]  # each row's instance's
         loc = self.local[rows]
         # per coordinate multiply-adds (no einsum, no BLAS): the same numbers however many rows
         world = loc[:, 0:1] * m[:, :3, 0] + loc[:, 1:2] * m[:, :3, 1] + loc[:, 2:3] * m[:, :3, 2] + m[:, :3, 3]
         self.centres[rows] = world
         self.xyz[:, rows] = world.T
-        self.reach[rows] = self.slack[rows] = self.half_diagonal[rows] * stretch[at]
+        self.reach[rows] = self.slack[rows] = self.half_diagonal[rows] * self.stretch[at]
+        self.placed_at[rows] = self.version
+
+    def defer(self, instances: np.ndarray, transforms: np.ndarray) -> None:
+        """These instances moved (`transforms`: every instance's now): their cells are placed again when
+        they are next tested."""
+        self.version += 1
+        self.moved_at[instances] = self.version
+        self.matrices = np.array(transforms, np.float64)
+        self.stretch = self.stretch.copy()
+        self.stretch[instances] = _stretch(self.matrices[instances])
+
+    def settle(self, rows: np.ndarray | None = None) -> None:
+        """Place the rows among these (all: None) whose instance moved since they were placed."""
+        rows = np.arange(len(self.owner)) if rows is None else np.asarray(rows, np.int64)
+        self._place(rows[self.placed_at[rows] < self.moved_at[self.owner[rows]]])
 
     def refresh(self, grid, slots: np.ndarray, transforms: np.ndarray) -> None:
         """Work the places of these slots out again where their cell changed (another key or instance:
@@ -80,6 +102,7 @@ class CellPlaces:
         for name in ("owner", "local", "half_diagonal", "centres", "reach", "slack", "key"):
             getattr(self, name)[slots] = getattr(part, name)
         self.xyz[:, slots] = part.xyz
+        self.placed_at[slots] = self.version  # (placed under `transforms`: the latest)
 
     def in_view(self, planes: np.ndarray | None, view: ViewSettings, rows: np.ndarray | None = None) -> np.ndarray:
         """Bool per slot (or per one of `rows`, indices into the slots): in the extended view of a camera's
@@ -93,6 +116,7 @@ class CellPlaces:
         """in_view for several cameras' planes (C, 5, 4) at once: bool (C, slots or rows), in blocks of
         cameras and rows of about BLOCK pairs each (the plane test's temporaries stay a few MB however many
         clients and cells)."""
+        self.settle(rows)
         n = len(self.slack) if rows is None else len(rows)
         out = np.empty((len(planes), n), bool)
         step = max(1, BLOCK // max(1, len(planes)))  # rows a block: every camera at once where they fit
@@ -109,6 +133,7 @@ class CellPlaces:
     def in_view_each(self, planes: np.ndarray, camera: np.ndarray, view: ViewSettings, rows: np.ndarray) -> np.ndarray:
         """Bool per one of `rows`, each tested against the planes (C, 5, 4) of its own camera (`camera`:
         an index into them per row): the cells of many clients in one pass, in blocks of BLOCK rows."""
+        self.settle(rows)
         out = np.empty(len(rows), bool)
         for lo in range(0, len(rows), BLOCK):
             p = np.ascontiguousarray(planes[camera[lo:lo + BLOCK]].transpose(2, 1, 0))  # (coefficient, plane, cell)
@@ -116,6 +141,13 @@ class CellPlaces:
             xyz = self.xyz[:, at]
             out[lo:lo + BLOCK] = _inside(p[0], p[1], p[2], p[3], xyz[0], xyz[1], xyz[2], self.slack[at], view)
         return out
+
+
+def _stretch(transforms: np.ndarray) -> np.ndarray:
+    """Per (4, 4) transform: the largest stretch of its linear part, shear included (spectral norm)."""
+    if not len(transforms):
+        return np.zeros(0)
+    return np.linalg.svd(transforms[:, :3, :3], compute_uv=False)[:, 0]  # (descending: the largest first)
 
 
 def _inside(a, b, c, d0, x, y, z, slack, view: ViewSettings) -> np.ndarray:

@@ -187,30 +187,69 @@ def _cell_x(grid: Grid, slot: int) -> float:
 
 def test_cell_places_kept_across_ticks_equal_places_worked_out_anew():
     """The fan-out keeps every slot's place across ticks, working out again only the slots a tick changed
-    and the cells of instances that moved: that must equal working everything out from scratch."""
+    and, when they are tested, the cells of instances that moved: that must equal working everything out
+    from scratch, for the cells a tick tests and for all of them."""
     from protocol.session import ServerConfig
     from psao_server.fanout import Fanout
+    from psao_server.selection import camera_planes
     from psao_server.sendview import CellPlaces
 
     grid = TwoSides.grid(2000)
     rng = np.random.default_rng(3)
-    fanout = Fanout(ServerConfig(HASH), FanoutSettings())
+    settings = FanoutSettings()
+    fanout = Fanout(ServerConfig(HASH), settings)
     transforms = np.tile(np.eye(4, dtype=np.float32), (1, 1, 1))
+    planes = camera_planes(look_at(np.array([0.0, 1, 0]), np.array([5.0, 1, 0])), perspective(60.0, 1.5, 0.05, 100.0),
+                           settings.view.fov_margin)
     fanout.places(grid, transforms)
     for step in range(4):
         pos = np.column_stack([rng.uniform(-20, 20, 50), np.zeros(50), rng.uniform(-2.5, 2.5, 50)])
         grid.insert_points(0, pos, np.tile(np.float32([0, 1, 0]), (50, 1)), np.full(50, 128, np.uint32))
         _, cells = grid.take_dirty()
         transforms = transforms.copy()
-        transforms[0, :3, 3] += np.float32(step + 1)  # the instance moves too
+        transforms[0] = np.diag(np.float32([-1, 1, -1, 1])) @ transforms[0]  # it turns half round: its sides swap
+        transforms[0, :3, 3] += np.float32(step + 1)  # and moves
         fanout.plan([], grid, np.zeros(0, np.uint32), cells, transforms, step, 0.0, 0.0)
-        kept = fanout.places(grid, transforms)
         fresh = CellPlaces(grid, np.arange(len(grid.cells)), transforms)
+        # a tick's tests: some cells, each under the latest move (the camera sees one side)
+        rows = rng.choice(np.flatnonzero(np.isfinite(fresh.centres[:, 0])), 300)
+        tested = fanout._places_kept(grid, transforms).in_view(planes, settings.view, rows)
+        np.testing.assert_array_equal(tested, fresh.in_view(planes, settings.view, rows))
+        assert 0 < tested.sum() < len(rows) or step  # (the camera leaves some out, keeps others)
+        kept = fanout.places(grid, transforms)
         np.testing.assert_array_equal(kept.centres, fresh.centres)
         np.testing.assert_array_equal(kept.reach, fresh.reach)
         np.testing.assert_array_equal(kept.xyz, fresh.xyz)
         np.testing.assert_array_equal(kept.slack, fresh.slack)
         np.testing.assert_array_equal(kept.owner, fresh.owner)
+
+
+def test_dirty_cells_kept_for_the_places_stay_bounded_while_no_place_is_asked_for(monkeypatch):
+    """No client tests a place (none connected, or none culls): the ticks' dirty cells the places must
+    look at again are merged as they pile up, held in at most twice the slots changed (or MERGE_ROWS)."""
+    from protocol.session import ServerConfig
+    from psao_server import fanout as fanout_module
+    from psao_server.sendview import CellPlaces
+
+    monkeypatch.setattr(fanout_module, "MERGE_ROWS", 100)
+    grid = TwoSides.grid(2000)
+    fanout = fanout_module.Fanout(ServerConfig(HASH), FanoutSettings())
+    transforms = np.tile(np.eye(4, dtype=np.float32), (1, 1, 1))
+    fanout.places(grid, transforms)
+    rng = np.random.default_rng(4)
+    changed = set()
+    for step in range(200):
+        pos = np.column_stack([rng.uniform(-20, 20, 10), np.zeros(10), rng.uniform(-2.5, 2.5, 10)])
+        grid.insert_points(0, pos, np.tile(np.float32([0, 1, 0]), (10, 1)), np.full(10, 128, np.uint32))
+        _, cells = grid.take_dirty()
+        cells = np.concatenate([cells, rng.choice(len(grid.cells), 30)]).astype(np.uint32)  # and AO changes
+        changed.update(cells.tolist())
+        fanout.plan([], grid, np.zeros(0, np.uint32), cells, transforms, step, 0.0, 0.0)
+        assert sum(len(a) for a in fanout._changed) <= max(100, 2 * len(changed))
+    assert sum(len(a) for a in fanout._changed) < 200 * 30  # (merged: fewer than were noted)
+    kept = fanout.places(grid, transforms)  # and the places are those of the grid now
+    fresh = CellPlaces(grid, np.arange(len(grid.cells)), transforms)
+    np.testing.assert_array_equal(kept.centres, fresh.centres)
 
 
 def test_in_view_is_the_plane_test_of_every_cell():
