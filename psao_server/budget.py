@@ -298,6 +298,11 @@ class RefineQueue:
         and no change around it since."""
         return (self.done[ids] == 0) & (self.old_until[ids] > self.old_rays[ids])
 
+    def unstarted(self, ids: np.ndarray) -> np.ndarray:
+        """Bool per id: nothing traced since its last reset, and no first grid's estimate (first_grid): its
+        next trace is its whole ray set."""
+        return (self.rays[ids] == 0) & (self.done[ids] == 0) & ~(self.old_until[ids] > self.old_rays[ids])
+
     def reset(self, ids: np.ndarray, now: float, change: np.ndarray | None = None) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already.
         Points with no fresh rays since their last reset (and no more kept rays than keep_rays) are left as
@@ -306,8 +311,9 @@ class RefineQueue:
         if change is not None:
             self.change[ids] = np.minimum(self.change[ids] + change, MAX_CHANGE)
         cap = min(self.keep, self.target) if self.keep else np.inf
-        ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (self.old_rays[ids] > cap)
-                  | (self.old_until[ids] > self.old_rays[ids])]  # a first grid's estimate (now of other geometry)
+        old = self.old_rays[ids]
+        ids = ids[(self.rays[ids] > 0) | (self.done[ids] > 0) | (old > cap)
+                  | (self.old_until[ids] > old)]  # a first grid's estimate (now of other geometry)
         fresh = ids[self.rays[ids] >= self.target]
         self.waiting_since[fresh] = now
         if self.keep:

@@ -597,7 +597,7 @@ class ServerTick:
         per_round = self._round_settings().rays_traced
         rays_all = self.settings.rays
         hits = self._static_hits
-        reset = (self.queue.rays[looked] == 0) & (self.queue.done[looked] == 0) & ~self.queue.first_grid(looked)
+        reset = self.queue.unstarted(looked)
         exactable = reset & (hits.static[looked] & hits.known[looked] if hits is not None else False)
         cost = np.where(exactable, self.budget.exact_rays(rays_all), np.where(reset, float(rays_all), float(per_round)))
         at = np.searchsorted(looked, first_within(looked, key, cost, rays, self.settings.budget.min_points))

@@ -1,6 +1,7 @@
 """The budgeted tick's look at the waiting points (RefineQueue.looked_at: the sweep's window and the
 points just reset put where they fall) picks what a sort of their union picked: the same ids and AO
-codes, tick for tick, on a moving scene with deterministic clocks."""
+codes, tick for tick, on a moving scene with deterministic clocks; RefineQueue.unstarted (the rounds'
+points due their whole ray set) says what rays, done and first_grid say."""
 import types
 
 import numpy as np
@@ -69,6 +70,8 @@ def test_looking_at_the_window_and_the_changed_picks_what_their_sorted_union_pic
             np.testing.assert_array_equal(plan.codes, old_plan.codes, err_msg=f"tick {k}")
             np.testing.assert_array_equal(new.queue._list, old.queue._list, err_msg=f"tick {k}")
             assert new.queue._cursors == old.queue._cursors
+            q, every = new.queue, np.arange(len(new.tracked))  # the rounds' whole ray sets: as first_grid says
+            np.testing.assert_array_equal(q.unstarted(every), (q.rays == 0) & (q.done == 0) & ~q.first_grid(every))
             seen["traced"] += len(plan.ids)
             seen["left"] += len(looked_new[-1]) > len(plan.ids)  # the budget left points waiting
             seen["swept"] += new.queue.listed > scan_points
