@@ -265,9 +265,11 @@ class Service:
             if now - last_stats >= self.settings.stats_interval:
                 self._log_stats(now - last_stats)
                 last_stats = now
-            next_at = max(next_at + period, now)  # a late tick is not made up for
-            own = (now, next_at - now, now - t0 - getattr(stats, "seconds_total", 0.0))
-            await asyncio.sleep(next_at - now)
+            # a tick late by up to a period is made up for by the next one starting at once (ticks of uneven
+            # length keep the rate on average); later than that, the schedule restarts from then (no burst)
+            next_at = max(next_at + period, now - period)
+            own = (now, max(next_at - now, 0.0), now - t0 - getattr(stats, "seconds_total", 0.0))
+            await asyncio.sleep(max(next_at - now, 0.0))
 
     async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:
         """The tick's changes: one Update encoded once for the clients on the shared stream, Updates of

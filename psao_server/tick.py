@@ -67,6 +67,7 @@ from psao_server.tracer import make_tracer
 from psao_server.tracer.base import TracePart
 
 log = logging.getLogger("psao.tick")
+AHEAD_TICKS = 4  # a full look keeps the best of what it saw for the next tick: this many ticks' worth of points
 
 
 @dataclass
@@ -173,6 +174,7 @@ class ServerTick:
         # the ids it reset then
         self._tested_frame: Frame | None = None
         self._tested_ids = np.zeros(0, np.int64)
+        self._ahead: np.ndarray | None = None  # the best waiting ids of the last full look (sorted), for the next tick
         if self.settings.budget is not None:
             self._init_budget(bake)
         self.refiner = refiner
@@ -487,15 +489,22 @@ class ServerTick:
         changed = self._motion_reset(frame, now, edited)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
-        # the points the last motion test reset are looked at every tick until it runs again (in between,
-        # a tick chooses from them and the queue's sweep as the tick after a test does)
-        looked = self._looked_at(changed if len(changed) else self._tested_ids,
-                                 max(16 * self.budget.points(round_settings.rays_traced), self.settings.budget.scan_points))
+        # A tick that tested motion, or follows one that chose from the best of a full look, looks at the
+        # points the last test reset and the queue's sweep; the tick between two motion tests chooses from
+        # the best of that look still waiting (their keys change little in a tick: no reset in between).
+        light = self._tested_frame is not frame and self._ahead is not None
+        scan = max(16 * self.budget.points(round_settings.rays_traced), self.settings.budget.scan_points)
+        looked = self._looked_at(changed if len(changed) else self._tested_ids, scan,
+                                 among=self._ahead if light else None)
+        self._ahead = None
         s = self.trace_settings
         key, _, core = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
-        exact, refill = self._whole_static(looked, core, self.budget.exact_points(s.rays), s.rays)
+        most_exact = self.budget.exact_points(s.rays)
+        exact, refill = self._whole_static(looked, core, most_exact, s.rays)
         spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
         k = self.budget.points(round_settings.rays_traced, spent)  # the rounds get what is left
+        if not light:  # several ticks' worth of the best, for the next tick if it tests no motion
+            self._ahead = np.sort(first_by_key(looked, key, AHEAD_TICKS * (k + most_exact)))
         whole = np.concatenate([refill, exact])
         if len(whole):  # (both sorted, whole within looked)
             rest = np.ones(len(looked), bool)
@@ -605,19 +614,24 @@ class ServerTick:
         fresh, cheap = reset[at] & ~exactable[at], exactable[at]
         return ids[~fresh & ~cheap], np.sort(ids[fresh]), np.sort(ids[cheap])
 
-    def _looked_at(self, changed: np.ndarray, scan: int) -> np.ndarray:
+    def _looked_at(self, changed: np.ndarray, scan: int, among: np.ndarray | None = None) -> np.ndarray:
         """The waiting points this tick chooses from (sorted): those just reset (`changed`) and all the
         others, or the next `scan` of a sweep over a long queue, not those the refiner has (out now, or the first grid's static points: it traces
         them faster). Once a whole sweep found none, only a reset can make more: until then the queue is
-        not looked at (a first grid being refined costs the ticks nothing)."""
-        n_list = self.queue.listed
-        if len(changed) == 0 and self._swept_empty >= n_list:
-            return changed
-        looked = self.queue.looked_at(scan, changed)
+        not looked at (a first grid being refined costs the ticks nothing). `among` (sorted ids): those of
+        them still waiting instead (no sweep)."""
+        if among is not None:
+            looked = among
+        else:
+            n_list = self.queue.listed
+            if len(changed) == 0 and self._swept_empty >= n_list:
+                return changed
+            looked = self.queue.looked_at(scan, changed)
         looked = looked[self.tracked[looked] & (self.queue.done[looked] < self.queue.slices)]
         if self.refiner is not None:
             looked = looked[~self.refiner.busy[looked] & ~(self.refiner.static[looked] & self.queue.first_grid(looked))]
-        self._swept_empty = 0 if len(looked) or len(changed) else self._swept_empty + min(scan, n_list)
+        if among is None:
+            self._swept_empty = 0 if len(looked) or len(changed) else self._swept_empty + min(scan, n_list)
         return looked
 
     def pick(self, frame: Frame, waiting: np.ndarray, k: int) -> np.ndarray:

@@ -630,6 +630,31 @@ def test_motion_tests_run_at_motion_hz_and_miss_no_motion(budgeted_tick):
     assert tested == [True, False, True, False, True, False, True]
 
 
+def test_a_tick_between_motion_tests_chooses_among_the_best_of_the_last_look(budgeted_tick):
+    """The tick between two motion tests chooses among the best of the last full look still waiting (no
+    sweep, no priority pass over every reset point), and traces as many points as a tick that looks at
+    everything: min_points here (a budget of one ray), with far more waiting."""
+    light = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50)
+    full = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50)
+    short = 0
+    try:
+        for k in range(1, 9):
+            t = 0.1 + k / 60
+            ahead = light._ahead
+            full._ahead = None  # every tick a full look
+            a, b = light.prepare(t), full.prepare(t)
+            if light._tested_frame is not a.frame:  # no motion test: the short path
+                short += 1
+                assert ahead is not None and np.isin(a.ids, ahead).all()
+            assert len(a.ids) == len(b.ids) == 50 and light.queue.count > 200
+            light.apply(a)
+            full.apply(b)
+    finally:
+        light.close()
+        full.close()
+    assert short == 4
+
+
 def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monkeypatch):
     """The budgeted tick pays the select stage's one-time costs when it is made (its kernels loaded, the
     movers' nearby static points gathered), and its moving ticks then pick and trace exactly what a tick

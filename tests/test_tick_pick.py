@@ -13,24 +13,26 @@ from psao_server.budget import BudgetSettings
 from psao_server.selection import sorted_union
 
 
-def sorted_looked_at(tick, changed: np.ndarray, scan: int) -> np.ndarray:
-    """ServerTick._looked_at with the sorted union of the sweep's candidates and `changed`."""
+def sorted_looked_at(tick, changed: np.ndarray, scan: int, among: np.ndarray | None = None) -> np.ndarray:
+    """ServerTick._looked_at with the sorted union of the sweep's candidates and `changed` (`among`, the
+    best of the last full look for a tick between motion tests: as _looked_at)."""
     q = tick.queue
     n_list = q.listed
-    if len(changed) == 0 and tick._swept_empty >= n_list:
+    if among is None and len(changed) == 0 and tick._swept_empty >= n_list:
         return changed
-    looked = sorted_union([q.candidates(scan), changed])
+    looked = sorted_union([q.candidates(scan), changed]) if among is None else among
     looked = looked[tick.tracked[looked] & (q.done[looked] < q.slices)]
     if tick.refiner is not None:
         looked = looked[~tick.refiner.busy[looked] & ~(tick.refiner.static[looked] & q.first_grid(looked))]
-    tick._swept_empty = 0 if len(looked) or len(changed) else tick._swept_empty + min(scan, n_list)
+    if among is None:
+        tick._swept_empty = 0 if len(looked) or len(changed) else tick._swept_empty + min(scan, n_list)
     return looked
 
 
 def recording(call, out: list):
     """`call`, its answers appended to `out`."""
-    def recorded(*args):
-        out.append(call(*args))
+    def recorded(*args, **kwargs):
+        out.append(call(*args, **kwargs))
         return out[-1]
     return recorded
 
@@ -51,7 +53,7 @@ def test_looking_at_the_window_and_the_changed_picks_what_their_sorted_union_pic
                 for _ in range(2))
     looked_new, looked_old = [], []
     new._looked_at = recording(new._looked_at, looked_new)
-    old._looked_at = recording(lambda changed, scan: sorted_looked_at(old, changed, scan), looked_old)
+    old._looked_at = recording(lambda changed, scan, among=None: sorted_looked_at(old, changed, scan, among), looked_old)
     try:
         feed = scene_camera_feed(new.scene)
         seen = {"traced": 0, "left": 0, "swept": 0, "wrapped": 0}
