@@ -568,12 +568,17 @@ class ServerTick:
     def _motion_due(self, frame: Frame) -> bool:
         """Whether this tick tests motion: at most motion_hz times a second of scene time (the service's
         scene time is its wall time), give or take a quarter of a tick's step (ticks at twice that rate
-        test every other one, whatever their jitter), and at once when the scene stops with motion since
-        the last test untested. Scene time, not the clock: the same scene times make the same tests."""
+        test every other one, whatever their jitter), and not twice in a row while ticks come at more than
+        half that rate (a tick slowed by its test does not make the next one test too: the ticks between
+        tests are the cheap ones); at once when the scene stops with motion since the last test untested.
+        Scene time, not the clock: the same scene times make the same tests."""
         hz = self.settings.budget.motion_hz
         step = abs(frame.t - self.last_frame.t) if self.last_frame is not None else 0.0
         since = frame.t - self._tested_frame.t if self._tested_frame is not None else np.inf
-        return hz <= 0 or not 0 <= since < 1.0 / hz - 0.25 * step or (step == 0 and since > 0)
+        if hz <= 0 or not 0 <= since or (step == 0 and since > 0):
+            return True
+        just_tested = self._tested_frame is self.last_frame
+        return since >= (2.0 if just_tested else 1.0) / hz - 0.25 * step
 
     def _whole_static(self, waiting: np.ndarray, seen: np.ndarray, most: int, rays: int) -> tuple[np.ndarray, np.ndarray]:
         """The static points among `waiting` (sorted) that get their whole ray set at once this tick: those

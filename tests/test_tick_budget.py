@@ -630,6 +630,22 @@ def test_motion_tests_run_at_motion_hz_and_miss_no_motion(budgeted_tick):
     assert tested == [True, False, True, False, True, False, True]
 
 
+@pytest.mark.parametrize("step,every", [(0.3, 2), (0.7, 1)])
+def test_motion_tests_are_not_made_twice_in_a_row_while_ticks_are_fast(budgeted_tick, step, every):
+    """Ticks slower than motion_hz but faster than half of it (a loaded machine) still test every other
+    tick, not every tick (the tick after a test is a cheap one); slower still, every tick tests."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1)
+    tick.settings.budget.motion_hz = 3.0
+    tested = []
+    try:
+        for k in range(1, 7):
+            tick(tick.grid, 0.1 + k * step)
+            tested.append(tick._tested_frame.t == 0.1 + k * step)
+    finally:
+        tick.close()
+    assert tested == [k % every == 0 for k in range(6)]
+
+
 def test_a_tick_between_motion_tests_chooses_among_the_best_of_the_last_look(budgeted_tick):
     """The tick between two motion tests chooses among the best of the last full look still waiting (no
     sweep, no priority pass over every reset point), and traces as many points as a tick that looks at
@@ -666,6 +682,7 @@ def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monk
     warm = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1_000_000)
     monkeypatch.setattr(ServerTick, "_warm_up_select", lambda self: None)
     cold = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1_000_000)
+    warm.settings.budget.motion_hz = cold.settings.budget.motion_hz = 0.0  # every tick tests motion
     try:
         assert warm._priority is not None and cold._priority is None
         for t in (0.05, 0.1, 0.15):
