@@ -542,6 +542,33 @@ def test_the_account_counts_a_pooled_calls_worker_seconds_over_its_workers():
         tracer.close()
 
 
+@pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "dask"])
+def test_every_backend_accounts_its_rays_and_their_seconds(backend):
+    """Each call adds its rays to the tracer's account, and the seconds they took (`wall`: what the tick's
+    budget counts as the rays' own, the rest of the call being its fixed cost) within the call's own."""
+    import time
+
+    v, f = slab(1.0)
+    tracer = make_tracer(backend)
+    tracer.set_static(v, f)
+    n = 300
+    pos = np.column_stack([np.linspace(-1, 1, n), np.zeros(n), np.zeros(n)])
+    nrm = np.tile([0, 0, 1.0], (n, 1))
+    s = TraceSettings(rays=16, ao_distance=2.0)
+    try:
+        tracer.visibility(pos[:1], nrm[:1], np.arange(1), s)  # (a first call's set-up: a kernel compiled)
+        a = tracer.account
+        rays, wall = a.rays, a.wall
+        t0 = time.perf_counter()
+        tracer.visibility(pos, nrm, np.arange(n), s)
+        call = time.perf_counter() - t0
+        assert a.rays - rays == n * 16
+        assert 0 < a.wall - wall <= call
+        assert tracer.throughput()["rays_per_second"] > 0
+    finally:
+        tracer.close()
+
+
 def test_parts_traced_in_process_together_answer_as_each_alone():
     """A call of several parts traced in the calling process (a tick's: slices of ray sets, whole ray sets,
     whole ray sets that keep or are given their static hits) queries the static scene once, for the rays

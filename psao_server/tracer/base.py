@@ -29,6 +29,31 @@ def recentre_poses(rigid_transforms, center: np.ndarray) -> np.ndarray | None:
     return poses
 
 
+class CpuAccount:
+    """Rays traced and the seconds spent on them: in the bare query (Embree's occlusion call; the Warp
+    kernel) and in total (making the rays too), and (`wall`) the share of the callers' wall time those
+    totals stand for (a pooled call's worker seconds over its workers), which the tick's budget takes apart
+    from a call's fixed cost."""
+
+    def __init__(self):
+        self.rays = 0
+        self.cpu_query = 0.0
+        self.cpu_total = 0.0
+        self.wall = 0.0  # each job's total over the processes that ran its call's jobs side by side
+
+    def add(self, rays: int, cpu_query: float, cpu_total: float, side_by_side: int = 1) -> None:
+        self.rays += rays
+        self.cpu_query += cpu_query
+        self.cpu_total += cpu_total
+        self.wall += cpu_total / max(side_by_side, 1)
+
+    def rates(self, workers: int) -> dict:
+        """Rays per second of the tracer and of the bare query with `workers` processes fully busy."""
+        return {"rays_per_second": self.rays * workers / max(self.cpu_total, 1e-9),
+                "embree_rays_per_second": self.rays * workers / max(self.cpu_query, 1e-9),
+                "trace_efficiency": self.cpu_query / max(self.cpu_total, 1e-9)}
+
+
 @dataclass
 class TracePart:
     """One batch of EmbreeTracer.visibility_parts: points, their settings and, optionally, the slice of each

@@ -30,8 +30,8 @@ import zstandard
 
 from psao_server.errors import TracerError
 from psao_server.settings import LOCAL_PREFIX, ClusterSettings, TraceSettings, local_workers
-from psao_server.tracer.base import Tracer, recentre, recentre_poses
-from psao_server.tracer.embree import CpuAccount, _Scenes, _trace_chunk
+from psao_server.tracer.base import CpuAccount, Tracer, recentre, recentre_poses
+from psao_server.tracer.embree import _Scenes, _trace_chunk
 from psao_server.tracer.tiles import cut_triangles, make_tiles, triangle_boxes
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package

@@ -1,6 +1,8 @@
 """Embree back-end (embreex): occlusion queries limited to the AO distance, spread over processes.
 
-embreex holds the GIL while it traces, so threads do not scale; each worker process keeps its own
+Processes rather than threads: embreex lets go of the GIL while Embree traverses, but making the rays and
+testing them against the movers' spheres hold it, so at a tick's sizes two threads traced fewer rays a
+second than one. Each worker process keeps its own
 Embree scenes (the static one built once at start, the deforming one refitted when its version changes,
 embree_refit.py) and traces whole chunks of points: directions are generated in the worker, only positions, normals and
 ids travel, and only one float per point comes back.
@@ -21,7 +23,7 @@ import numpy as np
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
 from psao_server.arrays import rows
-from psao_server.tracer.base import TracePart, Tracer, recentre, recentre_poses
+from psao_server.tracer.base import CpuAccount, TracePart, Tracer, recentre, recentre_poses
 from psao_server.tracer.directions import cosine_directions, ray_origins, rotation_of
 from psao_server.tracer.embree_refit import RefitMesh
 
@@ -443,29 +445,6 @@ def _worker_trace(job):
 
 def _worker_ping(_):
     return _WORKER is not None
-
-
-class CpuAccount:
-    """Rays traced and the seconds the workers spent on them, in the Embree query and in total, and
-    (`wall`) the share of the callers' wall time those totals stand for."""
-
-    def __init__(self):
-        self.rays = 0
-        self.cpu_query = 0.0
-        self.cpu_total = 0.0
-        self.wall = 0.0  # each job's total over the processes that ran its call's jobs side by side
-
-    def add(self, rays: int, cpu_query: float, cpu_total: float, side_by_side: int = 1) -> None:
-        self.rays += rays
-        self.cpu_query += cpu_query
-        self.cpu_total += cpu_total
-        self.wall += cpu_total / max(side_by_side, 1)
-
-    def rates(self, workers: int) -> dict:
-        """Rays per second of the tracer and of bare Embree with `workers` processes fully busy."""
-        return {"rays_per_second": self.rays * workers / max(self.cpu_total, 1e-9),
-                "embree_rays_per_second": self.rays * workers / max(self.cpu_query, 1e-9),
-                "trace_efficiency": self.cpu_query / max(self.cpu_total, 1e-9)}
 
 
 class EmbreeTracer(Tracer):

@@ -2,15 +2,19 @@
 
 Runs on CUDA when a GPU is present and on Warp's CPU device otherwise (useful for testing the kernel
 against the Embree back-end here). Directions follow psao_server/tracer/directions.py exactly (same hash,
-same stratified set, same frame), so both back-ends trace the same rays up to float rounding.
+same stratified set, same frame), so both back-ends trace the same rays up to float rounding. Its account
+(CpuAccount) counts the kernel's seconds, launch to device synchronised, as the rays' own: the copies to
+and from the device are the call's fixed cost.
 """
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
 from psao_server.errors import TracerError
 from psao_server.settings import TraceSettings
-from psao_server.tracer.base import Tracer
+from psao_server.tracer.base import CpuAccount, Tracer
 from psao_server.tracer.directions import OFFSET_AO, OFFSET_REL, rotation_of, slice_count
 
 try:
@@ -35,6 +39,7 @@ class WarpTracer(Tracer):
         self.center = np.asarray(center, np.float64)
         self._static = None
         self._dynamic = None
+        self.account = CpuAccount()
 
     def _mesh(self, vertices, faces):
         if vertices is None or len(faces) == 0:
@@ -59,19 +64,26 @@ class WarpTracer(Tracer):
         pos = (np.asarray(positions, np.float64) - self.center).astype(np.float32)
         dev = self.device
         out = wp.zeros(n, dtype=float, device=dev)
-        wp.launch(
-            visibility_kernel, dim=n,
-            inputs=[self._static.id if self._static else wp.uint64(0), self._dynamic.id if self._dynamic else wp.uint64(0),
-                    wp.array(pos, dtype=wp.vec3, device=dev), wp.array(np.asarray(normals, np.float32), dtype=wp.vec3, device=dev),
-                    wp.array(ra, dtype=float, device=dev), wp.array(rb, dtype=float, device=dev),
-                    int(settings.rays), wp.array(np.broadcast_to(settings.slice if slice_of is None else slice_of, n)
-                                                 .astype(np.int32), dtype=int, device=dev),
-                    int(settings.slices), int(slice_count(settings.slice if slice_of is None else slice_of,
-                                                          settings.rays, settings.slices)),
-                    float(settings.ao_distance), float(OFFSET_REL), float(OFFSET_AO)],
-            outputs=[out], device=dev,
-        )
+        inputs = [self._static.id if self._static else wp.uint64(0), self._dynamic.id if self._dynamic else wp.uint64(0),
+                  wp.array(pos, dtype=wp.vec3, device=dev), wp.array(np.asarray(normals, np.float32), dtype=wp.vec3, device=dev),
+                  wp.array(ra, dtype=float, device=dev), wp.array(rb, dtype=float, device=dev),
+                  int(settings.rays), wp.array(np.broadcast_to(settings.slice if slice_of is None else slice_of, n)
+                                               .astype(np.int32), dtype=int, device=dev),
+                  int(settings.slices), int(slice_count(settings.slice if slice_of is None else slice_of,
+                                                        settings.rays, settings.slices)),
+                  float(settings.ao_distance), float(OFFSET_REL), float(OFFSET_AO)]
+        wp.synchronize_device(dev)  # the uploads done: the clock below times the kernel alone
+        t0 = time.perf_counter()
+        wp.launch(visibility_kernel, dim=n, inputs=inputs, outputs=[out], device=dev)
+        wp.synchronize_device(dev)
+        seconds = time.perf_counter() - t0
+        self.account.add(n * settings.rays_traced, seconds, seconds)
         vis = out.numpy()
         if progress is not None:
             progress(n)
         return vis
+
+    def throughput(self) -> dict:
+        """Rays per second of the kernel (the copies to and from the device apart)."""
+        a = self.account
+        return {"rays_per_second": a.rays / a.cpu_total} if a.cpu_total > 0 else {}
