@@ -14,10 +14,11 @@ Parts (--parts, comma list; all by default):
            stages' wall milliseconds per tick and the CPU milliseconds of the thread that prepares the tick
            (animate + select + trace, TickStats.cpu_prepare: wall above it is time spent waiting for the
            GIL, a core or the tracer's worker processes)
-  quality  budgeted tick at 60 Hz (real time) against the unbudgeted tick (every selected point fully
-           re-traced each tick, time not counted) at the same scene times: PSNR of the AO of sampled
-           points in the camera's view against a --ref-rays reference trace, while moving and one second
-           after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart;
+  quality  budgeted tick at 60 Hz (real time, in this process, its automatic budget leaving the room for the
+           service that a real served run of the scene measured first: --service-seconds) against the
+           unbudgeted tick (every selected point fully re-traced each tick, time not counted) at the same
+           scene times: PSNR of the AO of sampled points in the camera's view against a --ref-rays reference
+           trace, while moving and one second after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart;
            while moving, the squared error split by kind of point (POINT_KINDS: where the loss comes from);
            --exact-share sets the budgeted tick's BudgetSettings.exact_share (0: no whole traces); with
            --fixed-rays R the budgeted tick runs at scene time k / 60 s with R rays a tick instead of in
@@ -47,6 +48,7 @@ PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
            "moving_loss_db": 1.0, "rest_loss_db": 0.5}
 SKINNED = "../shared/scenes/cesiumman/CesiumMan.glb"
+QUALITY_SCENES = ("courtyard", "robots")  # the quality part's built-in scenes (the target names both)
 RATE_CASES = [("courtyard-256", "builtin:courtyard", 256.0), ("robots-256", "builtin:robots", 256.0),
               ("robots-512", "builtin:robots", 512.0)]  # and "skinned": --skinned at --skinned-points
 
@@ -200,7 +202,7 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
 # ----------------------------------------------------------------------------------------- quality
 def part_quality(args, v: Verdicts, out: dict) -> None:
     rows = {}
-    for name in ("courtyard", "robots"):
+    for name in args.quality_scenes:
         rows[name] = quality_scene(name, args)
         r = rows[name]
         print(f"  {name} N={args.quality_density:g}: mean PSNR while moving budgeted {r['moving_budgeted_db']:.2f} dB, "
@@ -210,7 +212,8 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
         print(f"    budgeted tick while moving: {r['ticks_per_s']:.1f} ticks/s, {m['traced']:.0f} points traced a tick "
               f"({m['exact']:.0f} whole from static hits first, {m['batch']:.0f} picked by the rounds), budget {m['budget_ms']:.1f} ms, "
               f"select {1e3 * m['seconds_select']:.1f} ms, trace {1e3 * m['seconds_trace']:.1f} ms, tick "
-              f"{1e3 * m['seconds_total']:.1f} ms; median budget used {100 * r['budget_used_median']:.0f}%, "
+              f"{1e3 * m['seconds_total']:.1f} ms, {r['service_ms']:.1f} ms left to the service (a served run's); "
+              f"median budget used {100 * r['budget_used_median']:.0f}%, "
               f"ticks longer than the period {100 * r['late_share']:.0f}%")
         for kind, e in r["error_split_moving"].items():
             print(f"    {kind:30s} {e['points_per_sample']:7.0f} points in view per sample, squared error "
@@ -227,10 +230,22 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
     _chart_quality(rows, args.out / "quality_over_time.png", args)
 
 
+def served_service_s(name: str, args) -> float:
+    """Seconds a tick that a real `psao serve --animate` of the scene at the quality part's density and rays,
+    with a real client, left its service besides the tick's stages (the median of TickStats.service_ms over
+    --service-seconds): the room its automatic budget took off the period for the fan-out and messages."""
+    from benchmarks.served import serve_and_watch
+
+    run = serve_and_watch(f"builtin:{name}", ["--animate", "--density", f"{args.quality_density:g}", "--rays",
+                                              str(args.quality_rays), "--tick-hz", "60"], args.service_seconds)
+    return 1e-3 * float(np.median([r["service_ms"] for r in run.records])) if run.records else 0.0
+
+
 def quality_scene(name: str, args) -> dict:
     """Run the budgeted tick in real time (scene time = wall time, as the service does) over --move-s of
-    motion then --rest-s with the scene held still, sampling the stored AO of a fixed random set of the
-    points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted
+    motion then --rest-s with the scene held still, its automatic budget leaving the service the room a
+    served run of the scene measured (served_service_s: so it traces what a served tick would), sampling the
+    stored AO of a fixed random set of the points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted
     tick at the same scene times, with the reference traced right after each sampled tick."""
     import copy
 
@@ -240,6 +255,7 @@ def quality_scene(name: str, args) -> dict:
     from psao_server.selection import camera_planes, in_any_view
     from psao_server.tick import ServerTick
 
+    service_s = served_service_s(name, args) if args.service_seconds > 0 and not args.fixed_rays else 0.0
     scene = load_scene(f"builtin:{name}")
     bake = bake_scene(scene, BakeSettings(density=args.quality_density, rays=args.quality_rays, workers=args.workers),
                       show_progress=False)
@@ -271,6 +287,7 @@ def quality_scene(name: str, args) -> dict:
         while (wall := clock()) < args.move_s + args.rest_s:
             t = min(wall, args.move_s)  # the scene stops moving at move_s
             budgeted.set_cameras([camera(scene, t)])
+            budgeted.observe_service(service_s)  # (constant: the budget takes the median of what it is told)
             stats.append(budgeted(budgeted.grid, t))
             budgeted.grid.take_dirty()
             tick_times.append(t)
@@ -334,7 +351,8 @@ def quality_scene(name: str, args) -> dict:
     rest = np.flatnonzero(walls >= args.move_s + 1.0)
     at_rest = int(rest[0]) if len(rest) else len(walls) - 1
     moving_stats = [st for st, w in zip(stats, tick_times) if w < args.move_s]
-    return {"ticks_per_s": ticks_per_s, "wall_s": walls.tolist(), "psnr_budgeted": pb, "psnr_unbudgeted": pu,
+    return {"ticks_per_s": ticks_per_s, "service_ms": 1e3 * service_s, "wall_s": walls.tolist(),
+            "psnr_budgeted": pb, "psnr_unbudgeted": pu,
             "budgeted_ticks_moving": {f: float(np.mean([getattr(st, f) for st in moving_stats]))
                                       for f in TICK_FIELDS} if moving_stats else {},
             # (means above: a few long ticks weigh in them; these say how the ticks held the budget and the period)
@@ -444,6 +462,8 @@ def main(argv=None) -> int:
     rate_names = [name for name, _, _ in RATE_CASES] + ["skinned"]
     ap.add_argument("--rate-scenes", default=",".join(rate_names),
                     help=f"comma list of the rate part's served runs ({', '.join(rate_names)})")
+    ap.add_argument("--quality-scenes", default=",".join(QUALITY_SCENES),
+                    help=f"comma list of the quality part's built-in scenes ({', '.join(QUALITY_SCENES)})")
     ap.add_argument("--quality-density", type=float, default=64.0)
     ap.add_argument("--quality-rays", type=int, default=32)
     ap.add_argument("--round-rays", type=int, default=8)
@@ -454,6 +474,9 @@ def main(argv=None) -> int:
                     help="quality part: instead of real time, tick at scene time k / 60 s with this many rays a tick "
                          "(BudgetSettings.rays_per_tick): the loss at a given tracing throughput, whatever the load "
                          "(reported, not judged)")
+    ap.add_argument("--service-seconds", type=float, default=5.0,
+                    help="quality part: seconds of a served run of each scene measuring the room its budget leaves "
+                         "the service a tick, which the in-process budgeted tick then leaves too (0: none)")
     ap.add_argument("--ref-rays", type=int, default=256)
     ap.add_argument("--sample-points", type=int, default=20000)
     ap.add_argument("--sample-s", type=float, default=0.25, help="seconds between samples")
@@ -463,10 +486,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not 0 <= args.exact_share <= 1:
         ap.error(f"--exact-share must be within [0, 1], got {args.exact_share}")
+    if not (np.isfinite(args.service_seconds) and args.service_seconds >= 0):
+        ap.error(f"--service-seconds must be a number >= 0, got {args.service_seconds}")
     if not (np.isfinite(args.fixed_rays) and args.fixed_rays >= 0):
         ap.error(f"--fixed-rays must be a number >= 0, got {args.fixed_rays}")
     args.tick_points = [int(x) for x in args.tick_points.split(",") if x]
     args.rate_scenes = [x.strip() for x in args.rate_scenes.split(",") if x.strip()]
+    args.quality_scenes = [x.strip() for x in args.quality_scenes.split(",") if x.strip()]
+    if any(x not in QUALITY_SCENES for x in args.quality_scenes):
+        ap.error(f"--quality-scenes: choose from {', '.join(QUALITY_SCENES)}")
     if any(x not in rate_names for x in args.rate_scenes):
         ap.error(f"--rate-scenes: choose from {', '.join(rate_names)}")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]

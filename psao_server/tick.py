@@ -89,6 +89,8 @@ class TickStats:
     queue_oldest_ms: float = 0.0  # how long the longest-waiting of them has waited
     budget_ms: float = 0.0  # the trace budget of this tick (0: unbudgeted)
     budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
+    service_ms: float = 0.0  # what the automatic budget leaves the service a tick besides the stages (the median
+    # of what it reported: TraceBudget.observe_service)
     batch: int = 0  # points the rounds' part of the budget allowed this tick (slices, whole ray sets, exact ones)
     exact: int = 0  # static points near movers given their whole ray set from kept static hits first (exact_share; in traced)
     refilled: int = 0  # static points near movers traced whole with their static hits kept again (in traced)
@@ -711,6 +713,7 @@ class ServerTick:
         self.budget.observe_other(animate + select + self.stats_grid_s)
         return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
                 "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
+                "service_ms": 1e3 * self.budget.service_s,
                 "batch": plan.batch, "exact": plan.exact, "refilled": plan.refilled}
 
     # ------------------------------------------------------------------ steps

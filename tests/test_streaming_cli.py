@@ -85,8 +85,10 @@ def test_animated_server_keeps_mirror_exact(tmp_path):
     # Per-tick statistics as JSON lines: stage times, and what was sent since the previous tick.
     assert len(ticks) >= 10
     for key in ("considered", "traced", "changed", "cells_dirty", "cells_sent", "bytes_sent", "seconds_animate",
-                "seconds_trace", "seconds_grid", "seconds_encode", "queue", "queue_oldest_ms", "budget_ms", "budget_used"):
+                "seconds_trace", "seconds_grid", "seconds_encode", "queue", "queue_oldest_ms", "budget_ms", "budget_used",
+                "service_ms"):
         assert all(key in t and t[key] >= 0 for t in ticks), key
+    assert any(t["service_ms"] > 0 for t in ticks)  # the service tells the budget what it spends a tick
     assert sum(t["bytes_sent"] for t in ticks) == ticks[-1]["bytes_out"] > 0
     assert sum(t["cells_sent"] for t in ticks) > 0
     # serve --json: the run's totals and the per-tick records summed up (the same ticks as the jsonl).

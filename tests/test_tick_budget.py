@@ -299,6 +299,19 @@ def test_trace_budget_leaves_room_for_what_the_service_spends_a_tick():
     assert b.budget_s() == pytest.approx(alone - 3e-3)
 
 
+def test_budgeted_tick_reports_the_room_it_leaves_the_service(budgeted_tick):
+    """What the service reports spending a tick besides the stages (ServerTick.observe_service) is in the
+    next tick's statistics as service_ms (the median the automatic budget takes off the period)."""
+    tick = budgeted_tick("cornell", 8, bake_rays=2, rays=8, round_rays=2, min_points=10)
+    try:
+        assert tick(tick.grid, 0.0).service_ms == 0.0
+        for s in (2e-3, 4e-3, 3e-3):
+            tick.observe_service(s)
+        assert tick(tick.grid, 0.0).service_ms == pytest.approx(3.0)
+    finally:
+        tick.close()
+
+
 def test_budgeted_tick_traces_its_calls_in_its_own_process_below_local_rays():
     """A budgeted tick's call of more rays than the tracer's own in-process limit (TraceSettings.local_rays)
     but fewer than BudgetSettings.local_rays is traced in the tick's process, not handed to the workers."""
