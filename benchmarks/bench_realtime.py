@@ -18,7 +18,8 @@ Parts (--parts, comma list; all by default):
            service that a real served run of the scene measured first: --service-seconds) against the
            unbudgeted tick (every selected point fully re-traced each tick, time not counted) at the same
            scene times: PSNR of the AO of sampled points in the camera's view against a --ref-rays reference
-           trace, while moving and one second after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB at rest), PSNR-over-time chart;
+           trace, while moving and one second after motion stops (targets: mean loss <= 1.0 dB, <= 0.5 dB
+           at rest), PSNR-over-time chart;
            while moving, the squared error split by kind of point (POINT_KINDS: where the loss comes from);
            --exact-share sets the budgeted tick's BudgetSettings.exact_share (0: no whole traces); with
            --fixed-rays R the budgeted tick runs at scene time k / 60 s with R rays a tick instead of in
@@ -245,8 +246,9 @@ def quality_scene(name: str, args) -> dict:
     """Run the budgeted tick in real time (scene time = wall time, as the service does) over --move-s of
     motion then --rest-s with the scene held still, its automatic budget leaving the service the room a
     served run of the scene measured (served_service_s: so it traces what a served tick would), sampling the
-    stored AO of a fixed random set of the points the motion can reach (near_motion: elsewhere both ticks keep the bake's AO); then the unbudgeted
-    tick at the same scene times, with the reference traced right after each sampled tick."""
+    stored AO of a fixed random set of the points the motion can reach (near_motion: elsewhere both ticks
+    keep the bake's AO); then the unbudgeted tick at the same scene times, with the reference traced right
+    after each sampled tick."""
     import copy
 
     from psao_scene import load_scene

@@ -296,12 +296,17 @@ class RefineQueue:
     def first_grid(self, ids: np.ndarray) -> np.ndarray:
         """Bool per id: holds only a few-ray first grid's estimate (seed_from_codes), no slice of its own
         and no change around it since."""
-        return (self.done[ids] == 0) & (self.old_until[ids] > self.old_rays[ids])
+        return (self.done[ids] == 0) & self._first_estimate(ids)
+
+    def _first_estimate(self, ids: np.ndarray) -> np.ndarray:
+        """Bool per id: its kept estimate blends in beyond its own rays (up to the target: a few-ray first
+        grid's, seed_from_codes; an estimate kept across a change stops at its own rays)."""
+        return self.old_until[ids] > self.old_rays[ids]
 
     def unstarted(self, ids: np.ndarray) -> np.ndarray:
         """Bool per id: nothing traced since its last reset, and no first grid's estimate (first_grid): its
         next trace is its whole ray set."""
-        return (self.rays[ids] == 0) & (self.done[ids] == 0) & ~(self.old_until[ids] > self.old_rays[ids])
+        return (self.rays[ids] == 0) & (self.done[ids] == 0) & ~self._first_estimate(ids)
 
     def reset(self, ids: np.ndarray, now: float, change: np.ndarray | None = None) -> None:
         """The geometry around `ids` changed: their history is void; they wait from now unless they waited already.

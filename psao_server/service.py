@@ -238,14 +238,14 @@ class Service:
         start = time.perf_counter()
         next_at = start
         last_stats = start
-        own = None  # (end of the last tick's work, the sleep it asked for, its seconds besides the tick's stages)
+        # the last tick's seconds besides its stages (hand-offs, fan-out, records), and when it asked the loop
+        # to come back: how late the loop came back counts too (the clients' tasks ran)
+        own_s, due = None, 0.0
         while not stop.is_set():
             self.time = time.perf_counter() - start
             t0 = time.perf_counter()
-            if own is not None and hasattr(self.tick_fn, "observe_service"):
-                # the last tick's work besides its stages (hand-offs, fan-out, records), and how late the loop
-                # came back to this one (the clients' tasks ran)
-                self.tick_fn.observe_service(own[2] + max(t0 - own[0] - own[1], 0.0))
+            if own_s is not None and hasattr(self.tick_fn, "observe_service"):
+                self.tick_fn.observe_service(own_s + max(t0 - due, 0.0))
             if self._replacement is not None:
                 self._swap_grid()
             self._merge_cameras()
@@ -268,7 +268,7 @@ class Service:
             # a tick late by up to a period is made up for by the next one starting at once (ticks of uneven
             # length keep the rate on average); later than that, the schedule restarts from then (no burst)
             next_at = max(next_at + period, now - period)
-            own = (now, max(next_at - now, 0.0), now - t0 - getattr(stats, "seconds_total", 0.0))
+            own_s, due = now - t0 - getattr(stats, "seconds_total", 0.0), max(next_at, now)
             await asyncio.sleep(max(next_at - now, 0.0))
 
     async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:

@@ -556,7 +556,7 @@ class ServerTick:
         when one is due (BudgetSettings.motion_hz, or a scene edit): their ids (sorted), else none. The test
         compares `frame` with the frame of the last test, so motion in between is never missed: it is
         tested over the ticks since at once."""
-        before = self._tested_frame or self.last_frame
+        before = self._tested_frame if self._tested_frame is not None else self.last_frame
         if before is not None and self.settings.selection and not edited and not self._motion_due(frame):
             return np.zeros(0, np.int64)
         if before is None or not self.settings.selection:
@@ -754,12 +754,11 @@ class ServerTick:
     def _motion_candidates(self, frame: Frame, with_change: bool = True,
                            before: Frame | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Ids (sorted, tracked) of the points whose AO the motion since `before` (default: the last tick's
-        frame) may have changed,
-        and per id an estimate of how much (static points: selection.occlusion_change of the movers'
-        spheres; a mover's own points: _mover_change), or None without `with_change` (the unbudgeted tick
-        re-traces them all, in no order). Movers that stood still since then count as static
-        boxes for the company test and select nothing themselves. Costs in proportion to the points near
-        movers (NearCache), not to the scene."""
+        frame) may have changed, and per id an estimate of how much (static points:
+        selection.occlusion_change of the movers' spheres; a mover's own points: _mover_change), or None
+        without `with_change` (the unbudgeted tick re-traces them all, in no order). Movers that stood still
+        since then count as static boxes for the company test and select nothing themselves. Costs in
+        proportion to the points near movers (NearCache), not to the scene."""
         before = self.last_frame if before is None else before
         moved = self._moved_since(frame, before)
         if not moved:

@@ -64,13 +64,12 @@ class WarpTracer(Tracer):
         pos = (np.asarray(positions, np.float64) - self.center).astype(np.float32)
         dev = self.device
         out = wp.zeros(n, dtype=float, device=dev)
+        first = settings.slice if slice_of is None else slice_of
         inputs = [self._static.id if self._static else wp.uint64(0), self._dynamic.id if self._dynamic else wp.uint64(0),
                   wp.array(pos, dtype=wp.vec3, device=dev), wp.array(np.asarray(normals, np.float32), dtype=wp.vec3, device=dev),
                   wp.array(ra, dtype=float, device=dev), wp.array(rb, dtype=float, device=dev),
-                  int(settings.rays), wp.array(np.broadcast_to(settings.slice if slice_of is None else slice_of, n)
-                                               .astype(np.int32), dtype=int, device=dev),
-                  int(settings.slices), int(slice_count(settings.slice if slice_of is None else slice_of,
-                                                        settings.rays, settings.slices)),
+                  int(settings.rays), wp.array(np.broadcast_to(first, n).astype(np.int32), dtype=int, device=dev),
+                  int(settings.slices), int(slice_count(first, settings.rays, settings.slices)),
                   float(settings.ao_distance), float(OFFSET_REL), float(OFFSET_AO)]
         wp.synchronize_device(dev)  # the uploads done: the clock below times the kernel alone
         t0 = time.perf_counter()
