@@ -237,3 +237,33 @@ def test_grid_edited_behind_the_ticks_back(make_tick):
         assert np.abs(stored_codes(tick, ids) - full).max() <= tick.settings.threshold
     finally:
         tick.close()
+
+
+@pytest.mark.parametrize("name", ["robots", "courtyard"])
+def test_world_points_is_each_point_through_its_instance(make_tick, name):
+    """world_points (all movers' points in one pass) against a point-by-point reference: a moving
+    instance's point through its own transform (normal through the inverse transpose, unit), a static
+    point where the bake put it; for any subset of ids, in any order."""
+    tick, _ = make_tick(name, density=16, rays=4)
+    try:
+        for t in (0.0, 0.4):
+            tick(tick.grid, t)
+        frame = tick.last_frame
+        rng = np.random.default_rng(3)
+        everyone = np.flatnonzero(tick.present())
+        assert tick.moving_point[everyone].any() and not tick.moving_point[everyone].all()
+        for ids in (everyone[:0], everyone, rng.permutation(everyone)[:97], rng.choice(everyone, 40)):
+            pos, nrm = tick.world_points(frame, ids)
+            assert pos.dtype == np.float64 and nrm.dtype == np.float32 and pos.shape == nrm.shape == (len(ids), 3)
+            for k, i in enumerate(ids):
+                if tick.moving_point[i]:
+                    m = np.asarray(frame.transforms[tick.inst_of[i]], np.float64)
+                    want_p = m[:3, :3] @ tick.local_pos[i] + m[:3, 3]
+                    want_n = np.linalg.inv(m[:3, :3]).T @ tick.local_nrm[i]
+                    want_n /= np.linalg.norm(want_n)
+                else:
+                    want_p, want_n = tick.world_pos[i], tick.world_nrm[i]
+                np.testing.assert_allclose(pos[k], want_p, rtol=0, atol=1e-9)
+                np.testing.assert_allclose(nrm[k], want_n, rtol=0, atol=2e-6)
+    finally:
+        tick.close()
