@@ -11,7 +11,7 @@ Instances are of three kinds:
              the tick traces them from where they are on the deformed mesh
 
 Skinned AO points follow their triangles exactly: a posed point is the same barycentric combination of its
-triangle's skinned corners (Warp skinning of the mesh vertices, psao_scene.skinning) as its rest-pose
+triangle's skinned corners (Warp skinning of the mesh vertices, psao_scene.skinning_kernels) as its rest-pose
 point is of the rest corners, and its normal is the skinned triangle's normal on the side the point was
 generated on. So points stay on the deformed surface, which blending per-point skin weights would not
 guarantee, and the client finds a posed fragment's rest-pose place the same way (same triangle, same
@@ -25,7 +25,7 @@ import numpy as np
 
 from psao_scene.rigid import instance_transform
 from psao_scene.model import Scene
-from psao_scene.skinning import SceneSkinner, SurfacePoints, surface_points
+from psao_scene.skinning import SceneSkinner, surface_points
 from psao_server.bake import scene_world_geometry
 from psao_server.points import PointSet
 
@@ -289,6 +289,8 @@ class SkinnedPoints:
         """Local positions (P, 3) float64 and unit normals (P, 3) float32 on the deformed mesh (the mesh's
         faces must be the same every call): Warp's SurfacePoints, valid until the next call."""
         if getattr(self, "_kernel", None) is None:
+            from psao_scene.skinning_kernels import SurfacePoints  # (Warp: imported at the first skinned frame)
+
             self._kernel = SurfacePoints(mesh_faces, self.faces, self.bary, self.side, self.rest_normals)
         return self._kernel.follow(vertices)
 
@@ -312,6 +314,8 @@ class PlacedPoints:
         faces = np.concatenate([m.faces + layout.mesh_rows[scene.instances[i].mesh].start for i, m in zip(insts, meshes)]
                                or [np.zeros((0, 3), np.int64)])
         pick = lambda name: np.concatenate([getattr(points[i], name) for i in insts])  # noqa: E731
+        from psao_scene.skinning_kernels import SurfacePoints  # (Warp: imported at the first skinned frame)
+
         self.kernel = SurfacePoints(faces, np.concatenate([points[i].faces + b for i, b in zip(insts, face_base)]),
                                     pick("bary"), pick("side"), pick("rest_normals"))
         ids = np.concatenate([ids_of[i] for i in insts])

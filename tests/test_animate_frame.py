@@ -9,7 +9,8 @@ import pytest
 from psao_scene import load_scene
 from psao_scene.rigid import Polyline, instance_transform
 from psao_scene.skin import NodeAnimator, compose_hierarchy, hierarchy_order, skinning_matrices_of, topological_order
-from psao_scene.skinning import SceneSkinner, SurfacePoints, skinned_vertices
+from psao_scene.skinning import SceneSkinner, skinned_vertices
+from psao_scene.skinning_kernels import SurfacePoints
 from psao_scene.transforms import axis_angle_matrix, linear_matrix, placed_about, translation_matrix
 from psao_server.animate import SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes
 
@@ -243,3 +244,21 @@ def test_changed_meshes_are_those_whose_vertices_differ():
     later = animator.frame(0.6)
     assert changed_meshes(later, a) == {scene.instances[i].mesh for i in animator.kinds.skinned}
     assert changed_meshes(a, None) == set(a.mesh_vertices)
+
+
+def test_scene_without_skins_is_animated_without_warp():
+    """Warp (half a second or more to import) stays out of a process whose scene has no skin: loading and
+    animating the rigid courtyard imports none of it (`psao serve --progressive` then listens before any
+    Warp import); a skinned scene's first frame does."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from psao_scene import load_scene\n"
+            "from psao_server.animate import SceneAnimator\n"
+            "SceneAnimator(load_scene(sys.argv[1])).frame(0.5)\n"
+            "print('warp' in sys.modules)\n")
+    for scene, warp in (("builtin:courtyard", False), ("builtin:robots", True)):
+        out = subprocess.run([sys.executable, "-c", code, scene], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip().splitlines()[-1] == str(warp), (scene, out.stdout)

@@ -12,8 +12,8 @@ import pytest
 from psao_scene import SceneFormatError, load_scene
 from psao_scene.skin import MAX_JOINTS
 from psao_scene.transforms import axis_angle_matrix
-from psao_scene.skinning import (SkinDeformer, skin_normals, skin_normals_reference,
-                                 skin_points, skin_points_reference, skinned_vertices)
+from psao_scene.skinning import skin_normals, skin_normals_reference, skin_points, skin_points_reference, skinned_vertices
+from psao_scene.skinning_kernels import SkinDeformer
 
 RNG = np.random.default_rng(5)
 
