@@ -59,10 +59,11 @@ def test_progressive_start_replaces_the_coarse_grid_and_mirrors_stay_exact(tmp_p
         sizes.append(mirror.allocated_cells())
 
     def on_update(mirror, transforms, tick):
+        # one refinement Update after the full grid: how many there are depends on how the refiner's batches
+        # fall between ticks (on a busy machine several land in one tick)
         if len(sizes) == 2:
             updates_after[0] += 1
-            if updates_after[0] >= 3:
-                client.stop()
+            client.stop()
 
     try:
         url = server_url(proc, err)
@@ -79,6 +80,7 @@ def test_progressive_start_replaces_the_coarse_grid_and_mirrors_stay_exact(tmp_p
     assert "coarse first grid of courtyard" in log and "grid replaced" in log, log
     assert stats.grid_replacements == 1 and stats.reconnects == 0
     assert len(sizes) == 2 and sizes[0] < sizes[1], sizes  # the coarse grid first, then the full one
+    assert updates_after[0] >= 1  # then the full grid's refinement
     server = {(d["conn"], d["seq"]): d["digest"] for d in map(json.loads, slog.read_text().splitlines())}
     mine = [json.loads(line) for line in clog.read_text().splitlines()]
     pairs = [(server[(d["conn"], d["seq"])], d["digest"]) for d in mine if (d["conn"], d["seq"]) in server]

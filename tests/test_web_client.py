@@ -288,8 +288,10 @@ def test_page_follows_a_grid_replacement(browser, tmp_path):
     page, errors = open_page(browser, server)
     try:
         wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
+        # the full grid's snapshot is what is compared on the second connection: how many refinement Updates
+        # follow it depends on how the refiner's batches fall between ticks (all in one on a busy machine)
         wait_page(page, "window.psao.gridReplacements === 1 && window.psao.connection === 2 && "
-                        "window.psao.state === 'streaming' && window.psao.updates >= 2")
+                        "window.psao.state === 'streaming'")
         shot(page, tmp_path, "replaced_grid", canvas_only=True)
         assert page.evaluate("window.psao.reconnects") == 0  # a replacement is not a lost server
         log = page.evaluate("window.psao.digestLog")
