@@ -8,14 +8,18 @@ import numpy as np
 import warp as wp
 
 
+@wp.func
+def blended_matrix(j: wp.vec4i, w: wp.vec4d, mats: wp.array(dtype=wp.mat44d)):
+    # the point's 4 joint matrices blended by its weights (skinning.blended_matrices is the numpy reference)
+    return w[0] * mats[j[0]] + w[1] * mats[j[1]] + w[2] * mats[j[2]] + w[3] * mats[j[3]]
+
+
 @wp.kernel
 def skin_points_kernel(rest: wp.array(dtype=wp.vec3d), joints: wp.array(dtype=wp.vec4i),
                        weights: wp.array(dtype=wp.vec4d), mats: wp.array(dtype=wp.mat44d),
                        out_pos: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
-    j = joints[i]
-    w = weights[i]
-    m = w[0] * mats[j[0]] + w[1] * mats[j[1]] + w[2] * mats[j[2]] + w[3] * mats[j[3]]
+    m = blended_matrix(joints[i], weights[i], mats)
     p = rest[i]
     out_pos[i] = wp.vec3d(m[0, 0] * p[0] + m[0, 1] * p[1] + m[0, 2] * p[2] + m[0, 3],
                           m[1, 0] * p[0] + m[1, 1] * p[1] + m[1, 2] * p[2] + m[1, 3],
@@ -27,9 +31,7 @@ def skin_normals_kernel(rest_nrm: wp.array(dtype=wp.vec3d), joints: wp.array(dty
                         weights: wp.array(dtype=wp.vec4d), mats: wp.array(dtype=wp.mat44d),
                         out_nrm: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
-    j = joints[i]
-    w = weights[i]
-    m = w[0] * mats[j[0]] + w[1] * mats[j[1]] + w[2] * mats[j[2]] + w[3] * mats[j[3]]
+    m = blended_matrix(joints[i], weights[i], mats)
     a = wp.mat33d(m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2], m[2, 0], m[2, 1], m[2, 2])
     # cofactor matrix = det * inverse transpose: the normal transform without dividing by det
     c0 = wp.cross(wp.vec3d(a[1, 0], a[1, 1], a[1, 2]), wp.vec3d(a[2, 0], a[2, 1], a[2, 2]))

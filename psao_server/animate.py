@@ -89,12 +89,19 @@ def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return np.einsum("pj,ij->pi", np.asarray(points, np.float64), m[:3, :3]) + m[:3, 3]
 
 
-def to_world_points(transform: np.ndarray, local_pos: np.ndarray, local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """bake.to_world without BLAS (see affine): positions float64, unit normals float32."""
-    m = np.asarray(transform, np.float64)
-    nrm = np.einsum("pj,ji->pi", np.asarray(local_normal, np.float64), np.linalg.inv(m[:3, :3]))
+def to_world_points(transforms: np.ndarray, which: np.ndarray, local_pos: np.ndarray,
+                    local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """bake.to_world without BLAS (see affine), each point through its own transform (`which`: per point,
+    its index into the (T, 4, 4) `transforms`; each transform's inverse worked out once): positions float64,
+    unit normals float32."""
+    t = np.asarray(transforms, np.float64)
+    m = t[which]  # (P, 4, 4)
+    pos = np.einsum("pij,pj->pi", m[:, :3, :3], np.asarray(local_pos, np.float64)) + m[:, :3, 3]
+    used, back = np.unique(which, return_inverse=True)
+    inverse = np.linalg.inv(t[used][:, :3, :3])[back]
+    nrm = np.einsum("pj,pji->pi", np.asarray(local_normal, np.float64), inverse)
     nrm /= np.maximum(np.sqrt(np.einsum("pi,pi->p", nrm, nrm))[:, None], 1e-300)
-    return affine(local_pos, m), nrm.astype(np.float32)
+    return pos, nrm.astype(np.float32)
 
 
 def world_box(vertices_local: np.ndarray, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

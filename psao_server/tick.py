@@ -52,7 +52,8 @@ import numpy as np
 
 from protocol import pointword as pw
 from protocol.errors import EditError
-from psao_server.animate import Frame, PlacedPoints, SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes
+from psao_server.animate import (Frame, PlacedPoints, SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes,
+                                 to_world_points)
 from psao_server.arrays import rows
 from psao_server.bake import BakeResult, scene_center, scene_point_ids, to_world
 from psao_server.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
@@ -798,21 +799,14 @@ class ServerTick:
 
     def world_points(self, frame: Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions (P, 3) float64 and normals (P, 3) float32 of points `ids` in `frame`: the moving
-        instances' points all in one pass (each point through its instance's transform, to_world_points'
-        arithmetic), not one pass per instance: a tick's call holds a few points of many movers."""
+        instances' points all in one to_world_points pass, not one per instance (a tick's call holds a few
+        points of many movers)."""
         pos, nrm = rows(self.world_pos, ids), rows(self.world_nrm, ids)  # (copies)
         at = np.flatnonzero(self.moving_point[ids])
         if len(at):
             mine = ids[at]
-            inst = self.inst_of[mine]
-            m = np.asarray(frame.transforms, np.float64)[inst]  # (P, 4, 4)
-            lp, ln = rows(self.local_pos, mine).astype(np.float64), rows(self.local_nrm, mine).astype(np.float64)
-            pos[at] = np.einsum("pij,pj->pi", m[:, :3, :3], lp) + m[:, :3, 3]
-            used, back = np.unique(inst, return_inverse=True)
-            inverse = np.linalg.inv(np.asarray(frame.transforms, np.float64)[used][:, :3, :3])[back]
-            n = np.einsum("pj,pji->pi", ln, inverse)
-            n /= np.maximum(np.sqrt(np.einsum("pi,pi->p", n, n))[:, None], 1e-300)
-            nrm[at] = n.astype(np.float32)
+            pos[at], nrm[at] = to_world_points(frame.transforms, self.inst_of[mine], rows(self.local_pos, mine),
+                                               rows(self.local_nrm, mine))
         return pos, nrm
 
     def _store(self, ids: np.ndarray, codes: np.ndarray) -> int:
