@@ -17,18 +17,21 @@ import numpy as np
 from .skin import Skin, skinning_matrices_of
 
 
-def skin_points(skin: Skin, t: float, rest_pos, joints, weights, device: str | None = None) -> np.ndarray:
-    """(P, 3) points skinned at time t (one-off; keep a SkinDeformer to skin the same points every tick)."""
+def _deformer(*args, **kwargs):
+    """skinning_kernels.SkinDeformer(*args, **kwargs), importing Warp with it at the first one made."""
     from .skinning_kernels import SkinDeformer
 
-    return SkinDeformer(rest_pos, joints, weights, device=device).deform(skin.skinning_matrices(t))[0]
+    return SkinDeformer(*args, **kwargs)
+
+
+def skin_points(skin: Skin, t: float, rest_pos, joints, weights, device: str | None = None) -> np.ndarray:
+    """(P, 3) points skinned at time t (one-off; keep a SkinDeformer to skin the same points every tick)."""
+    return _deformer(rest_pos, joints, weights, device=device).deform(skin.skinning_matrices(t))[0]
 
 
 def skin_normals(skin: Skin, t: float, rest_nrm, joints, weights, device: str | None = None) -> np.ndarray:
     """(P, 3) unit normals skinned at time t."""
-    from .skinning_kernels import SkinDeformer
-
-    d = SkinDeformer(np.zeros((len(rest_nrm), 3)), joints, weights, rest_nrm=rest_nrm, device=device)
+    d = _deformer(np.zeros((len(rest_nrm), 3)), joints, weights, rest_nrm=rest_nrm, device=device)
     return d.deform(skin.skinning_matrices(t))[1]
 
 
@@ -77,12 +80,10 @@ class SceneSkinner:
             return np.zeros((0, 3))
         skins = [self.scene.meshes[m].skin for m in key]
         if key not in self._batches:
-            from .skinning_kernels import SkinDeformer
-
             first = np.cumsum([0] + [s.joint_count for s in skins[:-1]])  # each skin's joints in the batch
-            self._batches[key] = SkinDeformer(np.concatenate([self.scene.meshes[m].vertices for m in key]),
-                                              np.concatenate([s.joints + f for s, f in zip(skins, first)]),
-                                              np.concatenate([s.weights for s in skins]), device=self.device)
+            self._batches[key] = _deformer(np.concatenate([self.scene.meshes[m].vertices for m in key]),
+                                           np.concatenate([s.joints + f for s, f in zip(skins, first)]),
+                                           np.concatenate([s.weights for s in skins]), device=self.device)
         return self._batches[key].deform(skinning_matrices_of(skins, t))[0].copy()
 
     def vertices(self, mesh_index: int, t: float) -> np.ndarray:
@@ -91,10 +92,8 @@ class SceneSkinner:
         if mesh.skin is None:
             return mesh.vertices
         if mesh_index not in self._deformers:
-            from .skinning_kernels import SkinDeformer
-
-            self._deformers[mesh_index] = SkinDeformer(mesh.vertices, mesh.skin.joints, mesh.skin.weights,
-                                                       device=self.device)
+            self._deformers[mesh_index] = _deformer(mesh.vertices, mesh.skin.joints, mesh.skin.weights,
+                                                    device=self.device)
         return self._deformers[mesh_index].deform(mesh.skin.skinning_matrices(t))[0]
 
 
