@@ -63,9 +63,6 @@ def density_for(scene, points: float) -> float:
     return float(points / max(area, 1e-12))
 
 
-def camera(scene, t: float):
-    from psao_client.connection import scene_camera_feed
-    return scene_camera_feed(scene)(t)
 
 
 # ------------------------------------------------------------------------------------------ tracer
@@ -182,7 +179,10 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
                                       "--tick-hz", "60"], args.seconds)
         row = {"scene": scene, "density": density, "ticks_per_s": run.ticks_per_second,
                "bytes_per_s": run.bytes_per_second, "traced_mean": run.mean("traced"),
-               "queue_mean": run.mean("queue"), "budget_used_mean": run.mean("budget_used"),
+               "queue_mean": run.mean("queue"),
+               # over the ticks that traced (a tick that pooled its trace into the next has no budget of its own)
+               "budget_used_mean": float(np.mean(used)) if (used := [r["budget_used"] for r in run.records
+                                                                     if r.get("budget_ms")]) else 0.0,
                "tick_ms_mean": 1e3 * run.mean("seconds_tick"), "first_snapshot_s": run.first_snapshot_s,
                "prepare_cpu_ms_mean": 1e3 * run.mean("cpu_prepare"),
                "mirror_cells": run.client.get("mirror_cells"),
@@ -214,7 +214,7 @@ def part_quality(args, v: Verdicts, out: dict) -> None:
               f"({m['exact']:.0f} whole from static hits first, {m['batch']:.0f} picked by the rounds), budget {m['budget_ms']:.1f} ms, "
               f"select {1e3 * m['seconds_select']:.1f} ms, trace {1e3 * m['seconds_trace']:.1f} ms, tick "
               f"{1e3 * m['seconds_total']:.1f} ms, {r['service_ms']:.1f} ms left to the service (a served run's); "
-              f"median budget used {100 * r['budget_used_median']:.0f}%, "
+              f"median budget used {100 * r['budget_used_median']:.0f}% (ticks that traced), "
               f"ticks longer than the period {100 * r['late_share']:.0f}%")
         for kind, e in r["error_split_moving"].items():
             print(f"    {kind:30s} {e['points_per_sample']:7.0f} points in view per sample, squared error "
@@ -251,6 +251,7 @@ def quality_scene(name: str, args) -> dict:
     after each sampled tick."""
     import copy
 
+    from psao_client.connection import scene_camera_feed
     from psao_scene import load_scene
     from psao_server.bake import BakeResult, bake_scene
     from psao_server.settings import BakeSettings, TickSettings, TraceSettings
@@ -259,6 +260,9 @@ def quality_scene(name: str, args) -> dict:
 
     service_s = served_service_s(name, args) if args.service_seconds > 0 and not args.fixed_rays else 0.0
     scene = load_scene(f"builtin:{name}")
+    # made once: making a feed takes the scene's bounds (milliseconds), which inside the real-time loop would
+    # take the tick's period as a served tick's camera (set by its client) does not
+    camera = scene_camera_feed(scene)
     bake = bake_scene(scene, BakeSettings(density=args.quality_density, rays=args.quality_rays, workers=args.workers),
                       show_progress=False)
     bake.tracer.close()
@@ -288,7 +292,7 @@ def quality_scene(name: str, args) -> dict:
         clock = (lambda: k * period) if args.fixed_rays else (lambda: time.perf_counter() - start)
         while (wall := clock()) < args.move_s + args.rest_s:
             t = min(wall, args.move_s)  # the scene stops moving at move_s
-            budgeted.set_cameras([camera(scene, t)])
+            budgeted.set_cameras([camera(t)])
             budgeted.observe_service(service_s)  # (constant: the budget takes the median of what it is told)
             stats.append(budgeted(budgeted.grid, t))
             budgeted.grid.take_dirty()
@@ -311,7 +315,7 @@ def quality_scene(name: str, args) -> dict:
         here = tick.present()[sample]
         pos, _ = tick.world_points(frame, sample[here])
         seen = np.zeros(len(sample), bool)
-        seen[here] = in_any_view(pos, [camera_planes(*camera(scene, t), 0.0)], 0.0)
+        seen[here] = in_any_view(pos, [camera_planes(*camera(t), 0.0)], 0.0)
         tick.pose_tracer(frame)
         ref = np.full(len(sample), -1.0)
         sel = np.flatnonzero(seen)
@@ -324,7 +328,7 @@ def quality_scene(name: str, args) -> dict:
     samples_u, refs, views = [], [], []
     try:
         for k, t in enumerate(tick_times):  # every tick the budgeted one ran, at the same scene times
-            unbudgeted.set_cameras([camera(scene, t)])
+            unbudgeted.set_cameras([camera(t)])
             unbudgeted(unbudgeted.grid, t)
             unbudgeted.grid.take_dirty()
             if k in sampled_ticks:
@@ -353,12 +357,13 @@ def quality_scene(name: str, args) -> dict:
     rest = np.flatnonzero(walls >= args.move_s + 1.0)
     at_rest = int(rest[0]) if len(rest) else len(walls) - 1
     moving_stats = [st for st, w in zip(stats, tick_times) if w < args.move_s]
+    tracing = [st for st in moving_stats if st.budget_ms > 0]  # (not the ticks that pooled their trace into the next)
     return {"ticks_per_s": ticks_per_s, "service_ms": 1e3 * service_s, "wall_s": walls.tolist(),
             "psnr_budgeted": pb, "psnr_unbudgeted": pu,
             "budgeted_ticks_moving": {f: float(np.mean([getattr(st, f) for st in moving_stats]))
                                       for f in TICK_FIELDS} if moving_stats else {},
             # (means above: a few long ticks weigh in them; these say how the ticks held the budget and the period)
-            "budget_used_median": float(np.median([st.budget_used for st in moving_stats])) if moving_stats else 0.0,
+            "budget_used_median": float(np.median([st.budget_used for st in tracing])) if tracing else 0.0,
             "late_share": float(np.mean([st.seconds_total > period for st in moving_stats])) if moving_stats else 0.0,
             "error_split_moving": split,
             "moving_budgeted_db": float(np.nanmean(np.array(pb)[moving])),

@@ -24,6 +24,8 @@ the oldest waiting first where those are alike.
 each the median of the recent ticks' own trace calls, the tracer telling the seconds its rays took apart
 from the call's (observe_trace), so a busier machine gets smaller batches. A budget below one point's cost
 still traces `min_points` (progress is always made); the tick's statistics then show budget_used > 1.
+A tick may leave its trace to the next (`pool`, BudgetSettings.pool_traces), whose call then has both
+budgets (`trace_budget_s`): the call's fixed cost is paid once for the two.
 """
 from __future__ import annotations
 
@@ -64,6 +66,11 @@ class BudgetSettings:
     refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
     # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
+    pool_traces: bool = True  # a tick that tests motion traces nothing (after a tick that traced) and leaves its
+    # trace budget to the next tick, which traces both ticks' worth in one call: a trace call's fixed cost
+    # (posing and refitting the movers, making the rays, handing the batch over: 3-4 ms here, most of a
+    # tick's budget) is paid once for two ticks, and the motion test's long selection no longer shares a
+    # tick with a trace; the points a test resets then wait one tick more. False: every tick traces
     motion_hz: float = 30.0  # motion tests (the points near movers found and their histories reset) a second of
     # scene time at most: a tick in between picks from what the last test reset and the queue's sweep; the
     # next test compares with the last one's frame, so no motion goes untested; 0 = every tick
@@ -92,6 +99,7 @@ class TraceBudget:
         self._fixed: deque[float] = deque(maxlen=settings.calls)  # their seconds besides their rays
         self._others: deque[float] = deque(maxlen=settings.window)
         self._service: deque[float] = deque(maxlen=settings.window)
+        self.pooled = 0  # ticks that left their trace to the next one (pool_traces) since the last trace call
 
     def budget_s(self) -> float:
         s = self.settings
@@ -113,13 +121,22 @@ class TraceBudget:
             return 0
         return min(s.exact_points, int(s.exact_share * self.rays_in_budget() / max(self.exact_rays(rays), 1e-9)))
 
+    def trace_budget_s(self) -> float:
+        """Seconds this tick's trace call may take: its own budget and those of the ticks that left theirs
+        to it (pool)."""
+        return (1 + self.pooled) * self.budget_s()
+
+    def pool(self) -> None:
+        """This tick traces nothing: its budget goes to the next trace call."""
+        self.pooled += 1
+
     def rays_in_budget(self) -> float:
-        """Rays this tick's budget allows at the measured rate, after a call's fixed cost. A fixed cost
-        beyond the budget is paid whenever anything is traced: then half a budget's worth of rays goes on
-        top of it, or the tick would crawl along at min_points."""
+        """Rays this tick's trace budget (trace_budget_s) allows at the measured rate, after a call's
+        fixed cost. A fixed cost beyond the budget is paid whenever anything is traced: then half a
+        budget's worth of rays goes on top of it, or the tick would crawl along at min_points."""
         if self.settings.rays_per_tick > 0:
-            return self.settings.rays_per_tick
-        budget = self.budget_s()
+            return (1 + self.pooled) * self.settings.rays_per_tick
+        budget = self.trace_budget_s()
         return max(budget - self.overhead_s, 0.5 * budget) * self.rays_per_second
 
     def points(self, rays_per_point: int, spent_rays: float = 0.0) -> int:
@@ -137,6 +154,7 @@ class TraceBudget:
         Warp tracer does not tell). The rate and the fixed cost are the medians of the recent calls' (`calls`):
         the calls' mix changes (a ray from static hits, a static point's and a mover's cost apart by up to
         3 times), and one call slowed by something else (a busy core, a first call's set-up) changes neither."""
+        self.pooled = 0
         if rays <= 0 or not (math.isfinite(seconds) and seconds > 0):
             return
         ray_s = seconds if ray_seconds is None or not 0 < ray_seconds <= seconds else ray_seconds

@@ -87,7 +87,8 @@ class TickStats:
     seconds_total: float
     queue: int = 0  # points waiting for a trace (budgeted) or for a view (unbudgeted)
     queue_oldest_ms: float = 0.0  # how long the longest-waiting of them has waited
-    budget_ms: float = 0.0  # the trace budget of this tick (0: unbudgeted)
+    budget_ms: float = 0.0  # the trace budget of this tick, with that of a tick before that pooled its trace into
+    # this one (0: unbudgeted, or a tick that pooled its trace into the next: BudgetSettings.pool_traces)
     budget_used: float = 0.0  # trace seconds / budget; above 1 when even the smallest batch did not fit
     service_ms: float = 0.0  # what the automatic budget leaves the service a tick besides the stages (the median
     # of what it reported: TraceBudget.observe_service)
@@ -173,9 +174,10 @@ class ServerTick:
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
         # the budgeted tick's motion test (BudgetSettings.motion_hz): the frame it last compared with, and
-        # the ids it reset then
+        # the ids it reset then, and the tick that made it
         self._tested_frame: Frame | None = None
         self._tested_ids = np.zeros(0, np.int64)
+        self._tested_tick = -1
         self._ahead: np.ndarray | None = None  # the best waiting ids of the last full look (sorted), for the next tick
         if self.settings.budget is not None:
             self._init_budget(bake)
@@ -262,6 +264,7 @@ class ServerTick:
         self.pose_tracer(frame)
         rate = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings())
         self.budget = TraceBudget(self.settings.budget, rate)  # (its fixed cost: learnt from the ticks)
+        self._queue_now = (self.queue.count, 0.0)  # queue length, oldest wait (ms) as the last trace found them
         log.info("tick budget: tracer measured at %.2f Mrays/s (a call of %d points); %s", rate / 1e6, len(sample),
                  f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
                  f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
@@ -491,6 +494,8 @@ class ServerTick:
         changed = self._motion_reset(frame, now, edited)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
+        if self._pools_trace(frame):
+            return self._pooled_plan(frame, moved, refined, t_start, t_anim)
         # A tick that tested motion, or follows one that chose from the best of a full look, looks at the
         # points the last test reset and the queue's sweep; the tick between two motion tests chooses from
         # the best of that look still waiting (their keys change little in a tick: no reset in between).
@@ -541,6 +546,7 @@ class ServerTick:
                 whole_codes = self.queue.add(whole, np.concatenate([vis[1][0], vis[2][0], vis[3][0]]), s.rays, now,
                                              slices=self.queue.slices)
         t_trace = time.perf_counter()
+        budget_s = self.budget.trace_budget_s()  # (before observe_trace: its own and any pooled ticks')
         self.budget.observe_trace(len(chosen) * round_settings.rays_traced + spent, t_trace - t_sel, ray_s)
         # the queue after this round (points out on the refiner wait too); the oldest wait among the points
         # looked at (all of them unless the queue is longer than a sweep's part)
@@ -549,7 +555,26 @@ class ServerTick:
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
         chosen, codes = np.concatenate([chosen, refined[0], whole]), np.concatenate([codes, refined[1], whole_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
-                        batch=batch, budget_s=self.budget.budget_s(), exact=n_exact, refilled=len(refill))
+                        batch=batch, budget_s=budget_s, exact=n_exact, refilled=len(refill))
+
+    def _pools_trace(self, frame: Frame) -> bool:
+        """Whether this tick leaves its trace to the next (BudgetSettings.pool_traces): it tested motion,
+        the tick before it traced (a trace every other tick at least) and was not the first, and its
+        budget allows more than the minimum batch (below it, every tick traces its min_points)."""
+        b = self.settings.budget
+        return (b.pool_traces and self._tested_tick == self.tick_count and self.budget.pooled == 0
+                and self.last_frame is not None and self.last_frame is not self._bake_frame
+                and self.budget.points(self._round_settings().rays_traced) > b.min_points)
+
+    def _pooled_plan(self, frame: Frame, moved: int, refined: tuple, t_start: float, t_anim: float) -> "TickPlan":
+        """A tick that traces nothing of its own (the refiner's batches are still stored): its budget goes
+        to the next tick, which looks at the points this one's motion test reset (no choice made ahead)."""
+        self.budget.pool()
+        self._ahead = None
+        # the queue's length now; its oldest wait as the last trace call found it
+        self._queue_now = (self.queue.count, self._queue_now[1])
+        t_sel = time.perf_counter()
+        return TickPlan(frame, moved, refined[0], refined[1], (t_anim - t_start, t_sel - t_anim, 0.0))
 
     def _motion_reset(self, frame: Frame, now: float, edited: bool) -> np.ndarray:
         """Reset the queue's history of the points the motion since the last motion test may have changed,
@@ -564,7 +589,7 @@ class ServerTick:
         else:
             changed, change = self._motion_candidates(frame, before=before)
         self.queue.reset(changed, now, change)
-        self._tested_frame, self._tested_ids = frame, changed
+        self._tested_frame, self._tested_ids, self._tested_tick = frame, changed, self.tick_count
         return changed
 
     def _motion_due(self, frame: Frame) -> bool:

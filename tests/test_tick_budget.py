@@ -599,6 +599,7 @@ def test_points_reset_by_motion_get_their_whole_ray_set_in_one_tick(budgeted_tic
     tick, and nothing waits."""
     tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1)
     tick.settings.budget.rays_per_tick = 1e9
+    tick.settings.budget.pool_traces = False  # (every tick traces: test_a_motion_test_tick_pools_its_trace)
     try:
         for t in (0.1, 0.2, 0.3):
             s = tick(tick.grid, t)
@@ -619,6 +620,7 @@ def test_motion_tests_run_at_motion_hz_and_miss_no_motion(budgeted_tick):
     tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1)
     tick.settings.budget.rays_per_tick = 1e9
     tick.settings.budget.motion_hz = 3.0
+    tick.settings.budget.pool_traces = False
     tested = []
     try:
         for k in range(1, 8):
@@ -796,3 +798,44 @@ def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_ti
         assert seen["exact"] > 0 and seen["margin"] > 0
     finally:
         tick.close()
+
+
+def test_trace_budget_pools_the_budgets_of_ticks_that_left_their_trace():
+    """A tick that leaves its trace to the next (pool) adds its budget to the next trace call's, in time
+    and in rays (a set number of rays a tick too); the call after it has its own budget again."""
+    from psao_server.budget import TraceBudget
+
+    b = TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), rays_per_second=2e6)
+    alone = b.rays_in_budget()
+    assert alone == pytest.approx(6e-3 * 2e6)
+    b.pool()
+    assert b.trace_budget_s() == pytest.approx(12e-3) and b.rays_in_budget() == pytest.approx(2 * alone)
+    b.observe_trace(2 * alone, 12e-3, 12e-3)
+    assert b.pooled == 0 and b.trace_budget_s() == pytest.approx(6e-3) and b.rays_in_budget() == pytest.approx(alone)
+    fixed = TraceBudget(BudgetSettings(rays_per_tick=5000.0), rays_per_second=2e6)
+    fixed.pool()
+    assert fixed.rays_in_budget() == 10000.0
+
+
+def test_a_motion_test_tick_pools_its_trace(budgeted_tick):
+    """At 60 ticks a second of scene time and motion_hz 30 (a test every other tick), a tick that tests
+    motion traces nothing and leaves its budget to the next tick, which traces in one call with both
+    budgets: the points the test reset wait one tick (all of them traced then, the budget allowing)."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1, budget_ms=1e3)
+    pooled = []
+    try:
+        tick(tick.grid, 0.1)  # the first moving tick traces (it tests motion after the bake's frame)
+        for k in range(1, 9):
+            s = tick(tick.grid, 0.1 + k / 60)
+            tested = tick._tested_tick == tick.tick_count - 1
+            pooled.append(tested)
+            if tested:
+                assert s.traced == 0 and s.batch == 0 and s.budget_ms == 0.0
+                assert s.queue > 0 and s.queue == len(tick.queue.waiting(tick.tracked))
+            else:  # its own budget, and the tick before's when that one pooled
+                after_pool = pooled[-2:-1] == [True]
+                assert s.budget_ms == pytest.approx(2e3 if after_pool else 1e3)
+                assert s.queue == 0 and (s.traced > 0 or not after_pool)
+    finally:
+        tick.close()
+    assert pooled == [k % 2 == 1 for k in range(8)]

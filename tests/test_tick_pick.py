@@ -62,12 +62,15 @@ def test_looking_at_the_window_and_the_changed_picks_what_their_sorted_union_pic
             views = [feed(t)] if k % 3 else [feed(t), feed(t + 1.5)]  # one view, and a union of two
             clock.now = 1000.0 + k / 60
             cursor = new.queue._cursors[0]
+            looks = len(looked_new)
             plans = []
             for tick in (new, old):
                 tick.set_cameras(views)
                 plans.append(tick.prepare(t))
             plan, old_plan = plans
-            np.testing.assert_array_equal(looked_new[-1], looked_old[-1], err_msg=f"tick {k}")
+            assert len(looked_new) == len(looked_old)  # (a tick that pools its trace into the next looks at none)
+            if len(looked_new) > looks:
+                np.testing.assert_array_equal(looked_new[-1], looked_old[-1], err_msg=f"tick {k}")
             np.testing.assert_array_equal(plan.ids, old_plan.ids, err_msg=f"tick {k}")
             np.testing.assert_array_equal(plan.codes, old_plan.codes, err_msg=f"tick {k}")
             np.testing.assert_array_equal(new.queue._list, old.queue._list, err_msg=f"tick {k}")
@@ -75,7 +78,7 @@ def test_looking_at_the_window_and_the_changed_picks_what_their_sorted_union_pic
             q, every = new.queue, np.arange(len(new.tracked))  # the rounds' whole ray sets: as first_grid says
             np.testing.assert_array_equal(q.unstarted(every), (q.rays == 0) & (q.done == 0) & ~q.first_grid(every))
             seen["traced"] += len(plan.ids)
-            seen["left"] += len(looked_new[-1]) > len(plan.ids)  # the budget left points waiting
+            seen["left"] += len(looked_new) > looks and len(looked_new[-1]) > len(plan.ids)  # the budget left points waiting
             seen["swept"] += new.queue.listed > scan_points
             seen["wrapped"] += new.queue._cursors[0] < cursor
             new.apply(plan)
