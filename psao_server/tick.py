@@ -494,7 +494,7 @@ class ServerTick:
         changed = self._motion_reset(frame, now, edited)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
-        if self._pools_trace(frame):
+        if self._pools_trace():
             return self._pooled_plan(frame, moved, refined, t_start, t_anim)
         # A tick that tested motion, or follows one that chose from the best of a full look, looks at the
         # points the last test reset and the queue's sweep; the tick between two motion tests chooses from
@@ -557,7 +557,7 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=batch, budget_s=budget_s, exact=n_exact, refilled=len(refill))
 
-    def _pools_trace(self, frame: Frame) -> bool:
+    def _pools_trace(self) -> bool:
         """Whether this tick leaves its trace to the next (BudgetSettings.pool_traces): it tested motion,
         the tick before it traced (a trace every other tick at least) and was not the first, and its
         budget allows more than the minimum batch (below it, every tick traces its min_points)."""
