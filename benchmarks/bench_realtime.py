@@ -63,8 +63,6 @@ def density_for(scene, points: float) -> float:
     return float(points / max(area, 1e-12))
 
 
-
-
 # ------------------------------------------------------------------------------------------ tracer
 def part_tracer(args, v: Verdicts, out: dict) -> None:
     from psao_scene import load_scene
@@ -181,8 +179,7 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
                "bytes_per_s": run.bytes_per_second, "traced_mean": run.mean("traced"),
                "queue_mean": run.mean("queue"),
                # over the ticks that traced (a tick that pooled its trace into the next has no budget of its own)
-               "budget_used_mean": float(np.mean(used)) if (used := [r["budget_used"] for r in run.records
-                                                                     if r.get("budget_ms")]) else 0.0,
+               "budget_used_mean": run.mean("budget_used", among="budget_ms"),
                "tick_ms_mean": 1e3 * run.mean("seconds_tick"), "first_snapshot_s": run.first_snapshot_s,
                "prepare_cpu_ms_mean": 1e3 * run.mean("cpu_prepare"),
                "mirror_cells": run.client.get("mirror_cells"),

@@ -49,8 +49,9 @@ class ServedRun:
     def bytes_per_second(self) -> float:
         return self.bytes_sent / self.window_s if self.window_s > 0 else 0.0
 
-    def mean(self, key: str) -> float:
-        vals = [r[key] for r in self.records if key in r]
+    def mean(self, key: str, among: str | None = None) -> float:
+        """Mean of `key` over the window's records that hold it (and a true `among`, when given)."""
+        vals = [r[key] for r in self.records if key in r and (among is None or r.get(among))]
         return sum(vals) / len(vals) if vals else 0.0
 
 

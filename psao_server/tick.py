@@ -494,7 +494,7 @@ class ServerTick:
         changed = self._motion_reset(frame, now, edited)
         round_settings = self._round_settings()
         refined = self._refine(changed, frame)
-        if self._pools_trace():
+        if self._pools_trace(round_settings):
             return self._pooled_plan(frame, moved, refined, t_start, t_anim)
         # A tick that tested motion, or follows one that chose from the best of a full look, looks at the
         # points the last test reset and the queue's sweep; the tick between two motion tests chooses from
@@ -557,14 +557,15 @@ class ServerTick:
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
                         batch=batch, budget_s=budget_s, exact=n_exact, refilled=len(refill))
 
-    def _pools_trace(self) -> bool:
+    def _pools_trace(self, round_settings: TraceSettings) -> bool:
         """Whether this tick leaves its trace to the next (BudgetSettings.pool_traces): it tested motion,
         the tick before it traced (a trace every other tick at least) and was not the first, and its
-        budget allows more than the minimum batch (below it, every tick traces its min_points)."""
+        budget allows more than the minimum batch of `round_settings` rounds (below it, every tick traces
+        its min_points)."""
         b = self.settings.budget
         return (b.pool_traces and self._tested_tick == self.tick_count and self.budget.pooled == 0
                 and self.last_frame is not None and self.last_frame is not self._bake_frame
-                and self.budget.points(self._round_settings().rays_traced) > b.min_points)
+                and self.budget.points(round_settings.rays_traced) > b.min_points)
 
     def _pooled_plan(self, frame: Frame, moved: int, refined: tuple, t_start: float, t_anim: float) -> "TickPlan":
         """A tick that traces nothing of its own (the refiner's batches are still stored): its budget goes
