@@ -57,3 +57,24 @@ def test_quality_error_split_adds_up_to_the_mean_squared_error():
     assert sum(e["points_per_sample"] for e in split.values()) * 3 == pytest.approx(sum(int(m.sum()) for m in ok))
     first = np.mean([int((m & (k == 0)).sum()) for m, k in zip(ok, kinds)])
     assert split[POINT_KINDS[0]]["points_per_sample"] == pytest.approx(first)
+
+
+def test_debiased_psnr_scores_against_the_truth_a_noisy_reference_estimates():
+    """bench_realtime's frame PSNR: against a reference of `spp` rays a pixel, the reference's own noise is
+    taken out, so two images score (and differ) as they do against the truth; left in, the noise lowers
+    both and shrinks their gap."""
+    import numpy as np
+
+    from benchmarks.bench_realtime import debiased_psnr
+
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.3, 1.0, (300, 300))
+    spp = 512  # (bench_realtime's --frame-spp)
+    ref = rng.binomial(spp, truth) / spp
+    close, far = (np.clip(truth + rng.normal(0, sd, truth.shape), 0, 1) for sd in (0.02, 0.04))
+    true_db = [10 * np.log10(1 / np.mean((img - truth) ** 2)) for img in (close, far)]
+    got_db = [debiased_psnr(img, ref, spp) for img in (close, far)]
+    plain_db = [10 * np.log10(1 / np.mean((img - ref) ** 2)) for img in (close, far)]
+    assert got_db == pytest.approx(true_db, abs=0.3)
+    assert got_db[0] - got_db[1] == pytest.approx(true_db[0] - true_db[1], abs=0.4)
+    assert plain_db[0] - plain_db[1] < 0.8 * (true_db[0] - true_db[1])  # what the noise would hide
