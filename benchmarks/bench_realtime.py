@@ -367,7 +367,8 @@ def quality_scene(name: str, args) -> dict:
     rest = np.flatnonzero(walls >= args.move_s + 1.0)
     at_rest = int(rest[0]) if len(rest) else len(walls) - 1
     drawn = np.flatnonzero(moving | (np.arange(len(walls)) == at_rest))  # (the frames the verdicts read)
-    fb, fu = frame_psnrs(scene, camera, [t for _, t in times], budgeted.grid.instances, states_b, states_u, drawn, args)
+    fb, fu = frame_psnrs(scene, camera, [t for _, t in times], budgeted.grid.instances, states_b, states_u, drawn,
+                         args, picture=args.out / f"quality_frames_{name}.png")
     moving_stats = [st for st, w in zip(stats, tick_times) if w < args.move_s]
     tracing = [st for st in moving_stats if st.budget_ms > 0]  # (not the ticks that pooled their trace into the next)
     return {"ticks_per_s": ticks_per_s, "service_ms": 1e3 * service_s, "wall_s": walls.tolist(),
@@ -413,11 +414,13 @@ def debiased_psnr(test: np.ndarray, ref: np.ndarray, spp: int) -> float:
 
 
 def frame_psnrs(scene, camera, scene_times: list, instances, states_b: list, states_u: list, drawn: np.ndarray,
-                args) -> tuple[list, list]:
+                args, picture: Path | None = None) -> tuple[list, list]:
     """Per sample, the debiased PSNR (debiased_psnr) of the frame a client would draw from the budgeted and
     from the unbudgeted tick's grid (grid_state) at that sample's scene time, with the camera the ticks
     were given, against one RTAO reference frame of --frame-spp rays a pixel; NaN for samples not in
-    `drawn` (the frames are drawn after the real-time run, which they would slow down)."""
+    `drawn` (the frames are drawn after the real-time run, which they would slow down). `picture`: a PNG of
+    the drawn sample whose budgeted frame lost most, beside the unbudgeted one, the reference and their
+    difference."""
     from types import SimpleNamespace
 
     from psao_eval.quality import FramePose, QualityRenderer, reference_images
@@ -436,7 +439,31 @@ def frame_psnrs(scene, camera, scene_times: list, instances, states_b: list, sta
     for name, rendered in frames.items():
         for f, ref in zip(rendered, refs):
             out[name][f.pose.index] = debiased_psnr(f.ao["psao"], ref, args.frame_spp)
+    if picture is not None:
+        worst = int(np.argmax([out["unbudgeted"][k] - out["budgeted"][k] for k in drawn]))
+        _picture_frames(picture, frames["budgeted"][worst], frames["unbudgeted"][worst], refs[worst], out)
     return out["budgeted"], out["unbudgeted"]
+
+
+def _picture_frames(path: Path, budgeted, unbudgeted, ref: np.ndarray, psnrs: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = budgeted.pose.index
+    diff = np.abs(budgeted.ao["psao"] - unbudgeted.ao["psao"])
+    panels = [(budgeted.ao["psao"], f"budgeted 60 Hz, {psnrs['budgeted'][k]:.2f} dB", "gray"),
+              (unbudgeted.ao["psao"], f"unbudgeted, {psnrs['unbudgeted'][k]:.2f} dB", "gray"),
+              (ref, "RTAO reference", "gray"), (diff, f"|budgeted - unbudgeted| (max {diff.max():.3f})", "magma")]
+    fig, axes = plt.subplots(1, 4, figsize=(16, 2.8))
+    for ax, (img, title, cmap) in zip(axes, panels):
+        ax.imshow(img, cmap=cmap, vmin=0.0, vmax=1.0 if cmap == "gray" else max(float(diff.max()), 1e-3))
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    fig.suptitle(f"scene time {budgeted.pose.time:.2f} s: the sample whose budgeted frame lost most", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def point_kinds(tick, ids: np.ndarray) -> np.ndarray:
