@@ -12,8 +12,7 @@
    every codec (none, lz4, zstd per message, zstd stream per connection; zstd at level 15, strategy lazy)
    and layout (plain = the paper's raw uint32 layout, packed = ours). Each replay starts with the
    snapshot, as a connection does; the figures count the updates only. The mirror must end bit-exact.
-   Baseline: plain + zstd per message (the paper). Default: packed + zstd stream. Target: >= 2x smaller
-   (issue 12: "the 2x-smaller target stands").
+   Baseline: plain + zstd per message (the paper). Default: packed + zstd stream. Target: >= 2x smaller.
 4. Snapshot of the whole grid to a local `psao client` process over loopback (target < 2 s).
 
 Prints a table (bytes per changed point, per tick, per tick in steady state (after the first quarter of

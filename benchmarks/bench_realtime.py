@@ -255,8 +255,9 @@ def quality_scene(name: str, args) -> dict:
     motion then --rest-s with the scene held still, its automatic budget leaving the service the room a
     served run of the scene measured (served_service_s: so it traces what a served tick would), sampling the
     stored AO of a fixed random set of the points the motion can reach (near_motion: elsewhere both ticks
-    keep the bake's AO); then the unbudgeted tick at the same scene times, with the reference traced right
-    after each sampled tick."""
+    keep the bake's AO) and the grid a client would draw (grid_state); then the unbudgeted tick at the same
+    scene times, with the points' reference traced right after each sampled tick; then the frames of both
+    (frame_psnrs)."""
     import copy
 
     from psao_client.connection import scene_camera_feed
@@ -596,11 +597,13 @@ def main(argv=None) -> int:
         ap.error(f"--service-seconds must be a number >= 0, got {args.service_seconds}")
     if not (np.isfinite(args.fixed_rays) and args.fixed_rays >= 0):
         ap.error(f"--fixed-rays must be a number >= 0, got {args.fixed_rays}")
+    from psao_client.errors import RenderError
+    from psao_client.render.output import parse_size
     try:
-        args.frame_size = tuple(int(x) for x in args.frame_size.lower().split("x"))
-    except ValueError:
-        args.frame_size = ()
-    if len(args.frame_size) != 2 or min(args.frame_size) < 8:
+        args.frame_size = parse_size(args.frame_size)
+    except RenderError as exc:
+        ap.error(f"--frame-size: {exc}")
+    if min(args.frame_size) < 8:
         ap.error("--frame-size must be WxH, each at least 8 pixels")
     if args.frame_spp < 2:
         ap.error(f"--frame-spp must be at least 2, got {args.frame_spp}")
