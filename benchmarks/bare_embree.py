@@ -1,7 +1,7 @@
 """Bare embreex on exactly the rays the tracer traces, with as many processes: the baseline of the
 tracer's throughput.
 
-Each worker computes the rays (origins and directions of psao_server.tracer.directions for the given
+Each worker computes the rays (origins and directions of psao.server.tracer.directions for the given
 points, ids, seed and ray count) and builds its scenes (static, plus the moving part of a tick merged
 into world triangles) when it starts, before timing, so the bare run pays for nothing but Embree's
 occlusion queries, in chunks of the same size, on a pool of the same size. Only a count of occluded
@@ -18,9 +18,9 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from psao_server.settings import TraceSettings
-from psao_server.tracer.directions import cosine_directions, ray_origins
-from psao_server.tracer.embree import worker_context
+from psao.server.settings import TraceSettings
+from psao.server.tracer.directions import cosine_directions, ray_origins
+from psao.server.tracer.embree import worker_context
 
 _STATE: dict = {}
 

@@ -7,7 +7,7 @@ time spent in the Embree query itself ("eff", seconds measured inside the worker
 tracer against a bare embreex run on the same rays is bench_realtime's tracer part). Prints a table and
 writes a chart.
 
---gap-fills 0,4 adds rows with psao_server.gapfill on (4 rounds of adding points where the client's
+--gap-fills 0,4 adds rows with psao.server.points.gapfill on (4 rounds of adding points where the client's
 lookup finds none) beside the paper's points, to compare holes, drops and time.
 
     python -m benchmarks.bench_bake [--scenes builtin:cornell,builtin:courtyard] [--densities 64,256,1024]
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from psao_scene import load_scene
-from psao_server.bake import bake_scene, reconstruction_error, sample_probes
-from psao_server.settings import BakeSettings, GapFillSettings, ProbeSettings
+from psao.scene import load_scene
+from psao.server.bake import bake_scene, reconstruction_error, sample_probes
+from psao.server.settings import BakeSettings, GapFillSettings, ProbeSettings
 
 from benchmarks.verdicts import Verdicts
 

@@ -2,7 +2,7 @@
 
 1. Bake the scene (default builtin:courtyard at N=256) or load a baked grid (--grid). When the scene is
    animated (and it was baked here), record --animated-ticks ticks of its own animation through the real
-   server tick (psao_server.tick), with a client camera on the scene's path: the main stream.
+   server tick (psao.server.tick.server_tick), with a client camera on the scene's path: the main stream.
 2. Record a second stream: --ticks server ticks at --tick-hz of a moving occluder (a sphere on a loop
    through the courtyard darkens the AO of the points within its reach; points it leaves get their baked
    AO back: spatially and temporally coherent, as a moving object is) and, as a second stream, the
@@ -34,11 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.codecs import Codec, codec_name
-from protocol.gridformat import POINTS_PER_CELL
-from protocol.limits import DEFAULT_LIMITS, Limits
-from protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession, scene_hash_bytes
-from protocol.updates import GridDelta, Layout, state_digest
+from psao.protocol.codecs import Codec, codec_name
+from psao.protocol.gridformat import POINTS_PER_CELL
+from psao.protocol.limits import DEFAULT_LIMITS, Limits
+from psao.protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession, scene_hash_bytes
+from psao.protocol.updates import GridDelta, Layout, state_digest
 
 from benchmarks.verdicts import Verdicts
 
@@ -78,7 +78,7 @@ class Row:
 
 
 def full_delta(grid, transforms) -> GridDelta:
-    from psao_server.clients import changed_buckets, changed_cells, read_delta
+    from psao.server.net.clients import changed_buckets, changed_cells, read_delta
 
     return read_delta(grid, transforms, np.arange(len(transforms)), changed_buckets(grid.buckets),
                       changed_cells(grid.cells))
@@ -87,7 +87,7 @@ def full_delta(grid, transforms) -> GridDelta:
 def record(name: str, grid, transforms, tick_fn, ticks: int, tick_hz: float) -> Recording:
     """Run `ticks` ticks and keep what a client would be sent after each: the dirty buckets and cells and
     the transforms that changed. `transforms` is an array or a callable returning the current one."""
-    from psao_server.clients import read_delta
+    from psao.server.net.clients import read_delta
 
     current = transforms if callable(transforms) else (lambda: transforms)
     grid.take_dirty()
@@ -117,13 +117,13 @@ def is_animated(scene) -> bool:
 
 
 def record_animated(bake, ticks: int, tick_hz: float, rays: int) -> tuple[Recording, object]:
-    """The scene's own animation through the real server tick (psao_server.tick), with one client's camera
+    """The scene's own animation through the real server tick (psao.server.tick.server_tick), with one client's camera
     following the scene's camera path, as `psao serve --animate` runs it. The tick traces as many rays as
     the bake did, so the bake is its first sync (no one-off re-trace of everything at tick 0). Returns
     the grid it ran on."""
-    from psao_client.connection import scene_camera_feed
-    from psao_server.tick import ServerTick
-    from psao_server.settings import TickSettings
+    from psao.client.connection import scene_camera_feed
+    from psao.server.tick.server_tick import ServerTick
+    from psao.server.settings import TickSettings
 
     t0 = time.perf_counter()
     tick = ServerTick(bake, TickSettings(rays=rays))
@@ -157,7 +157,7 @@ def split(delta: GridDelta, limits: Limits = DEFAULT_LIMITS) -> list[GridDelta]:
 
 
 def replay(rec: Recording, codec: Codec, layout: Layout, tick_hz: float) -> Row:
-    from psao_client.mirror import Mirror
+    from psao.client.mirror import Mirror
 
     h = bytes(32)
     server = ServerSession(ServerConfig(h, codec=codec, layout=layout))
@@ -238,8 +238,8 @@ def chart(results: dict[str, list[Row]], path: Path) -> None:
 async def snapshot_to_client(grid, scene_spec: str, scene_hash: bytes, transforms: np.ndarray) -> dict:
     """Serve the grid on a free loopback port; time a real `psao client` process until its snapshot is
     complete (its own measurement: connect -> last chunk applied)."""
-    from psao_server.service import Service, StaticTransforms
-    from psao_server.settings import ServeSettings
+    from psao.server.net.service import Service, StaticTransforms
+    from psao.server.settings import ServeSettings
 
     service = Service(grid, scene_hash, ServeSettings(port=0, tick_hz=60, stats_interval=1e9),
                       transforms=StaticTransforms(transforms))
@@ -274,11 +274,11 @@ def main(argv=None) -> int:
     p.add_argument("--skip-snapshot", action="store_true")
     args = p.parse_args(argv)
 
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings, TickSettings
-    from psao_server.grid import Grid
-    from psao_server.testhook import MovingOccluder, RandomEdits
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings, TickSettings
+    from psao.server.grid import Grid
+    from psao.server.tick.testhook import MovingOccluder, RandomEdits
 
     args.rays = args.rays or TickSettings().rays
     scene = load_scene(args.scene)

@@ -113,9 +113,9 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
     report per stage on stdout, from the first stage that has one of them (the driver starts the process
     then). Runs at a lower CPU priority than the server (CLIENT_NICE)."""
     os.nice(CLIENT_NICE)
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient, scene_camera_feed
-    from psao_scene import load_scene
+    from psao.protocol.session import scene_hash_bytes
+    from psao.client.connection import MirrorClient, scene_camera_feed
+    from psao.scene import load_scene
 
     scene = load_scene(scene_spec)
     feed = scene_camera_feed(scene)
@@ -194,7 +194,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
 
 def overview_camera(scene) -> tuple[np.ndarray, np.ndarray]:
     """(view, projection) that sees the whole scene: its bounding sphere inside a 60 degree frustum."""
-    from psao_scene.camera import look_at, perspective
+    from psao.scene.camera import look_at, perspective
 
     lo, hi = (np.asarray(b, np.float64) for b in scene.world_bounds())
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 + 1e-3

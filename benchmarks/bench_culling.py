@@ -69,16 +69,16 @@ def exact_where_sent(grid, transforms, mirror, pending: np.ndarray) -> tuple[boo
 
 
 async def run(args) -> int:
-    from protocol.session import scene_hash_bytes
-    from protocol.updates import state_digest
-    from psao_client.connection import MirrorClient
-    from psao_scene import load_scene
-    from psao_scene.camera import look_at, perspective
-    from psao_server.bake import bake_scene
-    from psao_server.budget import BudgetSettings
-    from psao_server.service import Service
-    from psao_server.settings import BakeSettings, ServeSettings, TickSettings
-    from psao_server.tick import ServerTick
+    from psao.protocol.session import scene_hash_bytes
+    from psao.protocol.updates import state_digest
+    from psao.client.connection import MirrorClient
+    from psao.scene import load_scene
+    from psao.scene.camera import look_at, perspective
+    from psao.server.bake import bake_scene
+    from psao.server.tick.budget import BudgetSettings
+    from psao.server.net.service import Service
+    from psao.server.settings import BakeSettings, ServeSettings, TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     scene = load_scene(args.scene)
     t0 = time.perf_counter()

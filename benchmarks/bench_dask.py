@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
-from psao_scene import load_scene
-from psao_server.bake import build_scene_grid, grid_world_points, scene_center, scene_world_geometry, to_world
-from psao_server.points import generate_scene_points
-from psao_server.settings import ClusterSettings, PointSettings, TraceSettings
-from psao_server.tracer import make_tracer
+from psao.scene import load_scene
+from psao.server.bake import build_scene_grid, grid_world_points, scene_center, scene_world_geometry, to_world
+from psao.server.points.generate import generate_scene_points
+from psao.server.settings import ClusterSettings, PointSettings, TraceSettings
+from psao.server.tracer import make_tracer
 
 THROUGHPUT_TARGET = 0.85
 MODEL_TOLERANCE = 0.25
@@ -60,7 +60,7 @@ def dask_tracer(scene, address: str, **kw):
 
 
 def grid_bytes(grid, table, vis) -> bytes:
-    from protocol import pointword as pw
+    from psao.protocol import pointword as pw
 
     grid.set_ao(table.slot, table.index, pw.quantise_ao(vis))
     return b"".join(a.tobytes() for a in (grid.instances, grid.buckets, grid.cells))
@@ -233,7 +233,7 @@ def throughput_and_scaling(args, v: Verdicts) -> dict:
 
 # ---------------------------------------------------------------- 3. memory with and without tiles
 def memory(args, v: Verdicts) -> dict:
-    from psao_server.tracer.dask_backend import worker_peak_rss
+    from psao.server.tracer.dask_backend import worker_peak_rss
 
     t0 = time.perf_counter()
     scene = load_scene(args.large)

@@ -1,4 +1,4 @@
-"""The video server's depth-aware denoise (psao_eval.video.masked_gaussian) against its definition run
+"""The video server's depth-aware denoise (psao.eval.video.masked_gaussian) against its definition run
 the direct way, one masked scipy Gaussian pair per depth layer (`layered_gaussian`, below), on real
 client G-buffers of the built-in scenes, in the same run. Targets (VERDICT lines):
   * equal: the two agree within 2e-6 on every frame (AO in [0, 1]);
@@ -39,10 +39,10 @@ def layered_gaussian(ao: np.ndarray, mask: np.ndarray, depth: np.ndarray, sigma:
 
 def client_frames(spec: str, size: tuple[int, int], frames: int):
     """(mask, depth) of `frames` poses along the scene's camera path, drawn from a tiny grid."""
-    from psao_eval.quality import QualityRenderer, frame_poses
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings
+    from psao.eval.quality import QualityRenderer, frame_poses
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings
 
     scene = load_scene(spec)
     poses = frame_poses(scene, frames, size, None)
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     p.add_argument("--sigma", type=float, default=1.0, help="denoise sigma in pixels (the video server's default)")
     p.add_argument("--repeats", type=int, default=5, help="timed runs per frame and filter (median)")
     a = p.parse_args(argv)
-    from psao_eval.video import masked_gaussian
+    from psao.eval.video import masked_gaussian
 
     size = tuple(int(v) for v in a.size.lower().split("x"))
     v = Verdicts("bench_denoise")

@@ -1,7 +1,7 @@
 """Densify's worth and cost on one scene: the same bake without and with it, then accuracy and AO pass.
 
 Both bakes use the scene's default density, rays and seed; one has densify off (the default), the
-other `--densify-rounds` rounds of it (5, as `psao bake --densify 5`; psao_server/densify.py). Reported: points, bake seconds, recon MAE and holes at the
+other `--densify-rounds` rounds of it (5, as `psao bake --densify 5`; src/psao/server/points/densify.py). Reported: points, bake seconds, recon MAE and holes at the
 visible probes against AO traced there directly (as benchmarks/bench_scenes.py scores them), and the
 client's AO pass on both grids: the same renderer draws the same frames of the scene's camera path with
 PSAO and SSAO, in interleaved rounds (plain, densified, then densified, plain, ...); a grid's figure is
@@ -27,9 +27,9 @@ DEFAULT_SCENE = "../shared/scenes/sponza/sponza_s_lod4.glb"
 
 
 def bake(scene, rounds: int):
-    from psao_server.bake import bake_scene
-    from psao_server.sampling import default_density
-    from psao_server.settings import BakeSettings, DensifySettings
+    from psao.server.bake import bake_scene
+    from psao.server.points.sampling import default_density
+    from psao.server.settings import BakeSettings, DensifySettings
 
     t0 = time.perf_counter()
     res = bake_scene(scene, BakeSettings(density=default_density(scene), densify=DensifySettings(rounds=rounds)),
@@ -55,10 +55,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
 
-    from psao_eval.quality import QualityRenderer, frame_poses
-    from psao_scene import load_scene
-    from psao_server.bake import reconstruction_error, sample_probes
-    from psao_server.buried import visible_probes
+    from psao.eval.quality import QualityRenderer, frame_poses
+    from psao.scene import load_scene
+    from psao.server.bake import reconstruction_error, sample_probes
+    from psao.server.points.buried import visible_probes
 
     scene = load_scene(args.scene)
     probes = visible_probes(scene, sample_probes(scene, args.probes))

@@ -139,9 +139,9 @@ def merged_mesh(scene) -> tuple[np.ndarray, np.ndarray]:
 
 def warm_up() -> float:
     """Warp init and kernel load on a tiny mesh; returns seconds."""
-    from psao_scene.model import Mesh
-    from psao_server.points import generate_points
-    from psao_server.settings import PointSettings
+    from psao.scene.model import Mesh
+    from psao.server.points.generate import generate_points
+    from psao.server.settings import PointSettings
 
     quad = Mesh("warm", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     start = time.perf_counter()
@@ -153,7 +153,7 @@ def run_scene(scene, settings, points: int) -> dict:
     """Part 1: every instance at the density giving `points` in total."""
     from rich.progress import Progress
 
-    from psao_server.points import generate_points, instance_seed
+    from psao.server.points.generate import generate_points, instance_seed
 
     density = points / world_area(scene)
     settings = replace(settings, density=density)
@@ -192,9 +192,9 @@ def run_pcu(v: np.ndarray, f: np.ndarray, samples: int, seed: int) -> tuple[floa
 
 
 def run_ours_merged(v: np.ndarray, f: np.ndarray, count: int, settings) -> tuple[float, object]:
-    from psao_scene.model import Mesh
-    from psao_scene.model import triangle_areas
-    from psao_server.points import generate_points
+    from psao.scene.model import Mesh
+    from psao.scene.model import triangle_areas
+    from psao.server.points.generate import generate_points
 
     merged = Mesh("merged", v, f)
     area = float(triangle_areas(v, f).sum())
@@ -255,8 +255,8 @@ def write_charts(out: Path, merged: dict, scene_name: str) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from psao_scene import load_scene
-    from psao_server.settings import PointSettings
+    from psao.scene import load_scene
+    from psao.server.settings import PointSettings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene", nargs="?", default="builtin:courtyard")

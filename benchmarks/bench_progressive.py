@@ -37,9 +37,9 @@ SCENE = "builtin:courtyard"
 
 def reference(scene, probes: int, rays: int, workers: int):
     """Visible probes and their AO traced with `rays` rays."""
-    from psao_server.bake import sample_probes, scene_center, scene_world_geometry
-    from psao_server.buried import visible_probes
-    from psao_server.tracer import TraceSettings, make_tracer
+    from psao.server.bake import sample_probes, scene_center, scene_world_geometry
+    from psao.server.points.buried import visible_probes
+    from psao.server.tracer import TraceSettings, make_tracer
 
     p = visible_probes(scene, sample_probes(scene, probes))
     tracer = make_tracer("embree", scene_center(scene), workers=workers)
@@ -54,7 +54,7 @@ def reference(scene, probes: int, rays: int, workers: int):
 
 def psnr(state: dict, probes, truth: np.ndarray) -> float:
     """PSNR (dB) of the AO reconstructed from a mirror's arrays at the probes against `truth`."""
-    from protocol.reconstruct import reconstruct_ao
+    from psao.protocol.reconstruct import reconstruct_ao
 
     ao, _ = reconstruct_ao(state["instances"], state["buckets"], state["cells"], probes.instance, probes.local_pos,
                            probes.local_normal)
@@ -67,9 +67,9 @@ def watch(scene, serve_args: list[str], marks: list[float], until_snapshots: int
     since process start of every complete snapshot, and a copy of the mirror the client shows (its last
     complete snapshot and the updates since) at each mark; ends after the last mark and `until_snapshots`
     complete snapshots."""
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient, scene_camera_feed
-    from psao_client.errors import ConnectError
+    from psao.protocol.session import scene_hash_bytes
+    from psao.client.connection import MirrorClient, scene_camera_feed
+    from psao.client.errors import ConnectError
 
     started = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", SCENE, "--port", "0", *serve_args],
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
     marks = sorted(float(x) for x in args.marks.split(",") if x)
     v = Verdicts("bench_progressive")
 
-    from psao_scene import load_scene
+    from psao.scene import load_scene
 
     scene = load_scene(SCENE)
     probes, truth = reference(scene, args.probes, args.ref_rays, args.workers)

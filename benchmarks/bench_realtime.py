@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
-from psao_eval.metrics import PSNR_CAP
-from psao_server.budget import BudgetSettings
+from psao.eval.metrics import PSNR_CAP
+from psao.server.tick.budget import BudgetSettings
 
 PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
@@ -60,7 +60,7 @@ RATE_CASES = [("courtyard-256", "builtin:courtyard", 256.0), ("robots-256", "bui
 
 def density_for(scene, points: float) -> float:
     """Density (points per unit^2) giving about `points` points on the scene's surface."""
-    from psao_server.bake import scene_world_geometry
+    from psao.server.bake import scene_world_geometry
 
     v, f = scene_world_geometry(scene)
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
@@ -69,10 +69,10 @@ def density_for(scene, points: float) -> float:
 
 # ------------------------------------------------------------------------------------------ tracer
 def part_tracer(args, v: Verdicts, out: dict) -> None:
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene, scene_center
-    from psao_server.settings import BakeSettings, TickSettings, TraceSettings
-    from psao_server.tick import ServerTick
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene, scene_center
+    from psao.server.settings import BakeSettings, TickSettings, TraceSettings
+    from psao.server.tick.server_tick import ServerTick
 
     from benchmarks.bare_embree import BareEmbree
 
@@ -129,10 +129,10 @@ def _compare(tracer, bare, pos, nrm, ids, s, repeats: int) -> tuple[float, float
 
 # -------------------------------------------------------------------------------------------- grid
 def part_grid(args, v: Verdicts, out: dict) -> None:
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings, TickSettings
-    from psao_server.tick import ServerTick
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings, TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     scene = load_scene(args.skinned)
     density = density_for(scene, args.skinned_points)
@@ -165,7 +165,7 @@ def part_grid(args, v: Verdicts, out: dict) -> None:
 
 # -------------------------------------------------------------------------------------------- rate
 def part_rate(args, v: Verdicts, out: dict) -> None:
-    from psao_scene import load_scene
+    from psao.scene import load_scene
 
     from benchmarks.served import serve_and_watch
 
@@ -260,12 +260,12 @@ def quality_scene(name: str, args) -> dict:
     (frame_psnrs)."""
     import copy
 
-    from psao_client.connection import scene_camera_feed
-    from psao_scene import load_scene
-    from psao_server.bake import BakeResult, bake_scene
-    from psao_server.settings import BakeSettings, TickSettings, TraceSettings
-    from psao_server.selection import camera_planes, in_any_view
-    from psao_server.tick import ServerTick
+    from psao.client.connection import scene_camera_feed
+    from psao.scene import load_scene
+    from psao.server.bake import BakeResult, bake_scene
+    from psao.server.settings import BakeSettings, TickSettings, TraceSettings
+    from psao.server.tick.selection import camera_planes, in_any_view
+    from psao.server.tick.server_tick import ServerTick
 
     service_s = served_service_s(name, args) if args.service_seconds > 0 and not args.fixed_rays else 0.0
     scene = load_scene(f"builtin:{name}")
@@ -424,8 +424,8 @@ def frame_psnrs(scene, camera, scene_times: list, instances, states_b: list, sta
     difference."""
     from types import SimpleNamespace
 
-    from psao_eval.quality import FramePose, QualityRenderer, reference_images
-    from psao_eval.reference import ReferenceSettings
+    from psao.eval.quality import FramePose, QualityRenderer, reference_images
+    from psao.eval.reference import ReferenceSettings
 
     poses = [FramePose(int(k), float(scene_times[k]), *camera(float(scene_times[k]))) for k in drawn]
     grid_of = lambda state: SimpleNamespace(instances=instances, buckets=state[0], cells=state[1])  # noqa: E731
@@ -498,9 +498,9 @@ def error_split(budgeted, unbudgeted, refs, views, kinds) -> dict:
 def near_motion(bake, seconds: float) -> np.ndarray:
     """Ids of the points the motion can reach in [0, seconds]: points of moving instances, and static
     points within the AO distance of a moving instance's bounds at some time (every 1/30 s)."""
-    from psao_server.animate import SceneAnimator
-    from psao_server.bake import to_world
-    from psao_server.selection import expand
+    from psao.server.tick.animate import SceneAnimator
+    from psao.server.bake import to_world
+    from psao.server.tick.selection import expand
 
     anim = SceneAnimator(bake.scene)
     sizes = [len(p) for p in bake.pointsets]
@@ -597,8 +597,8 @@ def main(argv=None) -> int:
         ap.error(f"--service-seconds must be a number >= 0, got {args.service_seconds}")
     if not (np.isfinite(args.fixed_rays) and args.fixed_rays >= 0):
         ap.error(f"--fixed-rays must be a number >= 0, got {args.fixed_rays}")
-    from psao_client.errors import RenderError
-    from psao_client.render.output import parse_size
+    from psao.client.errors import RenderError
+    from psao.client.render.output import parse_size
     try:
         args.frame_size = parse_size(args.frame_size)
     except RenderError as exc:

@@ -100,17 +100,17 @@ def judge_against(tree: Path, here: list[dict], base: list[dict], v) -> None:
 
 
 def build_grid(scene, density: float, bake: bool, rays: int):
-    from protocol import pointword as pw
-    from psao_server.bake import build_scene_grid
-    from psao_server.points import generate_points, instance_seed
+    from psao.protocol import pointword as pw
+    from psao.server.bake import build_scene_grid
+    from psao.server.points.generate import generate_points, instance_seed
     try:
-        from psao_server.settings import BakeSettings, PointSettings
+        from psao.server.settings import BakeSettings, PointSettings
     except ImportError:  # checkouts from before settings.py (an --against baseline)
-        from psao_server.bake import BakeSettings
-        from psao_server.points import PointSettings
+        from psao.server.bake import BakeSettings
+        from psao.server.points.generate import PointSettings
 
     if bake:
-        from psao_server.bake import bake_scene
+        from psao.server.bake import bake_scene
 
         result = bake_scene(scene, BakeSettings(density=density, rays=rays), show_progress=False)
         result.tracer.close()
@@ -169,7 +169,7 @@ def measure(renderer, views, repeats: int) -> dict:
 
 
 def run_density(scene, density, args, views, size):
-    from psao_client.render.renderer import FrameRenderer
+    from psao.client.render.renderer import FrameRenderer
 
     t0 = time.perf_counter()
     grid = build_grid(scene, density, args.bake, args.rays)
@@ -198,7 +198,7 @@ def hole_fraction(renderer, views) -> float:
 
 
 def save_images(renderer, view_proj, out: Path, density: int) -> None:
-    from psao_client.render.output import save_frame
+    from psao.client.render.output import save_frame
 
     frame = renderer.render(*view_proj, read_gbuffer=False)
     for path in save_frame(frame, out / f"N{density}", 0):
@@ -282,9 +282,9 @@ def main(argv=None) -> int:
         judge_against(args.against, here, base, v)
         return v.exit_code()
 
-    from psao_client.render.output import parse_size
-    from psao_client.render.views import path_matrices, path_times
-    from psao_scene import load_scene, scene_camera
+    from psao.client.render.output import parse_size
+    from psao.client.render.views import path_matrices, path_times
+    from psao.scene import load_scene, scene_camera
 
     size = parse_size(args.size)
     scene = load_scene(args.scene)

@@ -2,11 +2,11 @@
 
 For each scene (every mesh file under ../shared/scenes and every built-in scene) and each density scale,
 a child process bakes at the scene's default (scale-aware) density times the scale, with the default
-density's detail levels (psao_server/sampling.py: small triangles up to DETAIL_FACTOR times denser) and
+density's detail levels (src/psao/server/points/sampling.py: small triangles up to DETAIL_FACTOR times denser) and
 the bake's default rays per point unless --rays, and reports: points, bake seconds, points dropped to grid
 overflow, reconstruction MAE and hole fraction at random surface probes against AO traced there directly, PSNR of
 PSAO, SSAO and GTAO against an RTAO reference on the same frames, and the child's peak resident memory.
-Probes on surfaces buried inside closed geometry (psao_server/buried.py, every one-sided instance as
+Probes on surfaces buried inside closed geometry (src/psao/server/points/buried.py, every one-sided instance as
 posed at time 0) are seen from nowhere and left out of MAE and holes; their share is the "buried"
 column. The probes' AO is traced with `psao bake`'s check's rays (ProbeSettings.rays, 1024), fine enough to
 judge an MAE of 0.02; reference spp, frame size and frame count are kept modest for a shared 2-core
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from benchmarks.verdicts import Verdicts
-from psao_server.settings import DensifySettings, ProbeSettings
+from psao.server.settings import DensifySettings, ProbeSettings
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots", "builtin:tangle")
@@ -44,13 +44,13 @@ def scene_specs() -> list[str]:
 
 def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     """Runs in the child: bake, accuracy at probes, frames against the reference."""
-    from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
-    from psao_eval.reference import ReferenceSettings
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene, reconstruction_error, sample_probes
-    from psao_server.buried import visible_probes
-    from psao_server.settings import BakeSettings, DensifySettings, GapFillSettings
-    from psao_server.sampling import DETAIL_FACTOR, default_density
+    from psao.eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, score_frames
+    from psao.eval.reference import ReferenceSettings
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene, reconstruction_error, sample_probes
+    from psao.server.points.buried import visible_probes
+    from psao.server.settings import BakeSettings, DensifySettings, GapFillSettings
+    from psao.server.points.sampling import DETAIL_FACTOR, default_density
 
     scene = load_scene(spec)
     density = default_density(scene) * scale
@@ -99,10 +99,10 @@ def view_frame(scene, grid, view: str, size: tuple[int, int], spp: int):
     """PSAO's frame and the RTAO reference from one camera (--maps-view), at `size`."""
     import numpy as np
 
-    from psao_client.render.views import near_far
-    from psao_eval.quality import FramePose, QualityRenderer, reference_images
-    from psao_eval.reference import ReferenceSettings
-    from psao_scene.camera import ORBIT_FOV_Y, look_at, perspective
+    from psao.client.render.views import near_far
+    from psao.eval.quality import FramePose, QualityRenderer, reference_images
+    from psao.eval.reference import ReferenceSettings
+    from psao.scene.camera import ORBIT_FOV_Y, look_at, perspective
 
     eye, target = (np.array(v, np.float64) for v in parse_view(view))
     near, far = near_far(scene, eye)
@@ -122,7 +122,7 @@ def save_maps(grid, frame, ref, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from protocol.reconstruct import reconstruct_ao
+    from psao.protocol.reconstruct import reconstruct_ao
 
     gb = frame.gbuffer
     m = gb.mask & (gb.instance >= 0)
@@ -254,7 +254,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_scenes.json").write_text(json.dumps(rows, indent=1))
     chart(rows, args.out / "bench_scenes.png")
-    from psao_eval.metrics import PSNR_CAP
+    from psao.eval.metrics import PSNR_CAP
 
     v = Verdicts("bench_scenes")
     for r in rows:

@@ -40,9 +40,9 @@ ROOT = Path(__file__).resolve().parents[1]
 async def soak_host(url: str, scene_spec: str, clients: int, digest_dir: Path, seed: int, event_s: float,
                     slow_delay: float, generation: int) -> None:
     """Run `clients` slots forever; each slot's client is dropped, leaves or reads slowly at random."""
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient, scene_camera_feed
-    from psao_scene import load_scene
+    from psao.protocol.session import scene_hash_bytes
+    from psao.client.connection import MirrorClient, scene_camera_feed
+    from psao.scene import load_scene
 
     scene = load_scene(scene_spec)
     feed = scene_camera_feed(scene)
@@ -79,9 +79,9 @@ def start_host(args, url: str, work: Path, generation: int) -> subprocess.Popen:
 
 
 async def fresh_snapshot(url: str, scene_spec: str, timeout: float) -> bool:
-    from protocol.session import scene_hash_bytes
-    from psao_client.connection import MirrorClient
-    from psao_scene import load_scene
+    from psao.protocol.session import scene_hash_bytes
+    from psao.client.connection import MirrorClient
+    from psao.scene import load_scene
 
     c = MirrorClient(url, scene_hash_bytes(load_scene(scene_spec).content_hash()), reconnect=False)
     task = asyncio.create_task(c.run())

@@ -1,7 +1,7 @@
 """What a whole trace from the bake's static hits costs against a full trace, and what the hits take in memory.
 
 Per scene (built-in courtyard and robots): a bake at --density points/m^2 and --rays rays keeps the static
-scene's answers of its static points (psao_server.static_hits); one tick of motion (1/60 s after t = 0)
+scene's answers of its static points (psao.server.tracer.static_hits); one tick of motion (1/60 s after t = 0)
 selects the static points near the movers; on those points, in the tracer's worker (one process), the
 tracer's seconds per point of
   whole    the whole --rays-ray set from the kept static hits (only the rays the static scene lets
@@ -27,15 +27,15 @@ import os
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
-from psao_server.budget import BudgetSettings
+from psao.server.tick.budget import BudgetSettings
 
 
 def scene_costs(name: str, args) -> dict:
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings, TickSettings, TraceSettings
-    from psao_server.tick import ServerTick
-    from psao_server.tracer.base import TracePart
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings, TickSettings, TraceSettings
+    from psao.server.tick.server_tick import ServerTick
+    from psao.server.tracer.base import TracePart
 
     bake = bake_scene(load_scene(f"builtin:{name}"), BakeSettings(density=args.density, rays=args.rays, workers=1),
                       show_progress=False)

@@ -35,7 +35,7 @@ STAGES = ("animate", "select", "trace", "grid")
 
 
 def camera_at_time(scene, t: float, aspect: float = 16 / 9):
-    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+    from psao.scene.camera import camera_at, look_at, perspective, scene_camera
     path = scene_camera(scene)
     eye, target = camera_at(path, t)
     lo, hi = scene.world_bounds()
@@ -67,10 +67,10 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def bench_scene(name: str, args) -> dict:
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings, TickSettings
-    from psao_server.tick import ServerTick
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings, TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     scene = load_scene(f"builtin:{name}")
     t0 = time.perf_counter()
@@ -99,11 +99,11 @@ def threshold_sweep(name: str, thresholds: list[int], args) -> list[dict]:
     largest |stored - full re-trace| at the end over the points not waiting for a view (the threshold
     bounds it)."""
     import copy
-    from protocol import pointword as pw
-    from psao_scene import load_scene
-    from psao_server.bake import BakeResult, bake_scene
-    from psao_server.settings import BakeSettings, TickSettings
-    from psao_server.tick import ServerTick
+    from psao.protocol import pointword as pw
+    from psao.scene import load_scene
+    from psao.server.bake import BakeResult, bake_scene
+    from psao.server.settings import BakeSettings, TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     scene = load_scene(f"builtin:{name}")
     bake = bake_scene(scene, BakeSettings(density=args.sweep_density, rays=args.rays, workers=args.workers),

@@ -71,9 +71,9 @@ def main(argv=None) -> int:
 def report(folders: list[Path], cost_folders: list[Path], out: Path) -> int:
     """Tables, charts and verdicts of several runs' rows, with the costs of the cost runs when given;
     the runs' side-by-side frames are copied along."""
-    from psao_eval import video_report
-    from psao_eval.errors import EvalError
-    from psao_eval.video_bench import client_costs
+    from psao.eval import video_report
+    from psao.eval.errors import EvalError
+    from psao.eval.video_bench import client_costs
 
     try:
         rows = [r for f in folders for r in video_report.read_results(f)["rows"]]

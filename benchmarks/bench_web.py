@@ -73,7 +73,7 @@ def start_server(args) -> tuple[subprocess.Popen, int, Path]:
 
 
 def fixed_camera(scene, w: int, h: int):
-    from psao_scene.camera import camera_at, look_at, perspective, scene_camera
+    from psao.scene.camera import camera_at, look_at, perspective, scene_camera
 
     path = scene_camera(scene)
     eye, target = camera_at(path, 0.0)
@@ -113,8 +113,8 @@ def browser_run(port: int, view, proj, w: int, h: int, args, codec: str, shot: P
 
 def moderngl_ms(scene, frame: dict, view, proj, w: int, h: int, frames: int) -> list[float]:
     """Wall ms of the desktop client's PSAO frame (submit + finish) on the page's own mirror."""
-    from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
-    from psao_client.render.renderer import FrameRenderer
+    from psao.protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
+    from psao.client.render.renderer import FrameRenderer
 
     dec = lambda k, dt: np.frombuffer(base64.b64decode(frame[k]), dtype=dt)  # noqa: E731
     with FrameRenderer(scene, size=(w, h), ao_mode="psao") as r:
@@ -171,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     if why:
         print(f"bench_web: SKIPPED: {why}", flush=True)
         return 0
-    from psao_scene import load_scene
-    from psao_server.scene_export import scene_blob, scene_file
+    from psao.scene import load_scene
+    from psao.server.net.scene_export import scene_blob, scene_file
 
     w, h = (int(v) for v in args.size.split("x"))
     codecs = [c.strip() for c in args.codecs.split(",") if c.strip()]

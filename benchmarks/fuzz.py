@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
-from protocol import messages as m
-from protocol.codecs import Codec
-from protocol.errors import ProtocolError
-from protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
-from protocol.limits import DEFAULT_LIMITS
-from protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession
-from protocol.updates import GridDelta, Layout, state_digest
-from psao_client.errors import MirrorError
-from psao_client.mirror import Mirror
-from psao_scene.errors import SceneError
+from psao.protocol import messages as m
+from psao.protocol.codecs import Codec
+from psao.protocol.errors import ProtocolError
+from psao.protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
+from psao.protocol.limits import DEFAULT_LIMITS
+from psao.protocol.session import ClientConfig, ClientSession, ServerConfig, ServerSession
+from psao.protocol.updates import GridDelta, Layout, state_digest
+from psao.client.errors import MirrorError
+from psao.client.mirror import Mirror
+from psao.scene.errors import SceneError
 
 HASH = bytes(range(32))
 SCENE_TOML = """[scene]
@@ -196,7 +196,7 @@ def check_exact(rng, n: int, t: Tally) -> int:
 
 
 def fuzz_scene(rng, n: int, t: Tally) -> None:
-    from psao_scene.tomlscene import load_toml_scene
+    from psao.scene.tomlscene import load_toml_scene
 
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "s.toml"

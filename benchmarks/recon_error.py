@@ -1,6 +1,6 @@
 """Where a bake's reconstruction error comes from: the probe reference's noise, the points' noise, the lookup.
 
-`recon_mae` (psao_server/bake.reconstruction_error, benchmarks/bench_scenes.py) is the mean |AO the client
+`recon_mae` (src/psao/server/bake.reconstruction_error, benchmarks/bench_scenes.py) is the mean |AO the client
 reconstructs at random visible surface probes - AO traced at the probes|. Three things make it up, and this
 script separates them on one bake:
   (a) the reference's own Monte Carlo error: the probes traced with --probe-rays (and 256) against
@@ -8,7 +8,7 @@ script separates them on one bake:
   (b) the points' noise: the same grid with every point traced again with --point-rays, scored against the
       fine truth; the drop is what the bake's rays per point cost;
   (c) the lookup (interpolation over r, leaks, missing points): what is left, broken down by the lookup step
-      that answered (protocol/reconstruct.py) and by the traced AO, with a top view of where the error lies.
+      that answered (src/psao/protocol/reconstruct.py) and by the traced AO, with a top view of where the error lies.
 
     python -m benchmarks.recon_error [--scene ../shared/scenes/sponza/sponza_s_lod4.glb] [--out out/recon_error]
 
@@ -27,15 +27,15 @@ import numpy as np
 
 from benchmarks.bench_scenes import TARGETS
 from benchmarks.verdicts import Verdicts
-from protocol.gridformat import T_D, T_N
-from psao_server.settings import ProbeSettings
+from psao.protocol.gridformat import T_D, T_N
+from psao.server.settings import ProbeSettings
 
 SPONZA = Path(__file__).resolve().parents[1].parent / "shared" / "scenes" / "sponza" / "sponza_s_lod4.glb"
 STEPS = ("r, own face", "2r, near normal", "2r, eq. 3", "3x3x3 ring", "none")
 
 
 def trace_probes(tracer, scene, probes, rays: int, seed: int) -> np.ndarray:
-    from psao_server.settings import TraceSettings
+    from psao.server.settings import TraceSettings
 
     ids = np.arange(len(probes.instance)) + (1 << 30)
     return tracer.visibility(probes.world_pos, probes.world_normal, ids,
@@ -44,7 +44,7 @@ def trace_probes(tracer, scene, probes, rays: int, seed: int) -> np.ndarray:
 
 def answering_step(grid, probes) -> np.ndarray:
     """Index into STEPS of the lookup step that answered each probe."""
-    from protocol.reconstruct import _reconstruct_chunk, reconstruct_ao
+    from psao.protocol.reconstruct import _reconstruct_chunk, reconstruct_ao
 
     args = (grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos.astype(np.float32),
             probes.local_normal.astype(np.float32), T_N, T_D)
@@ -57,11 +57,11 @@ def answering_step(grid, probes) -> np.ndarray:
 
 
 def measure(spec: str, probes_n: int, probe_rays: int, truth_rays: int, point_rays: int) -> tuple[dict, dict]:
-    from protocol.reconstruct import reconstruct_ao
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene, sample_probes, trace_grid_points
-    from psao_server.buried import visible_probes
-    from psao_server.settings import BakeSettings, TraceSettings
+    from psao.protocol.reconstruct import reconstruct_ao
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene, sample_probes, trace_grid_points
+    from psao.server.points.buried import visible_probes
+    from psao.server.settings import BakeSettings, TraceSettings
 
     scene = load_scene(spec)
     t0 = time.perf_counter()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from psao_client.errors import RenderError
+from psao.client.errors import RenderError
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SCENES = REPO.parent / "shared" / "scenes"  # test models, read-only; absent on some machines
@@ -15,7 +15,7 @@ SHARED_SCENES = REPO.parent / "shared" / "scenes"  # test models, read-only; abs
 @pytest.fixture(scope="module")
 def ctx():
     """One headless GL context per test module; skips without EGL."""
-    from psao_client.render.context import create_context
+    from psao.client.render.context import create_context
 
     try:
         context = create_context()
@@ -41,10 +41,10 @@ def make_tick():
     """make_tick("NAME", density, rays, bake_rays=rays, budget=None, baked_time=0.0, **tick_settings) ->
     (tick, bake): the server tick on a fresh bake of builtin:NAME, one tracer worker each, dirty sets drained.
     The test closes the tick."""
-    from psao_scene import load_scene
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings, TickSettings
-    from psao_server.tick import ServerTick
+    from psao.scene import load_scene
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings, TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     def make(name, density=32, rays=8, bake_rays=None, budget=None, baked_time=0.0, **tick_settings):
         bake = bake_scene(load_scene(f"builtin:{name}"),
@@ -61,7 +61,7 @@ def cornell_double_block():
     one small scene."""
     import dataclasses
 
-    from psao_scene import load_scene
+    from psao.scene import load_scene
 
     base = load_scene("builtin:cornell")
     meshes = list(base.meshes)

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psao_scene import load_scene
-from psao_scene.rigid import Polyline, instance_transform
-from psao_scene.skin import NodeAnimator, compose_hierarchy, hierarchy_order, skinning_matrices_of, topological_order
-from psao_scene.skinning import SceneSkinner, skinned_vertices
-from psao_scene.skinning_kernels import SurfacePoints
-from psao_scene.transforms import axis_angle_matrix, linear_matrix, placed_about, translation_matrix
-from psao_server.animate import SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes
+from psao.scene import load_scene
+from psao.scene.rigid import Polyline, instance_transform
+from psao.scene.skin import NodeAnimator, compose_hierarchy, hierarchy_order, skinning_matrices_of, topological_order
+from psao.scene.skinning import SceneSkinner, skinned_vertices
+from psao.scene.skinning_kernels import SurfacePoints
+from psao.scene.transforms import axis_angle_matrix, linear_matrix, placed_about, translation_matrix
+from psao.server.tick.animate import SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes
 
 BUILTIN = ["builtin:robots", "builtin:courtyard", "builtin:tangle", "builtin:space"]
 SHARED = ["cesiumman/CesiumMan.glb", "fox/Fox.glb", "riggedsimple/RiggedSimple.glb", "robotexpressive/RobotExpressive.glb"]
@@ -254,8 +254,8 @@ def test_scene_without_skins_is_animated_without_warp():
     import sys
 
     code = ("import sys\n"
-            "from psao_scene import load_scene\n"
-            "from psao_server.animate import SceneAnimator\n"
+            "from psao.scene import load_scene\n"
+            "from psao.server.tick.animate import SceneAnimator\n"
             "SceneAnimator(load_scene(sys.argv[1])).frame(0.5)\n"
             "print('warp' in sys.modules)\n")
     for scene, warp in (("builtin:courtyard", False), ("builtin:robots", True)):

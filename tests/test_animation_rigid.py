@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from psao_scene import SceneFormatError, load_scene
-from psao_scene.model import animation_hash
-from psao_scene.rigid import (KeyframeAnimation, PathAnimation, PlatformAnimation, Polyline, RigidKey, RollAnimation,
+from psao.scene import SceneFormatError, load_scene
+from psao.scene.model import animation_hash
+from psao.scene.rigid import (KeyframeAnimation, PathAnimation, PlatformAnimation, Polyline, RigidKey, RollAnimation,
                               SwingAnimation, instance_transform, is_dynamic)
-from psao_scene.transforms import axis_angle_matrix, matrix_to_quat, trs
+from psao.scene.transforms import axis_angle_matrix, matrix_to_quat, trs
 
 RNG = np.random.default_rng(11)
 
@@ -94,7 +94,7 @@ def test_roll_segment_quaternion_is_the_axis_angle_rotation():
 
 
 def test_one_quaternion_to_matrix_is_the_batched_result_bit_for_bit():
-    from psao_scene.transforms import quat_to_matrix
+    from psao.scene.transforms import quat_to_matrix
     q = RNG.normal(size=(200, 4))
     assert np.array_equal(np.array([quat_to_matrix(x) for x in q]), quat_to_matrix(q))
 
@@ -296,7 +296,7 @@ def test_space_is_mostly_static_with_far_moving_asteroids():
 
 
 def test_robots_walk_in_the_room():
-    from psao_scene.skinning import skinned_vertices
+    from psao.scene.skinning import skinned_vertices
     scene = load_scene("builtin:robots")
     robots = [k for k, i in enumerate(scene.instances) if scene.meshes[i.mesh].skin is not None]
     assert len(robots) >= 3

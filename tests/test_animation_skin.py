@@ -9,11 +9,11 @@ import numpy as np
 import pygltflib
 import pytest
 
-from psao_scene import SceneFormatError, load_scene
-from psao_scene.skin import MAX_JOINTS
-from psao_scene.transforms import axis_angle_matrix
-from psao_scene.skinning import skin_normals, skin_normals_reference, skin_points, skin_points_reference, skinned_vertices
-from psao_scene.skinning_kernels import SkinDeformer
+from psao.scene import SceneFormatError, load_scene
+from psao.scene.skin import MAX_JOINTS
+from psao.scene.transforms import axis_angle_matrix
+from psao.scene.skinning import skin_normals, skin_normals_reference, skin_points, skin_points_reference, skinned_vertices
+from psao.scene.skinning_kernels import SkinDeformer
 
 RNG = np.random.default_rng(5)
 
@@ -197,7 +197,7 @@ def test_normals_stay_perpendicular_to_skinned_surface():
 def test_corrupted_skinned_gltf_never_crashes(tmp_path):
     """Mutate one field of a valid skinned glTF at a time: loading either works or raises a SceneError,
     never another exception (no traceback reaches the user)."""
-    from psao_scene import SceneError
+    from psao.scene import SceneError
     skinned_gltf(tmp_path / "ok.glb")
     rng = np.random.default_rng(0)
     bad_values = [None, -1, 0, 1, 7, 99, 5124, 1e9, "VEC2", "MAT4", [], [1, 2]]
@@ -248,7 +248,7 @@ def test_toml_skinned_file_meshes(tmp_path):
 
 def test_fox_animation_by_name(tmp_path, shared_scene):
     fox = shared_scene("fox/Fox.glb")
-    from psao_scene.meshfile import load_mesh_file
+    from psao.scene.meshfile import load_mesh_file
     survey = load_mesh_file(fox)[0][0].skin.animator.duration
     walk = load_mesh_file(fox, "Walk")[0][0].skin.animator.duration
     run = load_mesh_file(fox, 2)[0][0].skin.animator.duration
@@ -260,7 +260,7 @@ def test_fox_animation_by_name(tmp_path, shared_scene):
 def test_surface_points_kernel_follows_like_numpy():
     """SkinnedPoints.follow (Warp's SurfacePoints) against its numpy reference on a moving mesh: the same
     positions and normals up to rounding, sides kept, rest normals where a triangle is skinned flat."""
-    from psao_server.animate import SkinnedPoints
+    from psao.server.tick.animate import SkinnedPoints
 
     rng = np.random.default_rng(4)
     faces = rng.integers(0, 200, size=(150, 3))
@@ -283,7 +283,7 @@ def test_surface_points_kernel_follows_like_numpy():
 def test_merged_channels_sample_as_one_by_one(shared_scene):
     """NodeAnimator samples a glTF skin's channels merged (merge_channels): the very numbers each channel
     gives on its own, at and between keys, before the first and after the last."""
-    from psao_scene.skin import merge_channels
+    from psao.scene.skin import merge_channels
 
     mesh = next(m for m in load_scene(shared_scene("cesiumman/CesiumMan.glb")).meshes if m.skin is not None)
     channels = mesh.skin.animator.channels
@@ -300,7 +300,7 @@ def test_merged_channels_sample_as_one_by_one(shared_scene):
 def test_moving_bounds_equal_the_plain_reductions():
     # animate.bounds_of (rows of coordinates) against min / max along the vertices (bit for bit) and the
     # largest distance from the box centre (to rounding: the sums of squares may round differently)
-    from psao_server.animate import bounds_of
+    from psao.server.tick.animate import bounds_of
 
     rng = np.random.default_rng(11)
     for n in (1, 3, 820, 5000):

@@ -9,11 +9,11 @@ from test_render_gtao import corner_scene
 
 torch = pytest.importorskip("torch")
 
-from psao_client.errors import RenderError  # noqa: E402
-from psao_client.render.aogan_net import build_generator, gbuffer_inputs, infer, load_generator, state_arrays  # noqa: E402
-from psao_client.render.renderer import FrameRenderer, MethodOptions  # noqa: E402
-from psao_client.render.views import look_at, perspective  # noqa: E402
-from psao_client.render.weights import save_weights  # noqa: E402
+from psao.client.errors import RenderError  # noqa: E402
+from psao.client.render.aogan_net import build_generator, gbuffer_inputs, infer, load_generator, state_arrays  # noqa: E402
+from psao.client.render.renderer import FrameRenderer, MethodOptions  # noqa: E402
+from psao.client.render.views import look_at, perspective  # noqa: E402
+from psao.client.render.weights import save_weights  # noqa: E402
 
 
 def random_generator_file(path, seed=4):
@@ -25,7 +25,7 @@ def random_generator_file(path, seed=4):
 
 
 def test_training_on_a_tiny_set_lowers_dssim():
-    from psao_eval.learn.aogan_train import AoganDataSettings, AoganTrainSettings, build_dataset, train_aogan
+    from psao.eval.learn.aogan_train import AoganDataSettings, AoganTrainSettings, build_dataset, train_aogan
 
     x, y = build_dataset([corner_scene()], AoganDataSettings(frames=2, size=(64, 64), spp=16, seed=2))
     assert x.shape == (2, 6, 64, 64) and y.shape == (2, 64, 64)

@@ -15,14 +15,14 @@ import zstandard
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from protocol import messages as m
-from protocol.codecs import Codec, codec_mask
-from protocol.gridformat import poisson_radius
-from psao_client.connection import MirrorClient
-from psao_server.grid import Grid
-from psao_server.service import Service
-from psao_server.settings import ServeSettings
-from psao_server.testhook import RandomEdits
+from psao.protocol import messages as m
+from psao.protocol.codecs import Codec, codec_mask
+from psao.protocol.gridformat import poisson_radius
+from psao.client.connection import MirrorClient
+from psao.server.grid import Grid
+from psao.server.net.service import Service
+from psao.server.settings import ServeSettings
+from psao.server.tick.testhook import RandomEdits
 from serving import HANG_S
 
 HASH = bytes(range(32))
@@ -245,7 +245,7 @@ def test_silent_connection_times_out(caplog):
 
 
 def test_client_digest_every_counts_updates_and_is_checked():
-    from psao_client.errors import ClientError
+    from psao.client.errors import ClientError
     with pytest.raises(ClientError, match="digest every"):
         MirrorClient("ws://127.0.0.1:1", b"\0" * 32, digest_every=0)
     client = MirrorClient("ws://127.0.0.1:1", b"\0" * 32, digest_every=3)

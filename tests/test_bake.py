@@ -6,12 +6,12 @@ import sys
 import numpy as np
 import pytest
 
-from protocol import pointword as pw
-from psao_scene import load_scene
-from psao_server.bake import bake_scene, reconstruction_error, sample_probes, to_world
-from psao_server.buried import visible_probes
-from psao_server.settings import BakeSettings
-from psao_server.errors import ConfigError
+from psao.protocol import pointword as pw
+from psao.scene import load_scene
+from psao.server.bake import bake_scene, reconstruction_error, sample_probes, to_world
+from psao.server.points.buried import visible_probes
+from psao.server.settings import BakeSettings
+from psao.server.errors import ConfigError
 from serving import HANG_S
 
 
@@ -126,10 +126,10 @@ def test_cli_malformed_toml(tmp_path):
 def test_bake_keeps_the_static_scenes_answers_for_static_points():
     """A scene with movers: the bake traces its static instances first and keeps, per static point, which
     rays the static scene occludes (equal to a trace of the static scene alone), at no change to the AO."""
-    from psao_server.animate import SceneAnimator
-    from psao_server.bake import scene_center
-    from psao_server.settings import TraceSettings
-    from psao_server.tracer import make_tracer
+    from psao.server.tick.animate import SceneAnimator
+    from psao.server.bake import scene_center
+    from psao.server.settings import TraceSettings
+    from psao.server.tracer import make_tracer
 
     scene = load_scene("builtin:courtyard")
     settings = BakeSettings(density=4, rays=16, workers=2)

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from psao_scene import builtin_shapes as shapes
-from psao_scene.builtin import SceneBuilder, trs
-from psao_server.buried import BuriedTest
-from psao_server.points import PointSettings, generate_scene_points
+from psao.scene import builtin_shapes as shapes
+from psao.scene.builtin import SceneBuilder, trs
+from psao.server.points.buried import BuriedTest
+from psao.server.points.generate import PointSettings, generate_scene_points
 
 
 def crossing_boxes():

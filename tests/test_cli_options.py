@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from protocol.codecs import CODEC_NAMES, codec_name
+from psao.protocol.codecs import CODEC_NAMES, codec_name
 from psao.cli import build_parser
-from psao_client.settings import FrameSettings
-from psao_eval.reference import ReferenceSettings
-from psao_eval.settings import BenchSettings
-from psao_server.settings import BakeSettings, PointSettings, ServeSettings, TraceSettings
+from psao.client.settings import FrameSettings
+from psao.eval.reference import ReferenceSettings
+from psao.eval.settings import BenchSettings
+from psao.server.settings import BakeSettings, PointSettings, ServeSettings, TraceSettings
 
 BAKE_OPTIONS = {"--density", "--rays", "--seed", "--spawn-ratio", "--gap-fill", "--gap-fill-ratio", "--tracer", "--workers"}
 
@@ -87,7 +87,7 @@ def test_bad_choice_is_a_usage_error(argv, capsys):
 
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("psao", "protocol", "psao_scene", "psao_server", "psao_client", "psao_eval")
+PACKAGES = ("src/psao",)
 OFF = (None, False, "")  # defaults that mean "not given": off, derived or empty
 
 
@@ -123,8 +123,8 @@ def _literal_defaults(path: Path) -> list[str]:
 
 
 def test_no_literal_default_in_a_command_line_module():
-    """Every option's default comes from a settings dataclass (psao_server/settings.py,
-    psao_client/settings.py, psao_eval/settings.py, ...), never a number or string written in the CLI."""
+    """Every option's default comes from a settings dataclass (src/psao/server/settings.py,
+    src/psao/client/settings.py, src/psao/eval/settings.py, ...), never a number or string written in the CLI."""
     modules = [p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py")) if "add_argument(" in p.read_text(encoding="utf-8")]
     assert len(modules) >= 8
     bad = [line for path in modules for line in _literal_defaults(path)]

@@ -16,15 +16,15 @@ import trimesh
 
 distributed = pytest.importorskip("distributed")
 
-from protocol.updates import state_digest  # noqa: E402
+from psao.protocol.updates import state_digest  # noqa: E402
 from serving import HANG_S, server_url, wait_for_log  # noqa: E402
 from tracing import full_trace  # noqa: E402
-from psao_scene import load_scene  # noqa: E402
-from psao_server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
-from psao_server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
-from psao_server.errors import TracerError  # noqa: E402
-from psao_server.tracer import make_tracer  # noqa: E402
-from psao_server.tracer.dask_backend import _plugin_error  # noqa: E402
+from psao.scene import load_scene  # noqa: E402
+from psao.server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
+from psao.server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
+from psao.server.errors import TracerError  # noqa: E402
+from psao.server.tracer import make_tracer  # noqa: E402
+from psao.server.tracer.dask_backend import _plugin_error  # noqa: E402
 from psao.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -227,11 +227,11 @@ def test_cluster_refines_static_points_as_a_local_trace_would(cluster):
     run; a point a batch refined holds exactly the AO of a full local trace of its target ray set, the points a
     batch has out are left out of the tick's picks, and an answer for a point whose neighbourhood changed
     meanwhile is dropped."""
-    from psao_server.budget import BudgetSettings
-    from psao_server.refine import ClusterRefiner, RefineSettings
-    from psao_server.settings import TickSettings
-    from psao_server.tick import ServerTick
-    from protocol import pointword as pw
+    from psao.server.tick.budget import BudgetSettings
+    from psao.server.tick.refine import ClusterRefiner, RefineSettings
+    from psao.server.settings import TickSettings
+    from psao.server.tick.server_tick import ServerTick
+    from psao.protocol import pointword as pw
 
     scene = load_scene("builtin:courtyard")  # static walls and floor, rigid movers (posed at t = 0 here)
     bake = bake_scene(scene, BakeSettings(density=8, rays=8, seed=SEED, cluster=ClusterSettings(cluster.scheduler_address)),

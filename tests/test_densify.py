@@ -1,4 +1,4 @@
-"""Densify (psao_server.densify): points added where the lookup misses the traced AO lower the error at
+"""Densify (psao.server.points.densify): points added where the lookup misses the traced AO lower the error at
 fresh probes, drop nothing, sit on their triangles under the ids the server uses, carry the AO of their
 own ids' rays, and leave double-sided instances and quick low-ray bakes as they were."""
 from __future__ import annotations
@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import pointword as pw
-from protocol.reconstruct import reconstruct_ao
-from psao_server.bake import bake_scene, grid_world_points, sample_probes, scene_point_ids
-from psao_server.buried import visible_probes
-from psao_server.settings import BakeSettings, DensifySettings, TraceSettings
+from psao.protocol import pointword as pw
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.server.bake import bake_scene, grid_world_points, sample_probes, scene_point_ids
+from psao.server.points.buried import visible_probes
+from psao.server.settings import BakeSettings, DensifySettings, TraceSettings
 
 DENSITY = 48.0
 RAYS = 64
@@ -93,7 +93,7 @@ def test_a_quick_low_ray_bake_is_not_densified(scene, bakes):
 
 
 def test_bad_densify_settings_are_refused():
-    from psao_server.errors import ConfigError
+    from psao.server.errors import ConfigError
 
     for bad in (dict(rounds=-1), dict(ratio=0.0), dict(threshold=0.0), dict(spacing=-1.0)):
         with pytest.raises(ConfigError, match="densify"):
@@ -103,7 +103,7 @@ def test_bad_densify_settings_are_refused():
 def test_quiet_candidates_are_those_the_lookup_cannot_miss():
     """A floor of evenly spread points: candidates where every point near them has one AO are quiet; those
     near a step in the AO, or with no point of their own orientation within r, are not."""
-    from psao_server.densify import quiet
+    from psao.server.points.densify import quiet
 
     r = 0.1
     g = np.arange(0.0, 2.0, r / 2)

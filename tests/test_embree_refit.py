@@ -7,11 +7,11 @@ import pytest
 
 pytest.importorskip("embreex")
 
-from psao_scene import load_scene  # noqa: E402
-from psao_server.animate import SceneAnimator  # noqa: E402
-from psao_server.settings import TraceSettings  # noqa: E402
-from psao_server.tracer.embree import EmbreeTracer, _build_scene, _device  # noqa: E402
-from psao_server.tracer.embree_refit import RefitMesh  # noqa: E402
+from psao.scene import load_scene  # noqa: E402
+from psao.server.tick.animate import SceneAnimator  # noqa: E402
+from psao.server.settings import TraceSettings  # noqa: E402
+from psao.server.tracer.embree import EmbreeTracer, _build_scene, _device  # noqa: E402
+from psao.server.tracer.embree_refit import RefitMesh  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psao_eval.errors import EvalError
-from psao_eval.processes import ServerProcess, run_client
+from psao.eval.errors import EvalError
+from psao.eval.processes import ServerProcess, run_client
 from serving import HANG_S
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,7 +123,7 @@ def test_bad_arguments_are_one_line(tmp_path, capsys, args, msg):
     ("both", ("psao", "ssao"), False),
 ])
 def test_methods_and_ao_are_one_vocabulary(flag, text, methods, video):
-    from psao_eval.bench_cli import add_arguments, config_from_args
+    from psao.eval.bench_cli import add_arguments, config_from_args
 
     p = argparse.ArgumentParser()
     add_arguments(p)
@@ -216,7 +216,7 @@ def test_sigterm_while_a_child_starts_leaves_no_child(tmp_path, monkeypatch):
     """SIGTERM that reaches the bench while it is inside Popen (the child forked, not yet exec'd: here
     the child itself sends it from its pre-exec hook, so it always lands there) still interrupts the
     bench, and the child it started is killed rather than left running unowned."""
-    from psao_eval import processes
+    from psao.eval import processes
 
     marker = str(tmp_path / "child-marker")
     monkeypatch.setattr(processes, "psao_command",

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol.updates import GridDelta
-from psao_client.mirror import Mirror
-from psao_client.render.stream_render import StreamRenderer
-from psao_eval.client_frames import load_client_frames, score_client_frames
-from psao_eval.errors import EvalError
-from psao_eval.reference import ReferenceSettings
-from psao_scene import load_scene
-from psao_server.bake import bake_scene
-from psao_server.settings import BakeSettings
+from psao.protocol.updates import GridDelta
+from psao.client.mirror import Mirror
+from psao.client.render.stream_render import StreamRenderer
+from psao.eval.client_frames import load_client_frames, score_client_frames
+from psao.eval.errors import EvalError
+from psao.eval.reference import ReferenceSettings
+from psao.scene import load_scene
+from psao.server.bake import bake_scene
+from psao.server.settings import BakeSettings
 
 
 def test_client_frames_are_scored_from_their_log(ctx, tmp_path):

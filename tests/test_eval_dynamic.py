@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from psao_eval.dynamic import AnimatedServer, AnimatedSettings, is_animated
-from psao_eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, rest_transforms, score_frames
-from psao_eval.reference import ReferenceSettings
-from psao_scene import is_dynamic, load_scene
-from psao_server.settings import BakeSettings
+from psao.eval.dynamic import AnimatedServer, AnimatedSettings, is_animated
+from psao.eval.quality import QualityRenderer, frame_poses, mean_scores, reference_images, rest_transforms, score_frames
+from psao.eval.reference import ReferenceSettings
+from psao.scene import is_dynamic, load_scene
+from psao.server.settings import BakeSettings
 
 
 def test_animated_frames_follow_the_server_tick():

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psao_eval.errors import EvalError
-from psao_eval.metrics import PSNR_CAP, composite_ao, flip, magma, psnr, score, ssim
+from psao.eval.errors import EvalError
+from psao.eval.metrics import PSNR_CAP, composite_ao, flip, magma, psnr, score, ssim
 
 
 @pytest.fixture

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psao_client.render.gbuffer import GBufferArrays
-from psao_eval.errors import EvalError
-from psao_eval.reference import FrameKey, ReferenceSettings, reference_ao
-from psao_scene.model import Instance, Mesh, Scene
+from psao.client.render.gbuffer import GBufferArrays
+from psao.eval.errors import EvalError
+from psao.eval.reference import FrameKey, ReferenceSettings, reference_ao
+from psao.scene.model import Instance, Mesh, Scene
 
 
 def quad(y: float, half: float, up: bool) -> Mesh:

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psao_eval.errors import EvalError
-from psao_eval.metrics import psnr
-from psao_eval.video import VideoServer, VideoSettings, decode_stream, encode_stream, reproject
+from psao.eval.errors import EvalError
+from psao.eval.metrics import psnr
+from psao.eval.video import VideoServer, VideoSettings, decode_stream, encode_stream, reproject
 from serving import HANG_S
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,11 +24,11 @@ SIZE = (96, 54)
 def cornell_frames():
     """Six client frames of the Cornell box 0.8 s apart on its camera path (the camera moves about 20
     pixels from the first to the last), with a tiny grid."""
-    from psao_client.render.views import path_matrices
-    from psao_eval.quality import FramePose, QualityRenderer
-    from psao_scene import load_scene, scene_camera
-    from psao_server.bake import bake_scene
-    from psao_server.settings import BakeSettings
+    from psao.client.render.views import path_matrices
+    from psao.eval.quality import FramePose, QualityRenderer
+    from psao.scene import load_scene, scene_camera
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings
 
     scene = load_scene("builtin:cornell")
     path = scene_camera(scene)
@@ -181,7 +181,7 @@ def test_bench_video_verdicts(capsys):
 
 
 def test_denoise_keeps_depth_edges_and_background():
-    from psao_eval.video import masked_gaussian
+    from psao.eval.video import masked_gaussian
 
     rng = np.random.default_rng(1)
     h, w = 40, 60
@@ -202,7 +202,7 @@ def test_denoise_equals_the_layered_gaussian(sigma):
     """The offset-sum denoise gives the per-layer masked Gaussian's values: on a ramp of depths (many
     layers, a floor-like slope), a step, holes in the coverage and the image's edges."""
     from benchmarks.bench_denoise import layered_gaussian
-    from psao_eval.video import masked_gaussian
+    from psao.eval.video import masked_gaussian
 
     rng = np.random.default_rng(7)
     h, w = 37, 52

@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from protocol.gridformat import poisson_radius
-from protocol.updates import state_digest
-from psao_client.connection import MirrorClient
-from psao_scene.camera import look_at, perspective
-from psao_server.grid import Grid
-from psao_server.service import Service
-from psao_server.settings import FanoutSettings, ServeSettings
-from psao_server.testhook import RandomEdits
+from psao.protocol.gridformat import poisson_radius
+from psao.protocol.updates import state_digest
+from psao.client.connection import MirrorClient
+from psao.scene.camera import look_at, perspective
+from psao.server.grid import Grid
+from psao.server.net.service import Service
+from psao.server.settings import FanoutSettings, ServeSettings
+from psao.server.tick.testhook import RandomEdits
 from test_bad_input_server import HASH, make_grid
 
 PATIENCE = 120.0  # seconds before a wait for an event is a failure (a loaded machine is slow, not wrong)
@@ -180,7 +180,7 @@ def test_cells_outside_a_clients_view_wait_until_it_turns_around(tmp_path):
 
 
 def _cell_x(grid: Grid, slot: int) -> float:
-    from psao_server.sendview import CellPlaces
+    from psao.server.net.sendview import CellPlaces
 
     return float(CellPlaces(grid, np.array([slot]), np.tile(np.eye(4), (1, 1, 1))).centres[0, 0])
 
@@ -189,10 +189,10 @@ def test_cell_places_kept_across_ticks_equal_places_worked_out_anew():
     """The fan-out keeps every slot's place across ticks, working out again only the slots a tick changed
     and, when they are tested, the cells of instances that moved: that must equal working everything out
     from scratch, for the cells a tick tests and for all of them."""
-    from protocol.session import ServerConfig
-    from psao_server.fanout import Fanout
-    from psao_server.selection import camera_planes
-    from psao_server.sendview import CellPlaces
+    from psao.protocol.session import ServerConfig
+    from psao.server.net.fanout import Fanout
+    from psao.server.tick.selection import camera_planes
+    from psao.server.net.sendview import CellPlaces
 
     grid = TwoSides.grid(2000)
     rng = np.random.default_rng(3)
@@ -227,9 +227,9 @@ def test_cell_places_kept_across_ticks_equal_places_worked_out_anew():
 def test_dirty_cells_kept_for_the_places_stay_bounded_while_no_place_is_asked_for(monkeypatch):
     """No client tests a place (none connected, or none culls): the ticks' dirty cells the places must
     look at again are merged as they pile up, held in at most twice the slots changed (or MERGE_ROWS)."""
-    from protocol.session import ServerConfig
-    from psao_server import fanout as fanout_module
-    from psao_server.sendview import CellPlaces
+    from psao.protocol.session import ServerConfig
+    from psao.server.net import fanout as fanout_module
+    from psao.server.net.sendview import CellPlaces
 
     monkeypatch.setattr(fanout_module, "MERGE_ROWS", 100)
     grid = TwoSides.grid(2000)
@@ -255,9 +255,9 @@ def test_dirty_cells_kept_for_the_places_stay_bounded_while_no_place_is_asked_fo
 def test_in_view_is_the_plane_test_of_every_cell():
     """CellPlaces.in_view against its definition, cell by cell: in when every plane's signed distance of
     the centre is >= -(distance margin + reach); a slot with no place (free) is always in."""
-    from psao_server.selection import camera_planes
-    from psao_server.sendview import CellPlaces
-    from psao_server.settings import ViewSettings
+    from psao.server.tick.selection import camera_planes
+    from psao.server.net.sendview import CellPlaces
+    from psao.server.settings import ViewSettings
 
     grid = TwoSides.grid(2000)
     rng = np.random.default_rng(5)
@@ -265,7 +265,7 @@ def test_in_view_is_the_plane_test_of_every_cell():
     grid.insert_points(0, pos, np.tile(np.float32([0, 1, 0]), (300, 1)), np.full(300, 128, np.uint32))
     places = CellPlaces(grid, np.arange(len(grid.cells)), np.tile(np.eye(4), (1, 1, 1)))
     view = ViewSettings()
-    from psao_scene.camera import look_at, perspective
+    from psao.scene.camera import look_at, perspective
 
     cameras = [(look_at(np.array(eye, float), np.array(target, float)), perspective(60.0, 1.5, 0.05, 100.0))
                for eye, target in [((0, 1, 0), (5, 1, 0)), ((0, 1, 0), (-5, 1, 0)), ((3, 4, -8), (0, 0, 0))]]
@@ -283,7 +283,7 @@ def test_in_view_is_the_plane_test_of_every_cell():
         wants.append(want)
     # many cameras at once: the same answers (planes of several clients worked out together, each cell
     # against every camera, or each cell against its own camera)
-    from psao_server.sendview import clients_planes
+    from psao.server.net.sendview import clients_planes
 
     stacked = clients_planes([None, (np.full((4, 4), np.nan), np.eye(4))] + cameras, view)
     assert stacked[0] is None and stacked[1] is None  # no camera yet; one that makes no frustum
@@ -295,7 +295,7 @@ def test_in_view_is_the_plane_test_of_every_cell():
     own = rng.integers(0, len(cameras), len(rows))
     np.testing.assert_array_equal(places.in_view_each(planes, own, view, rows), np.array(wants)[own, rows])
     # the same answers when the tests run in blocks smaller than the cameras and rows (a crowd of clients)
-    from psao_server import sendview
+    from psao.server.net import sendview
 
     for block in (2, 7):  # 2: fewer cameras a block than there are; 7: rows in blocks, every camera at once
         with pytest.MonkeyPatch.context() as mp:
@@ -308,9 +308,9 @@ def test_in_view_is_the_plane_test_of_every_cell():
 def test_who_sees_every_dirty_cell_is_worked_out_for_all_clients_at_once():
     """The shared stream's view test (whether a client's extended view holds every dirty cell), done for
     many clients in one pass, answers as the plane test of each client alone does."""
-    from protocol.session import ServerConfig
-    from psao_server.clients import Client
-    from psao_server.fanout import Fanout
+    from psao.protocol.session import ServerConfig
+    from psao.server.net.clients import Client
+    from psao.server.net.fanout import Fanout
 
     grid = TwoSides.grid(2000)
     rng = np.random.default_rng(9)
@@ -416,9 +416,9 @@ def test_a_client_that_stops_reading_is_sent_nothing_more_then_one_merged_catch_
     missed merged into a few Updates, and its mirror equals the server bit for bit."""
     from websockets.asyncio.client import connect
 
-    from protocol.codecs import Codec
-    from protocol.session import ClientConfig, ClientSession, SnapshotReceived, UpdateReceived
-    from psao_client.mirror import Mirror
+    from psao.protocol.codecs import Codec
+    from psao.protocol.session import ClientConfig, ClientSession, SnapshotReceived, UpdateReceived
+    from psao.client.mirror import Mirror
 
     fan = FanoutSettings(max_unread=4, probe_every=2)
 
@@ -492,9 +492,9 @@ def test_a_crowd_sending_cameras_every_tick_has_its_pending_cells_looked_at_ever
     """Clients on shared parts whose cameras change every tick (as a crowd's do): each one's pending cells
     are tested against its view at most once per catch_up_every ticks, and the cells a client turns
     towards still reach it within that many ticks, with the grid's latest content."""
-    from protocol.session import ServerConfig
-    from psao_server.clients import Client
-    from psao_server.fanout import Fanout
+    from psao.protocol.session import ServerConfig
+    from psao.server.net.clients import Client
+    from psao.server.net.fanout import Fanout
 
     grid = TwoSides.grid(2000)
     settings = ServeSettings()

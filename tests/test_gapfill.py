@@ -1,4 +1,4 @@
-"""Gap filling (psao_server.gapfill): fewer holes, added points on the surface, the two sides of a
+"""Gap filling (psao.server.points.gapfill): fewer holes, added points on the surface, the two sides of a
 double-sided instance kept aligned, the k-d pre-test never claims coverage the lookup does not give."""
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from protocol.reconstruct import reconstruct_ao
-from psao_server.bake import build_scene_grid, sample_probes
-from psao_server.gapfill import decoded_points, fill_gaps, first_step_covered, kd_covered, surface_candidates, thin
-from psao_server.settings import GapFillSettings
-from psao_server.points import generate_scene_points
-from psao_server.settings import PointSettings
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.server.bake import build_scene_grid, sample_probes
+from psao.server.points.gapfill import decoded_points, fill_gaps, first_step_covered, kd_covered, surface_candidates, thin
+from psao.server.settings import GapFillSettings
+from psao.server.points.generate import generate_scene_points
+from psao.server.settings import PointSettings
 
 DENSITY = 64.0
 

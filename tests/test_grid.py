@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
-from protocol.reconstruct import reconstruct_ao
-from psao_server.errors import GridError
-from psao_server.grid import Grid
-from psao_server.settings import GridSettings
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.server.errors import GridError
+from psao.server.grid import Grid
+from psao.server.settings import GridSettings
 
 
 def plane_points(n, rng, size=1.0):

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from psao_scene import builtin_shapes as shapes
-from psao_scene.builtin import SceneBuilder, trs
-from protocol.reconstruct import reconstruct_ao
-from psao_server.bake import bake_scene, sample_probes
-from psao_server.settings import BakeSettings, TraceSettings
+from psao.scene import builtin_shapes as shapes
+from psao.scene.builtin import SceneBuilder, trs
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.server.bake import bake_scene, sample_probes
+from psao.server.settings import BakeSettings, TraceSettings
 
 WALL = 0.02
 # Points per unit^2: the lookup radius r (about 0.05) is wider than the wall, so the far face is in reach

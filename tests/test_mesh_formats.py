@@ -8,8 +8,8 @@ import numpy as np
 import pygltflib
 import pytest
 
-from psao_scene import load_scene
-from psao_scene.errors import SceneError
+from psao.scene import load_scene
+from psao.scene.errors import SceneError
 
 QUAD = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 2, 0], [1, 2, 0]], np.float32)
 

@@ -10,22 +10,22 @@ import numpy as np
 import pytest
 from test_render_gridbuild import server_grid
 
-from psao_client.errors import RenderError
-from psao_client.render.mlp_pass import MLP_HIDDEN, mlp_numpy, mlp_shapes
-from psao_client.render.renderer import FrameRenderer, MethodOptions
-from psao_client.render.views import path_matrices
-from psao_client.render.weights import save_weights
-from psao_eval.learn.grid_points import instance_points
-from psao_eval.learn.mlp_train import MlpTrainSettings, train_mlp
+from psao.client.errors import RenderError
+from psao.client.render.mlp_pass import MLP_HIDDEN, mlp_numpy, mlp_shapes
+from psao.client.render.renderer import FrameRenderer, MethodOptions
+from psao.client.render.views import path_matrices
+from psao.client.render.weights import save_weights
+from psao.eval.learn.grid_points import instance_points
+from psao.eval.learn.mlp_train import MlpTrainSettings, train_mlp
 from serving import HANG_S
 
-psao_scene = pytest.importorskip("psao_scene")
+psao.scene = pytest.importorskip("psao.scene")
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def cornell():
-    scene = psao_scene.load_scene("builtin:cornell")
+    scene = psao.scene.load_scene("builtin:cornell")
     return scene, server_grid(scene, 256)
 
 
@@ -57,7 +57,7 @@ def test_shader_equals_numpy_network(ctx, cornell, tmp_path):
     path = tmp_path / "w.npz"
     save_weights(path, "mlp", arrays, {"scene_hash": scene.content_hash(), "hidden": list(MLP_HIDDEN)})
     size = (96, 64)
-    view, proj = path_matrices(scene, psao_scene.scene_camera(scene, None), 0.0, size)
+    view, proj = path_matrices(scene, psao.scene.scene_camera(scene, None), 0.0, size)
     with FrameRenderer(scene, size, "mlp", ctx=ctx, options=MethodOptions(mlp_weights=str(path))) as r:
         frame = r.render(view, proj)
     gb = frame.gbuffer

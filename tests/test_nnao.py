@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from test_render_gtao import corner_scene
 
-from psao_client.errors import RenderError
-from psao_client.render.composite import read_channel
-from psao_client.render.nnao_net import nnao_numpy, nnao_shapes
-from psao_client.render.renderer import FrameRenderer, MethodOptions
-from psao_client.render.views import look_at, perspective
-from psao_client.render.weights import save_weights
+from psao.client.errors import RenderError
+from psao.client.render.composite import read_channel
+from psao.client.render.nnao_net import nnao_numpy, nnao_shapes
+from psao.client.render.renderer import FrameRenderer, MethodOptions
+from psao.client.render.views import look_at, perspective
+from psao.client.render.weights import save_weights
 
 
 def random_nnao(seed=5):
@@ -80,7 +80,7 @@ def test_bad_weights_are_one_line(ctx, tmp_path, damage, message):
 
 
 def test_training_on_a_tiny_set_lowers_the_loss():
-    from psao_eval.learn.nnao_train import NnaoDataSettings, NnaoTrainSettings, build_dataset, predict, train_nnao
+    from psao.eval.learn.nnao_train import NnaoDataSettings, NnaoTrainSettings, build_dataset, predict, train_nnao
 
     x, y = build_dataset([corner_scene()], NnaoDataSettings(frames=2, pixels=96, spp=32, size=(96, 64), seed=3))
     assert x.shape == (len(y), 3844) and 100 < len(y) <= 192 and y.std() > 0.05

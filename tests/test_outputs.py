@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from psao_server.errors import ConfigError
-from psao_server.grid import Grid
-from psao_server.outputs import check_output_path, write_atomically
+from psao.server.errors import ConfigError
+from psao.server.grid import Grid
+from psao.server.outputs import check_output_path, write_atomically
 from test_streaming_cli import one_line_error, psao
 
 BAKE = ["bake", "builtin:cornell", "--density", "8", "--rays", "1", "--probes", "0"]

@@ -9,9 +9,9 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from psao_scene.model import Mesh
-from psao_server.errors import ConfigError
-from psao_server.points import (
+from psao.scene.model import Mesh
+from psao.server.errors import ConfigError
+from psao.server.points.generate import (
     PointSettings,
     elimination_radii,
     generate_points,
@@ -20,7 +20,7 @@ from psao_server.points import (
     neighbour_graph,
     spawn_uniform,
 )
-from psao_server.points_elim import eliminate_csr
+from psao.server.points.elimination import eliminate_csr
 
 SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 HEX = 2.0 * np.sqrt(3.0)
@@ -287,7 +287,7 @@ def test_degenerate_triangles_are_skipped():
 
 
 def test_scene_points_one_set_per_instance_seeded_by_index():
-    from psao_scene import load_scene
+    from psao.scene import load_scene
 
     scene = load_scene("builtin:cornell")
     s = PointSettings(density=2000, seed=5)
@@ -312,9 +312,9 @@ def test_bunny_points_when_present():
 
 def test_parallel_generation_equals_serial():
     """Instances in worker processes (each with its own buried-surface test): the same points, array for array."""
-    from psao_scene import load_scene
-    from psao_server.buried import BuriedTest
-    from psao_server.points_pool import generate_scene_points_parallel
+    from psao.scene import load_scene
+    from psao.server.points.buried import BuriedTest
+    from psao.server.points.pool import generate_scene_points_parallel
 
     scene = load_scene("builtin:courtyard")
     s = PointSettings(density=4.0, seed=3)
@@ -351,7 +351,7 @@ def folded_and_flat() -> Mesh:
 
 
 def test_small_triangles_get_the_detail_factor_and_large_ones_the_density():
-    from psao_server.sampling import DETAIL_POINTS, detail_factors
+    from psao.server.points.sampling import DETAIL_POINTS, detail_factors
 
     mesh = folded_and_flat()
     areas = mesh.triangle_areas()
@@ -373,8 +373,8 @@ def test_small_triangles_get_the_detail_factor_and_large_ones_the_density():
 
 
 def test_estimate_equals_generated_points_with_detail_levels():
-    from psao_scene.model import Instance, Scene
-    from psao_server.sampling import estimate_points
+    from psao.scene.model import Instance, Scene
+    from psao.server.points.sampling import estimate_points
 
     mesh = folded_and_flat()
     scene = Scene("folded", [mesh], [Instance("a", 0, np.eye(4)), Instance("b", 0, scale(2.0))], ao_distance=0.5)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
 
 
 def test_pack_unpack_every_field_bit_exact():

@@ -11,10 +11,10 @@ from pathlib import Path
 
 from websockets.frames import Close
 
-from protocol.session import GRID_REPLACED_CLOSE, GRID_REPLACED_REASON, reconnect_at_once, scene_hash_bytes
-from psao_scene import load_scene
-from psao_server.progressive import ProgressiveSettings, coarse_bake_settings, wants_coarse_grid
-from psao_server.settings import BakeSettings
+from psao.protocol.session import GRID_REPLACED_CLOSE, GRID_REPLACED_REASON, reconnect_at_once, scene_hash_bytes
+from psao.scene import load_scene
+from psao.server.tick.progressive import ProgressiveSettings, coarse_bake_settings, wants_coarse_grid
+from psao.server.settings import BakeSettings
 from serving import HANG_S, server_url
 from tracing import full_trace
 
@@ -44,7 +44,7 @@ def test_progressive_start_replaces_the_coarse_grid_and_mirrors_stay_exact(tmp_p
     """A client that connects at once gets the coarse grid, is closed with GRID_REPLACED_CLOSE when the full
     grid is ready, reconnects by itself, gets the full grid and then its refinement; after every message
     that left nothing pending its mirror equals the server's state, on both grids."""
-    from psao_client.connection import MirrorClient, scene_camera_feed
+    from psao.client.connection import MirrorClient, scene_camera_feed
 
     err, slog, clog = tmp_path / "serve.err", tmp_path / "server.jsonl", tmp_path / "client.jsonl"
     proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", "builtin:courtyard", "--progressive", "--density", "16",
@@ -94,12 +94,12 @@ def test_local_refiner_brings_every_static_point_to_its_full_trace():
     trace of its target ray set (as a full bake gives)."""
     import numpy as np
 
-    from protocol import pointword as pw
-    from psao_server.bake import bake_scene
-    from psao_server.budget import BudgetSettings
-    from psao_server.refine import BackgroundTracer, ClusterRefiner, RefineSettings
-    from psao_server.settings import TickSettings
-    from psao_server.tick import ServerTick
+    from psao.protocol import pointword as pw
+    from psao.server.bake import bake_scene
+    from psao.server.tick.budget import BudgetSettings
+    from psao.server.tick.refine import BackgroundTracer, ClusterRefiner, RefineSettings
+    from psao.server.settings import TickSettings
+    from psao.server.tick.server_tick import ServerTick
 
     scene = load_scene("builtin:courtyard")
     bake = bake_scene(scene, BakeSettings(density=8, rays=8, seed=5, workers=1), show_progress=False)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zstandard
 
-from protocol.codecs import (
+from psao.protocol.codecs import (
     Codec,
     FrameCodec,
     StreamCompressor,
@@ -15,7 +15,7 @@ from protocol.codecs import (
     codecs_from_mask,
     decompress_frame,
 )
-from protocol.errors import CodecError, LimitError
+from psao.protocol.errors import CodecError, LimitError
 
 CAP = 1 << 20
 
@@ -146,8 +146,8 @@ def test_bomb_of_rle_blocks_stops_within_a_few_blocks_of_the_cap_in_pieces_sized
     """The worst case: a frame of 4-byte RLE blocks, 128 KiB each. Input goes in pieces sized so that
     their output cannot pass the cap (large far from it, limits.decompress_piece_bytes near it), so the
     output seen before the cap check stops it passes the cap by at most (piece / 4 + 1) blocks."""
-    from protocol.codecs import ZSTD_BLOCK_MAX, _zstd_bounded
-    from protocol.limits import DEFAULT_LIMITS as L
+    from psao.protocol.codecs import ZSTD_BLOCK_MAX, _zstd_bounded
+    from psao.protocol.limits import DEFAULT_LIMITS as L
 
     block = ((ZSTD_BLOCK_MAX << 3) | (1 << 1)).to_bytes(3, "little") + b"\x07"  # RLE block of 128 KiB of 7s
     frame = bytes.fromhex("28b52ffd") + bytes([0x00, 0x38]) + block * 400  # no content size, 128 KiB window

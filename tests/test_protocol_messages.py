@@ -6,13 +6,13 @@ import struct
 import numpy as np
 import pytest
 
-from protocol import messages as m
-from protocol.codecs import Codec
-from protocol.errors import HeaderError, LimitError, PayloadError
-from protocol.gridformat import EMPTY, INSTANCE_DTYPE
-from protocol.limits import Limits
-from protocol.updates import GridDelta, Layout, Reader, decode_delta, encode_delta, gaps_decode, gaps_encode
-from protocol.updates import varint_decode, varint_encode
+from psao.protocol import messages as m
+from psao.protocol.codecs import Codec
+from psao.protocol.errors import HeaderError, LimitError, PayloadError
+from psao.protocol.gridformat import EMPTY, INSTANCE_DTYPE
+from psao.protocol.limits import Limits
+from psao.protocol.updates import GridDelta, Layout, Reader, decode_delta, encode_delta, gaps_decode, gaps_encode
+from psao.protocol.updates import varint_decode, varint_encode
 
 HASH = bytes(range(32))
 H = bytes.fromhex
@@ -284,7 +284,7 @@ def _mutate(rng, data: bytes) -> bytes:
 
 def test_fuzzed_payloads_raise_protocol_errors_only():
     """Flipped, cut and inserted bytes: every message either parses or raises a ProtocolError."""
-    from protocol.errors import ProtocolError
+    from psao.protocol.errors import ProtocolError
 
     rng = np.random.default_rng(11)
     originals = [m.Update(1, 0.0, _random_delta(rng, 12, 12), lay) for lay in Layout]
@@ -345,7 +345,7 @@ def test_update_parts_that_overlap_or_disagree_are_refused():
 
 
 def test_gaps_of_several_sections_decode_as_each_alone():
-    from protocol.updates import gaps_decode_parts
+    from psao.protocol.updates import gaps_decode_parts
 
     rng = np.random.default_rng(7)
     runs = [np.sort(rng.choice(1 << 31, n, replace=False)) for n in (5, 0, 1, 300, 0, 17)]
@@ -361,7 +361,7 @@ def test_gaps_of_several_sections_decode_as_each_alone():
 def test_varint_sections_decode_alike_by_loop_and_vectorised():
     """Small sections are decoded by a loop over their bytes, large ones vectorised: on random valid and
     random malformed sections both give the same ids or both refuse."""
-    from protocol.updates import LOOP_VARINT_BYTES, _gaps_loop, _gaps_numpy, gaps_decode_parts
+    from psao.protocol.updates import LOOP_VARINT_BYTES, _gaps_loop, _gaps_numpy, gaps_decode_parts
 
     rng = np.random.default_rng(13)
     for trial in range(300):
@@ -395,7 +395,7 @@ def test_varint_sections_decode_alike_by_loop_and_vectorised():
 
 def test_small_id_sections_encode_to_the_bytes_of_the_vectorised_encode():
     """A few hundred ids are encoded by a loop: the same bytes as the vectorised varints of their gaps."""
-    from protocol.updates import LOOP_GAPS_IDS, _gaps_encode_loop
+    from psao.protocol.updates import LOOP_GAPS_IDS, _gaps_encode_loop
 
     rng = np.random.default_rng(17)
     for trial in range(300):
@@ -414,7 +414,7 @@ def test_runs_of_cells_encoded_together_give_the_bytes_of_each_run_encoded_alone
     """The tiles of an Update of parts are encoded in one pass over their rows (encode_cell_runs): each
     tile's bytes equal encode_delta of its cells alone, raw (non-canonical) cells, empty tiles and
     every run length included."""
-    from protocol.updates import encode_cell_runs
+    from psao.protocol.updates import encode_cell_runs
 
     rng = np.random.default_rng(23)
     for trial in range(60):
@@ -433,7 +433,7 @@ def test_runs_of_cells_encoded_together_give_the_bytes_of_each_run_encoded_alone
 
 
 def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone():
-    from protocol.updates import union_of_parts
+    from psao.protocol.updates import union_of_parts
 
     rng = np.random.default_rng(11)
     slots = rng.permutation(5000)[:400].astype(np.uint32)
@@ -458,8 +458,8 @@ def test_update_of_many_packed_parts_equals_the_union_of_the_parts_decoded_alone
 def test_a_cell_count_over_the_points_per_cell_in_any_part_is_refused(bad_part):
     """A cell's count byte is its number of points (at most POINTS_PER_CELL) or RAW, in every part of an
     Update."""
-    from protocol.gridformat import POINTS_PER_CELL
-    from protocol.updates import gaps_encode
+    from psao.protocol.gridformat import POINTS_PER_CELL
+    from psao.protocol.updates import gaps_encode
 
     parts = []
     for k in range(3):
@@ -507,7 +507,7 @@ def _payload_of_parts(rng, layouts=(Layout.PACKED,)) -> bytes:
 def _decoded_both_ways(payload: bytes, limits: Limits):
     """decode_delta_parts and the reader of any part (_read_part) on every part: each delta, or the refusal's
     type and text."""
-    from protocol import updates
+    from psao.protocol import updates
 
     out = []
     for read in (lambda r: updates.decode_delta_parts(r, limits), lambda r: updates._read_parts(r, limits, updates._read_part)):

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import zstandard
 
-from protocol import messages as m
-from protocol.codecs import Codec, codec_mask
-from protocol.errors import CodecError, EditError, HeaderError, PayloadError
-from protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
-from protocol.session import (
+from psao.protocol import messages as m
+from psao.protocol.codecs import Codec, codec_mask
+from psao.protocol.errors import CodecError, EditError, HeaderError, PayloadError
+from psao.protocol.gridformat import EMPTY, FREE_CELL, INSTANCE_DTYPE
+from psao.protocol.session import (
     ByeReceived,
     CameraReceived,
     ClientConfig,
@@ -27,9 +27,9 @@ from protocol.session import (
     Welcomed,
     error_reply,
 )
-from protocol.updates import GridDelta, Layout
-from psao_client.errors import MirrorError
-from psao_client.mirror import Mirror
+from psao.protocol.updates import GridDelta, Layout
+from psao.client.errors import MirrorError
+from psao.client.mirror import Mirror
 
 HASH = bytes(range(32))
 OTHER = bytes(32)
@@ -271,7 +271,7 @@ def test_mirror_grows_shrinks_and_checks_indices():
 
 @pytest.mark.parametrize("codec", [Codec.ZSTD, Codec.LZ4, Codec.ZSTD_STREAM])
 def test_corrupted_compressed_messages_raise_protocol_errors_only(codec):
-    from protocol.errors import ProtocolError
+    from psao.protocol.errors import ProtocolError
     from test_protocol_messages import _mutate
 
     rng = np.random.default_rng(int(codec))
@@ -308,7 +308,7 @@ def test_fresh_mirror_reports_everything_dirty_once():
 def test_claims_of_a_tiny_message_allocate_nothing_big():
     """A 68-byte Welcome claiming 2^24 buckets, and a Snapshot claiming 2^24 cells, meet a mirror that grows
     with the data received: it refuses before allocating, and a real grid still fits."""
-    from protocol.limits import DEFAULT_LIMITS as limits
+    from psao.protocol.limits import DEFAULT_LIMITS as limits
 
     def rss_bytes():
         import os
@@ -405,7 +405,7 @@ def test_a_connection_joins_a_shared_stream_only_where_a_frame_starts():
 def test_own_streams_use_the_fast_level_and_the_shared_stream_the_papers():
     """A connection's own zstd stream is compressed per client (OWN_STREAM_ZSTD, a fast level); the shared
     one once for many (STREAM_ZSTD, the paper's level 15). Both decode on the same client stream."""
-    from protocol.codecs import OWN_STREAM_ZSTD, STREAM_ZSTD
+    from psao.protocol.codecs import OWN_STREAM_ZSTD, STREAM_ZSTD
 
     cfg = ServerConfig(HASH)
     assert cfg.own_stream_zstd == OWN_STREAM_ZSTD and cfg.stream_zstd == STREAM_ZSTD

@@ -3,7 +3,7 @@ folder is absent). Every number is deterministic (seeded points, rays and probes
 little room above the measured value for other machines' floating point, not for a regression.
 
 Measured (16 rays per point, 2,000 probes against 64-ray truth; probes on surfaces buried inside other
-geometry left out, psao_server.buried.visible_probes). The reconstruction MAE is the mean |AO the lookup
+geometry left out, psao.server.points.buried.visible_probes). The reconstruction MAE is the mean |AO the lookup
 reconstructs at the probes - AO traced at them|. The bunny's 0.028 is mostly the points' own noise: at 16
 rays per point each point's AO is noisy, and the lookup's first step averages only the points of the
 fragment's own face within r (gridformat.FIRST_T_N, FIRST_T_D), too few to cancel it; bench_scenes' bakes
@@ -20,10 +20,10 @@ at the default rays per point reach about 0.007 on the bunny (docs/results.md).
 import numpy as np
 import pytest
 
-from psao_scene import load_scene
-from psao_server.bake import bake_scene, reconstruction_error, sample_probes
-from psao_server.buried import visible_probes
-from psao_server.settings import BakeSettings
+from psao.scene import load_scene
+from psao.server.bake import bake_scene, reconstruction_error, sample_probes
+from psao.server.points.buried import visible_probes
+from psao.server.settings import BakeSettings
 
 # scene -> (density N, dropped fraction, reconstruction MAE, hole fraction): the table above, rounded up
 REAL = {

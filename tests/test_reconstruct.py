@@ -1,11 +1,11 @@
 """The reference lookup (the shader's oracle) against brute force over every point of the instance."""
 import numpy as np
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
-from protocol.gridformat import T_D, T_N
-from protocol.reconstruct import reconstruct_ao
-from psao_server.grid import Grid
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.protocol.gridformat import T_D, T_N
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.server.grid import Grid
 
 
 def brute_force(grid: Grid, inst, x, n_x):

@@ -12,18 +12,18 @@ from PIL import Image
 from test_render_gridbuild import server_grid
 from serving import HANG_S
 
-from protocol.updates import GridDelta
-from psao_client.errors import RenderError
-from psao_client.mirror import Mirror
-from psao_client.render.stream_render import StreamRenderer
+from psao.protocol.updates import GridDelta
+from psao.client.errors import RenderError
+from psao.client.mirror import Mirror
+from psao.client.render.stream_render import StreamRenderer
 
-psao_scene = pytest.importorskip("psao_scene")
+psao.scene = pytest.importorskip("psao.scene")
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def cornell_grid(tmp_path_factory):
-    scene = psao_scene.load_scene("builtin:cornell")
+    scene = psao.scene.load_scene("builtin:cornell")
     grid = server_grid(scene, 1024)
     path = tmp_path_factory.mktemp("grid") / "cornell.npz"
     grid.save(path, scene_hash=scene.content_hash())

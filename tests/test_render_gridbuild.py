@@ -1,6 +1,6 @@
 """Test support for the renderer tests: synthetic scenes and a small grid builder of our own.
 
-The builder follows protocol/gridformat.py (keys, wrapping hash, buckets with used entries first,
+The builder follows src/psao/protocol/gridformat.py (keys, wrapping hash, buckets with used entries first,
 cells with allocated words first, overflow dropped) without importing the server, so renderer tests
 run before and independently of the lead's bake. Its own tests check it against gridformat's helpers.
 """
@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
-from psao_scene.model import Instance, Mesh, Scene
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.scene.model import Instance, Mesh, Scene
 
 
 def box_mesh(name, lo, hi, color=(0.8, 0.8, 0.8), inward=False):
@@ -148,8 +148,8 @@ def server_grid(scene, density, seed=0, rays=16):
     bake (points, grid, traced AO) when it is there, else the server's point generation and Grid with a
     smooth synthetic AO field, enough to test that shader and oracle agree."""
     try:
-        from psao_server.bake import bake_scene
-        from psao_server.settings import BakeSettings
+        from psao.server.bake import bake_scene
+        from psao.server.settings import BakeSettings
     except ImportError:
         return _synthetic_server_grid(scene, density, seed)
     result = bake_scene(scene, BakeSettings(density=density, rays=rays, seed=seed), show_progress=False)
@@ -159,9 +159,9 @@ def server_grid(scene, density, seed=0, rays=16):
 
 
 def _synthetic_server_grid(scene, density, seed):
-    from psao_server.grid import Grid
-    from psao_server.points import generate_points, instance_seed
-    from psao_server.settings import PointSettings
+    from psao.server.grid import Grid
+    from psao.server.points.generate import generate_points, instance_seed
+    from psao.server.settings import PointSettings
 
     settings = PointSettings(density=density, seed=seed)
     sets = [generate_points(scene.meshes[i.mesh], i.transform, settings, seed=instance_seed(seed, k))

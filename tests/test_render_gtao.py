@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from test_render_gridbuild import box_mesh, plane_mesh
 
-from psao_client.errors import RenderError
-from psao_client.render.composite import read_channel
-from psao_client.render.gtao_oracle import gtao_numpy
-from psao_client.render.gtao_pass import GTAO_PRESETS, GtaoSettings
-from psao_client.render.renderer import FrameRenderer, MethodOptions, parse_ao_modes
-from psao_client.render.views import look_at, perspective
-from psao_scene.model import Instance, Scene
+from psao.client.errors import RenderError
+from psao.client.render.composite import read_channel
+from psao.client.render.gtao_oracle import gtao_numpy
+from psao.client.render.gtao_pass import GTAO_PRESETS, GtaoSettings
+from psao.client.render.renderer import FrameRenderer, MethodOptions, parse_ao_modes
+from psao.client.render.views import look_at, perspective
+from psao.scene.model import Instance, Scene
 
 
 def corner_scene():

@@ -1,4 +1,4 @@
-"""The PSAO shader against the Python oracle protocol/reconstruct.reconstruct_ao, at the very G-buffer
+"""The PSAO shader against the Python oracle src/psao/protocol/reconstruct.reconstruct_ao, at the very G-buffer
 positions and normals the shader saw; incremental upload against full upload; G-buffer local space."""
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from test_render_gridbuild import floor_and_box_scene, floor_box_grid, server_grid
 
-from protocol.reconstruct import reconstruct_ao
-from psao_client.errors import RenderError
-from psao_client.render.renderer import FrameRenderer
-from psao_client.render.views import path_matrices
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.client.errors import RenderError
+from psao.client.render.renderer import FrameRenderer
+from psao.client.render.views import path_matrices
 
 TOL = 2.0 / 255.0
 
@@ -37,7 +37,7 @@ def assert_matches_oracle(frame, instances, buckets, cells):
 def test_shader_equals_oracle_on_floor_and_box(ctx):
     scene = floor_and_box_scene()
     grid = floor_box_grid(scene)
-    from psao_client.render.views import look_at, perspective
+    from psao.client.render.views import look_at, perspective
 
     view, proj = look_at([1.6, 1.2, 1.9], [0, 0.3, 0]), perspective(60, 320 / 180, 0.05, 20)
     with FrameRenderer(scene, (320, 180), "psao", ctx=ctx) as r:
@@ -52,11 +52,11 @@ def test_back_side_of_a_double_sided_plane_reads_back_side_cells(ctx):
     pixel is flagged back-side and finds the back cells; seen from above, the front ones."""
     import dataclasses
 
-    from psao_client.render.views import look_at, perspective
-    from psao_scene.model import Instance, Scene
-    from psao_server.bake import build_scene_grid
-    from psao_server.points import generate_points
-    from psao_server.settings import PointSettings
+    from psao.client.render.views import look_at, perspective
+    from psao.scene.model import Instance, Scene
+    from psao.server.bake import build_scene_grid
+    from psao.server.points.generate import generate_points
+    from psao.server.settings import PointSettings
     from test_render_gridbuild import plane_mesh
 
     mesh = dataclasses.replace(plane_mesh("sheet"), double_sided=True)
@@ -87,10 +87,10 @@ def assert_matches_oracle_loose(frame, instances, buckets, cells):
 
 @pytest.mark.parametrize("spec,density,size", [("builtin:cornell", 1024, (320, 240)), ("builtin:courtyard", 64, (640, 360))])
 def test_shader_equals_oracle_on_builtin_scenes(ctx, spec, density, size):
-    psao_scene = pytest.importorskip("psao_scene")
-    scene = psao_scene.load_scene(spec)
+    psao.scene = pytest.importorskip("psao.scene")
+    scene = psao.scene.load_scene(spec)
     grid = server_grid(scene, density)
-    path = psao_scene.scene_camera(scene)
+    path = psao.scene.scene_camera(scene)
     view, proj = path_matrices(scene, path, path.keys[0].time, size)
     with FrameRenderer(scene, size, "psao", ctx=ctx) as r:
         r.upload_grid(grid.instances, grid.buckets, grid.cells)
@@ -101,7 +101,7 @@ def test_shader_equals_oracle_on_builtin_scenes(ctx, spec, density, size):
 
 def test_gbuffer_local_space_is_consistent_with_transforms(ctx):
     scene = floor_and_box_scene()
-    from psao_client.render.views import look_at, perspective
+    from psao.client.render.views import look_at, perspective
 
     view, proj = look_at([1.6, 1.2, 1.9], [0, 0.3, 0]), perspective(60, 320 / 180, 0.05, 20)
     with FrameRenderer(scene, (320, 180), "psao", ctx=ctx) as r:
@@ -127,12 +127,12 @@ def test_shader_equals_oracle_in_every_lookup_step(ctx):
     those within 2 r that pass eq. 3 alone, else the 3x3x3 ring; wall pixels near the floor are answered by
     the ring's looser normal test (the floor's points across the edge) and the rest of the wall finds
     nothing. The shader agrees with the oracle on the pixels of each step, weight sums included."""
-    from protocol import gridformat as gf
-    from protocol import pointword as pw
-    from protocol.reconstruct import _reconstruct_chunk
-    from psao_client.render.views import look_at, perspective
-    from psao_scene.model import Instance, Mesh, Scene
-    from psao_server.grid import Grid
+    from psao.protocol import gridformat as gf
+    from psao.protocol import pointword as pw
+    from psao.protocol.reconstruct import _reconstruct_chunk
+    from psao.client.render.views import look_at, perspective
+    from psao.scene.model import Instance, Mesh, Scene
+    from psao.server.grid import Grid
 
     v = np.array([[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2], [-2, 2, -2], [2, 2, -2]], dtype=float)
     faces = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 5], [0, 5, 4]], dtype=np.int64)  # floor y = 0, wall z = -2
@@ -177,10 +177,10 @@ def test_shader_equals_oracle_in_every_lookup_step(ctx):
 
 
 def test_incremental_update_equals_full_upload(ctx):
-    psao_scene = pytest.importorskip("psao_scene")
-    scene = psao_scene.load_scene("builtin:cornell")
+    psao.scene = pytest.importorskip("psao.scene")
+    scene = psao.scene.load_scene("builtin:cornell")
     grid = server_grid(scene, 1024)
-    path = psao_scene.scene_camera(scene)
+    path = psao.scene.scene_camera(scene)
     view, proj = path_matrices(scene, path, path.keys[0].time, (160, 120))
     rng = np.random.default_rng(3)
     with FrameRenderer(scene, (160, 120), "psao", ctx=ctx) as inc, FrameRenderer(scene, (160, 120), "psao", ctx=ctx) as full:

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psao_client.errors import RenderError
-from psao_client.render.renderer import FrameRenderer
-from psao_scene import load_scene
-from psao_scene.rigid import instance_transform
-from psao_scene.camera import look_at, perspective
-from psao_scene.skinning import skinned_vertices
+from psao.client.errors import RenderError
+from psao.client.render.renderer import FrameRenderer
+from psao.scene import load_scene
+from psao.scene.rigid import instance_transform
+from psao.scene.camera import look_at, perspective
+from psao.scene.skinning import skinned_vertices
 from skinned import closest_on_mesh, local_distance, rest_place
 
 SIZE = (160, 120)
@@ -67,12 +67,12 @@ def test_skinned_mesh_drawn_at_the_server_time(ctx):
 def test_stream_renderer_poses_skins_at_the_update_time_and_rests_before(ctx, tmp_path):
     """Before any Update (a static server's snapshot: points of the rest pose) skinned meshes are drawn
     at rest; after one, at its server time."""
-    from protocol.updates import GridDelta
-    from psao_client.mirror import Mirror
-    from psao_client.render.stream_render import StreamRenderer
-    from psao_server.bake import build_scene_grid
-    from psao_server.points import generate_scene_points
-    from psao_server.settings import PointSettings
+    from psao.protocol.updates import GridDelta
+    from psao.client.mirror import Mirror
+    from psao.client.render.stream_render import StreamRenderer
+    from psao.server.bake import build_scene_grid
+    from psao.server.points.generate import generate_scene_points
+    from psao.server.settings import PointSettings
 
     scene = load_scene("builtin:robots")
     grid = build_scene_grid(scene, generate_scene_points(scene, PointSettings(density=4.0)))

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from test_render_gridbuild import box_mesh, plane_mesh
 
-from psao_client.errors import RenderError
-from psao_client.render.renderer import FrameRenderer
-from psao_client.render.ssao_pass import hemisphere_kernel
-from psao_client.render.views import look_at, perspective
-from psao_scene.model import Instance, Scene
+from psao.client.errors import RenderError
+from psao.client.render.renderer import FrameRenderer
+from psao.client.render.ssao_pass import hemisphere_kernel
+from psao.client.render.views import look_at, perspective
+from psao.scene.model import Instance, Scene
 
 SIZE = (320, 180)
 

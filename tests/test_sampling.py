@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psao_scene import load_scene
-from psao_server.errors import ConfigError
-from psao_server.sampling import (DETAIL_FACTOR, POINTS_PER_AO_AREA, SamplingSettings, default_density,
+from psao.scene import load_scene
+from psao.server.errors import ConfigError
+from psao.server.points.sampling import (DETAIL_FACTOR, POINTS_PER_AO_AREA, SamplingSettings, default_density,
                                   estimate_points, resolve_density)
 from serving import HANG_S
 
@@ -53,7 +53,7 @@ def test_point_budget_sets_the_density(tmp_path):
 
 def quad_and_fine_strip():
     """One mesh: a 1 x 1 quad (two large triangles) and a 1 x 0.1 strip cut into 0.01 x 0.01 squares."""
-    from psao_scene.model import Instance, Mesh, Scene
+    from psao.scene.model import Instance, Mesh, Scene
 
     v = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
     f = [[0, 1, 2], [0, 2, 3]]
@@ -82,7 +82,7 @@ def test_default_density_samples_small_triangles_denser_and_counts_them():
 def test_a_budget_equal_to_the_limit_is_never_refused():
     """A point budget P with --max-points P resolves (its estimate is at most P, rounding included), and the
     density a refusal advises fits the limit."""
-    from psao_scene.model import Instance, Mesh, Scene
+    from psao.scene.model import Instance, Mesh, Scene
 
     quad = Mesh("quad", np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
     quads = Scene("quads", [quad], [Instance(f"q{k}", 0, np.eye(4)) for k in range(3)], ao_distance=0.5)

@@ -6,8 +6,8 @@ import logging
 import numpy as np
 import pytest
 
-from psao_scene import CameraKey, CameraPath, camera_at, default_orbit, load_scene, look_at, perspective
-from psao_scene.builtin import BUILTINS
+from psao.scene import CameraKey, CameraPath, camera_at, default_orbit, load_scene, look_at, perspective
+from psao.scene.builtin import BUILTINS
 
 RNG = np.random.default_rng(3)
 
@@ -120,7 +120,7 @@ def test_default_orbit_warns_once(caplog):
     scene = load_scene("builtin:cornell")
     scene.name = "orbit-test"
     scene.camera_paths.clear()
-    with caplog.at_level(logging.WARNING, logger="psao_scene"):
+    with caplog.at_level(logging.WARNING, logger="psao.scene"):
         a, b = default_orbit(scene), default_orbit(scene)
     assert sum("orbit-test" in r.getMessage() for r in caplog.records) == 1
     lo, hi = scene.world_bounds()
@@ -136,7 +136,7 @@ def test_default_orbit_warns_once(caplog):
 def test_default_orbit_keeps_every_corner_in_view(tmp_path, extent, size):
     """Tall, flat and cubic models: every bounding-box corner projects inside the frustum at every
     frame along the default orbit (frames at least as wide as tall)."""
-    from psao_client.render.views import path_matrices, path_times
+    from psao.client.render.views import path_matrices, path_times
 
     ex = np.asarray(extent)
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * ex

@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 import zstandard
 
-from protocol import messages as m
-from protocol.errors import LimitError, PayloadError, RefusedError, UnexpectedMessage
-from protocol.limits import Limits
-from protocol.scenefile import CameraPathData, InstanceData, MeshData, SceneFile, SkinData, skin_pose
-from protocol.session import ClientConfig, ClientSession, SceneReceived, SceneRequested, ServerConfig, ServerSession
-from psao_client.connection import MirrorClient, fetch_scene
-from psao_scene import load_scene
-from psao_server.grid import Grid
-from psao_server.scene_export import scene_blob, scene_file
-from psao_server.service import Service
-from psao_server.settings import ServeSettings
-from psao_server.webpage import ASSETS, answer
+from psao.protocol import messages as m
+from psao.protocol.errors import LimitError, PayloadError, RefusedError, UnexpectedMessage
+from psao.protocol.limits import Limits
+from psao.protocol.scenefile import CameraPathData, InstanceData, MeshData, SceneFile, SkinData, skin_pose
+from psao.protocol.session import ClientConfig, ClientSession, SceneReceived, SceneRequested, ServerConfig, ServerSession
+from psao.client.connection import MirrorClient, fetch_scene
+from psao.scene import load_scene
+from psao.server.grid import Grid
+from psao.server.net.scene_export import scene_blob, scene_file
+from psao.server.net.service import Service
+from psao.server.settings import ServeSettings
+from psao.server.net.webpage import ASSETS, answer
 from serving import HANG_S
 
 HASH = bytes(range(32))
@@ -167,7 +167,7 @@ async def _serve_scene(scene, fn, made: list | None = None):
     making appended to `made`)."""
     from test_streaming_service import make_grid  # a small real grid
 
-    from protocol.session import scene_hash_bytes
+    from psao.protocol.session import scene_hash_bytes
     h = scene_hash_bytes(scene.content_hash())
     made = [] if made is None else made
     service = Service(make_grid(200), h, ServeSettings(port=0, tick_hz=30, stats_interval=1e9),

@@ -11,9 +11,9 @@ import pygltflib
 import pytest
 import trimesh
 
-from psao_scene import GeometryError, SceneFormatError, SceneNotFound, load_scene
-from psao_scene.builtin import BUILTINS
-from psao_scene.meshfile import clean_geometry
+from psao.scene import GeometryError, SceneFormatError, SceneNotFound, load_scene
+from psao.scene.builtin import BUILTINS
+from psao.scene.meshfile import clean_geometry
 
 
 
@@ -178,7 +178,7 @@ def test_cleaning_merges_drops_and_reports(tmp_path, caplog):
                    "f 1 2 5\n"  # touches the NaN vertex
                    "f 1 2 7\n"  # collinear: zero area
                    "f 4 6 3\n")  # good, via the duplicate
-    with caplog.at_level(logging.WARNING, logger="psao_scene"):
+    with caplog.at_level(logging.WARNING, logger="psao.scene"):
         scene = load_scene(obj)
     m = scene.meshes[0]
     assert np.isfinite(m.vertices).all()

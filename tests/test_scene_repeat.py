@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from psao_scene import SceneError, load_scene
+from psao.scene import SceneError, load_scene
 
 
 def test_copies_on_a_grid_side_by_side():

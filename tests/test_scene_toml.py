@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from psao_scene import SceneFormatError, SceneNotFound, load_scene
-from psao_scene.builtin_shapes import GENERATORS, box
+from psao.scene import SceneFormatError, SceneNotFound, load_scene
+from psao.scene.builtin_shapes import GENERATORS, box
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -103,14 +103,14 @@ def test_mesh_path_relative_to_file(tmp_path):
 
 
 def test_shipped_scenes_load():
-    from psao_scene.loader import example_scenes
+    from psao.scene.loader import example_scenes
 
     names = sorted(example_scenes())
-    assert names == sorted(f.stem for f in (REPO / "psao_scene" / "scenes").glob("*.toml")) and names
+    assert names == sorted(f.stem for f in (REPO / "src" / "psao" / "scene" / "scenes").glob("*.toml")) and names
     for name in names:
         scene = load_scene(f"builtin:{name}")
         assert scene.instances and scene.camera_paths, name
-        assert scene.content_hash() == load_scene(REPO / "psao_scene" / "scenes" / f"{name}.toml").content_hash()
+        assert scene.content_hash() == load_scene(REPO / "src" / "psao" / "scene" / "scenes" / f"{name}.toml").content_hash()
 
 
 BAD = [  # (replace this, with that, error class, regex the message must match)

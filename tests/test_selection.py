@@ -3,8 +3,8 @@ against a brute-force scan, and the reach rules for moving instances."""
 import numpy as np
 import pytest
 
-from psao_scene.camera import look_at, perspective
-from psao_server.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view,
+from psao.scene.camera import look_at, perspective
+from psao.server.tick.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, frustum_planes, in_any_view,
                                    in_box, in_frustum, reach_boxes, rigid_in_company, sorted_union, static_points_near,
                                    merge_disjoint, occlusion_change, sum_by_index)
 
@@ -266,7 +266,7 @@ def test_rigid_instance_in_company_only_when_near_another_box():
 
 
 def test_bad_camera_sees_everything():
-    from psao_server.selection import camera_planes
+    from psao.server.tick.selection import camera_planes
     pts = random_points(100, seed=4)
     good = camera_planes(look_at((0, 0, 10), (0, 0, 0)), perspective(50.0, 1.0, 0.1, 40.0), 10.0)
     assert good is not None and not in_any_view(pts, [good], 0.0).all()
@@ -279,7 +279,7 @@ def test_bad_camera_sees_everything():
 def test_may_see_sphere_is_conservative():
     """Brute force: from every point the filter rejects, no hemisphere ray of length d meets the sphere;
     and the filter does reject points behind their tangent plane and far away."""
-    from psao_server.selection import may_see_sphere
+    from psao.server.tick.selection import may_see_sphere
     rng = np.random.default_rng(5)
     centre, radius, d = np.array([0.3, -0.2, 0.5]), 0.8, 1.5
     pts = rng.uniform(-2.5, 2.5, size=(4000, 3))
@@ -304,8 +304,8 @@ def test_union_of_views_equals_each_view_tested(n_views):
     # select_kernels.PriorityKey (through ViewUnion's blocks) tests points against the union of the views by
     # blocks of a box: its visibility must be in_any_view's exactly, also for points on a plane's margin,
     # on block faces and outside the box
-    from psao_server.budget import HIDDEN_S, MARGIN_S
-    from psao_server.select_kernels import PriorityKey
+    from psao.server.tick.budget import HIDDEN_S, MARGIN_S
+    from psao.server.tick.select_kernels import PriorityKey
 
     rng = np.random.default_rng(n_views)
     cams = [(look_at(rng.uniform(-25, 25, 3), rng.uniform(-8, 8, 3)),
@@ -358,7 +358,7 @@ def test_priority_key_called_again_answers_as_a_fresh_one_and_records_its_launch
     # replaced or grown
     import warp as wp
 
-    from psao_server.select_kernels import PriorityKey
+    from psao.server.tick.select_kernels import PriorityKey
 
     records = []
     launch = wp.launch
@@ -412,9 +412,9 @@ def test_priority_key_called_again_answers_as_a_fresh_one_and_records_its_launch
 
 
 def test_rows_equals_fancy_indexing_of_rows():
-    # psao_server.arrays.rows (np.take along the first axis, for speed) gives a[index] exactly: 2-D and 1-D
+    # psao.server.arrays.rows (np.take along the first axis, for speed) gives a[index] exactly: 2-D and 1-D
     # arrays of several dtypes, repeated, unsorted, negative and empty indices
-    from psao_server.arrays import rows
+    from psao.server.arrays import rows
 
     rng = np.random.default_rng(12)
     for a in (rng.random((500, 3)), rng.random((500, 3)).astype(np.float32), rng.integers(0, 255, (500, 4), np.uint8),

@@ -11,10 +11,10 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from psao_client.connection import MirrorClient
-from psao_client.errors import ConnectError
-from psao_server.errors import ConfigError
-from psao_server.settings import ServeSettings
+from psao.client.connection import MirrorClient
+from psao.client.errors import ConnectError
+from psao.server.errors import ConfigError
+from psao.server.settings import ServeSettings
 from test_bad_input_server import HASH, hello
 from test_service_crowd import start
 from serving import HANG_S
@@ -88,7 +88,7 @@ def test_tls_settings_checked(tmp_path, self_signed):
     cert, _ = self_signed
     with pytest.raises(ConfigError, match="both a certificate and its key"):
         ServeSettings(tls_cert=cert).check()
-    from psao_server.service import tls_context
+    from psao.server.net.service import tls_context
 
     (tmp_path / "junk.pem").write_text("not a key")
     with pytest.raises(ConfigError, match="cannot use TLS certificate"):

@@ -8,11 +8,11 @@ import logging
 
 from websockets.asyncio.client import connect
 
-from protocol import messages as m
-from psao_client.connection import MirrorClient
-from psao_server.service import Service
-from psao_server.settings import ServeSettings
-from psao_server.testhook import RandomEdits
+from psao.protocol import messages as m
+from psao.client.connection import MirrorClient
+from psao.server.net.service import Service
+from psao.server.settings import ServeSettings
+from psao.server.tick.testhook import RandomEdits
 from test_bad_input_server import EYE, HASH, hello, make_grid
 from serving import HANG_S
 
@@ -179,8 +179,8 @@ def test_small_own_updates_do_not_wait_for_a_worker_thread():
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    from protocol.codecs import Codec
-    from protocol.updates import state_digest
+    from psao.protocol.codecs import Codec
+    from psao.protocol.updates import state_digest
 
     async def main():
         loop = asyncio.get_running_loop()

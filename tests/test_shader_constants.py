@@ -1,4 +1,4 @@
-"""One source for the lookup's constants: the shader gets them from protocol/, the oracle calls gridformat."""
+"""One source for the lookup's constants: the shader gets them from src/psao/protocol/, the oracle calls gridformat."""
 import ast
 import re
 from pathlib import Path
@@ -6,10 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
-from protocol import shader_constants as sc
-from psao_client.render.shaderlib import SHADER_DIR, load_shader
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.protocol import shader_constants as sc
+from psao.client.render.shaderlib import load_shader
+from psao.protocol.shader_constants import LOOKUP_SHADER_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 # Numbers the lookup shader may write out: component indices, the 2x2x2 block and the 3x3x3 fallback ring,
@@ -25,10 +26,10 @@ def _code(path: Path) -> str:
 
 
 def test_lookup_shader_holds_no_protocol_literal():
-    code = _code(SHADER_DIR / "psao_common.glsl") + _code(SHADER_DIR / "psao_lookup.glsl")
+    code = _code(LOOKUP_SHADER_DIR / "psao_common.glsl") + _code(LOOKUP_SHADER_DIR / "psao_lookup.glsl")
     stray = sorted(set(_LITERAL.findall(code)) - STRUCTURAL_LITERALS)
     assert stray == [], f"the lookup shaders write protocol values as literals: {stray}"
-    assert not re.search(r"#\s*define\s+PSAO_", code), "PSAO_ constants must come from protocol/shader_constants.py"
+    assert not re.search(r"#\s*define\s+PSAO_", code), "PSAO_ constants must come from src/psao/protocol/shader_constants.py"
     used = set(re.findall(r"\bPSAO_[A-Z_]+\b", code))
     assert used <= set(sc.define_values()), used - set(sc.define_values())
 
@@ -69,13 +70,13 @@ def test_loader_expands_the_generated_block_with_overridable_thresholds():
 def test_no_other_copy_of_the_thresholds_or_hash_in_python():
     """T_N, T_D and the eq. 1 multipliers are assigned once, in gridformat; the oracle calls gridformat's
     key and bucket functions instead of re-writing them."""
-    for path in [*ROOT.glob("protocol/*.py"), *ROOT.glob("psao_*/**/*.py")]:
+    for path in [*ROOT.glob("src/psao/**/*.py")]:
         tree = ast.parse(path.read_text())
         for node in ast.walk(tree):
             if isinstance(node, ast.Assign) and path.name != "gridformat.py":
                 names = {t.id for t in node.targets if isinstance(t, ast.Name)}
                 assert not names & {"T_N", "T_D", "HASH_Y", "HASH_Z"}, f"{path} assigns {names}"
-    oracle = (ROOT / "protocol" / "reconstruct.py").read_text()
+    oracle = (ROOT / "src" / "psao" / "protocol" / "reconstruct.py").read_text()
     assert "gf.cell_key(" in oracle and "gf.bucket_index(" in oracle
     assert not re.search(r"\b(17|31)\b", _code_py(oracle))
 

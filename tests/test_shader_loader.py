@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psao_client.errors import RenderError
-from psao_client.render.shaderlib import SHADER_DIR, compile_program, load_shader
+from psao.client.errors import RenderError
+from psao.client.render.shaderlib import SHADER_DIR, compile_program, load_shader
 
 
 def write(tmp_path, name, text):

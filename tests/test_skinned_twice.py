@@ -9,21 +9,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import pointword as pw
-from protocol.updates import GridDelta, Reader, decode_delta, encode_delta
-from psao_client.mirror import Mirror
-from psao_scene import load_scene
-from psao_scene.model import Instance, Mesh, Scene
-from psao_scene.rigid import PlatformAnimation, instance_transform
-from psao_scene.skinning import skinned_vertices
-from psao_scene.transforms import axis_angle_matrix, linear_matrix, translation_matrix
-from psao_server.animate import PlacedPoints, SceneAnimator, SkinnedPoints, affine
-from psao_server.bake import bake_scene, scene_center, scene_point_ids
-from psao_server.budget import BudgetSettings
-from psao_server.clients import changed_transform_ids, read_delta
-from psao_server.settings import BakeSettings, TickSettings, TraceSettings
-from psao_server.tick import ServerTick
-from psao_server.tracer import make_tracer
+from psao.protocol import pointword as pw
+from psao.protocol.updates import GridDelta, Reader, decode_delta, encode_delta
+from psao.client.mirror import Mirror
+from psao.scene import load_scene
+from psao.scene.model import Instance, Mesh, Scene
+from psao.scene.rigid import PlatformAnimation, instance_transform
+from psao.scene.skinning import skinned_vertices
+from psao.scene.transforms import axis_angle_matrix, linear_matrix, translation_matrix
+from psao.server.tick.animate import PlacedPoints, SceneAnimator, SkinnedPoints, affine
+from psao.server.bake import bake_scene, scene_center, scene_point_ids
+from psao.server.tick.budget import BudgetSettings
+from psao.server.net.clients import changed_transform_ids, read_delta
+from psao.server.settings import BakeSettings, TickSettings, TraceSettings
+from psao.server.tick.server_tick import ServerTick
+from psao.server.tracer import make_tracer
 from test_animate_frame import assert_same, reference_frame
 
 TIMES = (0.0, 0.37, 1.1, 2.5)  # seconds: RiggedSimple's cylinder bends over its clip

@@ -8,15 +8,15 @@ import json
 import numpy as np
 import pytest
 
-from protocol.codecs import Codec
-from protocol.updates import Layout
-from psao_client.connection import MirrorClient
-from psao_server.clients import Client, SnapshotPlan
-from psao_server.grid import Grid
-from psao_server.service import Service
-from psao_server.settings import ServeSettings
-from psao_server.testhook import random_edits
-from protocol.limits import Limits
+from psao.protocol.codecs import Codec
+from psao.protocol.updates import Layout
+from psao.client.connection import MirrorClient
+from psao.server.net.clients import Client, SnapshotPlan
+from psao.server.grid import Grid
+from psao.server.net.service import Service
+from psao.server.settings import ServeSettings
+from psao.server.tick.testhook import random_edits
+from psao.protocol.limits import Limits
 from test_bad_input_server import HASH, make_grid
 
 
@@ -113,7 +113,7 @@ def test_pending_set_equals_a_plain_mask_through_random_sets_unsets_and_growth()
     """PendingSet keeps a count and the indices set since it last listed them (so a client's planning
     costs what is pending, not the capacity): through any sequence of sets, unsets, listings and growth,
     its count, mask and listing equal those of a plain mask."""
-    from psao_server.clients import PendingSet
+    from psao.server.net.clients import PendingSet
 
     rng = np.random.default_rng(7)
     size = 1000

@@ -2,9 +2,9 @@
 the very points a search over the whole grid finds."""
 import numpy as np
 
-from protocol import gridformat as gf
-from psao_server.grid import Grid
-from psao_server.testhook import _cluster, random_edits
+from psao.protocol import gridformat as gf
+from psao.server.grid import Grid
+from psao.server.tick.testhook import _cluster, random_edits
 
 
 def whole_grid_cluster(grid: Grid, rng: np.random.Generator, k: int):

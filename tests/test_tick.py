@@ -5,11 +5,11 @@ restricts tracing, and the same time gives the same AO."""
 import numpy as np
 import pytest
 
-from protocol import gridformat as gf
-from protocol import pointword as pw
-from psao_scene.camera import look_at, perspective
-from psao_scene.skinning import skin_points_reference
-from psao_server.selection import frustum_planes, in_frustum
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.scene.camera import look_at, perspective
+from psao.scene.skinning import skin_points_reference
+from psao.server.tick.selection import frustum_planes, in_frustum
 
 
 

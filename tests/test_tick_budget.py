@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from protocol import pointword as pw
-from psao_scene import load_scene
-from psao_server.bake import bake_scene
-from psao_server.budget import BudgetSettings, RefineQueue
-from psao_server.errors import ConfigError
-from psao_server.settings import BakeSettings, TickSettings
-from psao_server.tick import ServerTick
+from psao.protocol import pointword as pw
+from psao.scene import load_scene
+from psao.server.bake import bake_scene
+from psao.server.tick.budget import BudgetSettings, RefineQueue
+from psao.server.errors import ConfigError
+from psao.server.settings import BakeSettings, TickSettings
+from psao.server.tick.server_tick import ServerTick
 
 
 @pytest.fixture
@@ -148,9 +148,9 @@ def test_priority_visible_then_reset_then_oldest():
 def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
     # the tick's pick (select_kernels.priority_kernel: world positions, views, key in one pass) against
     # RefineQueue.key of in_any_view of world_points, over moving and static points, none/one/two views
-    from psao_client.connection import scene_camera_feed
-    from psao_server.select_kernels import PriorityKey
-    from psao_server.selection import camera_planes, in_any_view
+    from psao.client.connection import scene_camera_feed
+    from psao.server.tick.select_kernels import PriorityKey
+    from psao.server.tick.selection import camera_planes, in_any_view
 
     tick = budgeted_tick("courtyard", 16, bake_rays=4, rays=8, round_rays=4, min_points=64)
     try:
@@ -238,7 +238,7 @@ def test_trace_budget_settles_where_the_trace_takes_the_budget(believed, told):
     """From a rate believed a hundred times too low or too high, on a tracer paying a fixed cost a call
     (a third of the budget), the calls come to take the budget (budget used 1): after one call where the
     tracer tells its rays' seconds apart, within 25 where it does not."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=6.0, round_rays=8, exact_share=0.0), rays_per_second=believed)
     spent = run_budget(b, 2e-3, 2e6, 40, told)
@@ -249,7 +249,7 @@ def test_trace_budget_is_not_thrown_by_slow_calls():
     """Two calls in a row slowed by something else (a first call's set-up, a busy core: 40 times their
     fixed cost) change no batch; three shrink the next ones, never enlarge any; then the batches come
     back to the budget."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     settled = run_budget(TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), 2e6), 1e-3, 2e6, 10)[-1]
     b = TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), 2e6)
@@ -264,7 +264,7 @@ def test_trace_budget_is_not_thrown_by_slow_calls():
 def test_trace_budget_traces_half_a_budget_beyond_a_fixed_cost_above_it():
     """A call's fixed cost above the budget: each tick still traces half a budget's worth of rays, not
     min_points."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=4.0, round_rays=8, exact_share=0.0), rays_per_second=2e6)
     spent = run_budget(b, 5e-3, 2e6, 10)
@@ -272,7 +272,7 @@ def test_trace_budget_traces_half_a_budget_beyond_a_fixed_cost_above_it():
 
 
 def test_trace_budget_keeps_a_share_when_late_and_progresses_below_one_point():
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(tick_hz=60.0), rays_per_second=2e6)
     for _ in range(100):
@@ -287,7 +287,7 @@ def test_trace_budget_keeps_a_share_when_late_and_progresses_below_one_point():
 def test_trace_budget_leaves_room_for_what_the_service_spends_a_tick():
     """The automatic budget is the period's headroom less the tick's other stages and less the median of
     what its service spent on the recent ticks besides them (observe_service)."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(tick_hz=60.0, headroom=0.85), rays_per_second=2e6)
     b.observe_other(4e-3)
@@ -315,7 +315,7 @@ def test_budgeted_tick_reports_the_room_it_leaves_the_service(budgeted_tick):
 def test_budgeted_tick_traces_its_calls_in_its_own_process_below_local_rays():
     """A budgeted tick's call of more rays than the tracer's own in-process limit (TraceSettings.local_rays)
     but fewer than BudgetSettings.local_rays is traced in the tick's process, not handed to the workers."""
-    from psao_server.settings import TraceSettings
+    from psao.server.settings import TraceSettings
 
     budget = BudgetSettings(rays_per_tick=3 * TraceSettings.local_rays, exact_share=0.0)
     bake = bake_scene(load_scene("builtin:courtyard"), BakeSettings(density=16, rays=4, workers=2), show_progress=False)
@@ -338,7 +338,7 @@ def test_budgeted_tick_traces_its_calls_in_its_own_process_below_local_rays():
 def test_skinned_instances_count_as_moved_between_frames():
     """Frames keep their own copy of the skinned vertices, so a deforming mesh is seen to move (and its
     points join the queue)."""
-    from psao_server.animate import SceneAnimator
+    from psao.server.tick.animate import SceneAnimator
 
     scene = load_scene("builtin:robots")
     anim = SceneAnimator(scene)
@@ -368,7 +368,7 @@ def test_serve_rounds_divide_the_target_rays(rays, tick_rays, round_rays):
     """Without --tick-rays a round is the default 8 rays or the largest divisor of --rays below it."""
     import argparse
 
-    from psao_server.serve_cli import _budget
+    from psao.server.cli.serve import _budget
 
     args = argparse.Namespace(tick_hz=60.0, tick_budget_ms=None, tick_rays=tick_rays, rays=rays)
     b = _budget(args)
@@ -527,7 +527,7 @@ def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
 
 
 def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5, exact_cost=0.5),
                     rays_per_second=1e6)
@@ -546,7 +546,7 @@ def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
 def test_a_set_number_of_rays_a_tick_holds_whatever_the_tracer_speed():
     """BudgetSettings.rays_per_tick: the batch is that many rays whatever rate the trace calls teach the
     budget (the quality study's load-independent budget)."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=10.0, rays_per_tick=8000.0, exact_share=0.5), rays_per_second=1e6)
     for rays, seconds in ((8000, 0.5), (8000, 0.01), (8000, 0.2)):  # alike calls, any speed
@@ -560,7 +560,7 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
     """The warp tracer has no visibility_parts: the tick keeps no static hits for it (no whole traces from
     them), and a trace part that carries static hits, or asks to keep them, is refused rather than traced
     without them."""
-    from psao_server.tracer.base import TracePart
+    from psao.server.tracer.base import TracePart
     budget = BudgetSettings(budget_ms=1000.0, round_rays=2, min_points=50)
     tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
     try:
@@ -578,7 +578,7 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
 
 
 def test_first_within_takes_the_key_order_while_the_costs_fit():
-    from psao_server.budget import first_within
+    from psao.server.tick.budget import first_within
 
     rng = np.random.default_rng(3)
     for _ in range(50):
@@ -692,7 +692,7 @@ def test_select_warm_up_leaves_the_ticks_answers_as_they_are(budgeted_tick, monk
     made without that warm-up does. Every waiting point is traced each tick (min_points above the queue):
     the priority order weighs wall-clock waits, which differ between two ticks on a busy machine, so the
     plans are compared as sets of (id, AO code), and what motion reset decides them."""
-    from psao_server.tick import ServerTick
+    from psao.server.tick.server_tick import ServerTick
 
     warm = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1_000_000)
     monkeypatch.setattr(ServerTick, "_warm_up_select", lambda self: None)
@@ -758,8 +758,8 @@ def test_budgeted_tick_starts_from_the_posed_scene(budgeted_tick):
 def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_tick):
     """The whole traces from static hits choose among the changed static points in a client's view without
     its margins: a point only in the margins (fov and distance margins) waits for the rounds."""
-    from psao_client.connection import scene_camera_feed
-    from psao_server.selection import camera_planes, in_any_view
+    from psao.client.connection import scene_camera_feed
+    from psao.server.tick.selection import camera_planes, in_any_view
 
     tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
     tick.settings.budget.exact_points = 300
@@ -803,7 +803,7 @@ def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_ti
 def test_trace_budget_pools_the_budgets_of_ticks_that_left_their_trace():
     """A tick that leaves its trace to the next (pool) adds its budget to the next trace call's, in time
     and in rays (a set number of rays a tick too); the call after it has its own budget again."""
-    from psao_server.budget import TraceBudget
+    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), rays_per_second=2e6)
     alone = b.rays_in_budget()

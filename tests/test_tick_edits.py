@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from protocol import messages as m
-from protocol import pointword as pw
-from protocol.codecs import Codec, codec_mask
-from protocol.session import scene_hash_bytes
-from psao_client.connection import MirrorClient
-from psao_scene import load_scene
-from psao_server.bake import bake_scene
-from psao_server.budget import BudgetSettings
-from psao_server.serve_cli import AtRest
-from psao_server.service import Service
-from psao_server.settings import BakeSettings, ServeSettings, TickSettings
-from psao_server.tick import ServerTick
+from psao.protocol import messages as m
+from psao.protocol import pointword as pw
+from psao.protocol.codecs import Codec, codec_mask
+from psao.protocol.session import scene_hash_bytes
+from psao.client.connection import MirrorClient
+from psao.scene import load_scene
+from psao.server.bake import bake_scene
+from psao.server.tick.budget import BudgetSettings
+from psao.server.cli.serve import AtRest
+from psao.server.net.service import Service
+from psao.server.settings import BakeSettings, ServeSettings, TickSettings
+from psao.server.tick.server_tick import ServerTick
 from serving import HANG_S
 
 EDIT_TOKEN = "edit-secret"
@@ -120,7 +120,7 @@ def test_an_edit_is_retraced_and_the_mirror_equals_the_server():
 
 
 def test_an_edit_of_an_unknown_instance_is_refused():
-    from protocol.errors import EditError
+    from psao.protocol.errors import EditError
 
     _, tick, _ = served_tick()
     try:

@@ -7,10 +7,10 @@ import types
 import numpy as np
 import pytest
 
-import psao_server.budget as budget_module
-import psao_server.tick as tick_module
-from psao_server.budget import BudgetSettings
-from psao_server.selection import sorted_union
+import psao.server.tick.budget as budget_module
+import psao.server.tick.server_tick as tick_module
+from psao.server.tick.budget import BudgetSettings
+from psao.server.tick.selection import sorted_union
 
 
 def sorted_looked_at(tick, changed: np.ndarray, scan: int, among: np.ndarray | None = None) -> np.ndarray:
@@ -42,7 +42,7 @@ def test_looking_at_the_window_and_the_changed_picks_what_their_sorted_union_pic
                                                                                     scan_points, bake_rays):
     # a sweep over a long queue (wrapping round it), or the whole queue each tick; a bake of the tick's rays
     # (the motion's resets and their whole traces) or a few-ray first grid (refined in rounds)
-    from psao_client.connection import scene_camera_feed
+    from psao.client.connection import scene_camera_feed
 
     clock = types.SimpleNamespace(now=1000.0)  # perf_counter of both ticks and their queues: the test's time
     fake = types.SimpleNamespace(perf_counter=lambda: clock.now, thread_time=lambda: 0.0)

@@ -5,7 +5,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from psao_server.tick_summary import BIN_RATIO, TickSummary
+from psao.server.tick.summary import BIN_RATIO, TickSummary
 
 
 def record(i: int, seconds: float) -> dict:

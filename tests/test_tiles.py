@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from psao_scene import load_scene
-from psao_server.bake import sample_probes, scene_center, scene_world_geometry
-from psao_server.tracer import make_tracer
-from psao_server.settings import TraceSettings
-from psao_server.tracer.base import recentre
-from psao_server.tracer.tiles import cut_triangles, make_tiles, split_points, triangle_boxes
+from psao.scene import load_scene
+from psao.server.bake import sample_probes, scene_center, scene_world_geometry
+from psao.server.tracer import make_tracer
+from psao.server.settings import TraceSettings
+from psao.server.tracer.base import recentre
+from psao.server.tracer.tiles import cut_triangles, make_tiles, split_points, triangle_boxes
 
 
 def test_split_points_partitions_into_bounded_compact_sets():

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from psao_server.errors import TracerError
-from psao_server.settings import TraceSettings
+from psao.server.errors import TracerError
+from psao.server.settings import TraceSettings
 
-from psao_server.tracer import available_backends, make_tracer
-from psao_server.tracer.base import TracePart
-from psao_server.tracer.directions import cosine_directions, ray_origins
+from psao.server.tracer import available_backends, make_tracer
+from psao.server.tracer.base import TracePart
+from psao.server.tracer.directions import cosine_directions, ray_origins
 
 BACKENDS = available_backends()
 
@@ -121,8 +121,8 @@ def test_dynamic_scene_occludes_and_can_be_replaced(backend):
 
 def test_warp_ray_kernel_matches_numpy_reference():
     pytest.importorskip("warp")
-    from psao_server.tracer.directions import rotation_of
-    from psao_server.tracer.kernels import RayBuffers
+    from psao.server.tracer.directions import rotation_of
+    from psao.server.tracer.kernels import RayBuffers
 
     rng = np.random.default_rng(3)
     n = rng.normal(size=(300, 3)).astype(np.float32)
@@ -138,7 +138,7 @@ def test_warp_ray_kernel_matches_numpy_reference():
 def test_numpy_rays_within_the_context_only():
     """numpy_rays(): this thread's rays from numpy (the Warp kernel's directions within float rounding), the
     Warp kernel again after it."""
-    from psao_server.tracer import embree
+    from psao.server.tracer import embree
 
     rng = np.random.default_rng(4)
     n = rng.normal(size=(200, 3)).astype(np.float32)
@@ -191,8 +191,8 @@ def test_slices_of_one_ray_set_add_up_to_its_full_trace(backend, rays, slices):
 
 def test_warp_ray_kernel_slice_matches_numpy_reference():
     pytest.importorskip("warp")
-    from psao_server.tracer.directions import rotation_of
-    from psao_server.tracer.kernels import RayBuffers
+    from psao.server.tracer.directions import rotation_of
+    from psao.server.tracer.kernels import RayBuffers
 
     rng = np.random.default_rng(5)
     n = rng.normal(size=(100, 3)).astype(np.float32)
@@ -255,7 +255,7 @@ class CountingScene:
 def strip_rays(seed: int, n: int = 2000):
     """(n, positions, settings, origins, directions): 16 rays each of n upward-facing points spread over a
     strip x in [-10, 10], y in [-3, 3] on z = 0 (AO distance 1)."""
-    from psao_server.tracer.embree import _chunk_rays
+    from psao.server.tracer.embree import _chunk_rays
 
     rng = np.random.default_rng(seed)
     pos = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), np.zeros(n)]).astype(np.float32)
@@ -273,7 +273,7 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    from psao_server.tracer.embree import _device, _Scenes
+    from psao.server.tracer.embree import _device, _Scenes
 
     v, f = slab(1.5)
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
@@ -309,7 +309,7 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
 def test_segments_reach_sphere_against_dense_sampling():
     """The sphere test of the rigid movers' ray culling equals sampling each segment densely (up to
     segments that graze the sphere within the sampling step) and never drops a segment that reaches it."""
-    from psao_server.tracer.embree import segments_reach_sphere
+    from psao.server.tracer.embree import segments_reach_sphere
 
     rng = np.random.default_rng(5)
     n = 3000
@@ -331,7 +331,7 @@ def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_a
     runs of triangles (PieceSlabs): the answers equal tracing every ray against it, for pieces near some points
     and far from most, for pieces that do not cover every vertex (one piece then), and in a second pose where
     the runs chosen in the first are kept and only their spheres move."""
-    from psao_server.tracer.embree import _Scenes
+    from psao.server.tracer.embree import _Scenes
 
     v, f = slab(1.5)
     balls = [trimesh.creation.icosphere(subdivisions=2, radius=0.4).apply_translation(c)
@@ -361,7 +361,7 @@ def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_a
 def test_piece_slab_spheres_hold_every_triangle_in_any_pose():
     """PieceSlabs' runs, chosen in one pose, give spheres that hold every corner of their triangles in
     another pose (randomly deformed), and every triangle belongs to one run."""
-    from psao_server.tracer.embree import PIECE_SLABS, PieceSlabs
+    from psao.server.tracer.embree import PIECE_SLABS, PieceSlabs
 
     rng = np.random.default_rng(3)
     limb = trimesh.creation.cylinder(radius=0.2, height=4.0, sections=12)
@@ -387,7 +387,7 @@ def test_piece_slab_spheres_hold_every_triangle_in_any_pose():
 def test_mover_rays_compiled_equals_numpy_and_bits_may_be_shared():
     """mover_rays' Warp kernel gives the numpy form's bits exactly, with more spheres than bits (40: bit
     s % 32), and marks no ray that is hit already."""
-    from psao_server.tracer.embree import _chunk_rays, mover_rays, numpy_rays, segments_reach_sphere, sphere_bits
+    from psao.server.tracer.embree import _chunk_rays, mover_rays, numpy_rays, segments_reach_sphere, sphere_bits
 
     rng = np.random.default_rng(6)
     n = 1500

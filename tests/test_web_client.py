@@ -18,16 +18,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import messages as m
-from protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
-from protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
-from protocol.reconstruct import reconstruct_ao
-from protocol.scenefile import SceneFile
-from psao_client.scene_import import scene_from_file
-from psao_scene import load_scene
-from psao_scene.camera import camera_at, look_at, perspective, scene_camera
-from psao_scene.skinning import skin_points_reference
-from psao_server.scene_export import scene_file
+from psao.protocol import messages as m
+from psao.protocol.gridformat import BUCKET_ENTRIES, CELL_WORDS, INSTANCE_DTYPE
+from psao.protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.protocol.scenefile import SceneFile
+from psao.client.scene_import import scene_from_file
+from psao.scene import load_scene
+from psao.scene.camera import camera_at, look_at, perspective, scene_camera
+from psao.scene.skinning import skin_points_reference
+from psao.server.net.scene_export import scene_file
 from serving import HANG_S, server_url
 from skinned import closest_on_mesh
 
@@ -115,7 +115,7 @@ def decode(b64: str, dtype) -> np.ndarray:
 
 
 def page_vs_oracle(frame: dict) -> tuple[float, int]:
-    """Fraction of covered pixels where the page's PSAO equals protocol/reconstruct.py within 2/255."""
+    """Fraction of covered pixels where the page's PSAO equals src/psao/protocol/reconstruct.py within 2/255."""
     n = frame["width"] * frame["height"]
     local = decode(frame["local"], np.float32).reshape(n, 4)
     normal = decode(frame["normal"], np.float32).reshape(n, 4)
@@ -360,9 +360,9 @@ def test_old_page_and_bad_scene_requests_are_refused_while_a_page_streams(browse
 def test_page_decodes_updates_made_of_parts(browser, tmp_path):
     """The page's decoder reads an Update of several parts (as the server sends clients whose views
     differ: tiles compressed apart, several zstd frames in one message) as their union, as
-    protocol.messages.Update.parse does, and refuses parts that overlap."""
-    from protocol.codecs import Codec, FrameCodec
-    from protocol.updates import GridDelta, Layout, encode_delta
+    psao.protocol.messages.Update.parse does, and refuses parts that overlap."""
+    from psao.protocol.codecs import Codec, FrameCodec
+    from psao.protocol.updates import GridDelta, Layout, encode_delta
 
     cells = (np.arange(24, dtype=np.uint32).reshape(3, 8) * 7919) & 0x7FFFFFFF
     t = np.eye(4, dtype=np.float32)[None] * 2

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import REPO
 
-TOP_LEVEL = {"protocol", "psao", "psao_scene", "psao_server", "psao_client", "psao_eval"}
+TOP_LEVEL = {"psao"}
 
 
 def _run(cmd, cwd, timeout=600, env=None):
@@ -44,8 +44,8 @@ def test_wheel_holds_the_packages_and_their_data(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == TOP_LEVEL, top  # benchmarks and tests stay out
-    assert "psao_client/shaders/psao_common.glsl" in names
-    assert {"psao_scene/scenes/pavilion.toml", "psao_scene/scenes/playground.toml"} <= set(names)
+    assert "psao/protocol/shaders/psao_common.glsl" in names
+    assert {"psao/scene/scenes/pavilion.toml", "psao/scene/scenes/playground.toml"} <= set(names)
 
 
 def test_installed_wheel_bakes_from_another_directory(wheel, tmp_path):
@@ -64,7 +64,7 @@ def test_installed_wheel_bakes_from_another_directory(wheel, tmp_path):
     work = tmp_path / "elsewhere"
     work.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-    where = _run([py, "-c", "import psao_client, psao_scene; print(psao_client.__file__, psao_scene.__file__)"], work, env=env)
+    where = _run([py, "-c", "import psao.client, psao.scene; print(psao.client.__file__, psao.scene.__file__)"], work, env=env)
     assert where.returncode == 0, where.stderr
     assert all(str(target) in f for f in where.stdout.split()), where.stdout
     bake = _run([env_dir / "bin" / "psao", "bake", "builtin:cornell", "--density", "16", "--rays", "8", "--probes",
@@ -75,6 +75,6 @@ def test_installed_wheel_bakes_from_another_directory(wheel, tmp_path):
     toml = _run([env_dir / "bin" / "psao", "bake", "builtin:pavilion", "--density", "4", "--rays", "4", "--probes", "0",
                  "--workers", "1", "--json"], work, env=env)
     assert toml.returncode == 0, toml.stderr
-    shader = _run([py, "-c", "from psao_client.render.shaderlib import load_shader; "
+    shader = _run([py, "-c", "from psao.client.render.shaderlib import load_shader; "
                    "print(len(load_shader('psao_ao.frag.glsl').text))"], work, env=env)
     assert shader.returncode == 0 and int(shader.stdout) > 1000, shader.stderr

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from psao_server.bake import scene_center
-from psao_server.settings import TraceSettings
-from psao_server.tracer import make_tracer
+from psao.server.bake import scene_center
+from psao.server.settings import TraceSettings
+from psao.server.tracer import make_tracer
 
 
 def full_trace(tick, frame, ids: np.ndarray, rays: int, seed: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-// Camera matrices (row-major 4x4, column vectors, OpenGL conventions as psao_scene/camera.py), the
+// Camera matrices (row-major 4x4, column vectors, OpenGL conventions as src/psao/scene/camera.py), the
 // scene's camera paths (Catmull-Rom in time, as camera_at), and orbit / fly controls.
 const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
 const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
@@ -27,7 +27,7 @@ function closed(path) {
   return path.loop && path.keys.length > 2 && near(a.eye, b.eye) && near(a.target, b.target);
 }
 
-// (eye, target) of a camera path at time t seconds (psao_scene.camera.camera_at, Catmull-Rom).
+// (eye, target) of a camera path at time t seconds (psao.scene.camera.camera_at, Catmull-Rom).
 export function cameraAt(path, t) {
   const keys = path.keys, n = keys.length;
   const pts = keys.map((k) => [...k.eye, ...k.target]), times = keys.map((k) => k.time);

@@ -1,4 +1,4 @@
-// SHA-256 of the mirror's exact bytes, the same as protocol.updates.state_digest: for each array the text
+// SHA-256 of the mirror's exact bytes, the same as psao.protocol.updates.state_digest: for each array the text
 // str((dtype.str, shape)) as Python prints it, then its bytes. Plain JS (crypto.subtle exists only in
 // secure contexts, and a page served over http from another machine is not one).
 import * as C from "/psao_constants.js";

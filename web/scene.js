@@ -1,4 +1,4 @@
-// The server's scene (protocol/scenefile.py): parse the decompressed blob, pose skins, build the
+// The server's scene (src/psao/protocol/scenefile.py): parse the decompressed blob, pose skins, build the
 // triangle soups the G-buffer draws (flat face normals, as the Python client's geometry pass).
 import * as C from "/psao_constants.js";
 import { ProtocolError, Reader } from "/wire.js";
@@ -63,7 +63,7 @@ export function parseScene(bytes) {
 }
 
 // Skinning matrices (J x 3x4, row-major) at time t: the samples around t mod period, blended linearly
-// (protocol.scenefile.skin_pose).
+// (psao.protocol.scenefile.skin_pose).
 export function skinPose(skin, t) {
   const k = skin.samples, J12 = 12 * skin.nJoints;
   let i = 0, j = 0, f = 0;

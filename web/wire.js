@@ -1,7 +1,7 @@
 // PSAO wire protocol in the browser: message framing, the handshake messages, Snapshot/Update grid deltas
-// (packed and plain layouts), SceneData, and a client session that mirrors protocol/session.py's client
+// (packed and plain layouts), SceneData, and a client session that mirrors src/psao/protocol/session.py's client
 // end (states, chunk order, the zstd stream that lives for the whole connection). Every number comes from
-// /psao_constants.js, which the server generates from protocol/.
+// /psao_constants.js, which the server generates from src/psao/protocol/.
 import * as C from "/psao_constants.js";
 import { Decompress, decompress } from "/vendor/fzstd.js";
 
@@ -20,7 +20,7 @@ const T = C.MessageType;
 const enc = new TextEncoder();
 const dec = new TextDecoder("utf-8", { fatal: true });
 
-// Bounds-checked little-endian reader over a Uint8Array (protocol.updates.Reader).
+// Bounds-checked little-endian reader over a Uint8Array (psao.protocol.updates.Reader).
 export class Reader {
   constructor(bytes, what) {
     this.b = bytes;
@@ -88,7 +88,7 @@ export function sceneRequestMessage(cachedHash, token, version = C.PROTOCOL_VERS
   return frame(T.SCENE_REQUEST, body, version);
 }
 
-// view, projection: row-major Float32Array(16) each (protocol.messages.Camera).
+// view, projection: row-major Float32Array(16) each (psao.protocol.messages.Camera).
 export function cameraMessage(view, projection) {
   const body = new Uint8Array(128);
   body.set(new Uint8Array(Float32Array.from(view).buffer), 0);
@@ -129,7 +129,7 @@ function gaps(bytes, count, what) {
   return d;
 }
 
-// Byte planes (protocol.updates.planes) -> values; `size` bytes per value. 2- and 4-byte values (all the
+// Byte planes (psao.protocol.updates.planes) -> values; `size` bytes per value. 2- and 4-byte values (all the
 // packed layout has) are assembled a whole value at a time.
 function unplanes(r, size, count) {
   const raw = r.take(size * count);
@@ -243,7 +243,7 @@ export function decodeDelta(r) {
 }
 
 // The rest of an Update payload: one or more grid deltas (parts) for disjoint indices, as their union
-// (protocol.updates.union_of_parts).
+// (psao.protocol.updates.union_of_parts).
 export function decodeDeltaParts(r) {
   const parts = [decodeOne(r)];
   while (r.pos < r.b.length) {
@@ -284,7 +284,7 @@ function unionOfParts(parts) {
 
 export const State = { AWAIT_SCENE: "await scene", AWAIT_WELCOME: "await welcome", SNAPSHOT: "snapshot",
                        STREAMING: "streaming", CLOSED: "closed" };
-// The codecs this page decodes, by the command line's names (protocol.codecs.Codec, lower case, '-').
+// The codecs this page decodes, by the command line's names (psao.protocol.codecs.Codec, lower case, '-').
 export const PAGE_CODECS = ["zstd-stream", "zstd", "none"];
 
 // "zstd,none" -> the Hello's codec mask; a name the page cannot decode is a ProtocolError.
@@ -463,7 +463,7 @@ function writeRows(table, rows, ids, width) {
   }
 }
 
-// The page's copy of the server's grid, shaped like psao_client.mirror.Mirror; applying a delta is
+// The page's copy of the server's grid, shaped like psao.client.mirror.Mirror; applying a delta is
 // assignment of whole rows, so after every message it equals the server for everything sent.
 export class Mirror {
   constructor(w) {

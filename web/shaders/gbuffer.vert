@@ -1,7 +1,7 @@
 // Geometry pass: mesh-local vertices with flat (face) normals, one draw per instance. A skinned mesh is
 // drawn posed (in_position, in_normal) and carries its rest pose (in_rest_*: the same vertex of the same
 // triangle), where the server keeps its AO points: the lookup's local position and normal are the rest
-// pose's (psao_client/shaders/gbuffer.vert.glsl). For other meshes both pairs are the same.
+// pose's (src/psao/client/shaders/gbuffer.vert.glsl). For other meshes both pairs are the same.
 layout(location = 0) in vec3 in_position;
 layout(location = 1) in vec3 in_normal;
 layout(location = 2) in vec3 in_rest_position;

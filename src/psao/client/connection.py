@@ -1,0 +1,378 @@
+"""`MirrorClient`: connect, handshake, receive the snapshot and updates into a Mirror, reconnect.
+
+Thin around psao.protocol.session.ClientSession (which decides what bytes mean). Another module drives it by
+`await MirrorClient(...).run(frames=...)` and plugs in callbacks:
+
+    on_connect(mirror)                      a new connection's fresh mirror (after Welcome)
+    on_snapshot(mirror)                     the snapshot is complete: the mirror equals the server
+    on_update(mirror, transforms, tick)     after every Update is applied
+    on_frame(mirror)                        at frame_hz, the client's own rate, from the snapshot on
+                                            (a renderer draws the latest state and transforms)
+
+After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
+fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried. A server
+that replaced its grid (close code GRID_REPLACED_CLOSE) is reconnected to at once, also with reconnect=False.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import ssl
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, ConnectionClosedOK, InvalidHandshake, InvalidURI
+from websockets.uri import parse_uri
+
+from psao.protocol.codecs import Codec, codec_name
+from psao.protocol.errors import ProtocolError
+from psao.protocol.limits import DEFAULT_LIMITS, Limits
+from psao.protocol.session import (
+    ByeReceived,
+    ClientConfig,
+    ClientSession,
+    ClientState,
+    RemoteError,
+    SceneReceived,
+    SnapshotReceived,
+    UpdateReceived,
+    Welcomed,
+    reconnect_at_once,
+)
+
+from psao.client.errors import ClientError, ConnectError
+from psao.client.mirror import Mirror
+from psao.client.settings import ConnectSettings
+
+OnMirror = Callable[[Mirror], None]
+OnUpdate = Callable[[Mirror, np.ndarray, int], None]
+CameraFeed = Callable[[float], tuple[np.ndarray, np.ndarray]]  # seconds -> (view, projection)
+READ_AHEAD = 4  # messages the websocket library queues before it stops reading (websockets' max_queue)
+QUIET_END_S = 5.0  # run(frames): seconds without any Update after the snapshot that end it (a static server)
+
+
+@dataclass
+class ClientStats:
+    bytes_received: int = 0  # websocket message bytes, all connections
+    messages: int = 0
+    snapshot_bytes: int = 0
+    updates: int = 0
+    reconnects: int = 0
+    grid_replacements: int = 0  # connections the server closed because it replaced its grid (reconnected at once)
+    frames: int = 0  # on_frame calls (frames rendered), all connections
+    snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
+    connection_id: int = 0
+    codec: str = ""
+    quiet_end: bool = False  # run(frames) ended because no Update followed the snapshot (a static server)
+
+
+class _Lost(Exception):
+    """The connection ended without an Error message: worth reconnecting."""
+
+
+class MirrorClient:
+    def __init__(self, url: str, scene_hash: bytes, *, token: str = "", codecs=frozenset(Codec),
+                 camera: CameraFeed | None = None, on_connect: OnMirror | None = None,
+                 on_snapshot: OnMirror | None = None, on_update: OnUpdate | None = None,
+                 read_delay: float = 0.0, digest_log: Path | None = None, reconnect: bool = True,
+                 reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
+                 limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
+                 tls_ca: Path | None = None, digest_every: int = ConnectSettings.digest_every,
+                 digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0):
+        self.url = url
+        self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
+        self.camera = camera
+        self.on_connect, self.on_snapshot, self.on_update = on_connect, on_snapshot, on_update
+        self.on_frame = on_frame
+        if not frame_hz > 0:
+            raise ClientError(f"frame rate must be > 0, got {frame_hz}")
+        if not open_timeout > 0:
+            raise ClientError(f"open timeout must be > 0 seconds, got {open_timeout}")
+        self.frame_period = 1.0 / frame_hz
+        self.read_delay = read_delay
+        self.digest_log = digest_log
+        if digest_every < 1:
+            raise ClientError(f"digest every must be >= 1 Updates, got {digest_every}")
+        # (connection id, message index) -> whether to log this Snapshot/Update's digest (each hashes the
+        # whole mirror); by default after every Snapshot chunk and the first Update, then every
+        # digest_every-th Update applied
+        self.digest_if = digest_if or (
+            lambda _conn, _seq: self.stats.updates <= 1 or self.stats.updates % digest_every == 0)
+        self.reconnect = reconnect
+        self.reconnect_timeout = reconnect_timeout
+        # seconds for a connection's opening handshake; a busy server's is slow, and each retry throws away
+        # the work it had done on the abandoned one
+        self.open_timeout = open_timeout
+        self.camera_period = 1.0 / camera_hz
+        self.recv_buffer = recv_buffer  # small: the server feels a slow reader at once (tests, slow links)
+        # wss://: the system's trusted certificates, or only those in tls_ca (a self-signed server)
+        self.tls = ssl.create_default_context(cafile=str(tls_ca)) if tls_ca is not None else None
+        self.mirror: Mirror | None = None
+        self.stats = ClientStats()
+        self._stop = asyncio.Event()
+        self._start = 0.0
+
+    def clock(self) -> float:
+        """Seconds since run() started: the time of the camera poses this client sends."""
+        return time.perf_counter() - self._start
+
+    def stop(self) -> None:
+        """Ask run() to say Bye and return after the message being handled."""
+        self._stop.set()
+
+    async def run(self, frames: int | None = None) -> ClientStats:
+        """Receive until the snapshot and then `frames` Updates have been applied (a server that sends no
+        Update after the snapshot: see _quiet_limit), or with on_frame, until `frames` frames were rendered
+        (None: until stop())."""
+        self._start = self._last_ok = time.perf_counter()
+        pause = 0.1
+        digests = open(self.digest_log, "a", buffering=1) if self.digest_log else None
+        try:
+            while True:
+                try:
+                    await self._connection(frames, digests)
+                    return self.stats
+                except RemoteError as exc:
+                    raise ConnectError(f"{self.url}: server refused: {exc.text}") from None
+                except ProtocolError as exc:
+                    raise ConnectError(f"{self.url}: bad data from the server: {exc}") from None
+                except (_Lost, ConnectionClosed, OSError, asyncio.TimeoutError, InvalidHandshake) as exc:
+                    if isinstance(exc, ConnectionClosed) and exc.rcvd is not None and reconnect_at_once(exc.rcvd.code):
+                        self.stats.grid_replacements += 1  # not a loss: the new grid is there now
+                        self._last_ok = time.perf_counter()
+                        continue
+                    if not self.reconnect or time.perf_counter() - self._last_ok > self.reconnect_timeout:
+                        if not self.stats.messages:
+                            raise ConnectError(f"{self.url}: cannot connect ({_why(exc)})") from None
+                        raise ConnectError(f"{self.url}: connection lost ({_why(exc)}), not reconnecting") from None
+                    pause = 0.1 if time.perf_counter() - self._last_ok < 1.0 else min(2 * pause, 2.0)
+                    await asyncio.sleep(pause)
+                    self.stats.reconnects += 1
+        except InvalidURI as exc:
+            raise ConnectError(f"bad server URL: {exc}") from None
+        finally:
+            if digests:
+                digests.close()
+
+    async def _connection(self, frames: int | None, digests) -> None:
+        limits = self.config.limits
+        session = ClientSession(self.config)
+        t0 = time.perf_counter()
+        cameras: asyncio.Task | None = None
+        renders: asyncio.Task | None = None
+        # Messages the websocket library may read ahead of the mirror: few, as it answers the server's pings as
+        # it reads, and the server sends a client more only when those answers show it has read enough
+        # (read-ahead is lag the server cannot see)
+        extra = ({"sock": await self._small_buffer_socket(), "max_queue": 1} if self.recv_buffer
+                 else {"max_queue": READ_AHEAD})
+        if self.tls is not None and self.url.startswith("wss:"):
+            extra["ssl"] = self.tls
+        async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
+                           open_timeout=self.open_timeout, **extra) as ws:
+            await ws.send(session.hello())
+            seq = 0
+            updates_here = 0  # Updates on this connection
+            try:
+                while True:
+                    try:
+                        data = await asyncio.wait_for(ws.recv(), self._quiet_limit(session, frames, updates_here))
+                    except ConnectionClosedOK:
+                        break
+                    except asyncio.TimeoutError:  # a server with nothing to change: its ticks passed anyway
+                        self.stats.quiet_end = True
+                        await ws.send(session.bye())
+                        await _discard_until_closed(ws, timeout=2.0)
+                        return
+                    if isinstance(data, str):
+                        raise ProtocolError("text message from the server")
+                    if session.state == ClientState.CLOSED:  # the render task said Bye: drop what is in flight
+                        continue
+                    event = session.receive(data)
+                    self._last_ok = time.perf_counter()
+                    self.stats.messages += 1
+                    self.stats.bytes_received += len(data)
+                    self._apply(event, len(data), t0)
+                    updates_here += isinstance(event, UpdateReceived)
+                    if isinstance(event, Welcomed) and self.camera is not None:
+                        cameras = asyncio.create_task(self._send_cameras(ws, session))
+                    if isinstance(event, SnapshotReceived) and event.complete and self.on_frame is not None:
+                        await _cancel(renders)
+                        renders = asyncio.create_task(self._render_frames(ws, session, frames))
+                    if (digests and isinstance(event, (SnapshotReceived, UpdateReceived))
+                            and self.digest_if(self.stats.connection_id, seq)):
+                        digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
+                                                  "digest": self.mirror.digest()}) + "\n")
+                    seq += 1
+                    done = (frames is not None and self.on_frame is None and session.state == ClientState.STREAMING
+                            and self.stats.updates >= frames)
+                    if self._stop.is_set() or done:
+                        await _cancel(cameras)
+                        await _cancel(renders)
+                        await ws.send(session.bye())
+                        await _discard_until_closed(ws, timeout=2.0)
+                        return
+                    if self.read_delay:
+                        await asyncio.sleep(self.read_delay)
+            finally:
+                await _cancel(cameras)
+                await _cancel(renders)
+        if self._stop.is_set():  # the render task said Bye and closed: done, not lost
+            return
+        raise _Lost("server closed the connection")
+
+    async def _render_frames(self, ws, session: ClientSession, frames: int | None) -> None:
+        """on_frame at the client's own rate with whatever the mirror holds by then; Updates are applied
+        between frames. After `frames` frames: Bye, and close, which ends the receive loop."""
+        next_t = time.perf_counter()
+        while True:
+            if frames is not None and self.stats.frames >= frames:
+                self._stop.set()
+                await ws.send(session.bye())
+                await ws.close()
+                return
+            self.on_frame(self.mirror)
+            self.stats.frames += 1
+            next_t = max(next_t + self.frame_period, time.perf_counter() - self.frame_period)  # no catch-up bursts
+            await asyncio.sleep(max(0.0, next_t - time.perf_counter()))
+
+    async def _small_buffer_socket(self) -> socket.socket:
+        uri = parse_uri(self.url)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.recv_buffer)
+        sock.setblocking(False)
+        try:
+            await asyncio.wait_for(asyncio.get_running_loop().sock_connect(sock, (uri.host, uri.port)), self.open_timeout)
+        except BaseException:
+            sock.close()
+            raise
+        return sock
+
+    def _quiet_limit(self, session: ClientSession, frames: int | None, updates_here: int) -> float | None:
+        """Seconds to wait for the next message. A server sends an Update only when something changed, so
+        a static one sends nothing after the snapshot: run(frames) then ends after `frames` server tick
+        periods (at least QUIET_END_S) without an Update on this connection. Once Updates flow, no limit."""
+        if (frames is None or self.on_frame is not None or session.state != ClientState.STREAMING
+                or updates_here):
+            return None
+        return max(max(frames, 1) / session.welcome.tick_hz, QUIET_END_S)
+
+    def _apply(self, event, nbytes: int, t0: float) -> None:
+        """One received event into the mirror and the statistics; callbacks run here."""
+        if isinstance(event, Welcomed):
+            self._welcomed(event)
+            return
+        if self.mirror is not None:
+            self.mirror.received(nbytes)
+        if isinstance(event, SnapshotReceived):
+            self.mirror.apply(event.snapshot.delta)
+            self.stats.snapshot_bytes += nbytes
+            if event.complete:
+                self.mirror.complete()
+                self.stats.snapshot_seconds = time.perf_counter() - t0
+                if self.on_snapshot:
+                    self.on_snapshot(self.mirror)
+        elif isinstance(event, UpdateReceived):
+            self.mirror.apply(event.update.delta)
+            self.mirror.tick = event.update.tick
+            self.mirror.server_time = float(event.update.server_time)
+            self.stats.updates += 1
+            if self.on_update:
+                self.on_update(self.mirror, self.mirror.transforms, event.update.tick)
+        elif isinstance(event, ByeReceived):
+            raise _Lost("server said Bye")
+
+    async def _send_cameras(self, ws, session: ClientSession) -> None:
+        """The camera pose at camera_hz, whether or not updates arrive (the server selects by it)."""
+        while True:
+            view, proj = self.camera(self.clock())
+            await ws.send(session.camera(view, proj))
+            await asyncio.sleep(self.camera_period)
+
+    def _welcomed(self, event: Welcomed) -> None:
+        w = event.welcome
+        self.mirror = Mirror.from_welcome(w, self.config.limits)
+        self.stats.connection_id = w.connection_id
+        self.stats.codec = codec_name(w.codec)
+        if self.on_connect:
+            self.on_connect(self.mirror)
+
+
+async def _cancel(task: asyncio.Task | None) -> None:
+    if task is not None and not task.done():
+        task.cancel()
+        try:
+            await task
+        except (asyncio.CancelledError, ConnectionClosed):
+            pass
+
+
+async def _discard_until_closed(ws, timeout: float) -> None:
+    """After Bye, read (and drop) what the server still had in flight, so its close frame gets through
+    even when reading was paused by flow control."""
+    try:
+        async with asyncio.timeout(timeout):
+            async for _ in ws:
+                pass
+    except (TimeoutError, ConnectionClosed):
+        pass
+
+
+async def fetch_scene(url: str, token: str = "", limits: Limits = DEFAULT_LIMITS, timeout: float = 60.0):
+    """The server's scene: (psao.scene Scene, scene hash bytes, compressed bytes received), over one short
+    connection (SceneRequest, SceneData chunks, Bye)."""
+    from psao.client.scene_import import scene_from_file
+
+    session = ClientSession(ClientConfig(None, token, frozenset(Codec), limits))
+    try:
+        async with connect(url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0) as ws:
+            await ws.send(session.scene_request())
+            async with asyncio.timeout(timeout):
+                async for data in ws:
+                    if isinstance(data, str):
+                        raise ProtocolError("text message from the server")
+                    event = session.receive(data)
+                    if isinstance(event, SceneReceived):
+                        await ws.send(session.bye())
+                        return scene_from_file(event.scene, f"{url} scene"), event.scene_hash, event.blob_bytes
+            raise ConnectError(f"{url}: the server closed the connection before sending its scene")
+    except InvalidURI as exc:
+        raise ConnectError(f"bad server URL: {exc}") from None
+    except RemoteError as exc:
+        raise ConnectError(f"{url}: server refused: {exc.text}") from None
+    except ProtocolError as exc:
+        raise ConnectError(f"{url}: bad scene data from the server: {exc}") from None
+    except (ConnectionClosed, OSError, TimeoutError, InvalidHandshake) as exc:
+        raise ConnectError(f"{url}: cannot fetch the scene ({_why(exc)})") from None
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, ConnectionClosed):
+        rcvd = exc.rcvd
+        return f"close code {rcvd.code}" if rcvd else "no close frame"
+    return str(exc) or type(exc).__name__
+
+
+def scene_camera_feed(scene, aspect: float = 16 / 9, path_name: str | None = None) -> CameraFeed:
+    """Camera poses along the scene's camera path (the named one, its first, or the default orbit), as
+    float32 matrices."""
+    from psao.scene.camera import look_at, path_sampler, perspective, scene_camera
+
+    try:
+        path = scene_camera(scene, path_name)
+    except KeyError as exc:
+        raise ClientError(str(exc.args[0])) from None
+    lo, hi = scene.world_bounds()
+    far = 4.0 * float(np.linalg.norm(hi - lo)) + 1.0
+    proj = perspective(path.fov_y, aspect, far * 1e-4, far).astype(np.float32)
+    camera_at = path_sampler(path)
+
+    def feed(t: float) -> tuple[np.ndarray, np.ndarray]:
+        eye, target = camera_at(t)
+        return look_at(eye, target).astype(np.float32), proj
+
+    return feed

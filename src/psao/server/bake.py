@@ -1,0 +1,327 @@
+"""Bake: points -> grid -> traced AO, and the accuracy of what the client will reconstruct from it.
+
+This is everything the server does before it streams anything; `psao bake` exposes it as an AO baker.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from psao.protocol import gridformat as gf
+from psao.protocol import pointword as pw
+from psao.protocol.reconstruct import reconstruct_ao
+from psao.scene.model import Scene
+from psao.server.points.buried import BuriedTest
+from psao.server.points.densify import densify
+from psao.server.points.gapfill import fill_gaps
+from psao.server.grid import Grid, PointTable
+from psao.server.points.generate import PointSet, generate_scene_points, spawn_uniform
+from psao.server.points.pool import generate_scene_points_parallel
+from psao.server.points.sampling import resolve_density
+from psao.server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
+from psao.server.tracer.static_hits import StaticHits
+from psao.server.tracer import Tracer, make_tracer
+
+# A bake estimated at this many points or more generates its instances' points in `workers` processes
+# (below this the points take little longer than starting the processes and sending them the scene).
+PARALLEL_POINTS = 100_000
+
+
+@dataclass
+class BakeResult:
+    scene: Scene
+    grid: Grid
+    pointsets: list[PointSet]
+    stats: dict
+    tracer: Tracer  # still open: the server keeps tracing with it; close() when done
+    # which of each static point's rays the static scene occludes, kept from the bake's trace of a scene with
+    # moving instances (psao.server.tracer.static_hits); None when not kept (no movers, or a tracer that cannot)
+    static_hits: StaticHits | None = None
+
+
+# ---------------------------------------------------------------- transforms
+def to_world(transform: np.ndarray, local_pos: np.ndarray, local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local points and normals of an instance -> world (normals by the inverse transpose, renormalised)."""
+    m = np.asarray(transform, np.float64)
+    pos = np.asarray(local_pos, np.float64) @ m[:3, :3].T + m[:3, 3]
+    nrm = np.asarray(local_normal, np.float64) @ np.linalg.inv(m[:3, :3])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return pos, nrm.astype(np.float32)
+
+
+def scene_point_ids(pointsets: list[PointSet]) -> list[np.ndarray]:
+    """The stable id of every point, per instance: 0..P-1 over the scene's point sets in instance order.
+    The grid stores them (they seed each point's rays); the server tick indexes its arrays by them."""
+    sizes = [len(ps) for ps in pointsets]
+    first = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return [np.arange(first[i], first[i + 1], dtype=np.int64) for i in range(len(sizes))]
+
+
+def build_scene_grid(scene: Scene, pointsets: list[PointSet], settings: GridSettings | None = None) -> Grid:
+    """The grid of a scene's point sets, one per instance: double-sided instances flagged, their
+    back-side points (PointSet.back) in back-side cells, every point under its scene_point_ids id."""
+    flags = [gf.FLAG_DOUBLE_SIDED if scene.meshes[i.mesh].double_sided else 0 for i in scene.instances]
+    return Grid.build([(ps.positions, ps.normals, ps.poisson_radius, f, ps.back if f else None)
+                       for ps, f in zip(pointsets, flags)], settings, point_ids=scene_point_ids(pointsets))
+
+
+def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space triangles of (some) instances merged into one vertex/face array."""
+    verts, faces, base = [], [], 0
+    for i in (range(len(scene.instances)) if instances is None else instances):
+        inst = scene.instances[i]
+        mesh = scene.meshes[inst.mesh]
+        v = mesh.vertices @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+        verts.append(v)
+        faces.append(mesh.faces + base)
+        base += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def scene_center(scene: Scene) -> np.ndarray:
+    lo, hi = scene.world_bounds()
+    return 0.5 * (lo + hi)
+
+
+# ---------------------------------------------------------------- bake
+def _progress(enabled: bool):
+    if not enabled:
+        return nullcontext(None)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    transient=True, console=None)
+
+
+def make_bake_tracer(scene: Scene, settings: BakeSettings) -> Tracer:
+    """The tracer a bake uses: the dask back-end on settings.cluster, else the named local back-end."""
+    center = scene_center(scene)
+    if settings.cluster is not None:
+        return make_tracer("dask", center, cluster=settings.cluster, scene_spec=scene.source)
+    return make_tracer(settings.tracer, center, **({"workers": settings.workers} if settings.tracer == "embree" else {}))
+
+
+def trace_progress(bar, task, tracer: Tracer, rays: int):
+    """A progress callback for Tracer.visibility: advances the bar by the points traced and shows the
+    rays per second (across all of a cluster's workers) and whatever the tracer adds (tasks done)."""
+    start = time.perf_counter()
+    done = 0
+
+    def advance(k: int) -> None:
+        nonlocal done
+        done += k
+        rate = done * rays / max(time.perf_counter() - start, 1e-9)
+        note = tracer.progress_note()
+        bar.update(task, advance=k, description=f"trace {rate / 1e6:.1f} Mrays/s" + (f", {note}" if note else ""))
+    return advance
+
+
+def grid_world_points(grid: Grid, scene: Scene):
+    """(point table, world positions, world normals) of every allocated point of the grid."""
+    t = grid.point_table()
+    pos = np.empty((len(t), 3))
+    nrm = np.empty((len(t), 3), np.float32)
+    for i, inst in enumerate(scene.instances):
+        sel = t.instance == i
+        pos[sel], nrm[sel] = to_world(inst.transform, t.local_pos[sel], t.local_normal[sel])
+    return t, pos, nrm
+
+
+def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None,
+                      point_ids: np.ndarray | None = None, static_hits: StaticHits | None = None) -> np.ndarray:
+    """Trace every allocated point (or those with the given ids) at its exact position and store the
+    quantised AO. Returns visibility. With `static_hits`, the static scene's answers for the static
+    points are kept there (the tracer's static scene must then hold the static instances alone)."""
+    t, pos, nrm = grid_world_points(grid, scene)
+    if point_ids is not None:
+        sel = np.isin(t.point_id, point_ids)
+        t = PointTable(*(getattr(t, f.name)[sel] for f in fields(t)))
+        pos, nrm = pos[sel], nrm[sel]
+    if static_hits is None:
+        vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
+    else:
+        vis, bits = tracer.visibility_and_static_hits(pos, nrm, t.point_id, settings, progress=progress)
+        static = static_hits.static[t.point_id]
+        static_hits.keep(t.point_id[static], bits[static])
+    grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
+    return vis
+
+
+def load_bake_geometry(tracer: Tracer, scene: Scene, settings: BakeSettings) -> tuple[list[int], list[int]] | None:
+    """The whole scene (at its instances' transforms) into the bake's tracer. With moving instances and a
+    tracer that keeps static hits (settings.keep_static_hits), the static instances go into its static
+    scene and the moving ones into its moving part, so each trace answers from the static scene first
+    and its answers can be kept: returns (static, moving) instance lists then, else None."""
+    from psao.server.tick.animate import classify_instances  # (animate imports this module)
+
+    kinds = classify_instances(scene)
+    if not (settings.keep_static_hits and kinds.moving and hasattr(tracer, "visibility_and_static_hits")):
+        tracer.set_static(*scene_world_geometry(scene))
+        return None
+    tracer.set_static(*scene_world_geometry(scene, kinds.static))
+    tracer.set_dynamic(*scene_world_geometry(scene, kinds.moving))
+    return kinds.static, kinds.moving
+
+
+def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress: bool | None = None) -> BakeResult:
+    settings = settings or BakeSettings()
+    settings.check()
+    if show_progress is None:
+        show_progress = sys.stderr.isatty()
+    # Before anything is allocated: the density this scene gets and the points it will take (ConfigError
+    # naming the count and what to pass above settings.max_points).
+    density, estimate = resolve_density(scene, settings.sampling(), settings.min_points)
+    stats: dict = {"scene": scene.name, "density": density, "points_estimated": estimate, "rays": settings.rays,
+                   "seed": settings.seed}
+    tracer = make_bake_tracer(scene, settings)
+    try:
+        return _bake_with(tracer, scene, settings, show_progress, stats)
+    except BaseException:
+        tracer.close()  # a cluster started for this bake goes with it
+        raise
+
+
+def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict) -> BakeResult:
+    split = load_bake_geometry(tracer, scene, settings)
+    trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
+    with _progress(show_progress) as bar:
+        t0 = time.perf_counter()
+        task = bar.add_task("points", total=len(scene.instances)) if bar else None
+        buried = BuriedTest(scene) if settings.skip_buried else None
+        point_settings = PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
+                                       spawn_ratio=settings.spawn_ratio, detail_factor=settings.sampling().factor())
+        progress = (lambda done, total: bar.update(task, completed=done)) if bar else None
+        workers = settings.workers or os.cpu_count() or 1
+        if workers > 1 and len(scene.instances) > 1 and stats["points_estimated"] >= PARALLEL_POINTS:
+            pointsets = generate_scene_points_parallel(scene, point_settings, workers, settings.skip_buried, progress)
+        else:
+            pointsets = generate_scene_points(scene, point_settings, progress=progress, buried=buried)
+        stats["seconds_points"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        def build(sets: list[PointSet]) -> Grid:
+            return build_scene_grid(scene, sets, settings.grid)
+
+        grid = build(pointsets)
+        stats["seconds_grid"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        added = 0
+        if settings.gap_fill.passes > 0:
+            task = bar.add_task("gap fill", total=settings.gap_fill.passes) if bar else None
+            pointsets, grid, added = fill_gaps(scene, pointsets, grid, build, settings.gap_fill,
+                                               progress=(lambda done, total: bar.update(task, completed=done)) if bar else None,
+                                               buried=buried)
+        stats["points_gap_fill"] = int(added)
+        stats["seconds_gap_fill"] = time.perf_counter() - t0
+
+        if hasattr(tracer, "warm_up"):
+            tracer.warm_up()  # worker start-up is not tracing time
+        n = grid.n_points()
+        task = bar.add_task("trace", total=n) if bar else None
+        t0 = time.perf_counter()
+        static_hits = None
+        if split is not None:
+            ids = scene_point_ids(pointsets)
+            static_hits = StaticHits(sum(len(x) for x in ids), settings.rays, settings.seed,
+                                     np.concatenate([ids[i] for i in split[0]]) if split[0] else None)
+        trace_grid_points(grid, scene, tracer, trace_settings,
+                          progress=trace_progress(bar, task, tracer, settings.rays) if bar else None,
+                          static_hits=static_hits)
+        stats["seconds_trace"] = time.perf_counter() - t0
+        n_traced = n  # the first trace's points (densify's traces are timed apart)
+
+        t0 = time.perf_counter()
+        added = 0
+        if settings.densify.runs_with(settings.rays):
+            task = bar.add_task("densify", total=settings.densify.rounds) if bar else None
+            pointsets, added = densify(scene, pointsets, grid, tracer, trace_settings, settings.densify, buried,
+                                       progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+            n = grid.n_points()
+            if added:
+                static_hits = None  # densify renumbers the point ids the kept answers are indexed by
+        stats["points_densify"] = int(added)
+        stats["seconds_densify"] = time.perf_counter() - t0
+    grid.take_dirty()
+    stats.update(
+        points_spawned=int(sum(ps.spawned for ps in pointsets)),
+        points_generated=int(sum(len(ps) for ps in pointsets)),
+        points_kept=n,
+        points_dropped_overflow=int(grid.stats.dropped),
+        cells=int(len(grid.allocated_cells())),
+        buckets=int(len(grid.buckets)),
+        buckets_used=int(len(grid.allocated_buckets())),
+        rays_per_second_wall=n_traced * settings.rays / max(stats["seconds_trace"], 1e-9),
+        tracer=tracer.name,
+    )
+    # rates from the seconds inside the workers (query alone and whole chunks); the wall rate above is what a user waits
+    stats.update(tracer.throughput())
+    stats.setdefault("rays_per_second", stats["rays_per_second_wall"])
+    if static_hits is not None:
+        stats["static_hits_bytes"] = static_hits.nbytes
+    return BakeResult(scene=scene, grid=grid, pointsets=pointsets, stats=stats, tracer=tracer, static_hits=static_hits)
+
+
+# ---------------------------------------------------------------- accuracy
+@dataclass
+class Probes:
+    instance: np.ndarray  # (M,)
+    world_pos: np.ndarray  # (M, 3)
+    world_normal: np.ndarray  # (M, 3)
+    local_pos: np.ndarray
+    local_normal: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> "Probes":
+        return Probes(*(getattr(self, f.name)[mask] for f in fields(self)))
+
+
+def sample_probes(scene: Scene, count: int, seed: int = 12345) -> Probes:
+    """Random surface points, area-weighted over all instances (world area), independent of the
+    generation points; a random side for double-sided surfaces."""
+    rng = np.random.default_rng(seed)
+    per_inst = []
+    for inst in scene.instances:
+        mesh = scene.meshes[inst.mesh]
+        per_inst.append(mesh.triangle_areas(inst.transform[:3, :3]))
+    totals = np.array([a.sum() for a in per_inst])
+    counts = rng.multinomial(count, totals / totals.sum())
+    out = {k: [] for k in ("instance", "world_pos", "world_normal", "local_pos", "local_normal")}
+    for i, (inst, areas, k) in enumerate(zip(scene.instances, per_inst, counts)):
+        if k == 0:
+            continue
+        mesh = scene.meshes[inst.mesh]
+        faces, bary = spawn_uniform(rng, areas, int(k))
+        tri = mesh.vertices[mesh.faces[faces]]
+        local = np.einsum("pk,pkj->pj", bary, tri)
+        normal = mesh.face_normals()[faces].astype(np.float32)
+        if mesh.double_sided:
+            flip = rng.random(len(normal)) < 0.5
+            normal[flip] *= -1
+        wp_, wn = to_world(inst.transform, local, normal)
+        out["instance"].append(np.full(int(k), i))
+        out["world_pos"].append(wp_)
+        out["world_normal"].append(wn)
+        out["local_pos"].append(local)
+        out["local_normal"].append(normal)
+    return Probes(**{k: np.concatenate(v) for k, v in out.items()})
+
+
+def reconstruction_error(grid: Grid, scene: Scene, tracer: Tracer, probes: Probes, rays: int = ProbeSettings.rays,
+                         seed: int = 777) -> dict:
+    """MAE between the reconstructed AO and AO traced directly at the probes (many rays), hole fraction."""
+    truth = tracer.visibility(probes.world_pos, probes.world_normal, np.arange(len(probes.instance)) + (1 << 30),
+                              TraceSettings(rays=rays, ao_distance=scene.ao_distance, seed=seed))
+    ao, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos, probes.local_normal)
+    err = np.abs(ao - truth)
+    return {
+        "recon_mae": float(err.mean()),
+        "recon_p99": float(np.quantile(err, 0.99)),
+        "hole_fraction": float((wsum == 0).mean()),
+        "probes": int(len(err)),
+        "probe_rays": rays,
+    }

@@ -1,0 +1,91 @@
+"""Progressive start of `psao serve --progressive`: a coarse first grid at once, the full grid behind it.
+
+The full bake of a large scene (points at the target density, a first trace with the tick's round of
+rays, the server tick's set-up) takes tens of seconds. So the server first bakes a coarse grid of about
+`first_points` points (uniform random points, no elimination and no buried-surface test: they cost more
+than the preview gains), traced with the same few rays, and streams it as soon as it listens. The full
+bake runs in a background thread meanwhile (its tracing in the tracer's worker processes); when it is
+done the service swaps the full grid in (Service.replace_grid), every client reconnects to it (close code
+GRID_REPLACED_CLOSE), and the server tick refines it to the target rays in its spare budget.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from psao.server.settings import BakeSettings, GapFillSettings
+
+if TYPE_CHECKING:  # psao.scene imports trimesh (a second): `psao serve --help` does without it
+    from psao.scene.model import Scene
+
+log = logging.getLogger("psao.serve")
+
+
+@dataclass
+class ProgressiveSettings:
+    first_points: int = 12_000  # points of the coarse first grid; 0: no coarse grid, the full grid comes first
+    # The coarse grid is worth it only when the full grid is this many times larger (else it comes soon anyway).
+    min_ratio: float = 4.0
+
+
+def coarse_bake_settings(full: BakeSettings, first_points: int, rays: int) -> BakeSettings:
+    """The coarse first grid's bake: a total of `first_points`, spawned uniformly (no detail levels: at so few
+    points nearly every triangle would be one) and kept as spawned (no
+    elimination), no buried-surface test, no gap fill, `rays` rays, traced in this process (starting worker
+    processes would cost more than its few rays)."""
+    return dataclasses.replace(full, density=None, points=float(first_points), detail_factor=1, rays=rays,
+                               spawn_ratio=1.0, skip_buried=False, gap_fill=GapFillSettings(passes=0), workers=1)
+
+
+def wants_coarse_grid(scene: Scene, full: BakeSettings, settings: ProgressiveSettings) -> bool:
+    """True when the full bake's estimated points exceed the coarse grid's by settings.min_ratio (ConfigError
+    here, before anything is baked, when the full bake is over its point limit)."""
+    from psao.server.points.sampling import resolve_density
+
+    if settings.first_points <= 0:
+        return False
+    _, estimate = resolve_density(scene, full.sampling(), full.min_points)
+    return estimate >= settings.min_ratio * settings.first_points
+
+
+class BackgroundBake:
+    """`build()` -> (grid, tick) in a daemon thread; `on_ready(grid, tick)` hears the result, `on_error(exc)`
+    a failure. close() closes the tick if it arrives after the server stopped (or closes it now)."""
+
+    def __init__(self, build: Callable[[], tuple], on_ready: Callable, on_error: Callable[[BaseException], None]):
+        self._build, self._on_ready, self._on_error = build, on_ready, on_error
+        self._lock = threading.Lock()
+        self._closed = False
+        self.tick = None
+        self.seconds: float | None = None  # how long the full bake took
+        self._thread = threading.Thread(target=self._run, name="full bake", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            grid, tick = self._build()
+        except BaseException as exc:  # noqa: BLE001 - reported to the service, which stops
+            self._on_error(exc)
+            return
+        self.seconds = time.perf_counter() - t0
+        with self._lock:
+            if self._closed:  # the server stopped meanwhile
+                tick.close()
+                return
+            self.tick = tick
+        self._on_ready(grid, tick)
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            if self.tick is not None:
+                self.tick.close()
+                self.tick = None
