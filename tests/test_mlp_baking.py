@@ -19,7 +19,7 @@ from psao.eval.learn.grid_points import instance_points
 from psao.eval.learn.mlp_train import MlpTrainSettings, train_mlp
 from serving import HANG_S
 
-psao.scene = pytest.importorskip("psao.scene")
+import psao.scene
 REPO = Path(__file__).resolve().parents[1]
 
 

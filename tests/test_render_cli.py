@@ -17,7 +17,7 @@ from psao.client.errors import RenderError
 from psao.client.mirror import Mirror
 from psao.client.render.stream_render import StreamRenderer
 
-psao.scene = pytest.importorskip("psao.scene")
+import psao.scene
 REPO = Path(__file__).resolve().parents[1]
 
 

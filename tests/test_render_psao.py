@@ -87,7 +87,7 @@ def assert_matches_oracle_loose(frame, instances, buckets, cells):
 
 @pytest.mark.parametrize("spec,density,size", [("builtin:cornell", 1024, (320, 240)), ("builtin:courtyard", 64, (640, 360))])
 def test_shader_equals_oracle_on_builtin_scenes(ctx, spec, density, size):
-    psao.scene = pytest.importorskip("psao.scene")
+    import psao.scene
     scene = psao.scene.load_scene(spec)
     grid = server_grid(scene, density)
     path = psao.scene.scene_camera(scene)
@@ -177,7 +177,7 @@ def test_shader_equals_oracle_in_every_lookup_step(ctx):
 
 
 def test_incremental_update_equals_full_upload(ctx):
-    psao.scene = pytest.importorskip("psao.scene")
+    import psao.scene
     scene = psao.scene.load_scene("builtin:cornell")
     grid = server_grid(scene, 1024)
     path = psao.scene.scene_camera(scene)
