@@ -17,13 +17,13 @@ from psao.client.errors import RenderError
 from psao.client.mirror import Mirror
 from psao.client.render.stream_render import StreamRenderer
 
-import psao.scene
+from psao.scene import load_scene
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def cornell_grid(tmp_path_factory):
-    scene = psao.scene.load_scene("builtin:cornell")
+    scene = load_scene("builtin:cornell")
     grid = server_grid(scene, 1024)
     path = tmp_path_factory.mktemp("grid") / "cornell.npz"
     grid.save(path, scene_hash=scene.content_hash())
