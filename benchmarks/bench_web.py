@@ -2,7 +2,7 @@
 time against the moderngl client's on the same frame, scene bytes against snapshot bytes.
 
 A real `psao serve SCENE --density N --test-edits K` (edits keep Updates coming; `--grid FILE` serves a
-grid baked before, so a locked run does not wait for the bake), Debian's chromium driven by playwright
+grid baked before, so a run does not wait for the bake), Debian's chromium driven by playwright
 (WebGL2 on SwiftShader) opening the served page at a fixed camera (the scene's first camera path at
 t = 0), once per codec in `--codecs` (the page offers only that one), and the desktop client's
 FrameRenderer (moderngl, EGL/llvmpipe here) drawing the page's own mirror at the same camera and size.

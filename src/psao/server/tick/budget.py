@@ -58,17 +58,16 @@ class BudgetSettings:
     # exact_min_change); at most this many, and at most what exact_share of the budget allows; 0 = none
     exact_share: float = 0.5  # of the trace budget, for those whole traces first; the rounds get the rest
     # (traced in the same call); 0 = no whole traces
-    exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays, > 0 (the
-    # one statement of it: measured 0.58 on the built-in courtyard and 0.70 on robots, the tracer's seconds a
-    # point on the static points one tick of motion selects at N = 64 and 32 rays, by a locked
-    # `python -m benchmarks.bench_static_hits` (2026-11-29, load 1.4): the static scene is most of a ray's
-    # cost but occludes only 6-11% of those rays, so a whole trace from them saves about 0.3-0.4 of a full one)
+    exact_cost: float = 0.6  # a whole trace from static hits against a full trace of as many rays, > 0: the
+    # static scene is most of a ray's cost but occludes only a few of the rays of the points one tick of
+    # motion selects, so a whole trace from their static hits costs well under a full one; the ratio on the
+    # built-in scenes is measured by `python -m benchmarks.bench_static_hits`
     refill_points: int = 256  # static points a tick traces whole (full rays) to keep their static hits again
     # after a scene edit voided them, out of the whole traces' share; 0 = whole traces stop after an edit
     exact_min_change: float = 1.0 / 255  # estimated AO change (selection.occlusion_change, summed) worth it
     pool_traces: bool = True  # a tick that tests motion traces nothing (after a tick that traced) and leaves its
     # trace budget to the next tick, which traces both ticks' worth in one call: a trace call's fixed cost
-    # (posing and refitting the movers, making the rays, handing the batch over: 3-4 ms here, most of a
+    # (posing and refitting the movers, making the rays, handing the batch over: a few ms, much of a
     # tick's budget) is paid once for two ticks, and the motion test's long selection no longer shares a
     # tick with a trace; the points a test resets then wait one tick more. False: every tick traces
     motion_hz: float = 30.0  # motion tests (the points near movers found and their histories reset) a second of
