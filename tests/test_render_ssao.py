@@ -7,7 +7,7 @@ from test_render_gridbuild import box_mesh, plane_mesh
 
 from psao.client.errors import RenderError
 from psao.client.render.renderer import FrameRenderer
-from psao.client.render.ssao_pass import hemisphere_kernel
+from psao.protocol.ssao_kernel import hemisphere_kernel
 from psao.client.render.views import look_at, perspective
 from psao.scene.model import Instance, Scene
 
@@ -67,3 +67,22 @@ def test_bad_sample_count_is_rejected(ctx):
     scene = Scene("plane", [plane_mesh("floor")], [Instance("floor", 0, np.eye(4))], ao_distance=0.6)
     with pytest.raises(RenderError, match="sample count"):
         FrameRenderer(scene, SIZE, "ssao", ssao_samples=0, ctx=ctx)
+
+
+def test_the_page_draws_the_desktop_ssao_kernel_and_noise():
+    """The web page's SSAO kernel, noise and sample count are the desktop SsaoPass defaults', served in
+    /psao_constants.js; the page's shader writes no sample count of its own."""
+    import json
+    import re
+
+    from psao.client.render.ssao_pass import SsaoSettings
+    from psao.protocol.ssao_kernel import rotation_noise
+    from psao.server.net.webpage import WEB_DIR, constants_module
+
+    served = {m.group(1): json.loads(m.group(2))
+              for m in re.finditer(r"^export const (SSAO_\w+) = (.*);$", constants_module(), flags=re.M)}
+    desktop = SsaoSettings()
+    assert served["SSAO_SAMPLES"] == desktop.samples
+    assert np.array_equal(np.float32(served["SSAO_KERNEL"]), hemisphere_kernel(desktop.samples, desktop.seed).ravel())
+    assert np.array_equal(np.float32(served["SSAO_NOISE"]), rotation_noise(desktop.seed).ravel())
+    assert not re.search(r"#\s*define\s+SSAO_SAMPLES", (WEB_DIR / "shaders" / "ssao.frag").read_text())

@@ -55,27 +55,18 @@ export class Renderer {
     this.progs = {
       gbuffer: this.program(head + src["gbuffer.vert"], head + src["gbuffer.frag"], "gbuffer"),
       psao: this.program(head + src["fullscreen.vert"], psaoHead + src["psao_lookup.glsl"] + src["psao.frag"], "psao"),
-      ssao: this.program(head + src["fullscreen.vert"], head + src["ssao.frag"], "ssao"),
+      ssao: this.program(head + src["fullscreen.vert"], head + `#define SSAO_SAMPLES ${C.SSAO_SAMPLES}\n` + src["ssao.frag"], "ssao"),
       blur: this.program(head + src["fullscreen.vert"], head + src["ssao_blur.frag"], "ssao_blur"),
       composite: this.program(head + src["fullscreen.vert"], head + src["composite.frag"], "composite"),
     };
     const gl = this.gl;
     this.emptyVao = gl.createVertexArray();
-    this.normals = this.texture(gl.RGBA32F, 256, 1, gl.RGBA, gl.FLOAT,
-                                new Float32Array(256 * 4).map((_, i) => (i % 4 === 3 ? 0 : C.OCT_NORMALS[3 * (i >> 2) + (i % 4)])));
-    const noise = new Float32Array(64);
-    let seed = 7;
-    const rnd = () => ((seed = (seed * 1103515245 + 12345) >>> 0) / 2 ** 32);
-    for (let i = 0; i < 16; i++) { noise[4 * i] = rnd() * 2 - 1; noise[4 * i + 1] = rnd() * 2 - 1; }
-    this.noise = this.texture(gl.RGBA32F, 4, 4, gl.RGBA, gl.FLOAT, noise);
-    this.kernel = new Float32Array(48);
-    for (let i = 0; i < 16; i++) {
-      let v = [rnd() * 2 - 1, rnd() * 2 - 1, rnd()];
-      const l = Math.hypot(...v) || 1;
-      const s = 0.1 + 0.9 * (i / 16) ** 2;
-      v = v.map((x) => (x / l) * rnd() * s);
-      this.kernel.set(v, 3 * i);
-    }
+    const codes = C.NORMAL_CODES;
+    this.normals = this.texture(gl.RGBA32F, codes, 1, gl.RGBA, gl.FLOAT,
+                                new Float32Array(codes * 4).map((_, i) => (i % 4 === 3 ? 0 : C.OCT_NORMALS[3 * (i >> 2) + (i % 4)])));
+    // The desktop SSAO's kernel and noise (psao.protocol.ssao_kernel, served in psao_constants.js).
+    this.noise = this.texture(gl.RGBA32F, 4, 4, gl.RGBA, gl.FLOAT, new Float32Array(C.SSAO_NOISE));
+    this.kernel = new Float32Array(C.SSAO_KERNEL);
   }
 
   program(vs, fs, name) {

@@ -1,6 +1,6 @@
-// SSAO baseline (shaders/ssao.frag.glsl of the desktop client): normal-oriented hemisphere, 16 taps,
-// 4x4 rotation noise, range check, taps count only above the tangent plane.
-#define SSAO_SAMPLES 16
+// SSAO baseline (shaders/ssao.frag.glsl of the desktop client): normal-oriented hemisphere, SSAO_SAMPLES taps,
+// 4x4 rotation noise, range check, taps count only above the tangent plane. render.js defines SSAO_SAMPLES
+// and uploads the kernel and noise from psao_constants.js (psao.protocol.ssao_kernel, the desktop's too).
 uniform highp sampler2D u_normal_depth;  // world normal, view depth (0: background)
 uniform highp sampler2D u_noise;
 uniform mat4 u_view;

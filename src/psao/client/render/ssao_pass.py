@@ -3,7 +3,8 @@
 Normal-oriented hemisphere SSAO as in Crytek / LearnOpenGL: a fixed kernel of SSAO_SAMPLES points in
 the unit hemisphere, denser near the centre, rotated per pixel by a 4x4 noise tile; the radius is the
 scene's AO distance (world units); a range check fades occluders far behind depth edges; a depth- and
-normal-aware 4x4 blur removes the noise-tile pattern. Kernel and noise are seeded: frames repeat.
+normal-aware 4x4 blur removes the noise-tile pattern. Kernel and noise come from psao.protocol.ssao_kernel,
+the page's too.
 """
 from __future__ import annotations
 
@@ -12,34 +13,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao.client.render.gbuffer import GBuffer, _gl_mat4
+from psao.protocol import ssao_kernel
+from psao.protocol.ssao_kernel import hemisphere_kernel, rotation_noise
 from psao.client.render.shaderlib import compile_program
 
 
 @dataclass
 class SsaoSettings:
-    samples: int = 16  # kernel size
+    samples: int = ssao_kernel.SAMPLES  # kernel size
     radius: float = 0.6  # world units; the renderer sets it to the scene's AO distance
     bias_fraction: float = 0.025  # depth bias as a fraction of the radius (self-occlusion on flat floors)
-    seed: int = 7  # kernel and noise
-
-
-def hemisphere_kernel(samples: int, seed: int) -> np.ndarray:
-    """(samples, 3) points in the +z unit hemisphere, scaled as lerp(0.1, 1, (i/n)^2) (LearnOpenGL)."""
-    rng = np.random.default_rng(seed)
-    v = rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0], size=(samples, 3))
-    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-    v *= rng.uniform(0.0, 1.0, size=(samples, 1))
-    scale = (np.arange(samples) / max(samples, 1)) ** 2
-    v *= (0.1 + 0.9 * scale)[:, None]
-    return v.astype(np.float32)
-
-
-def rotation_noise(seed: int) -> np.ndarray:
-    """4x4 random tangent-plane rotation vectors (x, y in [-1, 1], z = 0), RGBA32F texels."""
-    rng = np.random.default_rng(seed + 1)
-    noise = np.zeros((4, 4, 4), dtype=np.float32)
-    noise[..., :2] = rng.uniform(-1.0, 1.0, size=(4, 4, 2))
-    return noise
+    seed: int = ssao_kernel.SEED  # kernel and noise (the web page draws the defaults' kernel)
 
 
 class SsaoPass:

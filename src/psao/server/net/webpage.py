@@ -21,6 +21,7 @@ from psao.protocol import scenefile as sf
 from psao.protocol.codecs import Codec
 from psao.protocol.limits import DEFAULT_LIMITS, HEADER_SIZE
 from psao.protocol.session import GRID_REPLACED_CLOSE
+from psao.protocol import ssao_kernel
 from psao.protocol.shader_constants import LOOKUP_SHADER_DIR, define_block
 from psao.protocol.updates import RAW, Layout
 
@@ -87,8 +88,13 @@ def constants_module() -> str:
     # the page may pick for its MAX_TEXTURE_SIZE.
     blocks = {w: define_block(table_width=w) for w in TABLE_WIDTHS}
     lines.append(f"export const GLSL_DEFINES = {json.dumps(blocks)};")
-    # The 256 oct-code normals exactly as pointword.oct_decode gives them (float32 values, exact in JSON).
-    lines.append(f"export const OCT_NORMALS = {json.dumps(pw.oct_decode(np.arange(256)).reshape(-1).tolist())};")
+    # The oct-code normals exactly as pointword.oct_decode gives them (float32 values, exact in JSON).
+    lines.append(f"export const NORMAL_CODES = {pw.NORMAL_CODES};")
+    lines.append(f"export const OCT_NORMALS = {json.dumps(pw.oct_decode(np.arange(pw.NORMAL_CODES)).reshape(-1).tolist())};")
+    # The SSAO baseline's kernel and noise tile, the desktop SsaoPass's defaults (psao.protocol.ssao_kernel).
+    lines.append(f"export const SSAO_SAMPLES = {ssao_kernel.SAMPLES};")
+    lines.append(f"export const SSAO_KERNEL = {json.dumps(ssao_kernel.hemisphere_kernel().reshape(-1).tolist())};")
+    lines.append(f"export const SSAO_NOISE = {json.dumps(ssao_kernel.rotation_noise().reshape(-1).tolist())};")
     return "\n".join(lines) + "\n"
 
 
