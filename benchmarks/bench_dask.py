@@ -39,7 +39,8 @@ import numpy as np
 
 from benchmarks.verdicts import Verdicts
 from psao.scene import load_scene
-from psao.server.bake import build_scene_grid, grid_world_points, scene_center, scene_world_geometry, to_world
+from psao.server.bake import build_scene_grid
+from psao.server.geometry import grid_world_points, scene_center, scene_world_geometry, to_world
 from psao.server.points.generate import generate_scene_points
 from psao.server.settings import ClusterSettings, PointSettings, TraceSettings
 from psao.server.tracer import make_tracer

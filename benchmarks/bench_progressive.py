@@ -37,7 +37,8 @@ SCENE = "builtin:courtyard"
 
 def reference(scene, probes: int, rays: int, workers: int):
     """Visible probes and their AO traced with `rays` rays."""
-    from psao.server.bake import sample_probes, scene_center, scene_world_geometry
+    from psao.server.bake import sample_probes
+    from psao.server.geometry import scene_center, scene_world_geometry
     from psao.server.points.buried import visible_probes
     from psao.server.tracer import TraceSettings, make_tracer
 

@@ -60,7 +60,7 @@ RATE_CASES = [("courtyard-256", "builtin:courtyard", 256.0), ("robots-256", "bui
 
 def density_for(scene, points: float) -> float:
     """Density (points per unit^2) giving about `points` points on the scene's surface."""
-    from psao.server.bake import scene_world_geometry
+    from psao.server.geometry import scene_world_geometry
 
     v, f = scene_world_geometry(scene)
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
@@ -70,7 +70,8 @@ def density_for(scene, points: float) -> float:
 # ------------------------------------------------------------------------------------------ tracer
 def part_tracer(args, v: Verdicts, out: dict) -> None:
     from psao.scene import load_scene
-    from psao.server.bake import bake_scene, scene_center
+    from psao.server.bake import bake_scene
+    from psao.server.geometry import scene_center
     from psao.server.settings import BakeSettings, TickSettings, TraceSettings
     from psao.server.tick.server_tick import ServerTick
 
@@ -499,7 +500,7 @@ def near_motion(bake, seconds: float) -> np.ndarray:
     """Ids of the points the motion can reach in [0, seconds]: points of moving instances, and static
     points within the AO distance of a moving instance's bounds at some time (every 1/30 s)."""
     from psao.server.tick.animate import SceneAnimator
-    from psao.server.bake import to_world
+    from psao.server.geometry import to_world
     from psao.server.tick.selection import expand
 
     anim = SceneAnimator(bake.scene)

@@ -59,7 +59,8 @@ def answering_step(grid, probes) -> np.ndarray:
 def measure(spec: str, probes_n: int, probe_rays: int, truth_rays: int, point_rays: int) -> tuple[dict, dict]:
     from psao.protocol.reconstruct import reconstruct_ao
     from psao.scene import load_scene
-    from psao.server.bake import bake_scene, sample_probes, trace_grid_points
+    from psao.server.bake import bake_scene, sample_probes
+    from psao.server.tracer.grid_trace import trace_grid_points
     from psao.server.points.buried import visible_probes
     from psao.server.settings import BakeSettings, TraceSettings
 

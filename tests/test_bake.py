@@ -8,7 +8,8 @@ import pytest
 
 from psao.protocol import pointword as pw
 from psao.scene import load_scene
-from psao.server.bake import bake_scene, reconstruction_error, sample_probes, to_world
+from psao.server.bake import bake_scene, reconstruction_error, sample_probes
+from psao.server.geometry import to_world
 from psao.server.points.buried import visible_probes
 from psao.server.settings import BakeSettings
 from psao.server.errors import ConfigError
@@ -127,7 +128,7 @@ def test_bake_keeps_the_static_scenes_answers_for_static_points():
     """A scene with movers: the bake traces its static instances first and keeps, per static point, which
     rays the static scene occludes (equal to a trace of the static scene alone), at no change to the AO."""
     from psao.server.tick.animate import SceneAnimator
-    from psao.server.bake import scene_center
+    from psao.server.geometry import scene_center
     from psao.server.settings import TraceSettings
     from psao.server.tracer import make_tracer
 

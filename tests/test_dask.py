@@ -20,7 +20,8 @@ from psao.protocol.updates import state_digest  # noqa: E402
 from serving import HANG_S, server_url, wait_for_log  # noqa: E402
 from tracing import full_trace  # noqa: E402
 from psao.scene import load_scene  # noqa: E402
-from psao.server.bake import bake_scene, sample_probes, scene_center, scene_world_geometry  # noqa: E402
+from psao.server.bake import bake_scene, sample_probes  # noqa: E402
+from psao.server.geometry import scene_center, scene_world_geometry  # noqa: E402
 from psao.server.settings import BakeSettings, ClusterSettings, TraceSettings  # noqa: E402
 from psao.server.errors import TracerError  # noqa: E402
 from psao.server.tracer import make_tracer  # noqa: E402

@@ -9,7 +9,8 @@ import pytest
 
 from psao.protocol import pointword as pw
 from psao.protocol.reconstruct import reconstruct_ao
-from psao.server.bake import bake_scene, grid_world_points, sample_probes, scene_point_ids
+from psao.server.bake import bake_scene, sample_probes
+from psao.server.geometry import grid_world_points, scene_point_ids
 from psao.server.points.buried import visible_probes
 from psao.server.settings import BakeSettings, DensifySettings, TraceSettings
 

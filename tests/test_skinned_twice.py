@@ -18,7 +18,8 @@ from psao.scene.rigid import PlatformAnimation, instance_transform
 from psao.scene.skinning import skinned_vertices
 from psao.scene.transforms import axis_angle_matrix, linear_matrix, translation_matrix
 from psao.server.tick.animate import PlacedPoints, SceneAnimator, SkinnedPoints, affine
-from psao.server.bake import bake_scene, scene_center, scene_point_ids
+from psao.server.bake import bake_scene
+from psao.server.geometry import scene_center, scene_point_ids
 from psao.server.tick.budget import BudgetSettings
 from psao.server.net.clients import changed_transform_ids, read_delta
 from psao.server.settings import BakeSettings, TickSettings, TraceSettings

@@ -565,7 +565,7 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
     tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
     try:
         assert bake.static_hits is not None and tick._static_hits is None
-        assert not hasattr(tick.tracer, "visibility_parts")
+        assert not tick.tracer.supports_static_hits
         for t in (0.1, 0.2):
             assert tick(tick.grid, t).exact == 0
         ids = tick.static_ids[:4]

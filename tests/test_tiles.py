@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from psao.scene import load_scene
-from psao.server.bake import sample_probes, scene_center, scene_world_geometry
+from psao.server.bake import sample_probes
+from psao.server.geometry import scene_center, scene_world_geometry
 from psao.server.tracer import make_tracer
 from psao.server.settings import TraceSettings
 from psao.server.tracer.base import recentre

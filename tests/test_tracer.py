@@ -273,7 +273,7 @@ def test_rigid_movers_skip_only_rays_that_start_beyond_their_reach():
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    from psao.server.tracer.embree import _device, _Scenes
+    from psao.server.tracer.embree import EmbreeScenes as _Scenes, _device
 
     v, f = slab(1.5)
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
@@ -331,7 +331,7 @@ def test_deforming_pieces_trace_only_rays_reaching_their_spheres_with_the_same_a
     runs of triangles (PieceSlabs): the answers equal tracing every ray against it, for pieces near some points
     and far from most, for pieces that do not cover every vertex (one piece then), and in a second pose where
     the runs chosen in the first are kept and only their spheres move."""
-    from psao.server.tracer.embree import _Scenes
+    from psao.server.tracer.embree import EmbreeScenes as _Scenes
 
     v, f = slab(1.5)
     balls = [trimesh.creation.icosphere(subdivisions=2, radius=0.4).apply_translation(c)

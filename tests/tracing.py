@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psao.server.bake import scene_center
+from psao.server.geometry import scene_center
 from psao.server.settings import TraceSettings
 from psao.server.tracer import make_tracer
 

@@ -29,11 +29,15 @@ from psao.options import comma_list, default
 from psao.client.render.renderer import AO_METHODS, MethodOptions
 from psao.client.render.ssao_pass import SsaoSettings
 from psao.eval import video_bench
+from psao.eval.video_bench import parse_list
 from psao.eval.errors import EvalError
 from psao.eval.reference import ReferenceSettings
 from psao.eval.settings import BenchSettings
 from psao.server.cli.bake import add_bake_arguments, bake_arguments, bake_settings
 from psao.server.settings import BakeSettings, TickSettings
+
+# The imports inside functions below are deferred for start-up: the renderer (OpenGL), the server's stages,
+# PyTorch and matplotlib load only in the step that uses them, so `psao bench --help` and a bad option answer at once.
 
 TICK_RAYS = default(TickSettings, "rays")  # rays per re-traced point of an animating server
 DEFAULT_METHODS = BenchSettings.methods
@@ -116,19 +120,6 @@ class BenchConfig:
         from psao.client.render.renderer import MethodOptions
 
         return MethodOptions(ssao_samples=self.ssao_samples, gtao_preset=self.gtao_preset, **weights)
-
-
-def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
-    try:
-        values = [float(t) for t in str(text).split(",") if t.strip()]
-    except ValueError:
-        raise EvalError(f"--{what}: expected comma-separated numbers, got {text!r}") from None
-    if not values:
-        raise EvalError(f"--{what}: no values given")
-    bad = [v for v in values if not (math.isfinite(v) and low <= v <= high)]
-    if bad:
-        raise EvalError(f"--{what}: {bad[0]:g} is outside {low:g}..{high:g}")
-    return sorted(set(values))
 
 
 def config_from_args(args) -> BenchConfig:

@@ -117,7 +117,7 @@ def _progress(enabled: bool, total: int, label: str):
 def trace_pixels(scene, world: np.ndarray, normal: np.ndarray, pixel_ids: np.ndarray, transforms,
                  settings: ReferenceSettings, show_progress: bool = False, label: str = "RTAO") -> np.ndarray:
     """Visibility of world-space points (P, 3) with unit normals (P, 3) against the frame's geometry."""
-    from psao.server.bake import scene_center
+    from psao.server.geometry import scene_center
     from psao.server.settings import TraceSettings
     from psao.server.tracer import make_tracer
 

@@ -265,7 +265,7 @@ class VideoServer:
     frame (frames must come in stream order when accumulating)."""
 
     def __init__(self, scene, settings: VideoSettings):
-        from psao.server.bake import scene_center
+        from psao.server.geometry import scene_center
         from psao.server.tracer import make_tracer
 
         settings.check()

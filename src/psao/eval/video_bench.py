@@ -29,6 +29,9 @@ from psao.eval.settings import VideoSweepSettings
 from psao.eval.video import CODECS, VideoSettings, check_latency, decode_stream, encode_stream, reproject
 from psao.server.settings import BakeSettings, TickSettings
 
+# The imports inside functions below are deferred for start-up: the renderer (OpenGL), the server's tick and
+# the metrics' libraries load only when the video comparison runs, not when the bench reads its options.
+
 
 @dataclass
 class VideoBenchConfig:
@@ -62,10 +65,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="client counts of the server-cost table")
 
 
+def parse_list(text: str, what: str, low: float, high: float) -> list[float]:
+    """Sorted distinct numbers of a comma-separated option (`what`: its name), each within low..high
+    (the bench's and the video comparison's list options; here, the lower of the two modules)."""
+    try:
+        values = [float(t) for t in str(text).split(",") if t.strip()]
+    except ValueError:
+        raise EvalError(f"--{what}: expected comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise EvalError(f"--{what}: no values given")
+    bad = [v for v in values if not (math.isfinite(v) and low <= v <= high)]
+    if bad:
+        raise EvalError(f"--{what}: {bad[0]:g} is outside {low:g}..{high:g}")
+    return sorted(set(values))
+
+
 def _numbers(text: str, what: str) -> list[float]:
     """Sorted distinct finite numbers; each option checks its own range with its own message."""
-    from psao.eval.bench_cli import parse_list
-
     return parse_list(text, what, -math.inf, math.inf)
 
 

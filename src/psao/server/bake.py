@@ -13,19 +13,21 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from psao.protocol import gridformat as gf
-from psao.protocol import pointword as pw
 from psao.protocol.reconstruct import reconstruct_ao
 from psao.scene.model import Scene
+from psao.server.geometry import scene_center, scene_point_ids, scene_world_geometry, to_world
 from psao.server.points.buried import BuriedTest
 from psao.server.points.densify import densify
 from psao.server.points.gapfill import fill_gaps
-from psao.server.grid import Grid, PointTable
+from psao.server.grid import Grid
 from psao.server.points.generate import PointSet, generate_scene_points, spawn_uniform
 from psao.server.points.pool import generate_scene_points_parallel
 from psao.server.points.sampling import resolve_density
 from psao.server.settings import BakeSettings, GridSettings, PointSettings, ProbeSettings, TraceSettings
-from psao.server.tracer.static_hits import StaticHits
+from psao.server.tick.animate import classify_instances
 from psao.server.tracer import Tracer, make_tracer
+from psao.server.tracer.grid_trace import trace_grid_points
+from psao.server.tracer.static_hits import StaticHits
 
 # A bake estimated at this many points or more generates its instances' points in `workers` processes
 # (below this the points take little longer than starting the processes and sending them the scene).
@@ -44,24 +46,7 @@ class BakeResult:
     static_hits: StaticHits | None = None
 
 
-# ---------------------------------------------------------------- transforms
-def to_world(transform: np.ndarray, local_pos: np.ndarray, local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Local points and normals of an instance -> world (normals by the inverse transpose, renormalised)."""
-    m = np.asarray(transform, np.float64)
-    pos = np.asarray(local_pos, np.float64) @ m[:3, :3].T + m[:3, 3]
-    nrm = np.asarray(local_normal, np.float64) @ np.linalg.inv(m[:3, :3])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-    return pos, nrm.astype(np.float32)
-
-
-def scene_point_ids(pointsets: list[PointSet]) -> list[np.ndarray]:
-    """The stable id of every point, per instance: 0..P-1 over the scene's point sets in instance order.
-    The grid stores them (they seed each point's rays); the server tick indexes its arrays by them."""
-    sizes = [len(ps) for ps in pointsets]
-    first = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    return [np.arange(first[i], first[i + 1], dtype=np.int64) for i in range(len(sizes))]
-
-
+# ---------------------------------------------------------------- grid
 def build_scene_grid(scene: Scene, pointsets: list[PointSet], settings: GridSettings | None = None) -> Grid:
     """The grid of a scene's point sets, one per instance: double-sided instances flagged, their
     back-side points (PointSet.back) in back-side cells, every point under its scene_point_ids id."""
@@ -70,30 +55,11 @@ def build_scene_grid(scene: Scene, pointsets: list[PointSet], settings: GridSett
                        for ps, f in zip(pointsets, flags)], settings, point_ids=scene_point_ids(pointsets))
 
 
-def scene_world_geometry(scene: Scene, instances=None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space triangles of (some) instances merged into one vertex/face array."""
-    verts, faces, base = [], [], 0
-    for i in (range(len(scene.instances)) if instances is None else instances):
-        inst = scene.instances[i]
-        mesh = scene.meshes[inst.mesh]
-        v = mesh.vertices @ inst.transform[:3, :3].T + inst.transform[:3, 3]
-        verts.append(v)
-        faces.append(mesh.faces + base)
-        base += len(v)
-    if not verts:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    return np.concatenate(verts), np.concatenate(faces)
-
-
-def scene_center(scene: Scene) -> np.ndarray:
-    lo, hi = scene.world_bounds()
-    return 0.5 * (lo + hi)
-
-
 # ---------------------------------------------------------------- bake
 def _progress(enabled: bool):
     if not enabled:
         return nullcontext(None)
+    # (rich: imported only when a bar is shown, not by every import of the bake)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                     transient=True, console=None)
@@ -122,46 +88,13 @@ def trace_progress(bar, task, tracer: Tracer, rays: int):
     return advance
 
 
-def grid_world_points(grid: Grid, scene: Scene):
-    """(point table, world positions, world normals) of every allocated point of the grid."""
-    t = grid.point_table()
-    pos = np.empty((len(t), 3))
-    nrm = np.empty((len(t), 3), np.float32)
-    for i, inst in enumerate(scene.instances):
-        sel = t.instance == i
-        pos[sel], nrm[sel] = to_world(inst.transform, t.local_pos[sel], t.local_normal[sel])
-    return t, pos, nrm
-
-
-def trace_grid_points(grid: Grid, scene: Scene, tracer: Tracer, settings: TraceSettings, progress=None,
-                      point_ids: np.ndarray | None = None, static_hits: StaticHits | None = None) -> np.ndarray:
-    """Trace every allocated point (or those with the given ids) at its exact position and store the
-    quantised AO. Returns visibility. With `static_hits`, the static scene's answers for the static
-    points are kept there (the tracer's static scene must then hold the static instances alone)."""
-    t, pos, nrm = grid_world_points(grid, scene)
-    if point_ids is not None:
-        sel = np.isin(t.point_id, point_ids)
-        t = PointTable(*(getattr(t, f.name)[sel] for f in fields(t)))
-        pos, nrm = pos[sel], nrm[sel]
-    if static_hits is None:
-        vis = tracer.visibility(pos, nrm, t.point_id, settings, progress=progress)
-    else:
-        vis, bits = tracer.visibility_and_static_hits(pos, nrm, t.point_id, settings, progress=progress)
-        static = static_hits.static[t.point_id]
-        static_hits.keep(t.point_id[static], bits[static])
-    grid.set_ao(t.slot, t.index, pw.quantise_ao(vis))
-    return vis
-
-
 def load_bake_geometry(tracer: Tracer, scene: Scene, settings: BakeSettings) -> tuple[list[int], list[int]] | None:
     """The whole scene (at its instances' transforms) into the bake's tracer. With moving instances and a
     tracer that keeps static hits (settings.keep_static_hits), the static instances go into its static
     scene and the moving ones into its moving part, so each trace answers from the static scene first
     and its answers can be kept: returns (static, moving) instance lists then, else None."""
-    from psao.server.tick.animate import classify_instances  # (animate imports this module)
-
     kinds = classify_instances(scene)
-    if not (settings.keep_static_hits and kinds.moving and hasattr(tracer, "visibility_and_static_hits")):
+    if not (settings.keep_static_hits and kinds.moving and tracer.supports_static_hits):
         tracer.set_static(*scene_world_geometry(scene))
         return None
     tracer.set_static(*scene_world_geometry(scene, kinds.static))
@@ -220,8 +153,7 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         stats["points_gap_fill"] = int(added)
         stats["seconds_gap_fill"] = time.perf_counter() - t0
 
-        if hasattr(tracer, "warm_up"):
-            tracer.warm_up()  # worker start-up is not tracing time
+        tracer.warm_up()  # worker start-up is not tracing time
         n = grid.n_points()
         task = bar.add_task("trace", total=n) if bar else None
         t0 = time.perf_counter()

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao.scene.model import Scene
+from psao.server.geometry import scene_world_geometry
 from psao.server.tracer.directions import ray_origins
 
 try:  # deferred like the Embree tracer: the error surfaces when a test is asked for
@@ -55,8 +56,6 @@ class BuriedTest:
     def __init__(self, scene: Scene, settings: BuriedSettings | None = None, moving: bool = False):
         """`moving`: moving and skinned instances too, as posed at time 0 (what is hidden in that pose,
         e.g. to leave surfaces nobody sees out of an accuracy measure); the bake leaves them out."""
-        from psao.server.bake import scene_world_geometry  # bake imports this module
-
         self.settings = settings or BuriedSettings()
         self.instances = set(closed_instances(scene, moving))
         self.ao_distance = scene.ao_distance

@@ -36,11 +36,13 @@ from psao.protocol import pointword as pw
 from psao.protocol.reconstruct import reconstruct_ao
 from psao.protocol.gridformat import in_first_step
 from psao.scene.model import Scene
+from psao.server.geometry import scene_point_ids, to_world
 from psao.server.points.buried import is_static
 from psao.server.points.gapfill import Candidates, append_points, surface_candidates, thin, visible_candidates
 from psao.server.grid import NO_POINT, Grid
 from psao.server.points.generate import PointSet
 from psao.server.settings import DensifySettings, TraceSettings
+from psao.server.tracer.grid_trace import trace_grid_points
 
 # Stable ids of the candidates while they are traced and looked at (the ids of probes start at 2^30):
 # decorrelated rays, apart from every point's and probe's. Added points get their final ids afterwards.
@@ -120,8 +122,6 @@ def quiet(points_pos: np.ndarray, points_nrm: np.ndarray, points_ao: np.ndarray,
 
 def trace_pools(pools: list[Pool], scene: Scene, tracer, trace_settings: TraceSettings) -> None:
     """Trace every pool's candidates in one call (fills Pool.ao_code)."""
-    from psao.server.bake import to_world
-
     if not pools:
         return
     world = [to_world(scene.instances[p.instance].transform, p.cand.local_pos, p.cand.local_normal) for p in pools]
@@ -181,11 +181,9 @@ def densify(scene: Scene, pointsets: list[PointSet], grid: Grid, tracer, trace_s
             settings: DensifySettings, buried=None, progress=None) -> tuple[list[PointSet], int]:
     """Densify a traced grid in place; returns the point sets with the added points appended (per instance,
     after its own) and how many were added. The grid's point ids are renumbered to match
-    (bake.scene_point_ids of the returned sets) and the points whose id changed (every added one, and the
+    (geometry.scene_point_ids of the returned sets) and the points whose id changed (every added one, and the
     points of later instances) are traced again, so every point's AO comes from the rays of its own id,
     as the server's later traces of it do."""
-    from psao.server.bake import scene_point_ids, trace_grid_points  # bake imports this module
-
     pools = draw_pools(scene, pointsets, grid, settings, buried)
     trace_pools(pools, scene, tracer, trace_settings)
     chosen = [np.zeros(0, np.int64) for _ in pools]

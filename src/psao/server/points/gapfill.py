@@ -34,6 +34,7 @@ from psao.protocol import pointword as pw
 from psao.protocol.gridformat import T_D, T_N, in_first_step
 from psao.protocol.reconstruct import reconstruct_ao
 from psao.scene.model import Scene
+from psao.server.geometry import to_world
 from psao.server.grid import Grid
 from psao.server.settings import GapFillSettings
 from psao.server.points.generate import PointSet, spawn_uniform
@@ -70,8 +71,6 @@ def surface_candidates(scene: Scene, i: int, ratio: float, per_side: int, rng: n
 
 def visible_candidates(cand: Candidates, buried, transform: np.ndarray) -> Candidates:
     """The candidates the buried test does not reject (front side: the test applies to one-sided meshes)."""
-    from psao.server.bake import to_world  # bake imports this module
-
     return cand.subset(~buried.mask(*to_world(transform, cand.local_pos, cand.local_normal)))
 
 

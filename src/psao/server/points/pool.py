@@ -14,19 +14,17 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 from psao.scene.model import Scene
+from psao.server.points.buried import BuriedTest
 from psao.server.points.generate import PointSet, instance_points
 from psao.server.settings import PointSettings
-from psao.server.tracer.embree import worker_context
+from psao.server.tracer.embree import die_with, worker_context
 
 _JOB: tuple | None = None  # (scene, settings, buried test or None) in a worker
 
 
 def _init(parent: int, scene: Scene, settings: PointSettings, skip_buried: bool) -> None:
-    from psao.server.points.buried import BuriedTest
-    from psao.server.tracer.embree import _die_with
-
     global _JOB
-    _die_with(parent)
+    die_with(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent shuts the pool down on Ctrl-C
     _JOB = (scene, settings, BuriedTest(scene) if skip_buried else None)
 

@@ -19,6 +19,7 @@ barycentrics).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,7 +27,7 @@ import numpy as np
 from psao.scene.rigid import instance_transform
 from psao.scene.model import Scene
 from psao.scene.skinning import SceneSkinner, surface_points
-from psao.server.bake import scene_world_geometry
+from psao.server.geometry import scene_world_geometry
 from psao.server.points.generate import PointSet
 
 @dataclass
@@ -91,7 +92,7 @@ def affine(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
 
 def to_world_points(transforms: np.ndarray, which: np.ndarray, local_pos: np.ndarray,
                     local_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """bake.to_world without BLAS (see affine), each point through its own transform (`which`: per point,
+    """geometry.to_world without BLAS (see affine), each point through its own transform (`which`: per point,
     its index into the (T, 4, 4) `transforms`; each transform's inverse worked out once): positions float64,
     unit normals float32."""
     t = np.asarray(transforms, np.float64)
@@ -168,7 +169,6 @@ class SceneAnimator:
     def frame(self, t: float, bind_pose: bool = False) -> Frame:
         """The scene at time t; with `bind_pose`, its skinned meshes in their bind pose (as a bake traces
         them) instead of deformed at t."""
-        import time
         transforms = self.transforms(t)
         layout = self._layout()
         t0 = time.perf_counter()

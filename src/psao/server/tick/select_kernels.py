@@ -18,7 +18,7 @@ import numpy as np
 import warp as wp
 
 from psao.server.tick.budget import CHANGE_S, HIDDEN_S, MARGIN_S, REFINING_S
-from psao.server.tick.selection import INSIDE_CHANGE
+from psao.server.tick.select_constants import INSIDE_CHANGE
 
 wp.config.quiet = True
 HIDDEN = wp.constant(HIDDEN_S)

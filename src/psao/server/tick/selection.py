@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao.server.arrays import rows
-
+from psao.server.tick.select_constants import INSIDE_CHANGE  # (tests/test_selection.py imports it from here)
 
 
 # ---------------------------------------------------------------------------------------- views
@@ -243,10 +243,6 @@ def may_see_sphere(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, 
     dist2 = np.einsum("pi,pi->p", d, d)
     ahead = np.einsum("pi,pi->p", d, np.asarray(normals, np.float64))
     return (dist2 <= (radius + ao_distance) ** 2) & (ahead >= -radius)
-
-
-INSIDE_CHANGE = 0.5  # occlusion_change of a point inside a mover's bounding sphere now or before: half its
-# hemisphere changed, as a deforming mover's own points count (the tick's _mover_change)
 
 
 def occlusion_change(points: np.ndarray, normals: np.ndarray, spheres: list[tuple[np.ndarray, float]],

@@ -55,7 +55,8 @@ from psao.protocol.errors import EditError
 from psao.server.tick.animate import (Frame, PlacedPoints, SceneAnimator, SkinnedPoints, affine, bounds_of, changed_meshes,
                                  to_world_points)
 from psao.server.arrays import rows
-from psao.server.bake import BakeResult, scene_center, scene_point_ids, to_world
+from psao.server.bake import BakeResult
+from psao.server.geometry import scene_center, scene_point_ids, to_world
 from psao.server.tick.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
 from psao.server.errors import ConfigError, TracerError
 from psao.server.grid import NO_POINT, Grid
@@ -169,7 +170,7 @@ class ServerTick:
         hits = bake.static_hits
         self._static_hits: StaticHits | None = (
             hits if hits is not None and hits.fits(self.settings.rays, self.settings.seed)
-            and hasattr(self.tracer, "visibility_parts") else None)
+            and self.tracer.supports_static_hits else None)
         self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
@@ -237,8 +238,7 @@ class ServerTick:
         kwargs = {"workers": s.workers} if s.tracer == "embree" else {}
         self.tracer = make_tracer(s.tracer, scene_center(self.scene), **kwargs)
         self._load_tracer()
-        if hasattr(self.tracer, "warm_up"):
-            self.tracer.warm_up()  # starts the workers now: their start-up is not counted in a tick
+        self.tracer.warm_up()  # starts the workers now: their start-up is not counted in a tick
 
     def _load_tracer(self) -> None:
         """The tracer's static scene and its rigid movers (built once and posed per tick; only deforming
@@ -338,7 +338,7 @@ class ServerTick:
         """The wall seconds the tracer's calls have spent making and tracing rays so far (CpuAccount.wall:
         a pooled call's worker seconds over its workers), or None where it does not tell (the budget then
         counts a whole call as its rays')."""
-        account = getattr(self.tracer, "account", None)
+        account = self.tracer.account
         return None if account is None else account.wall
 
     def _trace(self, pos, nrm, ids, settings: TraceSettings, slice_of=None) -> np.ndarray:
@@ -347,14 +347,10 @@ class ServerTick:
         return self._retrying(lambda: self.tracer.visibility(pos, nrm, ids, settings, **extra))
 
     def _trace_parts(self, parts) -> list[tuple[np.ndarray, np.ndarray | None]]:
-        """The tracer's visibility_parts, per part (visibility, static hits kept or None), retrying; one
-        visibility call per part where the tracer has no such call (it can neither take nor keep static
-        hits: a part that carries them is refused)."""
-        if hasattr(self.tracer, "visibility_parts"):
-            return self._retrying(lambda: self.tracer.visibility_parts(parts))
-        if any(p.static_hit is not None or p.keep_static for p in parts):
-            raise ConfigError(f"the {self.settings.tracer} tracer takes no static hits (no visibility_parts)")
-        return [(self._trace(p.positions, p.normals, p.point_ids, p.settings, p.slice_of), None) for p in parts]
+        """The tracer's visibility_parts, per part (visibility, static hits kept or None), retrying (a
+        tracer without static hits of its own, Tracer.supports_static_hits, traces part by part and refuses
+        a part that carries them or asks to keep them)."""
+        return self._retrying(lambda: self.tracer.visibility_parts(parts))
 
     def close(self) -> None:
         self.tracer.close()
@@ -432,8 +428,7 @@ class ServerTick:
         self._load_tracer()
         if self._static_hits is not None:
             self._static_hits.forget(self.static_ids)  # the static scene lost the edited instances
-        if hasattr(self.tracer, "warm_up"):
-            self.tracer.warm_up()
+        self.tracer.warm_up()
         return True
 
     def transforms(self) -> np.ndarray:

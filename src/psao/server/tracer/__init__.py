@@ -16,6 +16,7 @@ BACKENDS = ("embree", "warp", "dask")
 
 
 def make_tracer(name: str = "embree", center=(0.0, 0.0, 0.0), **kwargs) -> Tracer:
+    # each back-end imported only when asked for: its optional dependency's error surfaces here, not on import
     if name == "embree":
         from psao.server.tracer.embree import EmbreeTracer
         return EmbreeTracer(center, **kwargs)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
+from psao.server.errors import ConfigError
 from psao.server.settings import TraceSettings
 
 
@@ -69,7 +69,17 @@ class TracePart:
 
 
 class Tracer:
+    """What the bake and the server tick call on a tracer. Back-ends override set_static, set_dynamic and
+    visibility; the rest has defaults here for a back-end without them (no workers to start, no static
+    hits of its own, no measured rays)."""
+
     name = "base"
+    # whether visibility_and_static_hits works and visibility_parts takes and keeps the static scene's
+    # answers (TracePart.static_hit, keep_static): the Embree back-end's static and moving scenes
+    supports_static_hits = False
+    # the rays traced and the seconds they took (the tick's budget reads CpuAccount.wall); None: not measured
+    account: CpuAccount | None = None
+    _rigid_meshes: tuple | list[tuple[np.ndarray, np.ndarray]] = ()  # what the default set_rigid keeps
 
     def set_static(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         raise NotImplementedError
@@ -94,7 +104,7 @@ class Tracer:
         parts_f = [] if vertices is None else [np.asarray(faces, np.int64)]
         base = sum(len(v) for v in parts_v)
         if rigid_transforms is not None:
-            for (v, f), m in zip(getattr(self, "_rigid_meshes", []), np.asarray(rigid_transforms, np.float64)):
+            for (v, f), m in zip(self._rigid_meshes, np.asarray(rigid_transforms, np.float64)):
                 parts_v.append(v @ m[:3, :3].T + m[:3, 3])
                 parts_f.append(f + base)
                 base += len(v)
@@ -108,6 +118,25 @@ class Tracer:
         `settings.slice` of each point's ray set, or with `slice_of` ((P,) ints) a slice per point (the
         Embree and Warp back-ends; `settings.slices` must then divide `settings.rays`)."""
         raise NotImplementedError
+
+    def visibility_and_static_hits(self, positions: np.ndarray, normals: np.ndarray, point_ids: np.ndarray,
+                                   settings: TraceSettings, progress=None) -> tuple[np.ndarray, np.ndarray]:
+        """visibility, and which of each point's rays the static scene occludes (bit-packed per point),
+        for a back-end with supports_static_hits; this default refuses."""
+        raise ConfigError(f"the {self.name} tracer takes no static hits (it keeps no static scene's answers)")
+
+    def visibility_parts(self, parts: list[TracePart]) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """(visibility, static hits kept or None) of each part, traced together where the back-end can.
+        This default traces part by part with visibility and keeps no static hits: a part that carries them
+        (static_hit) or asks to keep them (keep_static) is refused rather than traced without them."""
+        if any(p.static_hit is not None or p.keep_static for p in parts):
+            raise ConfigError(f"the {self.name} tracer takes no static hits (not supports_static_hits)")
+        return [(self.visibility(p.positions, p.normals, p.point_ids, p.settings,
+                                 **({} if p.slice_of is None else {"slice_of": p.slice_of})), None) for p in parts]
+
+    def warm_up(self) -> None:
+        """Start whatever the back-end's first trace would (worker processes, a cluster's scene), so that
+        start-up is not counted as tracing time. Nothing to start by default."""
 
     def throughput(self) -> dict:
         """Measured so far: rays_per_second, and where the back-end can tell, embree_rays_per_second (the

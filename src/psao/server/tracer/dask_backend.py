@@ -7,7 +7,7 @@ The static scene reaches each worker once, through a worker plugin that the sche
 workers joining later: the plugin carries either the scene's spec (the worker loads the scene itself and
 checks, by digest, that it built the very triangles the client holds) or the triangles as zstd bytes. The
 worker builds its Embree scene once. Tasks carry chunks of point positions, normals and ids; the worker
-makes the rays from (seed, point id) with the local Embree back-end's own code (embree._trace_chunk), so
+makes the rays from (seed, point id) with the local Embree back-end's own code (embree.trace_chunk), so
 the result does not depend on how the points are split or which worker traced them.
 
 With tiles (ClusterSettings.tiles) no worker holds the scene: each task carries one spatial tile's points
@@ -29,9 +29,10 @@ import numpy as np
 import zstandard
 
 from psao.server.errors import TracerError
+from psao.server.geometry import scene_world_geometry
 from psao.server.settings import LOCAL_PREFIX, ClusterSettings, TraceSettings, local_workers
 from psao.server.tracer.base import CpuAccount, Tracer, recentre, recentre_poses
-from psao.server.tracer.embree import _Scenes, _trace_chunk
+from psao.server.tracer.embree import EmbreeScenes, trace_chunk
 from psao.server.tracer.tiles import cut_triangles, make_tiles, triangle_boxes
 
 try:  # deferred: the error surfaces when the back-end is asked for, not on import of the package
@@ -78,7 +79,7 @@ class SceneOnWorkers(WorkerPlugin):
         self.spec = spec
         self.packed = packed
         self.rigid = list(rigid)  # rigidly moving meshes, (local vertices, faces), posed per task
-        self.scenes: _Scenes | None = None
+        self.scenes: EmbreeScenes | None = None
         self.error: str | None = None
 
     async def setup(self, worker) -> None:
@@ -88,8 +89,7 @@ class SceneOnWorkers(WorkerPlugin):
     def _build(self) -> None:
         try:
             if self.spec is not None:
-                from psao.scene import load_scene  # the worker loads the scene only in this mode
-                from psao.server.bake import scene_world_geometry  # (bake imports this package: no cycle at import)
+                from psao.scene import load_scene  # (deferred: a worker loads a scene file only in this mode)
                 v, f = scene_world_geometry(load_scene(self.spec))
                 v, f = recentre(v, self.center), np.asarray(f, np.int32)
             else:
@@ -98,7 +98,7 @@ class SceneOnWorkers(WorkerPlugin):
                 self.error = (f"scene {self.spec!r} built different triangles here than on the client "
                               f"(another file or numeric library?): use the bytes scene source")
                 return
-            self.scenes = _Scenes(v, f, self.rigid)
+            self.scenes = EmbreeScenes(v, f, self.rigid)
         except Exception as exc:  # reported to the client by _plugin_error and by every task
             self.error = f"cannot load the scene: {type(exc).__name__}: {exc}"
         finally:
@@ -107,7 +107,7 @@ class SceneOnWorkers(WorkerPlugin):
     def teardown(self, worker) -> None:
         self.scenes = None
 
-    def ready(self) -> _Scenes:
+    def ready(self) -> EmbreeScenes:
         if self.scenes is None:
             raise RuntimeError(self.error or "the scene is not built on this worker")
         return self.scenes
@@ -132,12 +132,12 @@ def worker_peak_rss() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
 
 
-def _trace_points(scenes: _Scenes, pos, nrm, ids, s: TraceSettings) -> dict:
+def _trace_points(scenes: EmbreeScenes, pos, nrm, ids, s: TraceSettings) -> dict:
     """Trace a task's points in chunks of s.chunk_points (bounds the ray buffers)."""
     vis = np.empty(len(pos), np.float32)
     cpu_query = cpu_total = 0.0
     for i in range(0, len(pos), s.chunk_points):
-        v, q, t, _ = _trace_chunk(scenes, pos[i:i + s.chunk_points], nrm[i:i + s.chunk_points], ids[i:i + s.chunk_points], s)
+        v, q, t, _ = trace_chunk(scenes, pos[i:i + s.chunk_points], nrm[i:i + s.chunk_points], ids[i:i + s.chunk_points], s)
         vis[i:i + len(v)] = v
         cpu_query += q
         cpu_total += t
@@ -160,7 +160,7 @@ def trace_tile_task(static, rigid, dynamic, poses, pos, nrm, ids, s: TraceSettin
     """A tile's points against the tile's own triangles (and the rigid meshes at `poses`); the scenes are
     dropped when the task ends."""
     with _TRACE_LOCK:
-        scenes = _Scenes(*static, rigid)
+        scenes = EmbreeScenes(*static, rigid)
         scenes.update_dynamic(*dynamic, poses)
         return _trace_points(scenes, pos, nrm, ids, s)
 
@@ -228,7 +228,7 @@ class DaskTracer(Tracer):
         self._boxes = None
         self._rigid: list = []  # (local float32 vertices, int32 faces) of the rigidly moving meshes
         self._poses = None  # their 4x4 poses in the re-centred frame, or None: left out
-        self._dynamic = (0, None, None)  # (version, vertices, faces) as the workers' _Scenes take it
+        self._dynamic = (0, None, None)  # (version, vertices, faces) as the workers' EmbreeScenes take it
         self._dynamic_boxes = None
         self._dynamic_future = None
 

@@ -193,7 +193,7 @@ def mover_rays(origins, dirs, tmax, hit, rays_per_point: int, spheres: list[tupl
     return out
 
 
-class _Scenes:
+class EmbreeScenes:
     """The Embree scenes of one process: static (built once), rigid movers (built once, posed per call)
     and the deforming rest (per version: refitted while its triangles stay the same, else rebuilt)."""
 
@@ -308,7 +308,7 @@ def _ray_buffers():
     rays = getattr(_RAYS, "buffers", None)
     if rays is None:
         try:
-            from psao.server.tracer.kernels import RayBuffers
+            from psao.server.tracer.kernels import RayBuffers  # (Warp: imported at the first trace that makes rays)
             rays = RayBuffers()
         except ImportError:
             rays = False
@@ -327,7 +327,7 @@ def _chunk_rays(pos, nrm, ids, s: TraceSettings, first):
     return rays.rays(pos, nrm, *rotation_of(ids, s.seed), s.rays, s.ao_distance, first, s.slices)
 
 
-def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None, static_bits=None,
+def trace_chunk(scenes: EmbreeScenes, pos, nrm, ids, s: TraceSettings, first=None, static_bits=None,
                  keep_static: bool = False):
     """Visibility of a chunk of points, with the seconds the Embree query and the whole chunk took in this
     worker (perf_counter: a CPU-time clock is a system call, which on a loaded machine can cost more
@@ -338,8 +338,8 @@ def _trace_chunk(scenes: _Scenes, pos, nrm, ids, s: TraceSettings, first=None, s
     return _trace_chunks(scenes, [(pos, nrm, ids, s, first, static_bits, keep_static)])[0]
 
 
-def _trace_chunks(scenes: _Scenes, chunks: list[tuple]) -> list[tuple]:
-    """_trace_chunk of each chunk (pos, nrm, ids, settings, first, static_bits, keep_static), the chunks of
+def _trace_chunks(scenes: EmbreeScenes, chunks: list[tuple]) -> list[tuple]:
+    """trace_chunk of each chunk (pos, nrm, ids, settings, first, static_bits, keep_static), the chunks of
     one AO distance traced together: each chunk's rays are made as its own, then the static scene is
     queried once for every ray whose answer is not given and the movers once for all of them, so a call of
     several small parts (a tick's) pays each query's fixed cost once. A ray's answer does not depend on the
@@ -381,7 +381,7 @@ def _trace_chunks(scenes: _Scenes, chunks: list[tuple]) -> list[tuple]:
 
 
 # ---- worker-process side
-_WORKER: _Scenes | None = None
+_WORKER: EmbreeScenes | None = None
 
 
 def worker_context():
@@ -417,7 +417,7 @@ def _alive(pid: int) -> bool:
             return False
 
 
-def _die_with(parent: int) -> None:
+def die_with(parent: int) -> None:
     """End this worker when `parent` (the process that made the pool, not the fork server that forked us)
     dies, even by kill -9: nothing else would, the pool's own shutdown never runs. A daemon thread watches."""
 
@@ -431,16 +431,16 @@ def _die_with(parent: int) -> None:
 
 def _worker_init(parent, static_vertices, static_faces, rigid):
     global _WORKER
-    _die_with(parent)
+    die_with(parent)
     # Ctrl-C reaches the whole process group: the parent shuts the pool down, workers must not die first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _WORKER = _Scenes(static_vertices, static_faces, rigid)
+    _WORKER = EmbreeScenes(static_vertices, static_faces, rigid)
 
 
 def _worker_trace(job):
     version, dyn_v, dyn_f, parts, poses, pos, nrm, ids, s, first, static_bits, keep_static = job
     _WORKER.update_dynamic(version, dyn_v, dyn_f, poses, parts)
-    return _trace_chunk(_WORKER, pos, nrm, ids, s, first, static_bits, keep_static)
+    return trace_chunk(_WORKER, pos, nrm, ids, s, first, static_bits, keep_static)
 
 
 def _worker_ping(_):
@@ -449,6 +449,7 @@ def _worker_ping(_):
 
 class EmbreeTracer(Tracer):
     name = "embree"
+    supports_static_hits = True
 
     def __init__(self, center=(0.0, 0.0, 0.0), workers: int = 0):
         if _IMPORT_ERROR is not None:
@@ -460,7 +461,7 @@ class EmbreeTracer(Tracer):
         self._dynamic_version = 0
         self._rigid: list = []
         self._poses = None
-        self._local: _Scenes | None = None
+        self._local: EmbreeScenes | None = None
         self._pool = None
         self.account = CpuAccount()
 
@@ -471,12 +472,12 @@ class EmbreeTracer(Tracer):
     def set_static(self, vertices, faces) -> None:
         self.close()
         self._static = (self._recentre(vertices), np.asarray(faces, np.int32))
-        self._local = _Scenes(*self._static, self._rigid)
+        self._local = EmbreeScenes(*self._static, self._rigid)
 
     def set_rigid(self, meshes) -> None:
         self.close()
         self._rigid = [(np.asarray(v, np.float32), np.asarray(f, np.int32)) for v, f in meshes]
-        self._local = _Scenes(*self._static, self._rigid)
+        self._local = EmbreeScenes(*self._static, self._rigid)
 
     def set_dynamic(self, vertices, faces, rigid_transforms=None, parts=None) -> None:
         self._poses = recentre_poses(rigid_transforms, self.center)

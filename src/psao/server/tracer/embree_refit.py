@@ -96,6 +96,7 @@ class RefitMesh:
         EmbreeDevice), committed for refitting; `parts`: the vertex count of each separately moving part
         (consecutive vertices; a part's faces use only its own vertices), None for one part. None where
         this Embree cannot be driven so (the caller then rebuilds scenes as embreex does)."""
+        # (embreex: optional at import of the package; the Embree back-end checked it loads before this)
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 

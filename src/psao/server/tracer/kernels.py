@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from psao.server.tracer.directions import slice_count
+from psao.server.tracer.directions import OFFSET_AO, OFFSET_REL, slice_count
 
 wp.config.quiet = True
 
@@ -222,8 +222,6 @@ class RayBuffers:
         """(origins, directions), each (P * K', 3) float32 numpy views valid until the next call: the slice
         j = first, first + step, ... (K' rays) of each point's K-ray set (`first`: one int, or one per point
         with `step` dividing `rays`)."""
-        from psao.server.tracer.directions import OFFSET_AO, OFFSET_REL
-
         p = len(normals)
         count = slice_count(first, rays, step)
         self._ensure(p, count, rays)
