@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.processes import LISTEN_RE, ServeExited, ServerProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_NICE = 10  # client processes' nice value: below the server (0), above other niced work on the machine
@@ -216,14 +217,6 @@ def read_jsonl(path: Path) -> list[dict]:
     return out
 
 
-def stop_server(server: subprocess.Popen) -> None:
-    server.send_signal(signal.SIGTERM)
-    try:
-        server.wait(60)
-    except subprocess.TimeoutExpired:
-        server.kill()
-
-
 def compare_digests(server_log: Path, client_logs) -> tuple[int, int, set]:
     """(pairs compared, pairs different, connections compared): every (connection, message) that both the
     server and a client logged must have the same state digest."""
@@ -321,25 +314,16 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_clients_"))
     stats, slog = work / "stats.jsonl", work / SERVER_DIGESTS
-    server = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--animate", "--density",
-                               str(args.density), "--port", "0", "--max-clients", str(max(counts) + 8),
-                               "--stats-json", str(stats), "--digest-log", str(slog)] + (["--no-cull"] if args.no_cull else []),
-                              cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    import re
-
-    port = None
-    while port is None:
-        line = server.stderr.readline()
-        if not line and server.poll() is not None:
-            print("bench_clients: error: psao serve exited", file=sys.stderr)
-            return 2
-        if m := re.search(r"listening on ws://[^:]+:(\d+)", line):
-            port = int(m.group(1))
-    # drain the server's log so it never blocks on a full pipe
-    log_lines: list[str] = []
-    import threading
-
-    threading.Thread(target=lambda: log_lines.extend(iter(server.stderr.readline, "")), daemon=True).start()
+    server = ServerProcess(args.scene, ["--animate", "--density", str(args.density), "--max-clients",
+                                        str(max(counts) + 8), "--stats-json", str(stats), "--digest-log", str(slog)]
+                           + (["--no-cull"] if args.no_cull else []), start_timeout=None, host=None,
+                           log_stdout=False, cwd=ROOT, stop_signal=signal.SIGTERM, stop_grace=60.0)
+    try:
+        server.start()
+    except ServeExited:
+        print("bench_clients: error: psao serve exited", file=sys.stderr)
+        return 2
+    port = server.port
     control = work / "control"
     control.write_text("0")
     hosts: list[subprocess.Popen] = []  # started as the stages need them (idle ones would take CPU too)
@@ -407,7 +391,10 @@ def main(argv: list[str] | None = None) -> int:
                 h.wait(60)
             except subprocess.TimeoutExpired:
                 h.kill()
-        stop_server(server)
+        server.close()
+    # the server's log after its listening line (it is in a file, so the server never blocks on a full pipe)
+    log_lines = server.log().splitlines(keepends=True)
+    log_lines = log_lines[next((i + 1 for i, ln in enumerate(log_lines) if LISTEN_RE.search(ln)), 0):]
     compared, differ, conns = compare_digests(slog, work.glob("c*.jsonl"))
     final_ok = sum(d and c in conns for f in finals for d, c in zip(f.get("digested", []), f.get("conns", [])))
     print(f"mirror digests compared: {compared}, different: {differ}; at the end, seeing the whole scene, "

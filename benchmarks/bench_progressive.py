@@ -19,10 +19,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
-import re
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.processes import ServeExited, ServerProcess
 
 TARGET_FIRST_SNAPSHOT_S = 3.0
 SCENE = "builtin:courtyard"
@@ -72,20 +70,13 @@ def watch(scene, serve_args: list[str], marks: list[float], until_snapshots: int
     from psao.client.connection import MirrorClient, scene_camera_feed
     from psao.client.errors import ConnectError
 
-    started = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", SCENE, "--port", "0", *serve_args],
-                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    log: list[str] = []
-    port = None
-    while port is None:
-        line = proc.stderr.readline()
-        if not line and proc.poll() is not None:
-            raise RuntimeError(f"psao serve {' '.join(serve_args)} exited:\n" + "".join(log))
-        log.append(line)
-        m = re.search(r"listening on ws://[^:]+:(\d+)", line)
-        port = int(m.group(1)) if m else None
-    listening_s = time.perf_counter() - started
+    server = ServerProcess(SCENE, serve_args, start_timeout=None, host=None, log_stdout=False,
+                           stop_signal=signal.SIGINT, stop_grace=120.0)
+    try:
+        server.start()
+    except ServeExited as exc:
+        raise RuntimeError(f"psao serve {' '.join(serve_args)} exited:\n" + exc.log) from None
+    started, port, listening_s = server.started, server.port, server.listen_s
     shown: dict = {"mirror": None}
     result: dict = {"listening_s": listening_s, "snapshots_s": [], "snapshot_cells": [], "captured": {},
                     "at_snapshots": []}
@@ -124,10 +115,8 @@ def watch(scene, serve_args: list[str], marks: list[float], until_snapshots: int
     try:
         asyncio.run(run())
     finally:
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-        log.append(err)
-    result["log"] = "".join(log)
+        server.close()  # SIGINT, up to 120 s to stop, then its process group is killed
+    result["log"] = server.log()
     result["grid_replacements"] = client.stats.grid_replacements
     return result
 

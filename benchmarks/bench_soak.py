@@ -20,19 +20,18 @@ import argparse
 import asyncio
 import json
 import random
-import re
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_clients import compare_digests, proc_stats, stop_server
+from benchmarks.bench_clients import compare_digests, proc_stats
 from benchmarks.verdicts import Verdicts
+from psao.eval.processes import ServeExited, ServerProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,20 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_soak_"))
     slog = work / "server_digests.jsonl"
-    server = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, "--animate", "--density",
-                               str(args.density), "--port", "0", "--digest-log", str(slog)],
-                              cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    log_lines: list[str] = []
-    port = None
-    while port is None:
-        line = server.stderr.readline()
-        log_lines.append(line)
-        if not line and server.poll() is not None:
-            print("bench_soak: error: psao serve exited:\n" + "".join(log_lines[-10:]), file=sys.stderr)
-            return 2
-        if m := re.search(r"listening on ws://[^:]+:(\d+)", line):
-            port = int(m.group(1))
-    threading.Thread(target=lambda: log_lines.extend(iter(server.stderr.readline, "")), daemon=True).start()
+    server = ServerProcess(args.scene, ["--animate", "--density", str(args.density), "--digest-log", str(slog)],
+                           start_timeout=None, host=None, log_stdout=False, cwd=ROOT, stop_signal=signal.SIGTERM,
+                           stop_grace=60.0)
+    try:
+        server.start()
+    except ServeExited as exc:
+        print("bench_soak: error: psao serve exited:\n" + "".join(exc.log.splitlines(keepends=True)[-10:]),
+              file=sys.stderr)
+        return 2
+    port = server.port
     url = f"ws://127.0.0.1:{port}"
     duration = 60.0 * args.minutes
     generation = 0
@@ -187,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if host.poll() is None:
             host.kill()
-        stop_server(server)
+        server.close()
+    log_lines = server.log().splitlines(keepends=True)  # in a file: the server never blocks on a full pipe
     compared, differ, conns = compare_digests(slog, work.glob("s*.jsonl"))
     warm = args.warmup * duration
     span = min(60.0, 0.2 * duration)

@@ -23,10 +23,9 @@ from __future__ import annotations
 import argparse
 import base64
 import json
-import re
 import shutil
+import signal
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.processes import ServeExited, ServerProcess, ServeTimeout
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--headless",
@@ -53,23 +53,22 @@ def missing_browser() -> str | None:
     return None
 
 
-def start_server(args) -> tuple[subprocess.Popen, int, Path]:
+def start_server(args) -> ServerProcess:
+    """`psao serve` of the benchmark's scene, listening; its log in --out/serve.err."""
     err = Path(args.out) / "serve.err"
-    err.parent.mkdir(parents=True, exist_ok=True)
     grid = ["--grid", str(args.grid)] if args.grid else ["--density", str(args.density), "--rays", str(args.rays)]
-    proc = subprocess.Popen([sys.executable, "-m", "psao", "serve", args.scene, *grid, "--test-edits", str(args.edits),
-                             "--tick-hz", str(args.tick_hz), "--port", "0"], cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=open(err, "w"))
-    t0 = time.time()
-    while not (m := re.search(r"listening on ws://127\.0\.0\.1:(\d+)", err.read_text())):
-        if proc.poll() is not None:
-            raise SystemExit(f"bench_web: psao serve exited: {err.read_text()[-500:]}")
-        if time.time() - t0 > 1800:
-            raise SystemExit("bench_web: the server did not start within 30 minutes")
-        time.sleep(0.5)
-    print(f"server up after {time.time() - t0:.0f} s ({f'grid {args.grid}' if args.grid else f'bake at N={args.density:g}'})",
+    server = ServerProcess(args.scene, [*grid, "--test-edits", str(args.edits), "--tick-hz", str(args.tick_hz)],
+                           start_timeout=1800.0, host=None, log_path=err, log_stdout=False, cwd=ROOT,
+                           stop_signal=signal.SIGTERM, stop_grace=60.0)
+    try:
+        server.start()
+    except ServeExited as exc:
+        raise SystemExit(f"bench_web: psao serve exited: {exc.log[-500:]}") from None
+    except ServeTimeout:
+        raise SystemExit("bench_web: the server did not start within 30 minutes") from None
+    print(f"server up after {server.listen_s:.0f} s ({f'grid {args.grid}' if args.grid else f'bake at N={args.density:g}'})",
           flush=True)
-    return proc, int(m.group(1)), err
+    return server
 
 
 def fixed_camera(scene, w: int, h: int):
@@ -178,16 +177,16 @@ def main(argv: list[str] | None = None) -> int:
     codecs = [c.strip() for c in args.codecs.split(",") if c.strip()]
     scene = load_scene(args.scene)
     view, proj = fixed_camera(scene, w, h)
-    proc, port, _ = start_server(args)
+    server = start_server(args)
     runs = {}
     try:
         for codec in codecs:
-            runs[codec] = browser_run(port, view, proj, w, h, args, codec, Path(args.out) / f"first_frame_{codec}.png")
+            runs[codec] = browser_run(server.port, view, proj, w, h, args, codec,
+                                      Path(args.out) / f"first_frame_{codec}.png")
             print(f"page with {codec}: first PSAO frame {runs[codec]['timings']['firstDraw'] / 1e3:.1f} s after opening the URL",
                   flush=True)
     finally:
-        proc.terminate()
-        proc.wait(60)
+        server.close()  # SIGTERM, up to 60 s to stop, then its process group is killed
     first = runs[codecs[0]]
     desk = moderngl_ms(scene, first["frame"], view, proj, w, h, args.frames)
     gl_ms = statistics.median(desk)

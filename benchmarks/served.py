@@ -4,7 +4,8 @@ judge the server by its own statistics (ticks per second, bytes on the wire, tim
     run = serve_and_watch("builtin:courtyard", ["--animate", "--density", "256"], seconds=10)
     run.ticks_per_second, run.bytes_per_second, run.first_snapshot_s
 
-The server writes one JSON line per tick (--stats-json); the client sends its camera along the scene's
+The server is psao.eval.processes.ServerProcess (its own process group, the port read from its log). It
+writes one JSON line per tick (--stats-json); the client sends its camera along the scene's
 camera path (as `psao client` always does) and reports its own statistics (--json). The window measured
 starts when the client has its snapshot and a first Update, and lasts `seconds`. The client logs its
 mirror's digest (which is how the first Update is seen) only for the snapshot, the first Update and then
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -24,7 +24,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-LISTENING = re.compile(r"listening on ws://[^:]+:(\d+)")
+from psao.eval.processes import LISTEN_RE, ServeExited, ServerProcess, ServeTimeout
+
 DIGEST_EVERY = 60  # Updates per digest the client logs after its first Update
 
 
@@ -55,21 +56,6 @@ class ServedRun:
         return sum(vals) / len(vals) if vals else 0.0
 
 
-def _wait_for(proc: subprocess.Popen, pattern: re.Pattern, timeout: float, lines: list[str]) -> re.Match:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line:
-            if proc.poll() is not None:
-                raise RuntimeError(f"psao serve exited ({proc.returncode}):\n" + "".join(lines[-20:]))
-            continue
-        lines.append(line)
-        m = pattern.search(line)
-        if m:
-            return m
-    raise TimeoutError(f"psao serve did not say {pattern.pattern!r} within {timeout:g} s")
-
-
 def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_timeout: float = 900.0,
                     client_args: list[str] | None = None) -> ServedRun:
     """Start `psao serve SCENE --port 0 ... --stats-json`, connect one `psao client`, keep both running
@@ -78,15 +64,18 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
     with tempfile.TemporaryDirectory() as tmp:
         stats = Path(tmp) / "stats.jsonl"
         digest = Path(tmp) / "client.jsonl"
-        t0 = time.perf_counter()
-        server = subprocess.Popen([sys.executable, "-m", "psao", "serve", scene, "--port", "0", "--stats-json",
-                                   str(stats), *serve_args], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                  text=True, env=env)
-        lines: list[str] = []
+        server = ServerProcess(scene, ["--stats-json", str(stats), *serve_args], start_timeout=start_timeout,
+                               host=None, log_stdout=False, stop_signal=signal.SIGINT, stop_grace=60.0)
         client = None
         try:
-            port = int(_wait_for(server, LISTENING, start_timeout, lines).group(1))
-            listen_s = time.perf_counter() - t0
+            try:
+                server.start()
+            except ServeExited as exc:
+                raise RuntimeError(f"psao serve exited ({exc.returncode}):\n" + _last_lines(exc.log, 20)) from None
+            except ServeTimeout:
+                raise TimeoutError(f"psao serve did not say {LISTEN_RE.pattern!r} within {start_timeout:g} s") from None
+            port = server.port
+            listen_s = server.listen_s
             client = subprocess.Popen([sys.executable, "-m", "psao", "client", f"ws://127.0.0.1:{port}", scene,
                                        "--json", "--digest-log", str(digest), "--digest-every", str(DIGEST_EVERY),
                                        *(client_args or [])],
@@ -95,7 +84,7 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
                 if client.poll() is not None:
                     raise RuntimeError("psao client exited before its snapshot")
                 time.sleep(0.02)
-            snapshot_s = time.perf_counter() - t0
+            snapshot_s = time.perf_counter() - server.started
             window_start = _last_time(stats)
             time.sleep(seconds)
             window_end = _last_time(stats)
@@ -105,16 +94,15 @@ def serve_and_watch(scene: str, serve_args: list[str], seconds: float, start_tim
         finally:
             if client is not None and client.poll() is None:
                 client.kill()
-            server.send_signal(signal.SIGINT)
-            try:
-                _, err = server.communicate(timeout=60)
-                lines.append(err)
-            except subprocess.TimeoutExpired:
-                server.kill()
+            server.close()  # SIGINT, up to 60 s to stop, then its process group is killed
         records = [json.loads(x) for x in stats.read_text().splitlines() if x.strip()]
     window = [r for r in records if window_start < r["time"] <= window_end]
     return ServedRun(scene, serve_args, listen_s, snapshot_s, window_end - window_start, len(window),
-                     sum(r.get("bytes_sent", 0) for r in window), report, window, "".join(lines)[-3000:])
+                     sum(r.get("bytes_sent", 0) for r in window), report, window, server.log()[-3000:])
+
+
+def _last_lines(text: str, n: int) -> str:
+    return "".join(text.splitlines(keepends=True)[-n:])
 
 
 def _updated(digest: Path) -> bool:

@@ -10,6 +10,7 @@ import pytest
 
 from psao.cli import main
 from serving import HANG_S
+from support.cli import one_line_error
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -17,12 +18,6 @@ ROOT = Path(__file__).resolve().parents[1]
 def run(code_or_args, timeout=HANG_S) -> subprocess.CompletedProcess:
     argv = ["-c", code_or_args] if isinstance(code_or_args, str) else ["-m", "psao", *code_or_args]
     return subprocess.run([sys.executable, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
-
-
-def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and text in lines[0], proc.stderr
 
 
 def free_port() -> int:
@@ -35,7 +30,7 @@ def test_unreachable_scheduler_is_one_line_within_the_timeout():
     pytest.importorskip("distributed")
     # nothing listens on a port just released; the command gives up after --cluster-timeout
     one_line_error(run(["bake", "builtin:cornell", "--cluster", f"tcp://127.0.0.1:{free_port()}",
-                        "--cluster-timeout", "1"]), "cannot reach the dask scheduler at tcp://127.0.0.1:")
+                        "--cluster-timeout", "1"]), "cannot reach the dask scheduler at tcp://127.0.0.1:", alone=True)
 
 
 @pytest.mark.parametrize("command", ["bake", "serve"])
@@ -67,4 +62,4 @@ def test_without_dask_the_cluster_asks_for_the_extra():
     code = ("import sys; sys.modules['distributed'] = None; sys.modules['dask'] = None\n"
             "from psao.cli import main\n"
             "sys.exit(main(['bake', 'builtin:cornell', '--cluster', 'local:1', '--probes', '0']))")
-    one_line_error(run(code), "pip install 'psao[dask]'")
+    one_line_error(run(code), "pip install 'psao[dask]'", alone=True)

@@ -10,7 +10,7 @@ import pytest
 from psao.server.errors import ConfigError
 from psao.server.grid import Grid
 from psao.server.outputs import check_output_path, write_atomically
-from test_streaming_cli import one_line_error, psao
+from support.cli import one_line_error, psao
 
 BAKE = ["bake", "builtin:cornell", "--density", "8", "--rays", "1", "--probes", "0"]
 

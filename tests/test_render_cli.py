@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 from test_render_gridbuild import server_grid
 from serving import HANG_S
+from support.cli import psao
 
 from psao.protocol.updates import GridDelta
 from psao.client.errors import RenderError
@@ -28,11 +29,6 @@ def cornell_grid(tmp_path_factory):
     path = tmp_path_factory.mktemp("grid") / "cornell.npz"
     grid.save(path, scene_hash=scene.content_hash())
     return scene, grid, path
-
-
-def psao(*args):
-    return subprocess.run([sys.executable, "-m", "psao", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, timeout=HANG_S)
 
 
 def test_render_writes_numbered_pngs_and_json_last_line(cornell_grid, tmp_path):

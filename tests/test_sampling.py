@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +11,7 @@ from psao.scene import load_scene
 from psao.server.errors import ConfigError
 from psao.server.points.sampling import (DETAIL_FACTOR, POINTS_PER_AO_AREA, SamplingSettings, default_density,
                                   estimate_points, resolve_density)
-from serving import HANG_S
+from support.cli import psao
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -123,11 +121,6 @@ def test_estimate_above_the_limit_names_count_and_what_to_pass(tmp_path):
         resolve_density(scene, SamplingSettings(density=16.0, max_points=1e6), 64)
     text = str(err.value)
     assert "96,000,000 points" in text and "--density" in text and "--points 1000000" in text and "\n" not in text
-
-
-def psao(*args):
-    return subprocess.run([sys.executable, "-m", "psao", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, timeout=HANG_S)
 
 
 def test_cli_refuses_a_huge_file_before_generating(tmp_path):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from test_streaming_cli import one_line_error, psao
+from support.cli import one_line_error, psao
 
 BAKE = ["--density", "4", "--rays", "1", "--probes", "0"]
 

@@ -13,7 +13,8 @@ import sys
 import pytest
 
 from serving import HANG_S, server_url
-from test_streaming_cli import ROOT, one_line_error, psao
+from support.cli import one_line_error, psao
+from test_streaming_cli import ROOT
 
 SMALL = ["builtin:cornell", "--density", "8", "--rays", "1"]
 

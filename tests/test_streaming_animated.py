@@ -8,7 +8,8 @@ import signal
 import subprocess
 
 from serving import HANG_S, server_url
-from test_streaming_mirror import matched, psao, read_jsonl
+from support.cli import psao_process as psao  # started, not run to completion
+from test_streaming_mirror import matched, read_jsonl
 
 SCENE = "builtin:robots"  # skinned walkers (their AO changes every tick) in a room
 

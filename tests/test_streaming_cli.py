@@ -11,20 +11,9 @@ from pathlib import Path
 import pytest
 
 from serving import HANG_S, server_url
+from support.cli import one_line_error, psao
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def psao(*args, timeout=HANG_S) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "psao", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=timeout)
-
-
-def one_line_error(proc: subprocess.CompletedProcess, text: str) -> None:
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if "error" in ln]
-    assert len(lines) == 1 and text in lines[0], proc.stderr
-    assert "Traceback" not in proc.stderr
 
 
 @pytest.mark.parametrize("args, text", [

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -22,14 +20,10 @@ from urllib.parse import urlsplit
 
 import pytest
 from serving import HANG_S, server_url
+from support.cli import psao_process as psao  # started, not run to completion
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "builtin:courtyard"
-
-
-def psao(*args, stdout=subprocess.PIPE, stderr=None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "psao", *args], cwd=ROOT, stdout=stdout, stderr=stderr,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
 def wait_for(predicate, timeout: float, what: str):

@@ -20,7 +20,6 @@ from pathlib import Path
 
 from psao.eval.errors import EvalError
 
-LISTEN_RE = re.compile(r"listening on (ws://[\w.\-]+:\d+)")
 STATS_RE = re.compile(r"tick (\d+) \| ([\d.]+) ticks/s \| tick load (\d+)%")
 
 
@@ -159,43 +158,181 @@ def bake_grid(scene_spec: str, settings, out: Path, timeout: float = 1800.0) -> 
                    f"psao bake {scene_spec} at N={settings.density:g}", timeout)
 
 
+def listen_pattern(host: str = r"[^\s/]+") -> re.Pattern:
+    """`psao serve`'s listening line on `host` (a regular expression): group 1 the ws:// or wss:// URL,
+    group 2 its port."""
+    return re.compile(rf"listening on (wss?://(?:{host}):(\d+))")
+
+
+LISTEN_RE = listen_pattern()
+
+
+class ServeExited(EvalError):
+    """The server exited before its log showed what was waited for; `returncode`, `log` (its whole log)."""
+
+    def __init__(self, message: str, returncode: int | None, log: str):
+        super().__init__(message)
+        self.returncode, self.log = returncode, log
+
+
+class ServeTimeout(EvalError):
+    """The server's log did not show what was waited for within the timeout; `log`: its log so far."""
+
+    def __init__(self, message: str, log: str):
+        super().__init__(message)
+        self.log = log
+
+
+class LogFollower:
+    """A child's log file as it grows, in complete lines (a line being written is left for the next read,
+    so a pattern never matches half a port number)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.text = ""  # the complete lines read so far
+        self._offset = 0  # bytes of the file in self.text
+        self._searched = 0  # characters of self.text that wait_for searched already
+
+    def read(self, final: bool = False) -> str:
+        """Read what the file gained; the complete lines so far (final: the writer has exited, a last line
+        without its newline counts too)."""
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(self._offset)
+                new = f.read()
+        except OSError:
+            return self.text
+        end = len(new) if final else new.rfind(b"\n") + 1
+        if end:
+            self.text += new[:end].decode(errors="replace")
+            self._offset += end
+        return self.text
+
+    def search(self, pattern: re.Pattern) -> re.Match | None:
+        """The first match of `pattern` in the text after the previous match or failed search (each line is
+        searched once, as a whole)."""
+        m = pattern.search(self.text, self._searched)
+        self._searched = m.end() if m else len(self.text)
+        return m
+
+    def wait_for(self, proc: subprocess.Popen, pattern: re.Pattern, timeout: float | None = None,
+                 what: str = "psao serve", poll: float = 0.01) -> re.Match:
+        """The first match of `pattern` in a line of the log, as soon as that line is there. Raises
+        ServeExited when `proc` exits without writing it, ServeTimeout after `timeout` seconds (None: no
+        deadline). It only waits for the line: the poll interval is no assumption about speed."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            self.read()
+            if m := self.search(pattern):
+                return m
+            if proc.poll() is not None:  # what it wrote before exiting is in the file by now
+                self.read(final=True)
+                if m := self.search(pattern):
+                    return m
+                raise ServeExited(f"{what} exited ({proc.returncode}) before its log said {pattern.pattern!r}: "
+                                  f"{_tail(self.text)}", proc.returncode, self.text)
+            if end is not None and time.monotonic() >= end:
+                raise ServeTimeout(f"{what} did not say {pattern.pattern!r} within {timeout:g} s", self.text)
+            time.sleep(poll)
+
+
+def wait_for_log(proc: subprocess.Popen, log_path: Path, pattern: re.Pattern, timeout: float | None = None,
+                 what: str = "psao serve") -> re.Match:
+    """The first match of `pattern` in a line of the log file `log_path` of a running `proc` (started by the
+    caller), once that line is written; see LogFollower.wait_for."""
+    return LogFollower(log_path).wait_for(proc, pattern, timeout, what)
+
+
 @dataclass
 class ServerProcess:
-    """`psao serve` on 127.0.0.1 with a free port (--port 0; the URL is read from its log)."""
+    """`psao serve SCENE --port 0 [EXTRA]` started and waited for until it listens (the URL read from its
+    log), in its own process group; stopped by close() (or the with block's end), which kills the group.
+
+    By default it listens on 127.0.0.1 (--host), logs stderr and stdout to a temporary file removed on
+    close (log() still returns the text afterwards), and close() SIGTERMs the group with a 3 s grace.
+    host=None passes no --host (the server's default); log_path keeps the log in that file; log_stdout=False
+    sends stdout to /dev/null; stop_signal sends that signal to the server alone (so it stops its tracer
+    workers itself) and waits stop_grace seconds before what is left of the group is killed.
+
+        with ServerProcess("builtin:cornell", ["--density", "8"]) as server:
+            server.url, server.port, server.listen_s, server.wait_for(re.compile(r"tick \\d+"), 60)
+    """
 
     scene_spec: str
     extra: list[str] = field(default_factory=list)
-    start_timeout: float = 600.0  # seconds to bake/load and listen
+    start_timeout: float | None = 600.0  # seconds to bake/load and listen (None: no deadline)
+    host: str | None = "127.0.0.1"
+    log_path: Path | None = None
+    log_stdout: bool = True
+    cwd: Path | str | None = None
+    stop_signal: int | None = None
+    stop_grace: float = 3.0
     proc: subprocess.Popen | None = None
     url: str = ""
-    log_path: Path | None = None
+    started: float = 0.0  # time.perf_counter() just before the process started
+    listen_s: float = 0.0  # seconds from the start to the listening line
+    _follow: LogFollower | None = field(default=None, repr=False)
+    _temporary_log: bool = field(default=False, repr=False)
+    _closed_log: str | None = field(default=None, repr=False)
 
-    def __enter__(self) -> "ServerProcess":
-        fd, name = tempfile.mkstemp(prefix="psao-serve-", suffix=".log")
-        self.log_path = Path(name)
-        with os.fdopen(fd, "w") as log:
-            self.proc = spawn(["serve", self.scene_spec, "--host", "127.0.0.1", "--port", "0", *self.extra],
-                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    def command(self) -> list[str]:
+        """The `psao` arguments it runs."""
+        host = ["--host", self.host] if self.host is not None else []
+        return ["serve", self.scene_spec, *host, "--port", "0", *map(str, self.extra)]
+
+    def start(self) -> "ServerProcess":
+        """Start the server and wait until it listens (ServeExited, ServeTimeout: it is stopped first)."""
+        if self.log_path is None:
+            fd, name = tempfile.mkstemp(prefix="psao-serve-", suffix=".log")
+            os.close(fd)
+            self.log_path, self._temporary_log = Path(name), True
+        self.log_path = Path(self.log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._follow = LogFollower(self.log_path)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with open(self.log_path, "w") as log:
+            self.started = time.perf_counter()
+            self.proc = spawn(self.command(), stdout=log if self.log_stdout else subprocess.DEVNULL,
+                              stderr=log, stdin=subprocess.DEVNULL, cwd=self.cwd, env=env)
         try:
-            self.url = self._wait_listening()
+            self.url = self.wait_for(LISTEN_RE, self.start_timeout, "before listening").group(1)
+            self.listen_s = time.perf_counter() - self.started
+        except ServeTimeout as exc:
+            self.close()
+            raise ServeTimeout(f"psao serve {self.scene_spec} did not listen within {self.start_timeout:.0f} s",
+                               exc.log) from None
         except BaseException:
             self.close()
             raise
         return self
 
-    def _wait_listening(self) -> str:
-        deadline = time.monotonic() + self.start_timeout
-        while time.monotonic() < deadline:
-            m = LISTEN_RE.search(self.log())
-            if m:
-                return m.group(1)
-            if self.proc.poll() is not None:
-                raise EvalError(f"psao serve {self.scene_spec} exited ({self.proc.returncode}) before listening: "
-                                f"{_tail(self.log())}")
-            time.sleep(0.1)
-        raise EvalError(f"psao serve {self.scene_spec} did not listen within {self.start_timeout:.0f} s")
+    def __enter__(self) -> "ServerProcess":
+        return self.start()
+
+    @property
+    def port(self) -> int:
+        return int(self.url.rsplit(":", 1)[1])
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def wait_for(self, pattern: re.Pattern, timeout: float | None = None, when: str = "") -> re.Match:
+        """The first match of `pattern` in a line of its log not searched by an earlier wait_for (the
+        listening line was one), once written; ServeExited if the server exits first, ServeTimeout after
+        `timeout` seconds."""
+        try:
+            return self._follow.wait_for(self.proc, pattern, timeout, f"psao serve {self.scene_spec}")
+        except ServeExited as exc:
+            if not when:
+                raise
+            raise ServeExited(f"psao serve {self.scene_spec} exited ({exc.returncode}) {when}: {_tail(exc.log)}",
+                              exc.returncode, exc.log) from None
 
     def log(self) -> str:
+        """Its whole log so far (after close, the log it left)."""
+        if self._closed_log is not None:
+            return self._closed_log
         try:
             return self.log_path.read_text(errors="replace") if self.log_path else ""
         except OSError:
@@ -213,10 +350,26 @@ class ServerProcess:
             return float("nan")
         return 1e3 * sum(b for _, b in loads) / sum(r for r, _ in loads)
 
+    def stop(self) -> int | None:
+        """Stop the server (see the class) and its process group; its exit status. Idempotent."""
+        if self.proc is None:
+            return None
+        grace = self.stop_grace
+        if self.stop_signal is not None:
+            if self.proc.poll() is None:
+                try:
+                    self.proc.send_signal(self.stop_signal)
+                    self.proc.wait(self.stop_grace)
+                except (ProcessLookupError, subprocess.TimeoutExpired):
+                    pass
+            grace = 0.0  # it had its grace: what is left of the group is killed now
+        kill_group(self.proc, grace)
+        return self.proc.returncode
+
     def close(self) -> None:
-        if self.proc is not None:
-            kill_group(self.proc)
-        if self.log_path is not None:
+        self.stop()
+        if self.log_path is not None and self._temporary_log and self._closed_log is None:
+            self._closed_log = self.log()
             try:
                 self.log_path.unlink()
             except OSError:
