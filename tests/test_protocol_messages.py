@@ -567,3 +567,44 @@ def test_parts_decoder_refuses_every_truncation_as_the_reader_of_any_part():
         for n in range(len(payload)):
             fast, general = _decoded_both_ways(payload[:n], Limits())
             assert _same(fast, general), (n, fast, general)
+
+
+def test_status_bytes_both_ways():
+    """Status: phase u8 | progress f32 | text length u16 | text, codec NONE, type 11."""
+    assert m.MessageType.STATUS == 11
+    assert [int(p) for p in m.StatusPhase] == [1, 2, 3, 4]
+    data = m.encode(m.Status(m.StatusPhase.BAKING, 0.5, "baking 50%"))
+    assert data == header(11, 17) + H("02") + H("0000003f") + H("0a00") + b"baking 50%"
+    back = m.Status.parse(H("03") + H("0000803f") + H("0300") + "né".encode())
+    assert back == m.Status(m.StatusPhase.COARSE, 1.0, "né") and isinstance(back.phase, m.StatusPhase)
+    assert m.Status.parse(H("04") + ZERO + H("0000")) == m.Status(m.StatusPhase.READY, 0.0, "")
+    assert m.encode(m.Status(m.StatusPhase.LOADING, 0.0)) == header(11, 7) + H("01") + ZERO + H("0000")
+    _, parsed = roundtrip(m.Status(m.StatusPhase.COARSE, 0.25, "full grid: trace"))
+    assert parsed == m.Status(m.StatusPhase.COARSE, 0.25, "full grid: trace")
+
+
+@pytest.mark.parametrize("payload, exc, text", [
+    (H("00") + ZERO + H("0000"), PayloadError, "unknown phase 0"),
+    (H("05") + ZERO + H("0000"), PayloadError, "unknown phase 5"),
+    (H("02") + H("0000c07f") + H("0000"), PayloadError, "not within 0..1"),  # NaN
+    (H("02") + H("0000807f") + H("0000"), PayloadError, "not within 0..1"),  # +inf
+    (H("02") + H("000080bf") + H("0000"), PayloadError, "not within 0..1"),  # -1
+    (H("02") + H("cdcc8c3f") + H("0000"), PayloadError, "not within 0..1"),  # 1.1
+    (H("02") + ZERO + H("0200") + b"\xff\xfe", PayloadError, "not valid UTF-8"),
+    (H("02") + ZERO + H("0500") + b"ab", PayloadError, "truncated"),
+    (H("02") + ZERO + H("0100") + b"ab", PayloadError, "unexpected bytes after the end"),
+    (H("02") + ZERO, PayloadError, "truncated"),
+    (H("02") + ZERO + H("0104") + b"a" * 1025, LimitError, "over the limit of 1024"),
+])
+def test_bad_status_payloads_refused(payload, exc, text):
+    with pytest.raises(exc, match=text):
+        m.Status.parse(payload)
+
+
+def test_status_serialize_checks_and_cuts_its_text():
+    for phase, progress in ((0, 0.5), (m.StatusPhase.BAKING, float("nan")), (m.StatusPhase.BAKING, 1.5)):
+        with pytest.raises(PayloadError):
+            m.Status(phase, progress).serialize()
+    long = m.Status(m.StatusPhase.BAKING, 0.1, "é" * 600).serialize()  # 1200 bytes of text: cut at a character
+    assert struct.unpack_from("<H", long, 5)[0] == 1024 and m.Status.parse(long).text == "é" * 512
+    assert m.Status.parse(m.Status(m.StatusPhase.BAKING, 0.1, "x" * 2000).serialize(), Limits()).text == "x" * 1024

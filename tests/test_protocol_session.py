@@ -22,6 +22,7 @@ from psao.protocol.session import (
     ServerSession,
     SharedStream,
     SnapshotReceived,
+    StatusReceived,
     UnexpectedMessage,
     UpdateReceived,
     Welcomed,
@@ -411,3 +412,62 @@ def test_own_streams_use_the_fast_level_and_the_shared_stream_the_papers():
     assert cfg.own_stream_zstd == OWN_STREAM_ZSTD and cfg.stream_zstd == STREAM_ZSTD
     assert OWN_STREAM_ZSTD.level < STREAM_ZSTD.level == 15
     assert OWN_STREAM_ZSTD.window_log == STREAM_ZSTD.window_log  # same history a decoder keeps
+
+
+def test_status_reaches_a_client_in_every_state_and_leaves_it_there():
+    """A starting server's Status comes before Welcome, between snapshot chunks and among Updates; it is
+    uncompressed, so a zstd-stream connection's stream goes on undisturbed."""
+    st = m.Status(m.StatusPhase.BAKING, 0.4, "baking 40%")
+    asking = ClientSession(ClientConfig(None))
+    server = ServerSession(ServerConfig(HASH))
+    server.receive(asking.scene_request())
+    assert isinstance(asking.receive(server.status(st)), StatusReceived) and asking.state.name == "AWAIT_SCENE"
+    server, client, _ = handshake(codecs={Codec.ZSTD_STREAM})
+    event = client.receive(server.status(st))
+    assert isinstance(event, StatusReceived) and event.status == m.Status(m.StatusPhase.BAKING, np.float32(0.4), "baking 40%")
+    assert client.state.name == "AWAIT_WELCOME"
+    client.receive(server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE)))
+    client.receive(server.snapshot(0, 2, GridDelta(0)))
+    assert isinstance(client.receive(server.status(m.Status(m.StatusPhase.COARSE, 0.1))), StatusReceived)
+    assert isinstance(client.receive(server.snapshot(1, 2, GridDelta(0))), SnapshotReceived)
+    for k in range(3):
+        assert isinstance(client.receive(server.update(k, 0.0, GridDelta(0))), UpdateReceived)
+        assert isinstance(client.receive(server.status(m.Status(m.StatusPhase.COARSE, 0.5 + k / 10))), StatusReceived)
+    assert client.state.name == "STREAMING"
+    client.receive(server.bye())
+    with pytest.raises(UnexpectedMessage, match="STATUS in state CLOSED"):
+        client.receive(server.status(st))
+
+
+def test_a_compressed_status_is_refused():
+    client = ClientSession(ClientConfig(HASH))
+    body = m.Status(m.StatusPhase.READY, 1.0).serialize()
+    with pytest.raises(CodecError, match="Status with codec ZSTD"):
+        client.receive(m.frame(m.MessageType.STATUS, Codec.ZSTD, zstandard.ZstdCompressor().compress(body)))
+
+
+def test_a_session_made_before_the_scene_is_known_checks_the_hello_on_rebind():
+    """The token at once, the scene hash once the scene is loaded; nothing grid-related goes out before."""
+    early = ServerConfig(None, token="tk")
+    with pytest.raises(RefusedError, match="missing token"):
+        ServerSession(early).receive(ClientSession(ClientConfig(HASH)).hello())
+    server = ServerSession(early)
+    client = ClientSession(ClientConfig(HASH, token="tk"))
+    assert isinstance(server.receive(client.hello()), HelloAccepted) and server.scene_pending()
+    server.status(m.Status(m.StatusPhase.LOADING, 0.0))  # Status may go out meanwhile, a Welcome may not
+    with pytest.raises(UnexpectedMessage, match="scene was checked"):
+        server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE))
+    server.rebind(ServerConfig(HASH, token="tk"))
+    assert not server.scene_pending()
+    assert isinstance(client.receive(server.welcome(1, 60.0, 0, 0, np.zeros(0, INSTANCE_DTYPE))), Welcomed)
+    other = ServerSession(ServerConfig(None))
+    other.receive(ClientSession(ClientConfig(OTHER)).hello())
+    with pytest.raises(RefusedError, match="scene hash mismatch") as exc:
+        other.rebind(ServerConfig(HASH))
+    assert exc.value.code == m.ErrorCode.SCENE_MISMATCH
+    asking = ServerSession(ServerConfig(None))
+    event = asking.receive(ClientSession(ClientConfig(None)).scene_request())
+    with pytest.raises(UnexpectedMessage, match="before the scene is known"):
+        asking.scene_data(event.request, b"blob")
+    asking.rebind(ServerConfig(HASH))
+    assert len(asking.scene_data(event.request, b"blob")) == 1

@@ -22,9 +22,12 @@ every field (sizes before allocation, finite matrices, UTF-8 text) and raises pr
     SceneRequest client -> server  before Hello: the scene hash the client has cached (or zeros), token
     SceneData  server -> client  scene hash, chunk i of n of the scene blob (one zstd frame of a
                                  psao.protocol.scenefile); n = 0: the client's cached scene is current
+    Status     server -> client  what a starting server is doing (StatusPhase), a progress in 0..1 and a
+                                 line of text; before Welcome and at any point after it (codec NONE)
 """
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 from enum import IntEnum
@@ -55,6 +58,16 @@ class MessageType(IntEnum):
     BYE = 8
     SCENE_REQUEST = 9
     SCENE_DATA = 10
+    STATUS = 11
+
+
+class StatusPhase(IntEnum):
+    """What a server is doing (Status.phase); `progress` is the fraction done of the step named."""
+
+    LOADING = 1  # loading the scene (progress of the loading)
+    BAKING = 2  # no grid yet (progress of the first bake: the coarse grid's, or the full grid's without one)
+    COARSE = 3  # serving the coarse grid (progress of the full bake behind it)
+    READY = 4  # serving the full grid
 
 
 @dataclass(frozen=True)
@@ -386,9 +399,42 @@ class SceneData:
         return cls(scene_hash, chunk, n_chunks, total, bytes(data))
 
 
+_STATUS = struct.Struct("<BfH")  # phase, progress, text length
+
+
+@dataclass
+class Status:
+    """A server's state: `phase` (StatusPhase), `progress` (0..1, finite) of that phase's work and a line of
+    `text` for people (UTF-8, at most Limits.error_text_bytes; serialize cuts a longer one at a character)."""
+
+    TYPE = MessageType.STATUS
+    phase: StatusPhase
+    progress: float
+    text: str = ""
+
+    def serialize(self) -> bytes:
+        if self.phase not in StatusPhase._value2member_map_:
+            raise PayloadError(f"Status: unknown phase {self.phase}")
+        if not (math.isfinite(self.progress) and 0.0 <= self.progress <= 1.0):
+            raise PayloadError(f"Status: progress {self.progress} is not within 0..1")
+        raw = self.text.encode("utf-8")[: DEFAULT_LIMITS.error_text_bytes]
+        raw = raw.decode("utf-8", errors="ignore").encode("utf-8")  # never cut a character in half
+        return _STATUS.pack(int(self.phase), self.progress, len(raw)) + raw
+
+    @classmethod
+    def parse(cls, payload: bytes, limits: Limits = DEFAULT_LIMITS) -> "Status":
+        r = Reader(payload, "Status")
+        phase, progress, n = r.unpack(_STATUS)
+        if phase not in StatusPhase._value2member_map_:
+            raise PayloadError(f"Status: unknown phase {phase}")
+        if not (math.isfinite(progress) and 0.0 <= progress <= 1.0):
+            raise PayloadError(f"Status: progress {progress} is not within 0..1")
+        return cls(StatusPhase(phase), float(progress), _bounded_text(r, n, limits.error_text_bytes, "Status: text"))
+
+
 MESSAGE_CLASSES = {cls.TYPE: cls for cls in (Hello, Welcome, Snapshot, Update, Camera, SceneEdit, Error, Bye,
-                                              SceneRequest, SceneData)}
-Message = Hello | Welcome | Snapshot | Update | Camera | SceneEdit | Error | Bye | SceneRequest | SceneData
+                                              SceneRequest, SceneData, Status)}
+Message = Hello | Welcome | Snapshot | Update | Camera | SceneEdit | Error | Bye | SceneRequest | SceneData | Status
 
 
 def encode(msg: Message) -> bytes:

@@ -14,6 +14,11 @@ Server:  AWAIT_HELLO --Hello ok--> OPEN --Bye / error--> CLOSED
 Client:  [AWAIT_SCENE --last SceneData-->] AWAIT_WELCOME --Welcome--> SNAPSHOT --last chunk--> STREAMING
          --Bye / Error--> CLOSED   (a client without the scene asks for it first: scene_request())
 
+A starting server (`psao serve` answers while it loads and bakes) sends Status messages in any state, before
+Welcome and after it; a client session returns them as StatusReceived and stays in its state. A server
+session may be made before the scene is known (ServerConfig.scene_hash None): it checks the token of what
+arrives at once and a Hello's scene hash when `rebind` gives it the scene's config.
+
 A server that replaces its grid (`psao serve --progressive`: the coarse first grid by the full one) ends
 every connection with the websocket close code GRID_REPLACED_CLOSE and no Error message: the client
 reconnects at once (`reconnect_at_once`) and gets the new grid's Welcome and Snapshot on a new session.
@@ -135,7 +140,7 @@ class ServerState(Enum):
 
 @dataclass(frozen=True)
 class ServerConfig:
-    scene_hash: bytes  # 32 bytes
+    scene_hash: bytes | None  # 32 bytes; None: the scene is not loaded yet (ServerSession.rebind)
     token: str = ""  # "" accepts anyone
     edit_token: str = ""  # "" refuses every SceneEdit; else a Hello with this token may edit (and view)
     codec: Codec = Codec.ZSTD_STREAM  # preferred payload codec for Snapshot and Update
@@ -192,6 +197,7 @@ class ServerSession:
         self.on_shared = False  # the last grid message came from a SharedStream
         self.accepted: frozenset = frozenset()  # the codecs the client's Hello offered
         self.scene_requests = 0
+        self._hello_hash: bytes | None = None  # a Hello's scene hash, until the scene is known to check it
 
     # ------------------------------------------------------------------ inbound
     def receive(self, data: bytes):
@@ -252,12 +258,10 @@ class ServerSession:
         if hello.version != m.PROTOCOL_VERSION:
             raise HeaderError(f"Hello: unsupported protocol version {hello.version}")
         may_edit = self._check_token(hello.token)
-        if hello.scene_hash != cfg.scene_hash:
-            raise RefusedError(
-                f"scene hash mismatch: client has {hello.scene_hash.hex()[:12]}, server serves "
-                f"{cfg.scene_hash.hex()[:12]}",
-                m.ErrorCode.SCENE_MISMATCH,
-            )
+        if cfg.scene_hash is None:
+            self._hello_hash = hello.scene_hash  # checked by rebind, once the scene is loaded
+        else:
+            _check_scene(hello.scene_hash, cfg.scene_hash)
         accepted = codecs_from_mask(hello.codec_mask)
         codec = next((c for c in cfg.codec_preference() if c in accepted), None)
         if codec is None:
@@ -270,8 +274,28 @@ class ServerSession:
         self.may_edit = may_edit
         return HelloAccepted(hello, codec, may_edit)
 
+    def rebind(self, config: ServerConfig) -> None:
+        """The server's scene is known now (`config` names its hash; else as the config the session was
+        made with): a Hello accepted meanwhile is checked against it (RefusedError SCENE_MISMATCH)."""
+        if config.scene_hash is None:
+            raise ValueError("rebind needs the config of a loaded scene")
+        self.config = config
+        if self._hello_hash is not None:
+            hello_hash, self._hello_hash = self._hello_hash, None
+            _check_scene(hello_hash, config.scene_hash)
+
+    def scene_pending(self) -> bool:
+        """Whether a Hello was accepted before the scene was known and waits for rebind's check."""
+        return self._hello_hash is not None
+
     # ----------------------------------------------------------------- outbound
+    def status(self, status: m.Status) -> bytes:
+        """A Status message (codec NONE: it leaves the connection's zstd stream as it was), in any state."""
+        return self.traffic.sent(m.encode(status))
+
     def _grid_message(self, msg: m.Snapshot | m.Update) -> bytes:
+        if self._hello_hash is not None:
+            raise UnexpectedMessage(f"cannot send {msg.TYPE.name} before the Hello's scene is checked (rebind)")
         # Only the handshake gates sending: a Bye received meanwhile (on another thread) closes the inbound
         # side, and an Update already being encoded may still go out; the peer ignores it.
         if self.codec is None:
@@ -307,6 +331,8 @@ class ServerSession:
 
     def welcome(self, connection_id: int, tick_hz: float, n_buckets: int, cell_capacity: int,
                 instances: np.ndarray) -> bytes:
+        if self.codec is None or self._hello_hash is not None:
+            raise UnexpectedMessage("Welcome needs an accepted Hello whose scene was checked")
         msg = m.Welcome(self.config.scene_hash, connection_id, self.codec, self.config.layout, tick_hz,
                         n_buckets, cell_capacity, instances)
         return self.traffic.sent(m.encode(msg))
@@ -321,6 +347,8 @@ class ServerSession:
         """SceneData messages answering `request`: the scene blob in chunks, or one empty message when
         the client's cached scene is the one served."""
         h = self.config.scene_hash
+        if h is None:
+            raise UnexpectedMessage("SceneData before the scene is known (rebind)")
         if request.cached == h:
             return [self.traffic.sent(m.encode(m.SceneData(h, 0, 0, 0)))]
         size = self.config.limits.scene_chunk_bytes
@@ -337,6 +365,12 @@ class ServerSession:
         self.state = ServerState.CLOSED
         data, code = error_reply(exc)
         return self.traffic.sent(data), code
+
+
+def _check_scene(hello_hash: bytes, served: bytes) -> None:
+    if hello_hash != served:
+        raise RefusedError(f"scene hash mismatch: client has {hello_hash.hex()[:12]}, server serves {served.hex()[:12]}",
+                           m.ErrorCode.SCENE_MISMATCH)
 
 
 class SharedStream:
@@ -418,6 +452,11 @@ class UpdateReceived:
 
 
 @dataclass
+class StatusReceived:
+    status: m.Status
+
+
+@dataclass
 class SceneReceived:
     scene_hash: bytes
     scene: SceneFile | None  # None: the cached scene named in the request is current
@@ -477,15 +516,18 @@ class ClientSession:
 
     def receive(self, data: bytes):
         """One server message -> SceneReceived | None (a SceneData chunk before the last) | Welcomed |
-        SnapshotReceived | UpdateReceived | ByeReceived. An Error message raises RemoteError."""
+        SnapshotReceived | UpdateReceived | StatusReceived (in any state but CLOSED; the state stays) |
+        ByeReceived. An Error message raises RemoteError."""
         limits = self.config.limits
         self.traffic.messages_in += 1
         self.traffic.bytes_in += len(data)
         if len(data) > limits.server_message_bytes:
             raise LimitError(f"message of {len(data)} bytes over the limit of {limits.server_message_bytes}")
         header, body = _split(data, limits.server_message_bytes)
-        payload = self._payload(header, body)
         t = header.type
+        if t == m.MessageType.STATUS and header.codec != Codec.NONE:
+            raise CodecError(f"Status with codec {header.codec.name}: it is sent uncompressed")
+        payload = self._payload(header, body)
         if t == m.MessageType.ERROR:
             err = m.Error.parse(payload, limits)
             self.state = ClientState.CLOSED
@@ -494,6 +536,8 @@ class ClientSession:
             m.Bye.parse(payload, limits)
             self.state = ClientState.CLOSED
             return ByeReceived()
+        if t == m.MessageType.STATUS and self.state != ClientState.CLOSED:
+            return StatusReceived(m.Status.parse(payload, limits))
         if self.state == ClientState.AWAIT_SCENE and t == m.MessageType.SCENE_DATA:
             return self._scene_chunk(m.SceneData.parse(payload, limits))
         if self.state == ClientState.AWAIT_WELCOME and t == m.MessageType.WELCOME:
