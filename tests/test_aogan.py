@@ -1,5 +1,5 @@
-"""AOGAN (needs PyTorch; skipped without it): the generator trains on a tiny set and its DSSIM falls, the
-client's AOGAN pass equals the generator run on the G-buffer read back, bad weights are one line."""
+"""AOGAN (needs PyTorch, which the test extra installs): the generator trains on a tiny set and its DSSIM
+falls, the client's AOGAN pass equals the generator run on the G-buffer read back, bad weights are one line."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from test_render_gtao import corner_scene
 
 
-torch = pytest.importorskip("torch")
+torch = pytest.importorskip("torch", reason="PyTorch is not installed: the test extra (make test) installs it")
 
 from psao.client.errors import RenderError  # noqa: E402
 from psao.client.render.aogan_net import build_generator, gbuffer_inputs, infer, load_generator, state_arrays  # noqa: E402

@@ -1,8 +1,13 @@
 """Output files: checked before the work, written to a temporary file and renamed, nothing partial left."""
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +17,7 @@ from psao.server.grid import Grid
 from psao.server.outputs import check_output_path, write_atomically
 from support.cli import one_line_error, psao
 
+NOBODY_UID = 65534  # the unprivileged user root's checks switch to
 BAKE = ["bake", "builtin:cornell", "--density", "8", "--rays", "1", "--probes", "0"]
 
 
@@ -49,16 +55,35 @@ def test_a_failing_write_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_read_only_folder_refused(tmp_path):
-    import os
+@contextlib.contextmanager
+def folder_permissions_apply():
+    """Inside the block, folder permissions bind this process: root (who writes anywhere) runs it with the
+    effective user switched to nobody's; any other user runs it as itself."""
+    if os.geteuid() != 0:
+        yield
+        return
+    os.seteuid(NOBODY_UID)
+    try:
+        yield
+    finally:
+        os.seteuid(0)
 
-    if os.geteuid() == 0:
-        pytest.skip("root writes into read-only folders")
-    folder = tmp_path / "ro"
-    folder.mkdir()
-    folder.chmod(0o555)
-    with pytest.raises(ConfigError, match="cannot write in"):
-        check_output_path(folder / "grid.npz", ".npz")
+
+def test_read_only_folder_refused():
+    # a folder of its own under the temporary folder: pytest's tmp_path lies in folders only root may enter
+    base = Path(tempfile.mkdtemp())
+    folder = base / "ro"
+    try:
+        base.chmod(0o755)
+        folder.mkdir()
+        folder.chmod(0o555)
+        with folder_permissions_apply(), pytest.raises(ConfigError, match="cannot write in .*Permission denied"):
+            check_output_path(folder / "grid.npz", ".npz")
+        assert list(folder.iterdir()) == []
+    finally:
+        if folder.exists():
+            folder.chmod(0o755)
+        shutil.rmtree(base)
 
 
 def test_atomic_write_replaces_an_existing_file(tmp_path):
