@@ -12,13 +12,20 @@ Thin around psao.protocol.session.ClientSession (which decides what bytes mean).
 After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
 fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried. A server
 that replaced its grid (close code GRID_REPLACED_CLOSE) is reconnected to at once, also with reconnect=False.
+
+A server that is still starting: one that does not accept connections yet (refused, or no opening
+handshake) is tried again for up to `start_wait` seconds, also with reconnect=False, saying so once in the
+log; one that answers while it loads and bakes sends Status messages (phase, progress, text), which go to
+`on_status(status)` and, when they change, to the log (`log(line)`: stderr by default).
 """
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import socket
 import ssl
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,6 +36,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, ConnectionClosedOK, InvalidHandshake, InvalidURI
 from websockets.uri import parse_uri
 
+from psao.protocol import messages as m
 from psao.protocol.codecs import Codec, codec_name
 from psao.protocol.errors import ProtocolError
 from psao.protocol.limits import DEFAULT_LIMITS, Limits
@@ -40,6 +48,7 @@ from psao.protocol.session import (
     RemoteError,
     SceneReceived,
     SnapshotReceived,
+    StatusReceived,
     UpdateReceived,
     Welcomed,
     reconnect_at_once,
@@ -54,6 +63,9 @@ OnUpdate = Callable[[Mirror, np.ndarray, int], None]
 CameraFeed = Callable[[float], tuple[np.ndarray, np.ndarray]]  # seconds -> (view, projection)
 READ_AHEAD = 4  # messages the websocket library queues before it stops reading (websockets' max_queue)
 QUIET_END_S = 5.0  # run(frames): seconds without any Update after the snapshot that end it (a static server)
+START_POLL_S = 0.2  # seconds between tries at a server that does not accept connections yet
+START_WAIT_S = 15.0  # seconds a client waits for a server that does not accept connections yet (start_wait)
+STATUS_LOG_STEP = 0.1  # progress (of 1) a Status must move by to be logged again with the same phase and text
 
 
 @dataclass
@@ -69,6 +81,8 @@ class ClientStats:
     connection_id: int = 0
     codec: str = ""
     quiet_end: bool = False  # run(frames) ended because no Update followed the snapshot (a static server)
+    status_messages: int = 0  # Status messages received (a starting server's), all connections
+    status: str = ""  # the last Status received: "phase progress% text" ("" when none came)
 
 
 class _Lost(Exception):
@@ -83,7 +97,9 @@ class MirrorClient:
                  reconnect_timeout: float = 10.0, camera_hz: float = 30.0, recv_buffer: int | None = None,
                  limits: Limits = DEFAULT_LIMITS, on_frame: OnMirror | None = None, frame_hz: float = 30.0,
                  tls_ca: Path | None = None, digest_every: int = ConnectSettings.digest_every,
-                 digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0):
+                 digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0,
+                 start_wait: float = START_WAIT_S, on_status: Callable[[m.Status], None] | None = None,
+                 log: Callable[[str], None] | None = None):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
         self.camera = camera
@@ -93,6 +109,12 @@ class MirrorClient:
             raise ClientError(f"frame rate must be > 0, got {frame_hz}")
         if not open_timeout > 0:
             raise ClientError(f"open timeout must be > 0 seconds, got {open_timeout}")
+        if not start_wait >= 0:
+            raise ClientError(f"start wait must be >= 0 seconds, got {start_wait}")
+        # seconds to keep trying a server that does not accept connections yet, before "cannot connect"
+        self.start_wait = start_wait
+        self.on_status = on_status
+        self.status_log = StatusLog(url, log)
         self.frame_period = 1.0 / frame_hz
         self.read_delay = read_delay
         self.digest_log = digest_log
@@ -146,10 +168,18 @@ class MirrorClient:
                         self.stats.grid_replacements += 1  # not a loss: the new grid is there now
                         self._last_ok = time.perf_counter()
                         continue
+                    answered = self.stats.messages or self.stats.status_messages
+                    if not answered and not_up_yet(exc) and time.perf_counter() - self._start < self.start_wait:
+                        self.status_log.waiting(_why(exc), self.start_wait)  # (once)
+                        await asyncio.sleep(START_POLL_S)
+                        continue
                     if not self.reconnect or time.perf_counter() - self._last_ok > self.reconnect_timeout:
-                        if not self.stats.messages:
-                            raise ConnectError(f"{self.url}: cannot connect ({_why(exc)})") from None
-                        raise ConnectError(f"{self.url}: connection lost ({_why(exc)}), not reconnecting") from None
+                        if not answered:
+                            tried = (f"; tried for {time.perf_counter() - self._start:.0f} s"
+                                     if not_up_yet(exc) and self.start_wait else "")
+                            raise ConnectError(f"{self.url}: cannot connect ({_why(exc)}{tried})") from None
+                        raise ConnectError(f"{self.url}: connection lost ({_why(exc)}){self.status_log.unfinished()}, "
+                                           "not reconnecting") from None
                     pause = 0.1 if time.perf_counter() - self._last_ok < 1.0 else min(2 * pause, 2.0)
                     await asyncio.sleep(pause)
                     self.stats.reconnects += 1
@@ -194,6 +224,9 @@ class MirrorClient:
                         continue
                     event = session.receive(data)
                     self._last_ok = time.perf_counter()
+                    if isinstance(event, StatusReceived):  # a starting server's state: no message of the stream
+                        self._status(event.status, len(data))
+                        continue
                     self.stats.messages += 1
                     self.stats.bytes_received += len(data)
                     self._apply(event, len(data), t0)
@@ -261,6 +294,14 @@ class MirrorClient:
             return None
         return max(max(frames, 1) / session.welcome.tick_hz, QUIET_END_S)
 
+    def _status(self, status: m.Status, nbytes: int) -> None:
+        self.stats.status_messages += 1
+        self.stats.bytes_received += nbytes
+        self.stats.status = describe_status(status)
+        self.status_log(status)
+        if self.on_status is not None:
+            self.on_status(status)
+
     def _apply(self, event, nbytes: int, t0: float) -> None:
         """One received event into the mirror and the statistics; callbacks run here."""
         if isinstance(event, Welcomed):
@@ -322,35 +363,107 @@ async def _discard_until_closed(ws, timeout: float) -> None:
         pass
 
 
-async def fetch_scene(url: str, token: str = "", limits: Limits = DEFAULT_LIMITS, timeout: float = 60.0):
+async def fetch_scene(url: str, token: str = "", limits: Limits = DEFAULT_LIMITS, timeout: float = 60.0,
+                      start_wait: float = START_WAIT_S, log: Callable[[str], None] | None = None):
     """The server's scene: (psao.scene Scene, scene hash bytes, compressed bytes received), over one short
-    connection (SceneRequest, SceneData chunks, Bye)."""
-    from psao.client.scene_import import scene_from_file
+    connection (SceneRequest, SceneData chunks, Bye). A server that does not accept connections yet is
+    tried again for up to `start_wait` seconds; one that is loading its scene sends Status messages (to the
+    log, as MirrorClient's) until it sends the scene. `timeout`: seconds without any message."""
+    status_log = StatusLog(url, log)
+    start = time.perf_counter()
+    while True:
+        try:
+            return await _fetch_scene_once(url, token, limits, timeout, status_log)
+        except InvalidURI as exc:
+            raise ConnectError(f"bad server URL: {exc}") from None
+        except RemoteError as exc:
+            raise ConnectError(f"{url}: server refused: {exc.text}") from None
+        except ProtocolError as exc:
+            raise ConnectError(f"{url}: bad scene data from the server: {exc}") from None
+        except (ConnectionClosed, OSError, TimeoutError, InvalidHandshake) as exc:
+            if status_log.status is None and not_up_yet(exc) and time.perf_counter() - start < start_wait:
+                status_log.waiting(_why(exc), start_wait)
+                await asyncio.sleep(START_POLL_S)
+                continue
+            tried = f"; tried for {time.perf_counter() - start:.0f} s" if not_up_yet(exc) and start_wait else ""
+            raise ConnectError(f"{url}: cannot fetch the scene ({_why(exc)}{tried}){status_log.unfinished()}") from None
 
+
+async def _fetch_scene_once(url: str, token: str, limits: Limits, timeout: float, status_log: "StatusLog"):
     session = ClientSession(ClientConfig(None, token, frozenset(Codec), limits))
-    try:
-        async with connect(url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0) as ws:
-            await ws.send(session.scene_request())
-            async with asyncio.timeout(timeout):
-                async for data in ws:
-                    if isinstance(data, str):
-                        raise ProtocolError("text message from the server")
-                    event = session.receive(data)
-                    if isinstance(event, SceneReceived):
-                        await ws.send(session.bye())
-                        return scene_from_file(event.scene, f"{url} scene"), event.scene_hash, event.blob_bytes
-            raise ConnectError(f"{url}: the server closed the connection before sending its scene")
-    except InvalidURI as exc:
-        raise ConnectError(f"bad server URL: {exc}") from None
-    except RemoteError as exc:
-        raise ConnectError(f"{url}: server refused: {exc.text}") from None
-    except ProtocolError as exc:
-        raise ConnectError(f"{url}: bad scene data from the server: {exc}") from None
-    except (ConnectionClosed, OSError, TimeoutError, InvalidHandshake) as exc:
-        raise ConnectError(f"{url}: cannot fetch the scene ({_why(exc)})") from None
+    async with connect(url, compression=None, max_size=limits.server_message_bytes, open_timeout=5.0) as ws:
+        await ws.send(session.scene_request())
+        while True:
+            try:
+                data = await asyncio.wait_for(ws.recv(), timeout)
+            except ConnectionClosedOK:
+                break
+            if isinstance(data, str):
+                raise ProtocolError("text message from the server")
+            event = session.receive(data)
+            if isinstance(event, StatusReceived):
+                status_log(event.status)
+            elif isinstance(event, ByeReceived):
+                break
+            elif isinstance(event, SceneReceived):
+                from psao.client.scene_import import scene_from_file  # (trimesh: imported once there is a scene)
+
+                await ws.send(session.bye())
+                return scene_from_file(event.scene, f"{url} scene"), event.scene_hash, event.blob_bytes
+    raise ConnectError(f"{url}: the server closed the connection before sending its scene{status_log.unfinished()}")
+
+
+def describe_status(status: m.Status) -> str:
+    """'baking 40%: text', as the log shows a Status."""
+    head = f"{status.phase.name.lower()} {100 * status.progress:.0f}%"
+    return f"{head}: {status.text}" if status.text else head
+
+
+def _stderr_line(line: str) -> None:
+    print(f"psao client: {line}", file=sys.stderr, flush=True)
+
+
+class StatusLog:
+    """The log's lines about a server that is still starting (`log(line)`, stderr by default): a Status
+    whose phase or text changed or whose progress moved by STATUS_LOG_STEP since the last line, and once
+    the notice that no server accepts connections yet."""
+
+    def __init__(self, url: str, log: Callable[[str], None] | None = None):
+        self.url = url
+        self.log = log or _stderr_line
+        self.status: m.Status | None = None  # the last Status received
+        self._logged: tuple | None = None  # (phase, text, progress) of the last Status logged
+        self._said_waiting = False
+
+    def __call__(self, status: m.Status) -> None:
+        self.status = status
+        last = self._logged
+        if last is None or (status.phase, status.text) != last[:2] or abs(status.progress - last[2]) >= STATUS_LOG_STEP:
+            self._logged = (status.phase, status.text, status.progress)
+            self.log(f"{self.url}: server {describe_status(status)}")
+
+    def waiting(self, why: str, seconds: float) -> None:
+        if not self._said_waiting:
+            self._said_waiting = True
+            self.log(f"{self.url}: no server accepts connections yet ({why}); waiting up to {seconds:g} s for it to start")
+
+    def unfinished(self) -> str:
+        """' while the server was baking 40%: ...' when the last Status was not READY, else ''."""
+        st = self.status
+        return "" if st is None or st.phase == m.StatusPhase.READY else f" while the server was {describe_status(st)}"
+
+
+def not_up_yet(exc: BaseException) -> bool:
+    """Whether a failed connection attempt looks like a server that is not accepting connections yet: the
+    connection refused, or no answer to the opening handshake (a server busy starting)."""
+    if isinstance(exc, (ConnectionRefusedError, TimeoutError, asyncio.TimeoutError)):
+        return True
+    return isinstance(exc, OSError) and exc.errno == errno.ECONNREFUSED and not isinstance(exc, ssl.SSLError)
 
 
 def _why(exc: BaseException) -> str:
+    if isinstance(exc, ConnectionRefusedError):
+        return "connection refused"
     if isinstance(exc, ConnectionClosed):
         rcvd = exc.rcvd
         return f"close code {rcvd.code}" if rcvd else "no close frame"

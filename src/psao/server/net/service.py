@@ -10,8 +10,15 @@ own at a time with what is pending in its view: while a message is being written
 only accumulate in that client's pending sets (or, on the shared stream, at most a few in its outbox).
 
 `replace_grid` swaps in another grid (and its tick) at the next tick: every connection is closed with
-GRID_REPLACED_CLOSE and its client reconnects to the new grid (`psao serve --progressive` serves a coarse
-first grid while the full one is baked).
+GRID_REPLACED_CLOSE and its client reconnects to the new grid (`psao serve` serves a coarse first grid
+while the full one is baked).
+
+A service may start without a scene and a grid (`psao serve` listens before it loads and bakes):
+`set_scene` and the first `replace_grid` come later, from the start-up thread. Connections are accepted
+meanwhile: the first message is read and its token checked at once, a Hello's scene hash once the scene is
+known, and each waits (SceneRequest for the scene, Hello for a grid) while Status messages tell it the
+phase (LOADING, BAKING, COARSE, READY), the progress and a line of text: at once, then whenever that
+changes (at most STATUS_HZ a second), to every connection that arrived before the full grid was served.
 
 The same port answers plain HTTP GETs with the web client's page (psao.server.net.webpage, an allow-list);
 before Hello a connection may ask for the scene (SceneRequest), answered from `scene_blob`.
@@ -19,6 +26,7 @@ before Hello a connection may ask for the scene (SceneRequest), answered from `s
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import socket
@@ -62,6 +70,7 @@ from psao.server.tick.summary import TickSummary
 
 log = logging.getLogger("psao.serve")
 
+STATUS_HZ = 4.0  # Status messages a second at most, per connection, while a server starts
 TickFn = Callable[[object, float], None]
 
 
@@ -109,29 +118,48 @@ class Service:
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
     connected clients' latest camera poses whenever one changes. `scene_blob` (scene_export.scene_blob, or a
     function giving it, called on a worker thread at the first SceneRequest: compressing a scene takes a while)
-    answers SceneRequest; without it a SceneRequest is refused."""
+    answers SceneRequest; without it a SceneRequest is refused.
 
-    def __init__(self, grid, scene_hash: bytes, settings: ServeSettings, tick: TickFn | None = None,
+    grid None (and scene_hash None): a starting service (see the module); `progress()` -> (fraction 0..1,
+    text) says what the start-up is doing, for the Status messages."""
+
+    def __init__(self, grid, scene_hash: bytes | None, settings: ServeSettings, tick: TickFn | None = None,
                  transforms: Callable[[], np.ndarray] | None = None,
                  on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
                  on_cameras: Callable[[list], None] | None = None,
-                 scene_blob: bytes | Callable[[], bytes] | None = None):
+                 scene_blob: bytes | Callable[[], bytes] | None = None,
+                 progress: Callable[[], tuple[float, str]] | None = None):
         settings.check()
+        if grid is not None and scene_hash is None:
+            raise ConfigError("a service with a grid needs its scene's hash")
         self.scene_blob = scene_blob
         self.grid = grid
         self.settings = settings
         self.tick_fn = tick
-        if transforms is None:
+        if transforms is None and grid is not None:
             transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
         self.on_scene_edit = on_scene_edit or getattr(transforms, "edit", None)
-        if settings.allow_edits and self.on_scene_edit is None:
+        if settings.allow_edits and self.on_scene_edit is None and grid is not None:
             raise ConfigError("edits are allowed but nothing applies them")
         self.on_cameras = on_cameras or getattr(tick, "set_cameras", None)
-        self.config = ServerConfig(scene_hash, settings.token, settings.edit_token if settings.allow_edits else "",
-                                   settings.codec, settings.layout, settings.zstd, settings.limits)
+        # the config of sessions made before the scene is known: tokens, codecs, limits, no scene hash yet
+        self._early_config = ServerConfig(None, settings.token, settings.edit_token if settings.allow_edits else "",
+                                          settings.codec, settings.layout, settings.zstd, settings.limits)
+        self.config: ServerConfig | None = None
+        self.fanout: Fanout | None = None
+        self._scene_known = asyncio.Event()  # set_scene (or a scene hash given here)
+        self._grid_ready = asyncio.Event()  # a grid is served
+        self._final = grid is not None  # the grid served is the full one (not a coarse first grid)
+        self.progress = progress
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._watchers: dict = {}  # connection -> _Watch: the connections Status messages go to
+        self._closing: list = []  # closes of replaced ticks (close_previous), on worker threads
+        if scene_hash is not None:
+            self._set_scene(scene_hash, scene_blob)
+        if grid is not None:
+            self._grid_ready.set()
         self._cameras_changed_since_tick = False
-        self.fanout = Fanout(self.config, settings.fanout)
         self._digest_of: tuple | None = None  # (tick, edits) and the state digest then
         self._open = 0  # connections being served, handshake included
         self.registry = Registry()
@@ -144,7 +172,7 @@ class Service:
         self._stats_out = open(settings.stats_json, "a", buffering=1) if settings.stats_json else None
         self.last_tick_stats: dict = {}
         self.summary = TickSummary()  # the whole run's per-tick statistics (psao serve --json)
-        self._replacement: tuple | None = None  # (grid, tick, transforms) to serve from the next tick on
+        self._replacement: tuple | None = None  # (grid, tick, transforms, final, close previous) from the next tick on
         self._live: dict[int, tuple] = {}  # client id -> (reader, writer) tasks of a client being served
         self._replaced: set[int] = set()  # clients whose connection ends because the grid was replaced
         self.grids_replaced = 0
@@ -157,6 +185,7 @@ class Service:
                   sock: socket.socket | None = None) -> None:
         """Serve until `stop` is set; on `sock` (already bound and listening) or on settings.host:port."""
         s = self.settings
+        self._loop = asyncio.get_running_loop()
         # The user-space write buffer is bounded like the kernel's: a slow reader blocks our send early.
         write_limit = min(32 * 1024, s.send_buffer) if s.send_buffer else 32 * 1024
         where = {"sock": sock} if sock is not None else {"host": s.host, "port": s.port}
@@ -175,9 +204,11 @@ class Service:
             self._tick_thread = ThreadPoolExecutor(1, thread_name_prefix="psao-tick")
             self._encode_thread = ThreadPoolExecutor(1, thread_name_prefix="psao-encode")
             ticker = asyncio.create_task(self._tick_loop(stop))
+            statuses = asyncio.create_task(self._status_loop())
             stopper = asyncio.create_task(stop.wait())
             await asyncio.wait({ticker, stopper}, return_when=asyncio.FIRST_COMPLETED)
             stopper.cancel()
+            statuses.cancel()
             if ticker.done():
                 ticker.result()  # a tick that raised is a bug: let it out
             ticker.cancel()
@@ -186,36 +217,67 @@ class Service:
             self._tick_thread.shutdown(wait=False, cancel_futures=True)
             self._encode_thread.shutdown(wait=False, cancel_futures=True)
             await self._say_goodbye()
+        if self._closing:
+            await asyncio.gather(*self._closing, return_exceptions=True)
         if self._digests:
             self._digests.close()
         if self._stats_out:
             self._stats_out.close()
 
     async def _say_goodbye(self) -> None:
-        for ws in list(self._connections):
+        """Bye to every client and to every connection still waiting for the server to start."""
+        for ws in list(self._connections | set(self._watchers)):
             try:
                 await asyncio.wait_for(ws.send(m.encode(m.Bye())), 1.0)
                 await asyncio.wait_for(ws.close(1001, "server shutting down"), 2.0)
             except (ConnectionClosed, asyncio.TimeoutError, OSError):
                 pass
 
-    # ---------------------------------------------------------------- grid replacement
-    def replace_grid(self, grid, tick: TickFn | None = None, transforms: Callable[[], np.ndarray] | None = None) -> None:
+    # ---------------------------------------------------------------- start-up and grid replacement
+    def set_scene(self, scene_hash: bytes, scene_blob: bytes | Callable[[], bytes] | None = None) -> None:
+        """The scene is loaded: its hash (a Hello is checked against it) and its blob (SceneRequest);
+        callable from any thread."""
+        self._on_loop(self._set_scene, scene_hash, scene_blob)
+
+    def _set_scene(self, scene_hash: bytes, scene_blob) -> None:
+        self.config = dataclasses.replace(self._early_config, scene_hash=scene_hash)
+        if scene_blob is not None:
+            self.scene_blob = scene_blob
+        self.fanout = Fanout(self.config, self.settings.fanout)
+        self._scene_known.set()
+
+    def _on_loop(self, fn, *args) -> None:
+        """fn(*args) on the event loop (at once when the service is not running yet)."""
+        if self._loop is None:
+            fn(*args)
+        else:
+            self._loop.call_soon_threadsafe(fn, *args)
+
+    def replace_grid(self, grid, tick: TickFn | None = None, transforms: Callable[[], np.ndarray] | None = None,
+                     final: bool = True, close_previous: bool = False) -> None:
         """Serve `grid` (ticked by `tick`, instances placed by `transforms`, by default the tick's) from the
-        next tick on; callable from any thread. Connections open then are closed with GRID_REPLACED_CLOSE."""
-        if len(grid.instances) != len(self.grid.instances):
+        next tick on; callable from any thread. Connections open then are closed with GRID_REPLACED_CLOSE
+        (after a Status READY when `final`). `final` False: a coarse first grid (Status phase COARSE);
+        `close_previous`: the tick served until then is closed (on a worker thread) once it is replaced."""
+        if self.grid is not None and len(grid.instances) != len(self.grid.instances):
             raise ConfigError(f"a replacement grid has {len(grid.instances)} instances, the served one {len(self.grid.instances)}")
-        self._replacement = (grid, tick, transforms if transforms is not None else getattr(tick, "transforms", None))
+        self._replacement = (grid, tick, transforms if transforms is not None else getattr(tick, "transforms", None),
+                             final, close_previous)
 
     def _swap_grid(self) -> None:
         """Between ticks, on the loop (nothing else runs meanwhile): the new grid, tick and transforms in,
         the clients of the old grid out of the registry and their senders and readers cancelled, so that
         nothing reads the new grid for a client whose mirror holds the old one; _serve_client then closes
         each connection with GRID_REPLACED_CLOSE."""
-        grid, tick, transforms = self._replacement
+        grid, tick, transforms, final, close_previous = self._replacement
         self._replacement = None
-        self.grid, self.tick_fn = grid, tick
-        self.transforms = transforms if transforms is not None else StaticTransforms(self.transforms())
+        first = self.grid is None
+        previous = self.tick_fn
+        self.grid, self.tick_fn, self._final = grid, tick, final
+        if transforms is None:
+            transforms = StaticTransforms(self.transforms() if self.transforms is not None else
+                                          np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
+        self.transforms = transforms
         self.on_scene_edit = getattr(tick, "edit", None) or getattr(self.transforms, "edit", None)
         self.on_cameras = getattr(tick, "set_cameras", None)
         counters, self.fanout = self.fanout.counters, Fanout(self.config, self.settings.fanout)
@@ -227,10 +289,18 @@ class Service:
             self.registry.remove(client)
             for task in tasks:
                 task.cancel()
-        self.grids_replaced += 1
+        if close_previous and previous is not None and hasattr(previous, "close"):
+            self._closing.append(asyncio.ensure_future(asyncio.to_thread(previous.close)))
         self._cameras_changed()
-        log.info("grid replaced (%d cells in use): %d clients reconnect to it", int(len(grid.allocated_cells())),
-                 len(self._replaced))
+        self._grid_ready.set()
+        kind = "full" if final else "coarse"
+        if first:
+            log.info("serving the %s grid (%d cells in use)%s", kind, int(len(grid.allocated_cells())),
+                     f"; {len(self._watchers)} connections were waiting for it" if self._watchers else "")
+            return
+        self.grids_replaced += 1
+        log.info("grid replaced by the %s grid (%d cells in use): %d clients reconnect to it", kind,
+                 int(len(grid.allocated_cells())), len(self._replaced))
 
     # ---------------------------------------------------------------- ticking
     async def _tick_loop(self, stop: asyncio.Event) -> None:
@@ -246,8 +316,12 @@ class Service:
             t0 = time.perf_counter()
             if own_s is not None and hasattr(self.tick_fn, "observe_service"):
                 self.tick_fn.observe_service(own_s + max(t0 - due, 0.0))
-            if self._replacement is not None:
+            if self._replacement is not None and self.config is not None:
                 self._swap_grid()
+            if self.grid is None:  # starting: nothing to tick yet
+                next_at, own_s = time.perf_counter() + period, None
+                await asyncio.sleep(period)
+                continue
             self._merge_cameras()
             stats = None
             if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
@@ -380,7 +454,7 @@ class Service:
     # ---------------------------------------------------------------- connections
     async def _handler(self, ws: ServerConnection) -> None:
         peer = "%s:%s" % tuple(ws.remote_address[:2]) if ws.remote_address else "?"
-        session = ServerSession(self.config)
+        session = ServerSession(self.config or self._early_config)
         self.counters.connections += 1
         if self._open >= self.settings.max_clients:
             full = RefusedError(f"server full: {self.settings.max_clients} connections", m.ErrorCode.SERVER_FULL,
@@ -392,6 +466,7 @@ class Service:
             await self._handle(ws, session, peer)
         finally:
             self._open -= 1
+            self._watchers.pop(ws, None)
 
     async def _handle(self, ws: ServerConnection, session: ServerSession, peer: str) -> None:
         sock = ws.transport.get_extra_info("socket")
@@ -399,13 +474,23 @@ class Service:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.settings.send_buffer)
         try:
             event = await self._next_handshake_event(ws, session)
+            await self._watch(ws, session)  # the token passed: Status from now on while the server starts
             if isinstance(event, SceneRequested):
+                if not await self._until(self._scene_known, ws, session, peer, "the scene"):
+                    return
                 await self._send_scene(ws, session, event)
                 event = await self._next_handshake_event(ws, session)
                 if isinstance(event, ByeReceived):
                     log.info("connection from %s took the scene and left", peer)
                     return
             assert isinstance(event, HelloAccepted)
+            if not await self._until(self._scene_known, ws, session, peer, "the scene"):
+                return
+            if not await self._until(self._grid_ready, ws, session, peer, "a grid"):
+                return
+            watch = self._watchers.get(ws)
+            if watch is not None:  # the phase it is served in (COARSE, READY) before its Welcome
+                await watch.flush(ws, self.status())
         except ProtocolError as exc:
             await self._reject(ws, session, exc, peer, None)
             return
@@ -432,6 +517,54 @@ class Service:
 
     async def _next_handshake_event(self, ws, session: ServerSession):
         return session.receive(_binary(await asyncio.wait_for(ws.recv(), self.settings.hello_timeout)))
+
+    # ---------------------------------------------------------------- a starting server's Status
+    def status(self) -> m.Status:
+        """What the server is doing now: the phase from what it serves, progress and text from the start-up."""
+        fraction, text = self.progress() if self.progress is not None else (0.0, "")
+        fraction = min(max(float(fraction), 0.0), 1.0) if np.isfinite(fraction) else 0.0
+        if self.grid is not None and self._final:
+            return m.Status(m.StatusPhase.READY, 1.0, "full grid served")
+        phase = (m.StatusPhase.LOADING if self.config is None else m.StatusPhase.BAKING if self.grid is None
+                 else m.StatusPhase.COARSE)
+        return m.Status(phase, fraction, text)
+
+    async def _watch(self, ws, session: ServerSession) -> None:
+        """Status messages for this connection while the full grid is not served: the first one now."""
+        if not (self.grid is not None and self._final):
+            self._watchers[ws] = watch = _Watch(session)
+            await watch.flush(ws, self.status())
+
+    async def _status_loop(self) -> None:
+        """Every 1/STATUS_HZ s: the current Status to each watching connection it differs for (a connection
+        whose last Status is still being written is skipped until that is out). Once READY is out to a
+        connection, it is not watched any more."""
+        while True:
+            now = self.status()
+            for ws, watch in list(self._watchers.items()):
+                watch.offer(ws, now)
+                if watch.done():
+                    self._watchers.pop(ws, None)
+            await asyncio.sleep(1.0 / STATUS_HZ)
+
+    async def _until(self, event: asyncio.Event, ws, session: ServerSession, peer: str, what: str) -> bool:
+        """Wait for `event` (the scene known, a grid ready) unless the connection closes first (False); a
+        session made before the scene was known is rebound to it (RefusedError on a scene mismatch)."""
+        if not event.is_set():
+            waiting, closed = asyncio.ensure_future(event.wait()), asyncio.ensure_future(ws.wait_closed())
+            try:
+                await asyncio.wait({waiting, closed}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                waiting.cancel()
+                closed.cancel()
+            if not event.is_set():
+                st = self.status()
+                log.info("connection from %s left while waiting for %s (server %s, %.0f%%)", peer, what,
+                         st.phase.name.lower(), 100 * st.progress)
+                return False
+        if session.config.scene_hash is None and self.config is not None:
+            session.rebind(self.config)
+        return True
 
     async def _send_scene(self, ws, session: ServerSession, event: SceneRequested) -> None:
         if self.scene_blob is None:
@@ -477,6 +610,10 @@ class Service:
         await ws.send(session.welcome(client.id, self.settings.tick_hz, len(grid.buckets), len(grid.cells),
                                       grid.instances))
         client.sent(b"")
+        if self.grid is not grid:  # replaced while the Welcome was on its way: this client goes to the new one
+            self._replaced.add(client.id)
+            await self._close_replaced(ws, client)
+            return
         self.registry.add(client)
         log.info("client %d from %s connected (codec %s)", client.id, client.peer, codec_name(codec))
         reader = asyncio.create_task(self._read(ws, session, client))
@@ -490,13 +627,7 @@ class Service:
         finally:
             self._live.pop(client.id, None)
         if client.id in self._replaced:
-            self._replaced.discard(client.id)
-            log.info("client %d from %s: grid replaced, closing (close code %d) after %d messages", client.id,
-                     client.peer, GRID_REPLACED_CLOSE, client.messages_sent)
-            try:
-                await ws.close(GRID_REPLACED_CLOSE, GRID_REPLACED_REASON)
-            except ConnectionClosed:
-                pass
+            await self._close_replaced(ws, client)
             return
         exc = next((t.exception() for t in done if not t.cancelled() and t.exception()), None)
         if isinstance(exc, ProtocolError):
@@ -510,6 +641,19 @@ class Service:
                      client.messages_sent, client.bytes_sent / 1e3)
         else:
             raise exc
+
+    async def _close_replaced(self, ws, client: Client) -> None:
+        """The grid was replaced: the new phase's Status (READY when the full grid came), then the close."""
+        self._replaced.discard(client.id)
+        log.info("client %d from %s: grid replaced, closing (close code %d) after %d messages", client.id,
+                 client.peer, GRID_REPLACED_CLOSE, client.messages_sent)
+        watch = self._watchers.pop(ws, None)
+        try:
+            if watch is not None:
+                await watch.flush(ws, self.status())
+            await ws.close(GRID_REPLACED_CLOSE, GRID_REPLACED_REASON)
+        except ConnectionClosed:
+            pass
 
     def _too_big(self, exc: ConnectionClosed, who: str) -> bool:
         """websockets itself closes (1009, no Error message) on a frame beyond max_size: log it as ours."""
@@ -697,6 +841,49 @@ class Service:
         await self._send(ws, client, data)
         client.updates_sent += 1
         self.counters.updates_out += 1
+
+
+class _Watch:
+    """A connection's Status messages: the last one offered, and the send of it (one at a time)."""
+
+    def __init__(self, session: ServerSession):
+        self.session = session
+        self.last: tuple | None = None
+        self.sending: asyncio.Task | None = None
+
+    @staticmethod
+    def key(status: m.Status) -> tuple:
+        return status.phase, round(100 * status.progress), status.text  # a change of a per cent counts
+
+    def offer(self, ws, status: m.Status) -> bool:
+        """Send `status` unless it is the last one sent or a send is still under way; whether it went."""
+        key = self.key(status)
+        if key == self.last or (self.sending is not None and not self.sending.done()):
+            return False
+        self.last = key
+        self.sending = asyncio.ensure_future(_send_quietly(ws, self.session.status(status)))
+        return True
+
+    def done(self) -> bool:
+        """READY went out: nothing more to tell this connection."""
+        return (self.last is not None and self.last[0] == m.StatusPhase.READY
+                and (self.sending is None or self.sending.done()))
+
+    async def flush(self, ws, status: m.Status) -> None:
+        """After the send under way, `status` unless it was the last one sent."""
+        if self.sending is not None:
+            await self.sending
+        if self.key(status) != self.last:
+            self.last = self.key(status)
+            await ws.send(self.session.status(status))
+
+
+async def _send_quietly(ws, data: bytes) -> None:
+    """A send whose connection may be gone meanwhile (its handler sees that itself)."""
+    try:
+        await ws.send(data)
+    except ConnectionClosed:
+        pass
 
 
 def tls_context(cert: Path, key: Path) -> ssl.SSLContext:

@@ -1,12 +1,15 @@
-"""Progressive start of `psao serve --progressive`: a coarse first grid at once, the full grid behind it.
+"""Start-up of `psao serve`: it listens first, then loads and bakes on a thread of its own (Startup),
+serving a coarse first grid at once and the full grid behind it (progressive start, the default).
 
 The full bake of a large scene (points at the target density, a first trace with the tick's round of
 rays, the server tick's set-up) takes tens of seconds. So the server first bakes a coarse grid of about
 `first_points` points (uniform random points, no elimination and no buried-surface test: they cost more
-than the preview gains), traced with the same few rays, and streams it as soon as it listens. The full
-bake runs in a background thread meanwhile (its tracing in the tracer's worker processes); when it is
-done the service swaps the full grid in (Service.replace_grid), every client reconnects to it (close code
-GRID_REPLACED_CLOSE), and the server tick refines it to the target rays in its spare budget.
+than the preview gains), traced with the same few rays, and streams it as soon as it is baked; with
+--animate a server tick of its own poses and traces the movers on it from its first tick. The full bake
+runs on the same thread behind it (its tracing in the tracer's worker processes); when it is done the
+service swaps the full grid in (Service.replace_grid), every client reconnects to it (close code
+GRID_REPLACED_CLOSE), and the server tick refines it to the target rays in its spare budget. Until then the
+service tells connected clients what the start-up is doing (StartupProgress, in Status messages).
 """
 from __future__ import annotations
 
@@ -51,6 +54,89 @@ def wants_coarse_grid(scene: Scene, full: BakeSettings, settings: ProgressiveSet
         return False
     _, estimate = resolve_density(scene, full.sampling(), full.min_points)
     return estimate >= settings.min_ratio * settings.first_points
+
+
+class StartupProgress:
+    """What the start-up is doing: the fraction done of its current step (0..1) and a line of text, set by
+    the start-up thread and read by the service for its Status messages (one tuple, replaced whole)."""
+
+    def __init__(self, text: str = "starting"):
+        self._now = (0.0, text)
+        self.started = time.perf_counter()
+
+    def set(self, fraction: float, text: str) -> None:
+        self._now = (min(max(float(fraction), 0.0), 1.0), text)
+
+    def __call__(self) -> tuple[float, str]:
+        return self._now
+
+
+class Stopped(Exception):
+    """The server stopped while the start-up ran: what it made is closed and the thread ends."""
+
+
+class Startup:
+    """`work(startup)` on a daemon thread once the service listens: it loads the scene and bakes, and hands
+    the service what it has as it comes: `scene(...)` (the scene hash and blob), `serve(...)` (a coarse first
+    grid, then the full one), `step(...)` (progress for the Status messages). A failure goes to
+    `on_error(exc)` (the server stops with it). close() (the server stopped) closes every tick it handed
+    over, and one that arrives afterwards; the work then ends at its next hand-over (Stopped)."""
+
+    def __init__(self, service, work: Callable[["Startup"], None], on_error: Callable[[BaseException], None],
+                 progress: StartupProgress | None = None):
+        self.service, self._work, self._on_error = service, work, on_error
+        self.progress = progress or StartupProgress()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._ticks: list = []  # the ticks handed to the service
+        self.seconds: dict[str, float] = {}  # seconds from start() to each grid served ("coarse", "full")
+        self._t0 = 0.0
+        self._thread = threading.Thread(target=self._run, name="psao start-up", daemon=True)
+
+    def start(self) -> None:
+        self._t0 = time.perf_counter()
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._work(self)
+        except Stopped:
+            return
+        except BaseException as exc:  # noqa: BLE001 - reported to the service, which stops
+            if not self._closed:
+                self._on_error(exc)
+
+    def step(self, fraction: float, text: str) -> None:
+        """Progress of the current step (Stopped once the server stopped)."""
+        if self._closed:
+            raise Stopped()
+        self.progress.set(fraction, text)
+
+    def scene(self, scene_hash: bytes, scene_blob) -> None:
+        if self._closed:
+            raise Stopped()
+        self.service.set_scene(scene_hash, scene_blob)
+
+    def serve(self, grid, tick, transforms, final: bool) -> None:
+        """Hand the service a grid with its tick and transforms (the coarse one: final False); the tick
+        served before is closed once it is replaced."""
+        with self._lock:
+            if self._closed:
+                if hasattr(tick, "close"):
+                    tick.close()
+                raise Stopped()
+            if tick is not None:
+                self._ticks.append(tick)
+            self.service.replace_grid(grid, tick, transforms, final=final, close_previous=True)
+        self.seconds["full" if final else "coarse"] = time.perf_counter() - self._t0
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            ticks, self._ticks = self._ticks, []
+        for tick in ticks:
+            if hasattr(tick, "close"):
+                tick.close()
 
 
 class BackgroundBake:

@@ -130,6 +130,7 @@ class ServerTick:
         only): traces waiting static points elsewhere as well, e.g. psao.server.tick.refine.ClusterRefiner."""
         self.settings = settings or TickSettings()
         self.settings.check()
+        self._closed = False
         self.scene = bake.scene
         self.grid = bake.grid
         self.animator = SceneAnimator(self.scene)
@@ -353,6 +354,10 @@ class ServerTick:
         return self._retrying(lambda: self.tracer.visibility_parts(parts))
 
     def close(self) -> None:
+        """Close the tracer and the refiner; once (a second call does nothing)."""
+        if self._closed:
+            return
+        self._closed = True
         self.tracer.close()
         if self.refiner is not None:
             self.refiner.close()
