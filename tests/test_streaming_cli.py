@@ -22,10 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
     (["--test-edits", "-1"], "--test-edits must be >= 0"),
     (["--grid", "/nonexistent/grid.npz"], "not a PSAO grid file"),
     (["--tick-hz", "nan"], "tick rate must be within 5..60"),
-    (["--animate", "--tick-budget-ms", "nan"], "--tick-budget-ms must be within (0, 16.6667]"),
-    (["--animate", "--tick-budget-ms", "0"], "--tick-budget-ms must be within (0, 16.6667]"),
-    (["--progressive", "--tick-budget-ms", "30"], "--tick-budget-ms must be within (0, 16.6667]"),
-    (["--animate", "--tick-rays", "0"], "--tick-rays must divide --rays"),
+    (["--animate", "--tick-budget-ms", "nan"], "tick budget must be within (0, 16.6667] ms"),
+    (["--animate", "--tick-budget-ms", "0"], "tick budget must be within (0, 16.6667] ms"),
+    (["--progressive", "--tick-budget-ms", "30"], "tick budget must be within (0, 16.6667] ms"),
+    (["--animate", "--tick-rays", "0"], "round rays must divide the tick's rays (128)"),
+    (["--animate", "--rays", "8", "--tick-rays", "16"], "round rays must divide the tick's rays (8)"),
+    (["--workers", "-1"], "workers must be >= 0"),
     (["--tick-budget-ms", "5"], "need --animate, --progressive or --allow-edits"),
 ])
 def test_serve_bad_settings(args, text):

@@ -10,20 +10,26 @@ import pytest
 from psao.protocol import pointword as pw
 from psao.scene import load_scene
 from psao.server.bake import bake_scene
-from psao.server.tick.budget import BudgetSettings, RefineQueue
+from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, RefineQueue
 from psao.server.errors import ConfigError
 from psao.server.settings import BakeSettings, TickSettings
 from psao.server.tick.server_tick import ServerTick
+
+
+SLOWEST_HZ = TICK_HZ_RANGE[0]
+LONGEST_MS = 1e3 / SLOWEST_HZ  # the longest budget a tick may have: the period at the slowest tick rate
 
 
 @pytest.fixture
 def budgeted_tick(make_tick):
     """The server tick with a budget so small that every tick traces its minimum batch (`min_points`): one
     ray a tick, not a time (a time's rays follow the tracer's measured speed, and with them how many whole
-    traces from static hits fit), unless `budget_ms` is given."""
+    traces from static hits fit), unless `budget_ms` is given (at the slowest tick rate, whose period allows
+    the longest budget)."""
     def make(name, density, bake_rays, rays, round_rays, min_points, budget_ms=None):
         budget = BudgetSettings(budget_ms=1e-3 if budget_ms is None else budget_ms, round_rays=round_rays,
-                                min_points=min_points, rays_per_tick=1.0 if budget_ms is None else 0.0)
+                                min_points=min_points, rays_per_tick=1.0 if budget_ms is None else 0.0,
+                                **({} if budget_ms is None else {"tick_hz": SLOWEST_HZ}))
         return make_tick(name, density, rays, bake_rays=bake_rays, budget=budget)[0]
     return make
 
@@ -189,8 +195,11 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
         tick.close()
 
 
-@pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("tick_hz", 0.0),
-                                         ("tick_hz", math.inf), ("round_rays", 0), ("round_rays", 3),
+@pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("budget_ms", 0.0),
+                                         ("budget_ms", 1e3 / BudgetSettings.tick_hz + 0.01), ("tick_hz", 0.0),
+                                         ("tick_hz", math.inf), ("tick_hz", TICK_HZ_RANGE[1] + 1),
+                                         ("tick_hz", TICK_HZ_RANGE[0] - 1), ("round_rays", 0), ("round_rays", 3),
+                                         ("round_rays", 2 * TickSettings.rays), ("min_points", 0),
                                          ("exact_share", 1.5), ("exact_share", -0.1), ("exact_share", math.nan),
                                          ("exact_points", -1), ("exact_cost", 0.0), ("exact_cost", -0.5),
                                          ("exact_cost", math.nan), ("refill_points", -1), ("rays_per_tick", -1.0),
@@ -465,7 +474,7 @@ def test_static_points_near_movers_traced_whole_hold_the_full_trace(budgeted_tic
     """Static points near the movers whose AO changed most are traced whole at once from their kept static
     hits (only the rays the static scene lets through, against the movers): each holds exactly the full
     trace of the scene as it stands at that tick, and waits no more; at most exact_points a tick."""
-    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=LONGEST_MS)
     tick.settings.budget.exact_points = 300
     tick.settings.budget.exact_share = 0.5
     try:
@@ -491,7 +500,7 @@ def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
     """An edit that makes a static instance a mover voids every kept static hit; the ticks after it trace
     a few static points near the movers whole with their hits kept again (at most refill_points a tick),
     and from those hits whole traces resume: every one still holds exactly the full trace."""
-    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=LONGEST_MS)
     tick.settings.budget.exact_points = 300
     tick.settings.budget.refill_points = 40
     try:
@@ -561,7 +570,7 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
     them), and a trace part that carries static hits, or asks to keep them, is refused rather than traced
     without them."""
     from psao.server.tracer.base import TracePart
-    budget = BudgetSettings(budget_ms=1000.0, round_rays=2, min_points=50)
+    budget = BudgetSettings(tick_hz=SLOWEST_HZ, budget_ms=LONGEST_MS, round_rays=2, min_points=50)
     tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
     try:
         assert bake.static_hits is not None and tick._static_hits is None
@@ -761,7 +770,7 @@ def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_ti
     from psao.client.connection import scene_camera_feed
     from psao.server.tick.selection import camera_planes, in_any_view
 
-    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=1000.0)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=LONGEST_MS)
     tick.settings.budget.exact_points = 300
     tick.settings.budget.exact_share = 0.5
     feed = scene_camera_feed(tick.scene)
@@ -821,7 +830,7 @@ def test_a_motion_test_tick_pools_its_trace(budgeted_tick):
     """At 60 ticks a second of scene time and motion_hz 30 (a test every other tick), a tick that tests
     motion traces nothing and leaves its budget to the next tick, which traces in one call with both
     budgets: the points the test reset wait one tick (all of them traced then, the budget allowing)."""
-    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1, budget_ms=1e3)
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=1, budget_ms=LONGEST_MS)
     pooled = []
     try:
         tick(tick.grid, 0.1)  # the first moving tick traces (it tests motion after the bake's frame)
@@ -834,7 +843,7 @@ def test_a_motion_test_tick_pools_its_trace(budgeted_tick):
                 assert s.queue > 0 and s.queue == len(tick.queue.waiting(tick.tracked))
             else:  # its own budget, and the tick before's when that one pooled
                 after_pool = pooled[-2:-1] == [True]
-                assert s.budget_ms == pytest.approx(2e3 if after_pool else 1e3)
+                assert s.budget_ms == pytest.approx(2 * LONGEST_MS if after_pool else LONGEST_MS)
                 assert s.queue == 0 and (s.traced > 0 or not after_pool)
     finally:
         tick.close()

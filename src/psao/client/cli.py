@@ -18,7 +18,7 @@ from pathlib import Path
 from psao.protocol.codecs import CODEC_NAMES
 from psao.options import comma_list, default
 from psao.client.errors import ConnectError
-from psao.client.settings import ConnectSettings
+from psao.client.settings import ConnectSettings, FrameSettings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -57,8 +57,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_render_arguments(p)  # --render OUTDIR and its options: frames at the client's own rate (--fps)
 
 
-def _codecs(text: str):
-    names = [t.strip() for t in text.split(",") if t.strip()]
+def connect_settings(args: argparse.Namespace) -> ConnectSettings:
+    """ConnectSettings from --codecs, --read-delay, --reconnect-timeout and --digest-every, checked
+    (ConnectSettings.check: ConnectError)."""
+    settings = ConnectSettings(codecs=tuple(t.strip() for t in args.codecs.split(",") if t.strip()),
+                               read_delay=args.read_delay, reconnect_timeout=args.reconnect_timeout,
+                               digest_every=getattr(args, "digest_every", ConnectSettings.digest_every))
+    settings.check()
+    return settings
+
+
+def _codecs(names: tuple[str, ...]):
     bad = [n for n in names if n not in CODEC_NAMES]
     if bad or not names:
         raise ConnectError(f"--codecs: unknown codec(s) {', '.join(bad) or '(none)'} (known: {', '.join(CODEC_NAMES)})")
@@ -102,18 +111,14 @@ def build_client(args: argparse.Namespace, scene, on_update=None, on_connect=Non
 
     if args.frames is not None and args.frames < 0:
         raise ConnectError(f"--frames must be >= 0, got {args.frames}")
-    if args.read_delay < 0:
-        raise ConnectError(f"--read-delay must be >= 0, got {args.read_delay}")
-    every = getattr(args, "digest_every", ConnectSettings.digest_every)
-    if every < 1:
-        raise ConnectError(f"--digest-every must be >= 1, got {every}")
+    c = connect_settings(args)
     client = MirrorClient(
-        args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=_token(args), codecs=_codecs(args.codecs),
+        args.url, scene_hash or scene_hash_bytes(scene.content_hash()), token=_token(args), codecs=_codecs(c.codecs),
         camera=scene_camera_feed(scene, _aspect(getattr(args, "size", None)), getattr(args, "camera_path", None)),
         on_update=on_update, on_connect=on_connect, on_snapshot=on_snapshot,
-        read_delay=args.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
-        reconnect_timeout=args.reconnect_timeout, recv_buffer=args.recv_buffer,
-        on_frame=on_frame, frame_hz=float(getattr(args, "fps", 30.0)), tls_ca=_tls_ca(args), digest_every=every,
+        read_delay=c.read_delay, digest_log=args.digest_log, reconnect=not args.no_reconnect,
+        reconnect_timeout=c.reconnect_timeout, recv_buffer=args.recv_buffer, on_frame=on_frame,
+        frame_hz=float(getattr(args, "fps", FrameSettings.fps)), tls_ca=_tls_ca(args), digest_every=c.digest_every,
     )
     return client
 

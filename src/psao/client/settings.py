@@ -2,11 +2,14 @@
 and the frames drawn (`psao client --render`, `psao render`). The options of the AO methods themselves
 are src/psao/client/render/renderer.py's MethodOptions.
 
-Plain dataclasses without imports, so `psao client --help` and the benchmarks read them for free.
+Plain dataclasses that import only the client's errors, so `psao client --help` and the benchmarks read
+them for free. A range is checked once, by the dataclass's check(), which the command line calls.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from psao.client.errors import ConnectError
 
 
 @dataclass
@@ -16,6 +19,11 @@ class ConnectSettings:
     read_delay: float = 0.0  # seconds paused after every message (0: none; more simulates a slow client)
     reconnect_timeout: float = 10.0  # seconds without a message before the client gives up
     digest_every: int = 1  # with a digest log: after the first Update, a digest every this many Updates
+
+    def check(self) -> None:
+        """ConnectError for a setting out of range (digest_every: MirrorClient's own check)."""
+        if not self.read_delay >= 0:
+            raise ConnectError(f"read delay must be >= 0 seconds, got {self.read_delay}")
 
 
 @dataclass

@@ -1,16 +1,19 @@
-"""Every server-side setting and its default, in one place: points, grid, tracer, gap fill, bake, bake
-probes, tick, service (the tick's time budget is src/psao/server/tick/budget.py's BudgetSettings).
+"""Every server-side setting, its default and its range check, in one place: points, grid, tracer, gap
+fill, bake, bake probes, tick, service (the tick's time budget and the tick rate's range are
+src/psao/server/tick/budget.py's BudgetSettings and TICK_HZ_RANGE).
 
 Each default is written once: a setting that several stages share (rays, seed, tracer, workers, spawn
-ratio) takes its default from the dataclass that owns it (how many points a bake gets by default is
-src/psao/server/points/sampling.py's scale-aware density), and the command line (`psao bake`,
-`psao serve`, `psao bench`) reads its defaults from these dataclasses (src/psao/options.py). This module
-imports only numpy and src/psao/protocol/ (codecs, layouts, limits), so `psao serve --help` reads it without
-loading Embree, Warp, scipy or websockets.
+ratio, sampling, tick rate) takes its default from the dataclass that owns it (how many points a bake gets by
+default is src/psao/server/points/sampling.py's scale-aware density), and the command line (`psao bake`,
+`psao serve`, `psao bench`) reads its defaults from these dataclasses (src/psao/options.py). Each range
+is checked once, by the owning dataclass's check() (TickSettings.check calls BudgetSettings.check); the
+command line builds the dataclasses and calls it, so a bad option gets that one-line ConfigError. This
+module imports only numpy, src/psao/protocol/ (codecs, layouts, limits) and the light server modules
+errors, tick.budget and points.sampling, so `psao serve --help` reads it without loading Embree, Warp,
+scipy or websockets.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,9 +22,9 @@ import numpy as np
 from psao.protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings
 from psao.protocol.limits import DEFAULT_LIMITS, Limits
 from psao.protocol.updates import Layout
-from psao.server.tick.budget import BudgetSettings
+from psao.server.tick.budget import BudgetSettings, check_tick_hz
 from psao.server.errors import ConfigError, GridError, TracerError
-from psao.server.points.sampling import DEFAULT_MAX_POINTS, SamplingSettings, check_detail_factor
+from psao.server.points.sampling import SamplingSettings, check_detail_factor
 
 
 @dataclass
@@ -158,12 +161,12 @@ def local_workers(address: str) -> int:
 
 @dataclass
 class BakeSettings:
-    density: float | None = None  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
-    points: float | None = None  # total point budget instead of a density
-    max_points: float = DEFAULT_MAX_POINTS  # refuse a setting whose estimate exceeds this many points
+    density: float | None = SamplingSettings.density  # N, final points per world unit^2; None: sampling.default_density (scale-aware)
+    points: float | None = SamplingSettings.points  # total point budget instead of a density
+    max_points: float = SamplingSettings.max_points  # refuse a setting whose estimate exceeds this many points
     # most times the density a small triangle gets (sampling.py), 1: off; None: on with the default density or
     # a point budget, off with an explicit density
-    detail_factor: int | None = None
+    detail_factor: int | None = SamplingSettings.detail_factor
     rays: int = TraceSettings.rays  # rays per point
     seed: int = 0  # points and rays
     tracer: str = "embree"  # back-end name, see psao.server.tracer
@@ -185,6 +188,8 @@ class BakeSettings:
         from psao.scene import limits as scene_limits
 
         self.sampling().check()
+        if self.workers < 0:
+            raise ConfigError(f"workers must be >= 0 (0: all cores), got {self.workers}")
         lim = scene_limits.current()
         if not 1.0 <= self.spawn_ratio <= lim.max_spawn_ratio:
             raise ConfigError(f"spawn ratio must be within 1..{lim.max_spawn_ratio:g}, got {self.spawn_ratio} "
@@ -207,6 +212,10 @@ class ProbeSettings:
 
     probes: int = 20000  # random surface probes for recon_mae (0 = skip)
     rays: int = 1024  # rays per probe for the ground truth
+
+    def check(self) -> None:
+        if self.probes < 0 or self.rays < 1:
+            raise ConfigError(f"probes must be >= 0 and probe rays >= 1, got {self.probes}, {self.rays}")
 
 
 @dataclass
@@ -268,28 +277,8 @@ class TickSettings:
             raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")
         if self.rays < 1:
             raise ConfigError(f"tick rays must be >= 1, got {self.rays}")
-        b = self.budget
-        if b is not None:
-            if not (math.isfinite(b.tick_hz) and b.tick_hz > 0):
-                raise ConfigError(f"tick rate must be a positive number of Hz, got {b.tick_hz}")
-            if not (math.isfinite(b.budget_ms) and 0 <= b.budget_ms <= 1e4):
-                raise ConfigError(f"tick budget must be within (0, 10000] ms (0: automatic), got {b.budget_ms}")
-            if not (math.isfinite(b.rays_per_tick) and b.rays_per_tick >= 0):
-                raise ConfigError(f"rays per tick must be a number >= 0 (0: from the time budget), got {b.rays_per_tick}")
-            if not (math.isfinite(b.motion_hz) and b.motion_hz >= 0):
-                raise ConfigError(f"motion tests a second must be a number >= 0 (0: every tick), got {b.motion_hz}")
-            if min(b.round_rays, b.min_points, b.scan_points, b.calls, b.window, b.local_rays) < 1:
-                raise ConfigError(f"round rays, min points, scan points, calls, window and local rays must be >= 1, got "
-                                  f"{b.round_rays}, {b.min_points}, {b.scan_points}, {b.calls}, {b.window}, {b.local_rays}")
-            if not (0 <= b.exact_share <= 1) or b.exact_points < 0:
-                raise ConfigError(f"exact share must be within [0, 1] and exact points >= 0, got {b.exact_share}, "
-                                  f"{b.exact_points}")
-            if not (math.isfinite(b.exact_cost) and b.exact_cost > 0) or b.refill_points < 0:
-                raise ConfigError(f"exact cost must be a number > 0 and refill points >= 0, got {b.exact_cost}, "
-                                  f"{b.refill_points}")
-            if self.rays % min(b.round_rays, self.rays):
-                raise ConfigError(f"round rays ({b.round_rays}) must divide the tick's rays ({self.rays}): each round "
-                                  "traces one equal slice of the target ray set")
+        if self.budget is not None:
+            self.budget.check(self.rays)
         if not (0 <= self.view.fov_margin < 180 and self.view.distance_margin >= 0):
             raise ConfigError(f"view margins out of range: {self.view}")
 
@@ -298,7 +287,7 @@ class TickSettings:
 class ServeSettings:
     host: str = "127.0.0.1"
     port: int = 8765  # 0 picks a free port
-    tick_hz: float = 60.0  # ticks per second
+    tick_hz: float = BudgetSettings.tick_hz  # ticks per second, within budget.TICK_HZ_RANGE
     codec: Codec = Codec.ZSTD_STREAM
     layout: Layout = Layout.PACKED
     zstd: ZstdSettings = PAPER_ZSTD
@@ -324,8 +313,7 @@ class ServeSettings:
     fanout: FanoutSettings = field(default_factory=FanoutSettings)  # shared stream and per-client culling
 
     def check(self) -> None:
-        if not 5.0 <= self.tick_hz <= 60.0:
-            raise ConfigError(f"tick rate must be within 5..60 Hz, got {self.tick_hz}")
+        check_tick_hz(self.tick_hz)
         if self.send_buffer < 0:
             raise ConfigError(f"send buffer must be >= 0 bytes (0: the system's default), got {self.send_buffer}")
         if not 0 <= self.port <= 65535:

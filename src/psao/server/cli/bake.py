@@ -9,7 +9,6 @@ from pathlib import Path
 from psao.options import default
 from psao.server.points import sampling
 from psao.server.cli.cluster import add_cluster_arguments, cluster_settings
-from psao.server.errors import ConfigError
 from psao.server.outputs import check_output_path, write_atomically
 from psao.server.settings import BakeSettings, DensifySettings, GapFillSettings, ProbeSettings
 from psao.server.tracer import BACKENDS
@@ -45,9 +44,7 @@ def add_tracer_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def bake_settings(args: argparse.Namespace) -> BakeSettings:
-    """BakeSettings from the options of add_bake_arguments."""
-    if args.workers < 0:
-        raise ConfigError(f"--workers must be >= 0, got {args.workers}")
+    """BakeSettings from the options of add_bake_arguments, checked (BakeSettings.check: ConfigError)."""
     points = sampling.bake_kwargs(args) if hasattr(args, "points") else {}
     settings = BakeSettings(**points, rays=args.rays, seed=args.seed, tracer=args.tracer, workers=args.workers,
                             spawn_ratio=args.spawn_ratio, cluster=cluster_settings(args),
@@ -81,12 +78,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
 
 
+def probe_settings(args: argparse.Namespace) -> ProbeSettings:
+    """ProbeSettings from --probes and --probe-rays, checked (ProbeSettings.check: ConfigError)."""
+    settings = ProbeSettings(probes=args.probes, rays=args.probe_rays)
+    settings.check()
+    return settings
+
+
 def run(args: argparse.Namespace) -> int:
     from psao.scene import load_scene
     from psao.server.bake import bake_scene, reconstruction_error, sample_probes
 
-    if args.probes < 0 or args.probe_rays < 1:
-        raise ConfigError("--probes must be >= 0 and --probe-rays >= 1")
+    probe = probe_settings(args)
     settings = bake_settings(args)
     out = check_output_path(args.out, ".npz") if args.out is not None else None  # before the work, not after
     scene = load_scene(args.scene, ao_distance=args.ao_distance)
@@ -94,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
     stats = dict(result.stats)
     try:
         tracer = result.tracer
-        if args.probes:
-            probes = sample_probes(scene, args.probes)
-            stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=args.probe_rays))
+        if probe.probes:
+            probes = sample_probes(scene, probe.probes)
+            stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=probe.rays))
     finally:
         result.tracer.close()
     out = out or check_output_path(Path("out") / f"{scene.name}-N{stats['density']:.4g}.npz", ".npz")

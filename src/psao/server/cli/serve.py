@@ -16,7 +16,7 @@ from psao.protocol.codecs import CODEC_NAMES, codec_name
 from psao.protocol.updates import LAYOUT_NAMES, layout_name
 from psao.options import default
 from psao.server.cli.bake import add_bake_arguments, bake_settings
-from psao.server.tick.budget import BudgetSettings
+from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, fitting_round_rays
 from psao.server.errors import ConfigError
 from psao.server.tick.progressive import ProgressiveSettings
 from psao.server.settings import BakeSettings, FanoutSettings, ServeSettings, TickSettings
@@ -39,7 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="when stopped, print one JSON object as the last line: the run's totals (connections, "
                         "bytes, updates, ...) and tick_stats (ticks, ticks/s, mean/p95/max tick ms, bytes, cells "
                         "and points traced/changed summed over the ticks, peak clients)")
-    p.add_argument("--tick-hz", type=float, default=default(ServeSettings, "tick_hz"), help="server ticks per second, 5..60")
+    p.add_argument("--tick-hz", type=float, default=default(ServeSettings, "tick_hz"),
+                   help="server ticks per second, {:g}..{:g}".format(*TICK_HZ_RANGE))
     p.add_argument("--token", default="",
                    help="clients must present this token (visible in the process list: prefer PSAO_TOKEN or --token-file)")
     p.add_argument("--token-file", type=Path, default=None, metavar="FILE",
@@ -68,7 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --animate or --progressive: rays per point per tick round (a divisor of --rays: one slice "
                         f"of the point's ray set), accumulated over ticks up to --rays ({default(BudgetSettings, 'round_rays')} without it); --progressive also traces its "
                         "first grid with them")
-    p.add_argument("--tick-budget-ms", type=float, default=None, metavar="MS",
+    p.add_argument("--tick-budget-ms", type=float, default=default(BudgetSettings, "budget_ms"), metavar="MS",
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
                         f"({100 * default(BudgetSettings, 'headroom'):g}%% of the tick period less the other stages without "
                         "it); waiting points queue")
@@ -86,24 +87,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="append a state digest (jsonl) after every message that left nothing pending (tests)")
 
 
-def _budget(args):
-    """The tick's time budget from --tick-hz, --tick-budget-ms and --tick-rays (ConfigError when out of range)."""
-    import math
-
-    b = BudgetSettings(tick_hz=args.tick_hz)
-    if args.tick_budget_ms is not None:
-        period_ms = 1e3 / args.tick_hz
-        if not (math.isfinite(args.tick_budget_ms) and 0 < args.tick_budget_ms <= period_ms):
-            raise ConfigError(f"--tick-budget-ms must be within (0, {period_ms:g}] ms (the tick period at "
-                              f"--tick-hz {args.tick_hz:g}), got {args.tick_budget_ms}")
-        b.budget_ms = args.tick_budget_ms
-    if args.tick_rays is not None:
-        if not 1 <= args.tick_rays <= args.rays or args.rays % args.tick_rays:
-            raise ConfigError(f"--tick-rays must divide --rays ({args.rays}): each round traces one slice of the "
-                              f"target ray set, got {args.tick_rays}")
-        b.round_rays = args.tick_rays
-    elif args.rays >= 1:  # the default round, or the largest divisor of --rays below it
-        b.round_rays = max(d for d in range(1, min(b.round_rays, args.rays) + 1) if args.rays % d == 0)
+def _budget(args) -> BudgetSettings:
+    """The tick's time budget from --tick-hz, --tick-budget-ms and --tick-rays (without it the default round,
+    or the largest divisor of --rays below it), checked against --rays (BudgetSettings.check: ConfigError)."""
+    round_rays = args.tick_rays if args.tick_rays is not None else fitting_round_rays(args.rays)
+    b = BudgetSettings(tick_hz=args.tick_hz, budget_ms=args.tick_budget_ms, round_rays=round_rays)
+    b.check(args.rays)
     return b
 
 

@@ -37,17 +37,31 @@ from dataclasses import dataclass
 import numpy as np
 
 from psao.protocol import pointword as pw
+from psao.server.errors import ConfigError
+
+TICK_HZ_RANGE = (5.0, 60.0)  # ticks per second a service, and the budgeted tick behind it, may run at
+
+
+def check_tick_hz(tick_hz: float) -> None:
+    """ConfigError unless `tick_hz` is within TICK_HZ_RANGE."""
+    lo, hi = TICK_HZ_RANGE
+    if not lo <= tick_hz <= hi:
+        raise ConfigError(f"tick rate must be within {lo:g}..{hi:g} Hz, got {tick_hz}")
 
 
 @dataclass
 class BudgetSettings:
-    tick_hz: float = 60.0  # the service's tick rate: the automatic budget is a share of its period
-    budget_ms: float = 0.0  # milliseconds of tracing per tick; 0 = automatic (headroom x period - other stages)
+    # the service's tick rate (ServeSettings.tick_hz takes its default from here), within TICK_HZ_RANGE: the
+    # automatic budget is a share of its period, a set one at most the period
+    tick_hz: float = 60.0
+    budget_ms: float | None = None  # milliseconds of tracing per tick, within (0, period]; None = automatic
+    # (headroom x period - other stages)
     headroom: float = 0.85  # automatic budget: this share of the tick period, less the other stages (the tick's
     # animate, select and grid, and what its service spends a tick besides: TraceBudget.observe_service)
     floor: float = 0.2  # automatic budget: never below this share of the tick period, nor of the tick's real length
     round_rays: int = 8  # rays per point per trace round, a divisor of the target rays (the history accumulates
-    # rounds, one slice of the target ray set each, up to the target)
+    # rounds, one slice of the target ray set each, up to the target); fitting_round_rays: the default's
+    # largest divisor
     keep_rays: int = 24  # on a change around a point, its estimate so far stands in for this many rays (at
     # most) until as many fresh rays have come (RefineQueue); the server tick gives a reset point its whole
     # ray set at once, so there it never shows; 0 = forget at once
@@ -84,6 +98,36 @@ class BudgetSettings:
     # exact_cost a ray) whatever the time they take, instead of what the time budget allows; for quality
     # studies that must not depend on the machine's load (benchmarks.bench_realtime --fixed-rays)
 
+    def check(self, rays: int) -> None:
+        """ConfigError for a setting out of range, naming it; `rays`: the tick's target rays per point."""
+        check_tick_hz(self.tick_hz)
+        period_ms = 1e3 / self.tick_hz
+        if self.budget_ms is not None and not (math.isfinite(self.budget_ms) and 0 < self.budget_ms <= period_ms):
+            raise ConfigError(f"tick budget must be within (0, {period_ms:g}] ms (the tick period at {self.tick_hz:g} "
+                              f"Hz; psao serve --tick-budget-ms), got {self.budget_ms}")
+        if not 1 <= self.round_rays <= rays or rays % self.round_rays:
+            raise ConfigError(f"round rays must divide the tick's rays ({rays}): each round traces one equal slice of "
+                              f"the target ray set (psao serve --tick-rays, --rays), got {self.round_rays}")
+        if not (math.isfinite(self.rays_per_tick) and self.rays_per_tick >= 0):
+            raise ConfigError(f"rays per tick must be a number >= 0 (0: from the time budget), got {self.rays_per_tick}")
+        if not (math.isfinite(self.motion_hz) and self.motion_hz >= 0):
+            raise ConfigError(f"motion tests a second must be a number >= 0 (0: every tick), got {self.motion_hz}")
+        if min(self.min_points, self.scan_points, self.calls, self.window, self.local_rays) < 1:
+            raise ConfigError(f"min points, scan points, calls, window and local rays must be >= 1, got "
+                              f"{self.min_points}, {self.scan_points}, {self.calls}, {self.window}, {self.local_rays}")
+        if not (0 <= self.exact_share <= 1) or self.exact_points < 0:
+            raise ConfigError(f"exact share must be within [0, 1] and exact points >= 0, got {self.exact_share}, "
+                              f"{self.exact_points}")
+        if not (math.isfinite(self.exact_cost) and self.exact_cost > 0) or self.refill_points < 0:
+            raise ConfigError(f"exact cost must be a number > 0 and refill points >= 0, got {self.exact_cost}, "
+                              f"{self.refill_points}")
+
+
+def fitting_round_rays(rays: int, most: int = BudgetSettings.round_rays) -> int:
+    """Rays per round for a target of `rays`: the largest divisor of `rays` up to `most` (`most` when
+    `rays` < 1, which BakeSettings.check refuses)."""
+    return max((d for d in range(1, min(most, rays) + 1) if rays % d == 0), default=most)
+
 
 class TraceBudget:
     """Points per tick from measured tracing speed."""
@@ -102,7 +146,7 @@ class TraceBudget:
 
     def budget_s(self) -> float:
         s = self.settings
-        if s.budget_ms > 0:
+        if s.budget_ms is not None:
             return s.budget_ms / 1e3
         # Never below `floor` of the period, nor below `floor` of the tick as it really runs: when the
         # other stages alone overrun the period, tracing keeps its share instead of starving.
