@@ -18,6 +18,9 @@ def skin_from_gltf(g, skin_index: int, joints: np.ndarray, weights: np.ndarray, 
         raise SceneFormatError(f"{where}: {len(joint_nodes)} joints, more than the {MAX_JOINTS} supported")
     if len(joint_nodes) and (joint_nodes.min() < 0 or joint_nodes.max() >= len(doc.nodes)):
         raise SceneFormatError(f"{where}: a joint refers to a missing node")
+    if len(np.unique(joint_nodes)) != len(joint_nodes):
+        twice = int(next(j for k, j in enumerate(joint_nodes) if j in joint_nodes[:k]))
+        raise SceneFormatError(f"{where}: node {twice} is listed twice among its joints")
     joints, weights = check_skin(joints, weights, len(joint_nodes), where)
     if skin.inverseBindMatrices is not None:
         ibm = g.accessor(skin.inverseBindMatrices, f"skin '{name}' inverseBindMatrices").astype(np.float64)
@@ -29,6 +32,39 @@ def skin_from_gltf(g, skin_index: int, joints: np.ndarray, weights: np.ndarray, 
     animator = gltf_node_animator(g, joint_nodes, gltf_animation_index(g, animation))
     names = [doc.nodes[j].name or f"node{j}" for j in joint_nodes]
     return Skin(inverse_bind=ibm, joints=joints, weights=weights, animator=animator, joint_names=names)
+
+
+def node_skin_from_gltf(g, node: int, vertex_count: int, animation: int | str = 0) -> Skin:
+    """A one-joint Skin on glTF node `node` for a mesh of `vertex_count` vertices in that node's local space
+    (inverse bind identity, every vertex weighted 1 to it): the mesh follows the node as animation
+    `animation` moves it, rigidly."""
+    joint_nodes = np.array([node], dtype=np.int64)
+    animator = gltf_node_animator(g, joint_nodes, gltf_animation_index(g, animation))
+    weights = np.zeros((vertex_count, 4))
+    weights[:, 0] = 1.0
+    return Skin(inverse_bind=np.eye(4)[None], joints=np.zeros((vertex_count, 4), np.int64), weights=weights,
+                animator=animator, joint_names=[g.doc.nodes[node].name or f"node{node}"])
+
+
+def animated_nodes(g, animation: int | str = 0) -> set[int]:
+    """The nodes glTF animation `animation` (index or name) moves: those its translation, rotation or scale
+    channels target, and their descendants (empty when the file has no animation)."""
+    index = gltf_animation_index(g, animation)
+    if index < 0:
+        return set()
+    nodes = g.doc.nodes
+    moved, stack = set(), []
+    for ch in g.doc.animations[index].channels or []:
+        target = ch.target
+        if target is not None and target.path in _CHANNEL_WIDTH and isinstance(target.node, int):
+            stack.append(target.node)
+    while stack:
+        n = stack.pop()
+        if n in moved or not 0 <= n < len(nodes):
+            continue
+        moved.add(n)
+        stack.extend(nodes[n].children or [])
+    return moved
 
 
 def gltf_animation_index(g, animation: int | str) -> int:

@@ -1,8 +1,12 @@
 """Mesh files: geometry cleaning, glTF/GLB through pygltflib, OBJ/PLY/STL/OFF through trimesh.
 
 glTF is read with pygltflib (not trimesh) so that vertex order is kept exactly as in the file: skins
-(per-vertex joints and weights) index those vertices. Node transforms are kept: one Mesh per glTF mesh,
-one Instance per node that uses it, with the node's world transform.
+(per-vertex joints and weights) index those vertices. Node transforms are kept: one Mesh per glTF mesh
+(its primitives concatenated), one Instance per node that uses it, with the node's world transform. A
+mesh on a node with a skin is one Mesh per (mesh, skin), placed by its joints (identity transform). A
+mesh on a node that the chosen animation moves (the node or an ancestor is a channel's target), a part of
+a character hung on a bone, is one Mesh per node with a one-joint skin on that node, so it follows the
+animation rigidly. Skins, joints and animations that do not fit together are SceneFormatErrors.
 
 Cleaning (every mesh, whatever its source): faces touching a NaN/inf vertex are dropped, exactly
 duplicated vertices are merged, degenerate triangles (repeated index or zero area) are dropped, unused
@@ -22,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from psao.scene.errors import GeometryError, SceneFormatError, SceneNotFound
-from psao.scene.gltf_skin import skin_from_gltf
+from psao.scene.gltf_skin import animated_nodes, node_skin_from_gltf, skin_from_gltf
 from psao.scene.model import Instance, Mesh
 from psao.scene.skin import rebase_to_rest_pose
 from psao.scene.transforms import trs_matrix
@@ -379,12 +383,15 @@ class GltfMeshData:
     weights: np.ndarray | None  # (V, 4) float64 WEIGHTS_0
     color: tuple[float, float, float]
     double_sided: bool
+    skinned_primitives: int = 0  # primitives with JOINTS_0 and WEIGHTS_0
+    primitives: int = 0  # triangle primitives read
 
 
 def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
     mesh = g.doc.meshes[mi]
     name = mesh.name or f"mesh{mi}"
     verts, faces, joints, weights, offset = [], [], [], [], 0
+    skinned_prims: list[int] = []
     color, double_sided = (0.8, 0.8, 0.8), False
     for pi, prim in enumerate(mesh.primitives):
         what = f"mesh '{name}' primitive {pi}"
@@ -407,8 +414,13 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
         verts.append(v)
         faces.append(tri + offset)
         if skin is not None:
+            for attribute, values in zip(("JOINTS_0", "WEIGHTS_0"), skin):
+                if len(values) != len(v):
+                    raise SceneFormatError(f"{g.path}: {what}: {attribute} has {len(values)} entries for "
+                                           f"{len(v)} positions")
             joints.append(skin[0].astype(np.int64))
             weights.append(skin[1].astype(np.float64))
+            skinned_prims.append(pi)
         offset += len(v)
         if prim.material is not None and pi == 0:
             mat = g.doc.materials[prim.material]
@@ -421,7 +433,8 @@ def read_gltf_mesh(g: GltfFile, mi: int) -> GltfMeshData:
     skinned = len(joints) == len(verts)
     return GltfMeshData(name, np.concatenate(verts), np.concatenate(faces),
                         np.concatenate(joints) if skinned else None,
-                        np.concatenate(weights) if skinned else None, color, double_sided)
+                        np.concatenate(weights) if skinned else None, color, double_sided,
+                        len(skinned_prims), len(verts))
 
 
 def _draco_primitive(g: GltfFile, ext: dict, what: str):
@@ -470,8 +483,11 @@ def load_gltf(path: Path, animation: int | str = 0) -> tuple[list[Mesh], list[In
 def _load_gltf(path: Path, animation: int | str) -> tuple[list[Mesh], list[Instance]]:
     g = GltfFile(path)
     world = g.world_matrices()
+    moved = animated_nodes(g, animation)
+    skins = g.doc.skins or []
     meshes: list[Mesh] = []
-    mesh_index: dict[int, int] = {}
+    mesh_index: dict[tuple, int] = {}  # (glTF mesh, skin) or (glTF mesh, None, node) or (glTF mesh,) -> Mesh
+    read: dict[int, GltfMeshData | None] = {}  # glTF mesh -> its data (None: no triangles)
     instances: list[Instance] = []
     mesh_names: set[str] = set()
     inst_names: set[str] = set()
@@ -479,31 +495,48 @@ def _load_gltf(path: Path, animation: int | str) -> tuple[list[Mesh], list[Insta
         node = g.doc.nodes[n]
         if node.mesh is None:
             continue
-        if node.mesh not in mesh_index:
+        if node.mesh not in read:
             try:
-                data = read_gltf_mesh(g, node.mesh)
+                read[node.mesh] = read_gltf_mesh(g, node.mesh)
             except GeometryError as e:
                 log.warning("%s", e)
-                continue
+                read[node.mesh] = None
             except MALFORMED_ERRORS as e:  # name the node and mesh when the fault is in the mesh
                 raise SceneFormatError(f"{path}: node '{g.node_name(n)}' mesh {node.mesh}: malformed glTF "
                                        f"({type(e).__name__}: {e})".splitlines()[0]) from None
+        data = read[node.mesh]
+        if data is None:
+            continue
+        if node.skin is not None:
+            if not 0 <= node.skin < len(skins):
+                raise SceneFormatError(f"{path}: node '{g.node_name(n)}' refers to a missing skin {node.skin}")
+            if data.joints is None:
+                raise SceneFormatError(
+                    f"{path}: node '{g.node_name(n)}' has skin {node.skin} but mesh '{data.name}' has JOINTS_0 "
+                    f"and WEIGHTS_0 on {data.skinned_primitives} of its {data.primitives} primitives")
+            key = (node.mesh, node.skin)
+        elif n in moved:
+            key = (node.mesh, None, n)
+        else:
+            key = (node.mesh,)
+        if key not in mesh_index:
             name = _unique(data.name, mesh_names)
             r = clean_geometry(data.vertices, data.faces, f"{path}: mesh '{name}'",
-                               merge=data.joints is None)
+                               merge=node.skin is None)
             mesh = Mesh(name=name, vertices=r.vertices, faces=r.faces, double_sided=data.double_sided,
                         color=data.color)
-            if node.skin is not None and data.joints is not None:
-                if not 0 <= node.skin < len(g.doc.skins or []):
-                    raise SceneFormatError(f"{path}: node '{g.node_name(n)}' refers to a missing skin {node.skin}")
+            if node.skin is not None:
                 mesh.skin = skin_from_gltf(g, node.skin, data.joints[r.source_vertex],
                                            data.weights[r.source_vertex], animation)
+            elif n in moved:
+                mesh.skin = node_skin_from_gltf(g, n, len(r.vertices), animation)
+            if mesh.skin is not None:
                 rebase_to_rest_pose(mesh)
-            mesh_index[node.mesh] = len(meshes)
+            mesh_index[key] = len(meshes)
             meshes.append(mesh)
         # A skinned mesh is placed by its joints, not by its node (glTF 2.0, skins): identity transform.
-        skinned = meshes[mesh_index[node.mesh]].skin is not None
-        instances.append(Instance(name=_unique(g.node_name(n), inst_names), mesh=mesh_index[node.mesh],
+        skinned = meshes[mesh_index[key]].skin is not None
+        instances.append(Instance(name=_unique(g.node_name(n), inst_names), mesh=mesh_index[key],
                                   transform=np.eye(4) if skinned else world[n]))
     if not instances:
         raise GeometryError(f"{path}: no triangle meshes in the default scene")

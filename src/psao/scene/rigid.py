@@ -213,6 +213,21 @@ class PlatformAnimation(RigidAnimation):
         return translation_matrix(self.offset * f)
 
 
+@dataclass
+class PartAnimation:
+    """A part of a composed object moved with the whole: world(t) = whole.matrix(t) @ part, `part` the
+    part's fixed transform inside the object (a TOML [[instance]] of a mesh file of several parts)."""
+    whole: RigidAnimation
+    part: np.ndarray  # (4, 4)
+
+    @property
+    def kind(self) -> str:
+        return self.whole.kind
+
+    def matrix(self, t: float) -> np.ndarray:
+        return self.whole.matrix(t) @ self.part
+
+
 def instance_transform(scene, i: int, t: float) -> np.ndarray:
     """Local-to-world 4x4 of instance i at time t seconds."""
     inst = scene.instances[i]

@@ -6,16 +6,24 @@ naming the file and the element):
     [scene]
     name = "pavilion"            # default: the file's stem
     ao_distance = 1.0            # world units, > 0; default: 0.1 x the scene's bounding-box diagonal
+    root = "../assets"           # the folder mesh `path`s are relative to and must stay inside, itself
+                                 #   relative to this TOML file; default: the TOML file's folder. A root
+                                 #   that is not a folder is a SceneNotFound (files absent: one line)
 
     [[mesh]]                     # one per mesh; names unique
     name = "floor"
     generator = "box"            # one of builtin_shapes.GENERATORS: box, plane, sphere, cylinder, cone,
     size = [10.0, 0.2, 10.0]     #   capsule, torus, boulder, column, arch, railing, cloth; its keyword
                                  #   parameters are given as keys of this table (e.g. radius, height)
-    # path = "meshes/statue.glb" # instead of generator: a mesh file, relative to this TOML file, inside
-                                 #   its folder tree; all its nodes are baked into this one mesh, except
-                                 #   for a skinned glTF (one mesh), which keeps its skin and takes
-    # animation = "Walk"         #   the glTF animation to play (name or index, default 0) and
+    # path = "meshes/statue.glb" # instead of generator: a mesh file, relative to the scene root (above),
+                                 #   inside it; a file without skins has all its nodes baked into this
+                                 #   one mesh. A skinned glTF (a character: any number of meshes,
+                                 #   primitives and skins) keeps the file's meshes and instances as
+                                 #   load_mesh_file gives them: each [[instance]] of it places every
+                                 #   part, its transform (and rigid animation) applied to the whole
+                                 #   character. Parts are named "MESH/PART" (meshes) and
+                                 #   "INSTANCE/PART" (instances) when the file has more than one.
+    # animation = "Walk"         #   The glTF animation to play (name or index, default 0: the first) and
     # animation_offset = 0.5     #   a time offset in seconds (characters out of step)
     double_sided = false         # true only for thin open surfaces (cloth, leaves)
     color = [0.8, 0.8, 0.8]      # linear RGB albedo, each in [0, 1]
@@ -54,6 +62,7 @@ The transform of an instance is T * R * S (scale first, then rotate, then transl
 from __future__ import annotations
 
 import inspect
+import os
 import tomllib
 from pathlib import Path
 
@@ -64,6 +73,7 @@ from psao.scene.errors import SceneError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import clean_geometry, load_mesh_file, merged_mesh
 from psao.scene.model import CameraKey, CameraPath, Instance, Mesh, Scene
+from psao.scene.rigid import PartAnimation
 from psao.scene.skin import TimeShift
 from psao.scene.toml_animation import parse_animation
 from psao.scene.toml_fields import Table, rotation_of, scale_of
@@ -87,9 +97,9 @@ def load_toml_scene(path: Path) -> Scene:
     except UnicodeDecodeError as e:
         raise SceneFormatError(f"{path}: not UTF-8 text: {e}") from None
     root = Table(data, str(path), {"scene", "mesh", "instance", "camera_path"})
-    head = Table(data.get("scene", {}), f"{path}: [scene]", {"name", "ao_distance"})
+    head = Table(data.get("scene", {}), f"{path}: [scene]", {"name", "ao_distance", "root"})
     name = head.text("name", path.stem)
-    meshes, mesh_ids = _meshes(path, root.tables("mesh"))
+    meshes, mesh_ids = _meshes(path, root.tables("mesh"), _scene_root(path, head))
     instances = _instances(path, root.tables("instance"), mesh_ids)
     if not instances:
         raise SceneFormatError(f"{path}: no [[instance]]: the scene is empty")
@@ -99,9 +109,26 @@ def load_toml_scene(path: Path) -> Scene:
                  source=str(path))
 
 
-def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
+# A [[mesh]] of a TOML scene as the scene's meshes it became: (mesh index, part name or None when it is the
+# only part, the part's transform inside the [[mesh]]).
+Part = tuple[int, "str | None", np.ndarray]
+
+
+def _scene_root(path: Path, head: Table) -> Path:
+    """The folder mesh paths are resolved in: [scene] root relative to the TOML file, or the TOML's folder."""
+    base = path.parent.resolve()
+    if not head.has("root"):
+        return base
+    rel = head.text("root")
+    folder = (base / rel).resolve()
+    if not folder.is_dir():
+        raise SceneNotFound(f"{head.where}: scene root '{rel}' ({folder}) is not a folder")
+    return folder
+
+
+def _meshes(path: Path, tables: list, root: Path) -> tuple[list[Mesh], dict[str, list[Part]]]:
     meshes: list[Mesh] = []
-    ids: dict[str, int] = {}
+    ids: dict[str, list[Part]] = {}
     for k, raw in enumerate(tables):
         label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
         where = f"{path}: mesh '{label}'"
@@ -130,11 +157,13 @@ def _meshes(path: Path, tables: list) -> tuple[list[Mesh], dict[str, int]]:
             except (TypeError, ValueError) as e:
                 raise t.fail(f"generator '{gen_name}': {e}") from None
             r = clean_geometry(v, f, where)
-            mesh = Mesh(name=name, vertices=r.vertices, faces=r.faces, **fields)
+            parts = [(Mesh(name=name, vertices=r.vertices, faces=r.faces, **fields), None, np.eye(4))]
         else:
-            mesh = _file_mesh(path, t, name, fields)
-        ids[name] = len(meshes)
-        meshes.append(mesh)
+            parts = _file_meshes(root, t, name, fields)
+        ids[name] = []
+        for mesh, part, transform in parts:
+            ids[name].append((len(meshes), part, transform))
+            meshes.append(mesh)
     return meshes, ids
 
 
@@ -156,17 +185,22 @@ def check_resolution(t: Table, gen_name: str, kwargs: dict) -> None:
                          f"(psao --scene-limit raises the limit)")
 
 
-def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
+def _file_meshes(root: Path, t: Table, name: str, fields: dict) -> list[tuple[Mesh, str | None, np.ndarray]]:
+    """The meshes a [[mesh]] with a `path` becomes, each with its part name (None: the only one) and its
+    transform inside the [[mesh]]: a file without skins merged into one mesh; a skinned glTF as its meshes
+    and instances, each mesh renamed NAME/PART, its double_sided and color set, its animators shifted by
+    animation_offset."""
     rel = t.text("path")
-    base = path.parent.resolve()
-    file = (base / rel).resolve()
-    if Path(rel).is_absolute() or base not in file.parents:
-        raise t.fail(f"path '{rel}' must be relative and inside the scene's folder")
+    # Inside the root by the path as written ("..", not symlinks: a link to a shared asset folder is fine)
+    file = Path(os.path.normpath(root / rel))
+    if Path(rel).is_absolute() or root not in file.parents:
+        raise t.fail(f"path '{rel}' must be relative and inside the scene's folder ({root})")
     if not file.is_file():
         raise SceneNotFound(f"{t.where}: mesh file '{rel}' not found")
     animation = t.data.get("animation", 0)
     if isinstance(animation, bool) or not isinstance(animation, (int, str)):
         raise t.fail(f"'animation' must be a name or an index, got {animation!r}")
+    offset = t.number("animation_offset") if t.has("animation_offset") else None
     try:
         ms, ins = load_mesh_file(file, animation)
     except SceneError as e:  # name the scene file and the element too, not only the mesh file
@@ -174,20 +208,25 @@ def _file_mesh(path: Path, t: Table, name: str, fields: dict) -> Mesh:
     if not any(m.skin is not None for m in ms):
         if t.has("animation") or t.has("animation_offset"):
             raise t.fail(f"'{rel}' has no skin: 'animation' and 'animation_offset' do not apply")
-        return merged_mesh(name, ms, ins, **fields)
-    if len(ms) != 1:
-        raise t.fail(f"'{rel}' holds {len(ms)} meshes: a skinned mesh file must hold exactly one")
-    mesh = ms[0]
-    mesh.name, mesh.double_sided, mesh.color = name, fields["double_sided"], fields["color"]
-    if t.has("animation_offset"):
-        mesh.skin.animator = TimeShift(mesh.skin.animator, t.number("animation_offset"))
-    return mesh
+        return [(merged_mesh(name, ms, ins, **fields), None, np.eye(4))]
+    alone = len(ins) == 1
+    for m in ms:
+        m.name = name if alone else f"{name}/{m.name}"
+        m.double_sided, m.color = fields["double_sided"], fields["color"]
+        if m.skin is not None and offset is not None:
+            m.skin.animator = TimeShift(m.skin.animator, offset)
+    return [(ms[i.mesh], None if alone else i.name, i.transform) for i in ins]
 
 
-def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Instance]:
+def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> list[Instance]:
     most = limits.current().max_instances
     if len(tables) > most:
         raise SceneFormatError(f"{path}: {len(tables)} instances, over the limit of {most} "
+                               f"(psao --scene-limit max_instances=N raises it)")
+    placed = sum(len(mesh_ids.get(raw.get("mesh"), ())) for raw in tables
+                 if isinstance(raw, dict) and isinstance(raw.get("mesh"), str))
+    if placed > most:
+        raise SceneFormatError(f"{path}: {len(tables)} instances place {placed} parts, over the limit of {most} "
                                f"(psao --scene-limit max_instances=N raises it)")
     out: list[Instance] = []
     names: set[str] = set()
@@ -207,7 +246,15 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, int]) -> list[Insta
         if t.has("animation"):
             animation = parse_animation(t.data["animation"], f"{t.where}: animation", transform)
             transform = animation.matrix(0.0)
-        out.append(Instance(name=name, mesh=mesh_ids[mesh], transform=transform, animation=animation))
+        for index, part, local in mesh_ids[mesh]:
+            part_name = name if part is None else f"{name}/{part}"
+            if part_name in names and part is not None:
+                raise t.fail(f"part '{part_name}' has the name of another instance")
+            names.add(part_name)
+            moved = animation
+            if animation is not None and not np.array_equal(local, np.eye(4)):
+                moved = PartAnimation(animation, local)
+            out.append(Instance(name=part_name, mesh=index, transform=transform @ local, animation=moved))
     return out
 
 
