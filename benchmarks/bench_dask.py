@@ -86,7 +86,7 @@ def process_cpu() -> dict[int, float]:
 def measure(tracer, pos, nrm, ids, s: TraceSettings) -> dict:
     """One timed trace: wall seconds, CPU seconds of this process (client, and the scheduler of a
     LocalCluster) and of the others, the seconds the workers spent inside their trace calls, tasks."""
-    cpu0, inside0, tasks0 = process_cpu(), tracer.account.cpu_total, getattr(tracer, "tasks_done", 0)
+    cpu0, inside0, tasks0 = process_cpu(), tracer.account.cpu_total, tracer.tasks_done
     t0, thread0 = time.perf_counter(), time.thread_time()
     vis = tracer.visibility(pos, nrm, ids, s)
     wall, thread = time.perf_counter() - t0, time.thread_time() - thread0
@@ -94,7 +94,7 @@ def measure(tracer, pos, nrm, ids, s: TraceSettings) -> dict:
     me = os.getpid()
     spent = {pid: c - cpu0.get(pid, 0.0) for pid, c in cpu1.items()}
     return {"vis": vis, "wall": wall, "cpu_thread": thread, "cpu_main": spent.pop(me, 0.0), "cpu_others": sum(spent.values()),
-            "inside": tracer.account.cpu_total - inside0, "tasks": getattr(tracer, "tasks_done", 0) - tasks0,
+            "inside": tracer.account.cpu_total - inside0, "tasks": tracer.tasks_done - tasks0,
             "rays": len(pos) * s.rays, "load": os.getloadavg()[0]}
 
 

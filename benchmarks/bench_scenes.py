@@ -160,16 +160,27 @@ def run_child(spec: str, scale: float, cfg: dict) -> dict:
     return json.loads(last[0])
 
 
-def format_row(r: dict) -> str:
+# (heading, row key, format): the console line and the markdown table (benchmarks.report) show these
+COLUMNS = (("N / unit^2", "density", ".4g"), ("points", "points", ",d"), ("bake s", "seconds", ".1f"),
+           ("dropped %", "dropped_pct", ".3f"), ("buried %", "buried_pct", ".1f"), ("recon MAE", "recon_mae", ".4f"),
+           ("holes %", "holes_pct", ".3f"), ("PSNR PSAO", "psnr_psao", ".2f"), ("SSAO", "psnr_ssao", ".2f"),
+           ("GTAO", "psnr_gtao", ".2f"), ("peak MB", "peak_mb", ".0f"))
+HEADER_COLUMNS = ("scene", *(c[0] for c in COLUMNS))
+
+
+def table_cells(r: dict) -> list[str]:
+    """One row's cells, formatted (a model that failed: its error in the first column after the name)."""
     if "error" in r:
-        return f"{r['scene']:>18s} x{r['scale']:<3g} error: {r['error']}"
-    return (f"{r['scene']:>18s} x{r['scale']:<3g} {r['density']:>9.4g} {r['points']:>10,d} {r['seconds']:>7.1f} "
-            f"{r['dropped_pct']:>8.3f} {r.get('buried_pct', float('nan')):>7.1f} {r['recon_mae']:>8.4f} {r['holes_pct']:>7.3f} {r['psnr_psao']:>6.2f} "
-            f"{r['psnr_ssao']:>6.2f} {r['psnr_gtao']:>6.2f} {r['peak_mb']:>8.0f}")
+        return [r["scene"], f"error: {r['error']}", *[""] * (len(COLUMNS) - 1)]
+    return [r["scene"], *(format(r.get(key, float("nan")), fmt) for _, key, fmt in COLUMNS)]
 
 
-HEADER = (f"{'scene':>18s} {'':4s} {'N/unit^2':>9s} {'points':>10s} {'bake s':>7s} {'drop %':>8s} {'buried%':>7s} {'MAE':>8s} "
-          f"{'holes %':>7s} {'PSAO':>6s} {'SSAO':>6s} {'GTAO':>6s} {'peak MB':>8s}")
+def format_row(r: dict) -> str:
+    cells = table_cells(r)
+    return f"{cells[0]:>18s} x{r['scale']:<3g} " + " ".join(f"{c:>10s}" for c in cells[1:])
+
+
+HEADER = f"{'scene':>18s} {'':4s} " + " ".join(f"{c[0]:>10s}" for c in COLUMNS)
 
 
 def chart(rows: list[dict], path: Path) -> None:

@@ -413,9 +413,10 @@ def _median(values) -> float:
 def write_outputs(rows: list[dict], images: list[dict], out: Path, image_scale: float = 1.0) -> list[Path]:
     from psao.eval import report
 
-    written = [out / "table.md", out / "table.csv", out / "results.json", out / "runtime_error.png",
+    written = [out / "table.md", out / "table.csv", out / "results.json", out / "run.json", out / "runtime_error.png",
                out / "bandwidth_quality.png"]
     (out / "table.md").write_text(report.markdown_table(rows))
+    (out / "run.json").write_text(json.dumps({"commit": source_commit()}) + "\n")  # benchmarks.report names it
     report.write_csv(rows, out / "table.csv")
     (out / "results.json").write_text(json.dumps(rows, indent=1, default=_json_default))
     report.runtime_chart(rows, out / "runtime_error.png")
@@ -425,6 +426,23 @@ def write_outputs(rows: list[dict], images: list[dict], out: Path, image_scale: 
         report.side_by_side(im["reference"], im["panels"], path, scale=image_scale)
         written.append(path)
     return written
+
+
+def source_commit() -> str:
+    """The git commit of the psao source that runs ("+local changes" if its tree differs), or "unknown"
+    for an install that is not a git checkout."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        return head + ("+local changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def _json_default(v):

@@ -79,6 +79,7 @@ class Tracer:
     supports_static_hits = False
     # the rays traced and the seconds they took (the tick's budget reads CpuAccount.wall); None: not measured
     account: CpuAccount | None = None
+    tasks_done = 0  # work items finished on other machines' workers (only the Dask back-end sends any)
     _rigid_meshes: tuple | list[tuple[np.ndarray, np.ndarray]] = ()  # what the default set_rigid keeps
 
     def set_static(self, vertices: np.ndarray, faces: np.ndarray) -> None:
