@@ -1,0 +1,172 @@
+"""docs/results.md's tables, generated from the benchmarks' JSON output.
+
+Each table of docs/results.md that this script owns sits between two markers,
+
+    <!-- report:table1 -->
+    ... generated: the table, then the command and commit that produced its data ...
+    <!-- /report:table1 -->
+
+and its data is one file, docs/data/ID.json: {"id", "command", "commit", "rows"}, where "rows" is what the
+benchmark wrote (`psao bench`'s results.json, bench_scenes' bench_scenes.json). The data files are kept in
+the repository so that the page can be checked against them (`check`, run by the tests) and regenerated
+without re-running hours of benchmarks.
+
+    python -m benchmarks.report collect ID OUT_DIR   # after running SECTIONS[ID].command with --out OUT_DIR
+    python -m benchmarks.report write                # rewrite docs/results.md's generated blocks
+    python -m benchmarks.report check                # exit 1 if docs/results.md differs from its data
+
+`collect` records the commit of the run from OUT_DIR/run.json (written by `psao bench`), else the
+repository's HEAD, marked "+local changes" when the working tree differs from it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from psao.eval.bench_cli import source_commit
+from psao.eval.report import markdown_table
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results.md"
+DATA = ROOT / "docs" / "data"
+
+
+def scenes_table(rows: list[dict]) -> str:
+    """bench_scenes' rows: one line per model and density scale."""
+    from benchmarks.bench_scenes import HEADER_COLUMNS, table_cells
+
+    lines = ["| " + " | ".join(HEADER_COLUMNS) + " |", "|" + "---|" * len(HEADER_COLUMNS)]
+    lines += ["| " + " | ".join(table_cells(r)) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def method_summary(rows: list[dict]) -> str:
+    """What `psao bench`'s rows say, in figures computed from them: PSAO at its highest density against
+    each screen-space method, its bias, what doubling the density gains, and its frame cost."""
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    by = {(r["scene"], r["method"]): r for r in rows}
+    densities = sorted({r["density"] for r in rows if r.get("density")})
+    if not densities:
+        return ""
+    top = f"PSAO-{densities[-1]:g}"
+    lines = []
+    for other in ("SSAO", "GTAO"):
+        pairs = [(by[(s, top)], by[(s, other)]) for s in scenes if (s, top) in by and (s, other) in by]
+        if pairs:
+            gain = [a["psnr"] - b["psnr"] for a, b in pairs]
+            lower = sum(a["flip"] < b["flip"] for a, b in pairs)
+            cost = [a["client_ms_frame"] / b["client_ms_frame"] for a, b in pairs]
+            lines.append(f"- {top} against {other}: {min(gain):+.1f} to {max(gain):+.1f} dB PSNR, a lower FLIP on "
+                         f"{lower} of {len(pairs)} scenes, {min(cost):.2f} to {max(cost):.2f} times its client ms per frame.")
+    psao = [r for r in rows if r.get("density")]
+    lines.append(f"- PSAO's mean AO bias: at most {max(abs(r['bias']) for r in psao):.4f} in magnitude (SSAO's: "
+                 + ", ".join(f"{by[(s, 'SSAO')]['bias']:+.3f}" for s in scenes if (s, "SSAO") in by) + ").")
+    if len(densities) > 1:
+        lo, hi = f"PSAO-{densities[0]:g}", top
+        gain = [by[(s, hi)]["psnr"] - by[(s, lo)]["psnr"] for s in scenes if (s, lo) in by and (s, hi) in by]
+        lines.append(f"- {hi} against {lo}: {min(gain):+.1f} to {max(gain):+.1f} dB PSNR.")
+    return "\n" + "\n".join(lines) + "\n"
+
+
+def bench_table(rows: list[dict]) -> str:
+    """`psao bench`'s table, then the summary its figures give."""
+    return markdown_table(rows) + method_summary(rows)
+
+
+@dataclass(frozen=True)
+class Section:
+    command: str  # the command that writes the data, with --out OUT_DIR left to the runner
+    data_file: str  # the file under --out that holds the rows
+    render: Callable[[list[dict]], str]
+
+
+SECTIONS: dict[str, Section] = {
+    "table1": Section("psao bench builtin:cornell builtin:courtyard builtin:space builtin:robots --densities 256,512 "
+                      "--tick-hz 60 --frames 4 --spp 512 --image-scale 0.5", "results.json", bench_table),
+    "animated": Section("psao bench builtin:courtyard builtin:space builtin:robots --densities 256,512 --tick-hz 60 "
+                        "--frames 4 --spp 512 --animate --stream-seconds 5 --image-scale 0.5", "results.json",
+                        markdown_table),
+    "sponza": Section("psao bench ../shared/scenes/sponza/sponza_s_lod4.glb --densities 32,128 --tick-hz 60 "
+                      "--frames 2 --spp 512 --image-scale 0.5", "results.json", bench_table),
+    "scenes": Section("python -m benchmarks.bench_scenes --scales 1", "bench_scenes.json", scenes_table),
+}
+
+_BLOCK = re.compile(r"(<!-- report:(\w+) -->\n)(.*?)(<!-- /report:\2 -->)", re.S)
+
+
+def run_commit(out_dir: Path) -> str:
+    """The commit the run in out_dir was made at: its run.json's, else HEAD (+local changes if dirty)."""
+    run = out_dir / "run.json"
+    if run.is_file():
+        return json.loads(run.read_text())["commit"]
+    return source_commit()
+
+
+def collect(section_id: str, out_dir: Path, data_dir: Path = DATA) -> Path:
+    """Store the rows of a finished run as the section's data file."""
+    section = SECTIONS[section_id]
+    rows = json.loads((out_dir / section.data_file).read_text())
+    data_dir.mkdir(parents=True, exist_ok=True)
+    path = data_dir / f"{section_id}.json"
+    record = {"id": section_id, "command": f"{section.command} --out {out_dir.name}",
+              "commit": run_commit(out_dir), "rows": rows}
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    return path
+
+
+def render_block(section_id: str, data_dir: Path = DATA) -> str:
+    """The generated text of one block: the table, then the line naming its command and commit."""
+    path = data_dir / f"{section_id}.json"
+    if not path.is_file():
+        return (f"*No data yet: run `{SECTIONS[section_id].command} --out OUT`, then "
+                f"`python -m benchmarks.report collect {section_id} OUT` and `python -m benchmarks.report write`.*\n")
+    record = json.loads(path.read_text())
+    return (f"```\n{record['command']}\n```\n\n" + SECTIONS[section_id].render(record["rows"]) +
+            f"\n*Generated by `python -m benchmarks.report` from docs/data/{section_id}.json, the output of the "
+            f"command above at commit {record['commit']}.*\n")
+
+
+def rendered(text: str, data_dir: Path = DATA) -> str:
+    """`text` (a results page) with every generated block replaced by what its data gives."""
+    def one(m: re.Match) -> str:
+        if m.group(2) not in SECTIONS:
+            raise SystemExit(f"report: error: docs/results.md has a block {m.group(2)!r} that no section renders")
+        return m.group(1) + render_block(m.group(2), data_dir) + m.group(4)
+
+    return _BLOCK.sub(one, text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.report", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="action", required=True)
+    c = sub.add_parser("collect", help="store a finished run's rows as a section's data")
+    c.add_argument("section", choices=sorted(SECTIONS))
+    c.add_argument("out_dir", type=Path)
+    sub.add_parser("write", help="rewrite docs/results.md's generated blocks from docs/data")
+    sub.add_parser("check", help="exit 1 if docs/results.md's generated blocks differ from docs/data")
+    args = ap.parse_args(argv)
+    if args.action == "collect":
+        if not (args.out_dir / SECTIONS[args.section].data_file).is_file():
+            ap.error(f"{args.out_dir / SECTIONS[args.section].data_file} does not exist: run the section's command first")
+        print(f"wrote {collect(args.section, args.out_dir)}")
+        return 0
+    text = RESULTS.read_text()
+    new = rendered(text)
+    if args.action == "write":
+        RESULTS.write_text(new)
+        print(f"wrote {RESULTS}")
+        return 0
+    if new != text:
+        print("docs/results.md differs from docs/data: run `python -m benchmarks.report write`", file=sys.stderr)
+        return 1
+    print("docs/results.md matches docs/data")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
