@@ -9,7 +9,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from psao.eval.processes import ServeExited, ServeTimeout, listen_pattern
+from psao.eval.processes import FULL_GRID_RE, ServeExited, ServeTimeout, listen_pattern
 from psao.eval.processes import wait_for_log as _wait_for_log
 
 LOOPBACK = r"127\.0\.0\.1"
@@ -32,3 +32,8 @@ def wait_for_log(proc: subprocess.Popen, err: Path, pattern: re.Pattern, timeout
         return _wait_for_log(proc, Path(err), pattern, timeout)
     except (ServeExited, ServeTimeout) as exc:
         raise AssertionError(f"{exc}\n{exc.log}") from None
+
+
+def wait_full_grid(proc: subprocess.Popen, err: Path, timeout: float | None = None) -> None:
+    """Once the server serves its full grid (it listens, and answers, before: while it loads and bakes)."""
+    wait_for_log(proc, err, FULL_GRID_RE, timeout)

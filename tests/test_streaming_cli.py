@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
     (["--animate", "--tick-rays", "0"], "round rays must divide the tick's rays (128)"),
     (["--animate", "--rays", "8", "--tick-rays", "16"], "round rays must divide the tick's rays (8)"),
     (["--workers", "-1"], "workers must be >= 0"),
-    (["--tick-budget-ms", "5"], "need --animate, --progressive or --allow-edits"),
+    (["--no-progressive", "--tick-budget-ms", "5"], "need --animate, --progressive or --allow-edits"),
 ])
 def test_serve_bad_settings(args, text):
     one_line_error(psao("serve", "builtin:cornell", "--port", "0", *args), text)

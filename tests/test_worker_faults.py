@@ -6,7 +6,7 @@ import signal
 import time
 
 from test_serve_access import start_serve
-from serving import HANG_S
+from serving import HANG_S, wait_full_grid
 
 
 def children(pid: int) -> list[int]:
@@ -33,6 +33,7 @@ def alive(pid: int) -> bool:
 
 def test_workers_die_when_the_server_is_killed(tmp_path):
     _, proc, err = start_serve(tmp_path, "--animate", "--tick-rays", "1", "--tick-hz", "5")
+    wait_full_grid(proc, err)  # its tick, and the tick's tracer workers, come with the full grid
     workers = children(proc.pid)
     assert workers, "the animated server runs tracer worker processes"
     proc.send_signal(signal.SIGKILL)

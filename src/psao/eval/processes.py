@@ -165,6 +165,8 @@ def listen_pattern(host: str = r"[^\s/]+") -> re.Pattern:
 
 
 LISTEN_RE = listen_pattern()
+# `psao serve`'s line once it serves the full grid (it listens before it has one: psao.server.net.service)
+FULL_GRID_RE = re.compile(r"(?:serving|grid replaced by) the full grid")
 
 
 class ServeExited(EvalError):

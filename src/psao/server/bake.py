@@ -73,19 +73,49 @@ def make_bake_tracer(scene: Scene, settings: BakeSettings) -> Tracer:
     return make_tracer(settings.tracer, center, **({"workers": settings.workers} if settings.tracer == "embree" else {}))
 
 
-def trace_progress(bar, task, tracer: Tracer, rays: int):
-    """A progress callback for Tracer.visibility: advances the bar by the points traced and shows the
-    rays per second (across all of a cluster's workers) and whatever the tracer adds (tasks done)."""
-    start = time.perf_counter()
-    done = 0
+# A bake's stages and the share of its whole each ends at, for a report(fraction, text) of the whole bake
+# (psao serve's Status messages while it bakes): the trace is most of a bake's time.
+STAGE_ENDS = {"points": 0.25, "gap fill": 0.35, "trace": 0.95, "densify": 1.0}
 
-    def advance(k: int) -> None:
-        nonlocal done
-        done += k
-        rate = done * rays / max(time.perf_counter() - start, 1e-9)
-        note = tracer.progress_note()
-        bar.update(task, advance=k, description=f"trace {rate / 1e6:.1f} Mrays/s" + (f", {note}" if note else ""))
-    return advance
+
+class BakeProgress:
+    """The bake's progress to a rich bar (a terminal) and to report(fraction 0..1 of the whole bake, text),
+    each optional: stage(name, total) gives the stage's callback (done, total) -> None."""
+
+    def __init__(self, bar, report=None):
+        self.bar, self.report = bar, report
+
+    def stage(self, name: str, total: int):
+        if self.bar is None and self.report is None:
+            return None
+        task = self.bar.add_task(name, total=total) if self.bar else None
+        names = list(STAGE_ENDS)
+        start = STAGE_ENDS[names[names.index(name) - 1]] if names.index(name) else 0.0
+
+        def update(done: int, total: int = total, description: str | None = None) -> None:
+            if self.bar is not None:
+                self.bar.update(task, completed=done, **({"description": description} if description else {}))
+            if self.report is not None:
+                share = min(done / total, 1.0) if total else 1.0
+                self.report(start + (STAGE_ENDS[name] - start) * share, f"baking: {description or name}")
+        return update
+
+    def trace(self, total: int, tracer: Tracer, rays: int):
+        """A progress callback for Tracer.visibility: the points traced so far, and the rays per second
+        (across all of a cluster's workers) and whatever the tracer adds (tasks done)."""
+        update = self.stage("trace", total)
+        if update is None:
+            return None
+        start = time.perf_counter()
+        done = 0
+
+        def advance(k: int) -> None:
+            nonlocal done
+            done += k
+            rate = done * rays / max(time.perf_counter() - start, 1e-9)
+            note = tracer.progress_note()
+            update(done, description=f"trace {rate / 1e6:.1f} Mrays/s" + (f", {note}" if note else ""))
+        return advance
 
 
 def load_bake_geometry(tracer: Tracer, scene: Scene, settings: BakeSettings) -> tuple[list[int], list[int]] | None:
@@ -102,7 +132,10 @@ def load_bake_geometry(tracer: Tracer, scene: Scene, settings: BakeSettings) -> 
     return kinds.static, kinds.moving
 
 
-def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress: bool | None = None) -> BakeResult:
+def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress: bool | None = None,
+               report=None) -> BakeResult:
+    """Points, grid and traced AO of `scene`. A progress bar on a terminal (show_progress None) or when
+    asked; `report(fraction 0..1, text)`, if given, hears the whole bake's progress (BakeProgress)."""
     settings = settings or BakeSettings()
     settings.check()
     if show_progress is None:
@@ -114,22 +147,23 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
                    "seed": settings.seed}
     tracer = make_bake_tracer(scene, settings)
     try:
-        return _bake_with(tracer, scene, settings, show_progress, stats)
+        return _bake_with(tracer, scene, settings, show_progress, stats, report)
     except BaseException:
         tracer.close()  # a cluster started for this bake goes with it
         raise
 
 
-def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict) -> BakeResult:
+def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict,
+               report=None) -> BakeResult:
     split = load_bake_geometry(tracer, scene, settings)
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
     with _progress(show_progress) as bar:
+        shown = BakeProgress(bar, report)
         t0 = time.perf_counter()
-        task = bar.add_task("points", total=len(scene.instances)) if bar else None
         buried = BuriedTest(scene) if settings.skip_buried else None
         point_settings = PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
                                        spawn_ratio=settings.spawn_ratio, detail_factor=settings.sampling().factor())
-        progress = (lambda done, total: bar.update(task, completed=done)) if bar else None
+        progress = shown.stage("points", len(scene.instances))
         workers = settings.workers or os.cpu_count() or 1
         if workers > 1 and len(scene.instances) > 1 and stats["points_estimated"] >= PARALLEL_POINTS:
             pointsets = generate_scene_points_parallel(scene, point_settings, workers, settings.skip_buried, progress)
@@ -146,16 +180,14 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         t0 = time.perf_counter()
         added = 0
         if settings.gap_fill.passes > 0:
-            task = bar.add_task("gap fill", total=settings.gap_fill.passes) if bar else None
             pointsets, grid, added = fill_gaps(scene, pointsets, grid, build, settings.gap_fill,
-                                               progress=(lambda done, total: bar.update(task, completed=done)) if bar else None,
+                                               progress=shown.stage("gap fill", settings.gap_fill.passes),
                                                buried=buried)
         stats["points_gap_fill"] = int(added)
         stats["seconds_gap_fill"] = time.perf_counter() - t0
 
         tracer.warm_up()  # worker start-up is not tracing time
         n = grid.n_points()
-        task = bar.add_task("trace", total=n) if bar else None
         t0 = time.perf_counter()
         static_hits = None
         if split is not None:
@@ -163,7 +195,7 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
             static_hits = StaticHits(sum(len(x) for x in ids), settings.rays, settings.seed,
                                      np.concatenate([ids[i] for i in split[0]]) if split[0] else None)
         trace_grid_points(grid, scene, tracer, trace_settings,
-                          progress=trace_progress(bar, task, tracer, settings.rays) if bar else None,
+                          progress=shown.trace(n, tracer, settings.rays),
                           static_hits=static_hits)
         stats["seconds_trace"] = time.perf_counter() - t0
         n_traced = n  # the first trace's points (densify's traces are timed apart)
@@ -171,9 +203,8 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         t0 = time.perf_counter()
         added = 0
         if settings.densify.runs_with(settings.rays):
-            task = bar.add_task("densify", total=settings.densify.rounds) if bar else None
             pointsets, added = densify(scene, pointsets, grid, tracer, trace_settings, settings.densify, buried,
-                                       progress=(lambda done, total: bar.update(task, completed=done)) if bar else None)
+                                       progress=shown.stage("densify", settings.densify.rounds))
             n = grid.n_points()
             if added:
                 static_hits = None  # densify renumbers the point ids the kept answers are indexed by

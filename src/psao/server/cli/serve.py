@@ -73,10 +73,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --animate or --progressive: milliseconds of tracing per tick, within (0, 1000/tick-hz] "
                         f"({100 * default(BudgetSettings, 'headroom'):g}%% of the tick period less the other stages without "
                         "it); waiting points queue")
-    p.add_argument("--progressive", action="store_true",
-                   help="stream a coarse first grid (--first-points points traced with --tick-rays) at once, replace "
-                        "it by the full grid traced with --tick-rays when that is baked (clients reconnect to it), "
-                        "then refine that to --rays in the ticks' spare budget, streaming the improvements")
+    p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
+                   help="progressive start (the default, except with --grid or --test-edits): stream a coarse first "
+                        "grid (--first-points points traced with --tick-rays) as soon as it is baked (with --animate "
+                        "its movers posed and traced from the first tick), replace it by the full grid traced with "
+                        "--tick-rays when that is baked (clients reconnect to it), then refine that to --rays in the "
+                        "ticks' spare budget; --no-progressive: the full grid traced with --rays first")
     p.add_argument("--first-points", type=int, default=default(ProgressiveSettings, "first_points"), metavar="P",
                    help="with --progressive: points of the coarse first grid (uniform, no elimination, no buried-"
                         "surface test); 0, or a full grid under "
@@ -110,29 +112,46 @@ class AtRest:
         return self.tick.prepare(0.0)
 
 
-def _ticking(args, bake_with: BakeSettings, scene=None):
-    """(scene, grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point
-    sets): animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing
-    what scene edits move with --allow-edits."""
-    from psao.scene import load_scene
-    from psao.server.bake import bake_scene
-    from psao.server.tick.server_tick import ServerTick
-
+def _check_modes(args) -> None:
+    """Resolve --progressive's default and refuse the combinations that cannot run, before listening."""
+    if args.progressive is None:  # on, unless the grid comes from a file or the test hook edits it
+        args.progressive = args.grid is None and not args.test_edits
+    if not (args.animate or args.progressive or args.allow_edits):
+        if args.tick_budget_ms is not None or args.tick_rays is not None:
+            raise ConfigError("--tick-budget-ms and --tick-rays need --animate, --progressive or --allow-edits (no "
+                              "tick runs otherwise)")
+        return
     flag = "--animate" if args.animate else "--progressive" if args.progressive else "--allow-edits"
     if args.grid is not None:
         raise ConfigError(f"{flag} bakes the scene itself: it cannot serve a --grid file")
     if args.test_edits:
         raise ConfigError(f"{flag} and --test-edits both edit the grid: choose one")
+    if args.first_points < 0:
+        raise ConfigError(f"--first-points must be >= 0, got {args.first_points}")
+    _budget(args)
+
+
+def _tick_settings(args, budget: BudgetSettings) -> TickSettings:
+    # The tick traces here (a Dask task's scheduling does not fit a tick)
+    return TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True,
+                        tracer="embree" if args.tracer == "dask" else args.tracer, workers=args.workers)
+
+
+def _ticking(args, bake_with: BakeSettings, scene, report=None):
+    """(grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point sets):
+    animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing what
+    scene edits move with --allow-edits. `report(fraction, text)`: the bake's progress."""
+    from psao.server.bake import bake_scene
+    from psao.server.tick.server_tick import ServerTick
+
     budget = _budget(args)
-    scene = scene or load_scene(args.scene)
     bake_rays = budget.round_rays if args.progressive else args.rays
-    bake = bake_scene(scene, dataclasses.replace(bake_with, rays=bake_rays))
+    bake = bake_scene(scene, dataclasses.replace(bake_with, rays=bake_rays), report=report)
     # The bake's AO counts as that many rays of every point's history: with --rays it is converged, with
     # --progressive the ticks' spare budget refines it.
-    # The tick traces here (a Dask task's scheduling does not fit a tick); with --progressive the bake's
-    # tracer (its cluster with --cluster) also refines waiting static points, in batches, beside the ticks.
-    settings = TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True,
-                            tracer="embree" if args.tracer == "dask" else args.tracer, workers=args.workers)
+    # With --progressive the bake's tracer (its cluster with --cluster) also refines waiting static points,
+    # in batches, beside the ticks.
+    settings = _tick_settings(args, budget)
     refiner = None
     if args.progressive:  # the bake's tracer (a cluster's, or local worker processes) refines beside the ticks
         from psao.server.tick.refine import BackgroundTracer, ClusterRefiner
@@ -144,59 +163,102 @@ def _ticking(args, bake_with: BakeSettings, scene=None):
     logging.getLogger("psao.serve").info(
         "baked %s at N=%g with %d rays: %d points; server tick on (%d rays per point per round, up to %d)",
         scene.name, bake.stats["density"], bake_rays, bake.stats["points_kept"], budget.round_rays, args.rays)
-    return scene, tick.grid, tick
+    return tick.grid, tick
 
 
-def _coarse_first(args, bake_with: BakeSettings):
-    """(scene, coarse first grid) when --progressive starts from a coarse grid (psao.server.tick.progressive),
-    else None (also for the settings _ticking refuses, so that it says why)."""
-    from psao.scene import load_scene
+def _coarse_first(args, bake_with: BakeSettings, scene, report=None):
+    """(coarse first grid, its tick or None) when --progressive starts from a coarse grid
+    (psao.server.tick.progressive), else None. With --animate a server tick of its own poses and traces the
+    movers on it from the first tick; without, the coarse grid stands still until the full one comes."""
     from psao.server.bake import bake_scene
     from psao.server.tick.progressive import coarse_bake_settings, wants_coarse_grid
+    from psao.server.tick.server_tick import ServerTick
     from psao.server.tracer.embree import numpy_rays
 
-    if (not args.progressive or args.allow_edits or bake_with.cluster is not None or args.grid is not None
-            or args.test_edits):
+    if not args.progressive or args.allow_edits or bake_with.cluster is not None:
         return None
-    if args.first_points < 0:
-        raise ConfigError(f"--first-points must be >= 0, got {args.first_points}")
     budget = _budget(args)
-    scene = load_scene(args.scene)
     if not wants_coarse_grid(scene, bake_with, ProgressiveSettings(first_points=args.first_points)):
         return None
-    with numpy_rays():  # its trace stays in this process and thread (workers=1): no Warp import before listening
-        coarse = bake_scene(scene, coarse_bake_settings(bake_with, args.first_points, budget.round_rays))
-    coarse.tracer.close()
+    with numpy_rays():  # its few rays stay in this process and thread (workers=1): no worker processes to start
+        coarse = bake_scene(scene, coarse_bake_settings(bake_with, args.first_points, budget.round_rays),
+                            report=report)
     logging.getLogger("psao.serve").info(
         "coarse first grid of %s: %d points with %d rays in %.1f s; the full grid (N=%s) is baked behind it",
         scene.name, coarse.stats["points_kept"], budget.round_rays,
         sum(v for k, v in coarse.stats.items() if k.startswith("seconds_")),
         f"{bake_with.density:g}" if bake_with.density else "default")
-    return scene, coarse.grid
+    if not args.animate:
+        coarse.tracer.close()
+        return coarse.grid, None
+    tick = ServerTick(coarse, _tick_settings(args, budget), close_bake_tracer=True)
+    return tick.grid, tick
 
 
-def _load(args, bake_with: BakeSettings):
-    """(scene, grid) from a bake or a grid file."""
-    from psao.scene import load_scene
-    from psao.server.bake import bake_scene
+def _grid_file(args, bake_with: BakeSettings):
+    """(grid, scene hash) of --grid FILE, read before the server listens (a bad file is one line at once),
+    or None without --grid."""
     from psao.server.grid import Grid
 
-    scene = load_scene(args.scene)
-    if args.grid is not None:
-        if bake_with.cluster is not None:
-            raise ConfigError("--cluster traces a bake: it has nothing to do with a --grid file")
-        grid, scene_hash, _meta = Grid.load(args.grid)
+    if args.grid is None:
+        return None
+    if bake_with.cluster is not None:
+        raise ConfigError("--cluster traces a bake: it has nothing to do with a --grid file")
+    grid, scene_hash, _meta = Grid.load(args.grid)
+    return grid, scene_hash
+
+
+def _load(args, bake_with: BakeSettings, scene, from_file=None, report=None):
+    """The grid from a bake, or `from_file` (_grid_file's) checked against the scene."""
+    from psao.server.bake import bake_scene
+
+    if from_file is not None:
+        grid, scene_hash = from_file
         if scene_hash and scene_hash != scene.content_hash():
             raise ConfigError(f"{args.grid} was baked from another scene than {args.scene}")
         if len(grid.instances) != len(scene.instances):
             raise ConfigError(f"{args.grid} has {len(grid.instances)} instances, {args.scene} has {len(scene.instances)}")
-        return scene, grid
-    result = bake_scene(scene, bake_with)
+        return grid
+    result = bake_scene(scene, bake_with, report=report)
     result.tracer.close()
     logging.getLogger("psao.serve").info(
         "baked %s at N=%g: %d points in %d cells", scene.name, result.stats["density"], result.stats["points_kept"],
         result.stats["cells"])
-    return scene, result.grid
+    return result.grid
+
+
+def _start_up(args, bake_with: BakeSettings, from_file=None):
+    """The start-up's work (progressive.Startup), on its own thread once the service listens: load the scene
+    and hand its hash and blob over, serve a coarse first grid when progressive start makes one, then the
+    full grid with its tick."""
+    def work(startup) -> None:
+        import numpy as np
+
+        from psao.protocol.session import scene_hash_bytes
+        from psao.scene import load_scene
+        from psao.server.net.scene_export import scene_blob
+        from psao.server.net.service import StaticTransforms
+        from psao.server.tick.testhook import RandomEdits
+
+        startup.step(0.0, f"loading {args.scene}")
+        scene = load_scene(args.scene)
+        startup.scene(scene_hash_bytes(scene.content_hash()), lambda: scene_blob(scene))
+        resting = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
+        startup.step(0.0, "baking the coarse first grid")
+        coarse = _coarse_first(args, bake_with, scene, lambda f, text: startup.step(f, f"coarse grid {text}"))
+        if coarse is not None:
+            grid, tick = coarse
+            startup.serve(grid, tick, tick.transforms if tick is not None else resting, final=False)
+        startup.step(0.0, "baking the full grid")
+        report = lambda f, text: startup.step(f, f"full grid {text}")  # noqa: E731
+        if args.animate or args.progressive or args.allow_edits:  # the server tick refines, animates, re-traces edits
+            grid, tick = _ticking(args, bake_with, scene, report)
+            startup.serve(grid, tick, tick.transforms, final=True)
+        else:
+            grid = _load(args, bake_with, scene, from_file, report)
+            tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
+            startup.serve(grid, tick, resting, final=True)
+    return work
 
 
 def _settings(args):
@@ -275,20 +337,14 @@ def setup_logging() -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    import numpy as np
-
-    from psao.protocol.session import scene_hash_bytes
-    from psao.server.net.scene_export import scene_blob
-    from psao.server.net.service import Service, StaticTransforms, tls_context
-    from psao.server.tick.testhook import RandomEdits
+    from psao.server.net.service import Service, tls_context
+    from psao.server.tick.progressive import StartupProgress
 
     setup_logging()
     settings = _settings(args)
-    bake = bake_settings(args)  # a bad number fails before the scene loads
-    if not (args.animate or args.progressive or args.allow_edits) and (args.tick_budget_ms is not None
-                                                                        or args.tick_rays is not None):
-        raise ConfigError("--tick-budget-ms and --tick-rays need --animate, --progressive or --allow-edits (no tick "
-                          "runs otherwise)")
+    bake = bake_settings(args)  # a bad number fails before anything listens
+    _check_modes(args)
+    from_file = _grid_file(args, bake)
     if not settings.token and not is_loopback(settings.host):
         logging.getLogger("psao.serve").warning(
             "listening on %s without a token: anyone who can reach this machine may connect "
@@ -296,37 +352,21 @@ def run(args: argparse.Namespace) -> int:
     if settings.tls_cert is not None:
         tls_context(settings.tls_cert, settings.tls_key)  # a bad certificate fails before the bake
     listener = bind_listener(settings.host, settings.port)
-    coarse = _coarse_first(args, bake)
-    if coarse is not None:  # the full grid and its tick come from the background bake
-        scene, grid = coarse
-        tick = None
-        transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
-    elif args.animate or args.progressive or args.allow_edits:  # scene edits are re-traced by the server tick
-        scene, grid, tick = _ticking(args, bake)
-        transforms = tick.transforms
-    else:
-        scene, grid = _load(args, bake)
-        transforms = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
-        tick = RandomEdits(args.test_edits, seed=args.seed) if args.test_edits else None
-    service = Service(grid, scene_hash_bytes(scene.content_hash()), settings, tick=tick, transforms=transforms,
-                      on_scene_edit=getattr(tick, "edit", None), scene_blob=lambda: scene_blob(scene))
-    full = None
-    if coarse is not None:
-        from psao.server.tick.progressive import BackgroundBake
-        full = lambda on_error: BackgroundBake(lambda: _ticking(args, bake, scene)[1:],  # noqa: E731
-                                               service.replace_grid, on_error)
+    progress = StartupProgress(f"loading {args.scene}")
+    # It listens from here on: connections wait for the scene and a grid, told the start-up's state.
+    service = Service(None, None, settings, progress=progress)
     try:
-        return asyncio.run(_serve(service, listener, args.json, full))
+        return asyncio.run(_serve(service, listener, args.json, _start_up(args, bake, from_file), progress))
     finally:
         listener.close()
-        if hasattr(tick, "close"):
-            tick.close()
 
 
-async def _serve(service, listener: socket.socket, as_json: bool = False, background=None) -> int:
-    """Serve until SIGINT or SIGTERM. `background(on_error)`: a BackgroundBake started once the service
-    listens; its failure stops the server and is raised here."""
+async def _serve(service, listener: socket.socket, as_json: bool, work, progress) -> int:
+    """Serve until SIGINT or SIGTERM, the start-up's `work` on its own thread from the moment the service
+    listens; a failure of it stops the server and is raised here."""
     import asyncio
+
+    from psao.server.tick.progressive import Startup
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -334,12 +374,11 @@ async def _serve(service, listener: socket.socket, as_json: bool = False, backgr
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (got.append(s.name), stop.set()))
     failed: list[BaseException] = []
-    bake = background(lambda exc: (failed.append(exc), loop.call_soon_threadsafe(stop.set))) if background else None
+    startup = Startup(service, work, lambda exc: (failed.append(exc), loop.call_soon_threadsafe(stop.set)), progress)
     try:
-        await service.run(stop, ready=(lambda port: bake.start()) if bake else None, sock=listener)
+        await service.run(stop, ready=lambda port: startup.start(), sock=listener)
     finally:
-        if bake is not None:
-            bake.close()
+        startup.close()
     if failed:
         raise failed[0]
     c = service.counters
