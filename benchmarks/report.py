@@ -90,7 +90,7 @@ SECTIONS: dict[str, Section] = {
                       "--tick-hz 60 --frames 4 --spp 512 --image-scale 0.5", "results.json", bench_table),
     "animated": Section("psao bench builtin:courtyard builtin:space builtin:robots --densities 256,512 --tick-hz 60 "
                         "--frames 4 --spp 512 --animate --stream-seconds 5 --image-scale 0.5", "results.json",
-                        markdown_table),
+                        bench_table),
     "sponza": Section("psao bench ../shared/scenes/sponza/sponza_s_lod4.glb --densities 32,128 --tick-hz 60 "
                       "--frames 2 --spp 512 --image-scale 0.5", "results.json", bench_table),
     "scenes": Section("python -m benchmarks.bench_scenes --scales 1", "bench_scenes.json", scenes_table),
