@@ -45,6 +45,12 @@ def scenes_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def span(values: list[float], fmt: str) -> str:
+    """'a to b' of the values formatted, or the one value when they all format alike."""
+    lo, hi = format(min(values), fmt), format(max(values), fmt)
+    return lo if lo == hi else f"{lo} to {hi}"
+
+
 def method_summary(rows: list[dict]) -> str:
     """What `psao bench`'s rows say, in figures computed from them: PSAO at its highest density against
     each screen-space method, its bias, what doubling the density gains, and its frame cost."""
@@ -61,15 +67,15 @@ def method_summary(rows: list[dict]) -> str:
             gain = [a["psnr"] - b["psnr"] for a, b in pairs]
             lower = sum(a["flip"] < b["flip"] for a, b in pairs)
             cost = [a["client_ms_frame"] / b["client_ms_frame"] for a, b in pairs]
-            lines.append(f"- {top} against {other}: {min(gain):+.1f} to {max(gain):+.1f} dB PSNR, a lower FLIP on "
-                         f"{lower} of {len(pairs)} scenes, {min(cost):.2f} to {max(cost):.2f} times its client ms per frame.")
+            lines.append(f"- {top} against {other}: {span(gain, '+.1f')} dB PSNR, a lower FLIP on {lower} of "
+                         f"{len(pairs)} scenes, {span(cost, '.2f')} times its client ms per frame.")
     psao = [r for r in rows if r.get("density")]
     lines.append(f"- PSAO's mean AO bias: at most {max(abs(r['bias']) for r in psao):.4f} in magnitude (SSAO's: "
                  + ", ".join(f"{by[(s, 'SSAO')]['bias']:+.3f}" for s in scenes if (s, "SSAO") in by) + ").")
     if len(densities) > 1:
         lo, hi = f"PSAO-{densities[0]:g}", top
         gain = [by[(s, hi)]["psnr"] - by[(s, lo)]["psnr"] for s in scenes if (s, lo) in by and (s, hi) in by]
-        lines.append(f"- {hi} against {lo}: {min(gain):+.1f} to {max(gain):+.1f} dB PSNR.")
+        lines.append(f"- {hi} against {lo}: {span(gain, '+.1f')} dB PSNR.")
     return "\n" + "\n".join(lines) + "\n"
 
 
