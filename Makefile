@@ -4,15 +4,22 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
+NPM_STAMP := web/node_modules/.package-lock.json
+
 .PHONY: demo test venv bench clean browser
 
-$(STAMP): pyproject.toml web/package-lock.json
+$(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "make: $(PYTHON) not found (Python 3.11+ is required)"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[test]'
-	cd web && npm ci --no-audit --no-fund --loglevel=error  # the web client's decoder (fzstd), served offline
 	touch $(STAMP)
+
+# The pinned fzstd from npm, which tests/test_web_vendor.py checks the copy in src/psao/web/vendor/ against
+# (the package ships that copy; installing psao needs no npm).
+$(NPM_STAMP): web/package-lock.json
+	cd web && npm ci --no-audit --no-fund --loglevel=error
+	touch $(NPM_STAMP)
 
 # The browser the web client's tests drive (playwright's Python API with Debian's chromium, no download).
 browser:
@@ -24,7 +31,7 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/psao demo
 
-test: $(STAMP) browser
+test: $(STAMP) $(NPM_STAMP) browser
 	$(BIN)/python -m pytest -q -ra
 
 bench: $(STAMP)

@@ -15,8 +15,8 @@ Splits of the first frame (ms after navigation start): page start (HTML, modules
 shader compiles), scene load (SceneRequest to the scene decoded and uploaded), snapshot transfer and
 decode (Hello to the last chunk applied and uploaded; its JS work is split into zstd decompression,
 delta parsing, mirror writes and texture upload, the rest is waiting for the server and the socket),
-first draw (to the first frame drawn with PSAO, waited for with a one-pixel read). Without chromium,
-playwright or the page's npm packages it says so in one line and exits 0 (skipped).
+first draw (to the first frame drawn with PSAO, waited for with a one-pixel read). Without chromium or
+playwright it says so in one line and exits 0 (skipped).
 """
 from __future__ import annotations
 
@@ -48,8 +48,6 @@ def missing_browser() -> str | None:
         import playwright.sync_api  # noqa: F401
     except ImportError:
         return "playwright is not installed (pip install '.[test]')"
-    if not (ROOT / "web" / "node_modules" / "fzstd").exists():
-        return "web/node_modules is missing (make runs npm ci in web/)"
     return None
 
 

@@ -2,13 +2,12 @@
 serve` processes: the page's mirror equals the server's, its PSAO image equals the Python oracle, it draws
 skinned meshes posed at the server's time with the rest pose's local targets, and it shows refusals and
 lost servers and resyncs after a restart. Screenshots go to out/web_client/ (and the test's tmp_path) for
-a person to look at. Skips when chromium or playwright is missing."""
+a person to look at; a module that does not load, a connection the server refuses and a lost WebGL
+context are a line on the page too. Skips when chromium or playwright is missing."""
 from __future__ import annotations
 
 import base64
 import json
-import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -28,20 +27,15 @@ from psao.scene import load_scene
 from psao.scene.camera import camera_at, look_at, perspective, scene_camera
 from psao.scene.skinning import skin_points_reference
 from psao.server.net.scene_export import scene_file
+from browser import launched, missing_browser, wait_page
 from serving import HANG_S, server_url
 from skinned import closest_on_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--headless",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
 SHOTS = ROOT / "out" / "web_client"
 W, H = 200, 150
 
-sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
-pytestmark = [pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="chromium is not installed (make browser)"),
-              pytest.mark.skipif(not (ROOT / "web" / "node_modules" / "fzstd").exists(),
-                                 reason="web/node_modules missing (make installs it with npm ci)")]
+pytestmark = pytest.mark.skipif(missing_browser() is not None, reason=str(missing_browser()))
 
 
 def free_port() -> int:
@@ -72,20 +66,8 @@ class Server:
 
 @pytest.fixture(scope="module")
 def browser():
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    with launched() as b:
         yield b
-        b.close()
-
-
-def wait_page(page, predicate: str, timeout: float = 600.0):
-    """Wait until the JS expression is truthy (an event, not a duration: the timeout only bounds a hang)."""
-    try:
-        page.wait_for_function(predicate, timeout=timeout * 1000, polling=250)
-    except Exception:
-        state = page.evaluate("window.psao && [window.psao.state, window.psao.message, window.psao.frames, "
-                              "window.psao.updates, window.psao.bytes]")
-        raise AssertionError(f"page never reached {predicate}: state {state}") from None
 
 
 def shot(page, tmp_path: Path, name: str, canvas_only: bool = False) -> None:
@@ -397,3 +379,59 @@ def test_page_decodes_updates_made_of_parts(browser, tmp_path):
     assert got["slots"] == [2, 4, 9] == want.cell_slots.tolist()
     assert got["cells"] == want.cells.reshape(-1).tolist()
     assert "overlap" in got["refused"]
+
+
+def test_page_reports_a_module_that_does_not_load(browser, tmp_path):
+    """A module of the page that answers 404 (the decoder here, through the browser's request routing: the
+    server serves it) or does not parse is one line on the page naming it, not a page stuck at 'starting'."""
+    server = Server(tmp_path, "builtin:cornell", "--density", "16", "--rays", "8")
+    url = f"http://127.0.0.1:{server.port}/?width={W}&height={H}"
+    missing, broken = (browser.new_page(viewport={"width": W + 40, "height": H + 40}) for _ in range(2))
+    try:
+        missing.route("**/vendor/fzstd.js", lambda route: route.fulfill(status=404, body="404", content_type="text/plain"))
+        missing.goto(url, wait_until="commit")
+        wait_page(missing, "window.psao && window.psao.state === 'page failed'")
+        text = missing.inner_text("#message")
+        shot(missing, tmp_path, "module_missing")
+        broken.route("**/scene.js", lambda route: route.fulfill(status=200, body="export const = ;",
+                                                                content_type="text/javascript"))
+        broken.goto(url, wait_until="commit")
+        wait_page(broken, "window.psao && window.psao.state === 'page failed'")
+        syntax = broken.inner_text("#message")
+    finally:
+        missing.close()
+        broken.close()
+        server.stop()
+    assert text == "A module of the page did not load: /vendor/fzstd.js answered 404 Not Found (imported by /main.js).", text
+    assert "SyntaxError" in syntax and "\n" not in syntax, syntax
+
+
+def test_page_reports_a_lost_context_and_a_refused_connection(browser, tmp_path):
+    """A lost WebGL context stops the page with a line saying so (no more frames, no reconnects); a server
+    that is gone and refuses the reconnects is a line on the other page naming the address it tries."""
+    server = Server(tmp_path, "builtin:cornell", "--density", "16", "--rays", "8", "--tick-hz", "10")
+    url = f"http://127.0.0.1:{server.port}/?width={W}&height={H}"
+    lost, gone = (browser.new_page(viewport={"width": W + 40, "height": H + 40}) for _ in range(2))
+    errors: list[str] = []
+    try:
+        for page in (lost, gone):
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url, wait_until="commit")
+            wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
+        lost.evaluate("document.getElementById('view').getContext('webgl2').getExtension('WEBGL_lose_context').loseContext()")
+        wait_page(lost, "window.psao.state === 'context lost'")
+        context_text = lost.inner_text("#message")
+        frames = lost.evaluate("window.psao.frames")
+        server.stop()
+        wait_page(gone, "window.psao.state === 'server gone' && window.psao.message.startsWith('Cannot connect')")
+        refused_text = gone.inner_text("#message")
+        shot(gone, tmp_path, "connection_refused")
+        assert lost.evaluate("[window.psao.state, window.psao.frames, window.psao.connection]") == ["context lost", frames, 1]
+    finally:
+        lost.close()
+        gone.close()
+        server.stop()
+    assert not errors
+    assert context_text.startswith("The WebGL context was lost"), context_text
+    assert refused_text.startswith(f"Cannot connect to the server at 127.0.0.1:{server.port} (close code 1006); "
+                                   "reconnecting in "), refused_text

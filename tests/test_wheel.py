@@ -1,19 +1,25 @@
 """The package as a user installs it: a wheel built from the tree, installed (not editable) in a fresh
-venv, runs from another directory with its shaders and example scenes as package data."""
+venv, runs from another directory with its shaders, example scenes and web client as package data: it
+bakes, and its `psao serve` serves a page that chromium loads and draws PSAO frames with."""
 from __future__ import annotations
 
 import json
 import os
+import signal
 import site
 import subprocess
 import sys
 import venv
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
+from browser import launched, missing_browser, wait_page
 from conftest import REPO
+from psao.server.net.webpage import ASSETS
+from serving import HANG_S, server_url
 
 TOP_LEVEL = {"psao"}
 
@@ -46,9 +52,24 @@ def test_wheel_holds_the_packages_and_their_data(wheel):
     assert top == TOP_LEVEL, top  # benchmarks and tests stay out
     assert "psao/protocol/shaders/psao_common.glsl" in names
     assert {"psao/scene/scenes/pavilion.toml", "psao/scene/scenes/playground.toml"} <= set(names)
+    page = {f"psao/web/{name}" for name, _ in ASSETS.values() if isinstance(name, str)}
+    assert page <= set(names), page - set(names)  # every file the page is served from
+    assert "psao/web/vendor/LICENSE" in names
 
 
-def test_installed_wheel_bakes_from_another_directory(wheel, tmp_path):
+@dataclass(frozen=True)
+class Installed:
+    """The wheel installed in a fresh venv: its interpreter, its bin/ folder, a working folder outside the
+    tree and the environment to run it with."""
+    python: Path
+    bin: Path
+    work: Path
+    env: dict
+
+
+@pytest.fixture(scope="module")
+def installed(wheel, tmp_path_factory) -> Installed:
+    tmp_path = tmp_path_factory.mktemp("installed")
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
@@ -64,17 +85,50 @@ def test_installed_wheel_bakes_from_another_directory(wheel, tmp_path):
     work = tmp_path / "elsewhere"
     work.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-    where = _run([py, "-c", "import psao.client, psao.scene; print(psao.client.__file__, psao.scene.__file__)"], work, env=env)
+    where = _run([py, "-c", "import psao, psao.client, psao.scene, psao.web; "
+                  "print(psao.__file__, psao.client.__file__, psao.scene.__file__, psao.web.__file__)"], work, env=env)
     assert where.returncode == 0, where.stderr
-    assert all(str(target) in f for f in where.stdout.split()), where.stdout
-    bake = _run([env_dir / "bin" / "psao", "bake", "builtin:cornell", "--density", "16", "--rays", "8", "--probes",
+    assert len(where.stdout.split()) == 4 and all(f.startswith(str(target)) for f in where.stdout.split()), where.stdout
+    return Installed(py, env_dir / "bin", work, env)
+
+
+def test_installed_wheel_bakes_from_another_directory(installed):
+    py, work, env = installed.python, installed.work, installed.env
+    bake = _run([installed.bin / "psao", "bake", "builtin:cornell", "--density", "16", "--rays", "8", "--probes",
                  "500", "--probe-rays", "32", "--workers", "1", "--json"], work, env=env)
     assert bake.returncode == 0, bake.stderr
     stats = json.loads(bake.stdout.strip().splitlines()[-1])
     assert stats["points_kept"] > 0 and (work / stats["out"]).is_file()
-    toml = _run([env_dir / "bin" / "psao", "bake", "builtin:pavilion", "--density", "4", "--rays", "4", "--probes", "0",
+    toml = _run([installed.bin / "psao", "bake", "builtin:pavilion", "--density", "4", "--rays", "4", "--probes", "0",
                  "--workers", "1", "--json"], work, env=env)
     assert toml.returncode == 0, toml.stderr
     shader = _run([py, "-c", "from psao.client.render.shaderlib import load_shader; "
                    "print(len(load_shader('psao_ao.frag.glsl').text))"], work, env=env)
     assert shader.returncode == 0 and int(shader.stdout) > 1000, shader.stderr
+
+
+@pytest.mark.skipif(missing_browser() is not None, reason=str(missing_browser()))
+def test_installed_wheel_serves_the_web_client(installed, tmp_path):
+    """The installed `psao serve`, run from a folder outside the tree, serves the page from its
+    site-packages (no npm, no source tree), and chromium on it streams the grid and draws PSAO frames."""
+    err = tmp_path / "serve.err"
+    with open(err, "w") as log:
+        proc = subprocess.Popen([str(installed.bin / "psao"), "serve", "builtin:cornell", "--port", "0", "--density", "16",
+                                 "--rays", "8", "--tick-hz", "10"], cwd=installed.work, env=installed.env,
+                                stdout=subprocess.DEVNULL, stderr=log)
+    try:
+        port = int(server_url(proc, err, timeout=HANG_S).rsplit(":", 1)[1])
+        with launched() as b:
+            page = b.new_page(viewport={"width": 240, "height": 190})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"http://127.0.0.1:{port}/?width=200&height=150", wait_until="commit")
+            wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1 "
+                            "&& window.psao.mode === 'psao'")
+            points = page.evaluate("window.psao.mirror.allocatedPoints()")
+            page.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+    assert not errors
+    assert points > 0

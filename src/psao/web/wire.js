@@ -367,6 +367,7 @@ export class ClientSession {
       throw new RemoteError(code, dec.decode(p.take(n)));
     }
     if (type === T.BYE) { this.state = State.CLOSED; return { kind: "bye" }; }
+    if (type === T.STATUS && this.state !== State.CLOSED) return this.status(codec, p);
     if (this.state === State.AWAIT_SCENE && type === T.SCENE_DATA) return this.sceneChunk(p);
     if (this.state === State.AWAIT_WELCOME && type === T.WELCOME) return this.welcome(p);
     if (this.state === State.SNAPSHOT && type === T.SNAPSHOT) {
@@ -390,6 +391,19 @@ export class ClientSession {
       return { kind: "update", tick, serverTime, delta };
     }
     throw new ProtocolError(`unexpected message type ${type} in state ${this.state}`);
+  }
+
+  // A starting server's Status (StatusPhase, progress 0..1, a line of text), in any state; the state stays.
+  status(codec, p) {
+    if (codec !== C.Codec.NONE) throw new ProtocolError(`Status with codec ${codec}: it is sent uncompressed`);
+    const phase = p.u8(), progress = p.f32(), n = p.u16();
+    const name = Object.keys(C.StatusPhase).find((k) => C.StatusPhase[k] === phase);
+    if (!name) throw new ProtocolError(`Status: unknown phase ${phase}`);
+    if (!(progress >= 0 && progress <= 1)) throw new ProtocolError(`Status: progress ${progress} is not within 0..1`);
+    if (n > C.LIMITS.error_text_bytes) throw new ProtocolError("Status: text over the limit");
+    const text = dec.decode(p.take(n));
+    p.done();
+    return { kind: "status", phase: name, progress, text };
   }
 
   sceneChunk(p) {

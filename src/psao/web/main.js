@@ -5,6 +5,7 @@
 // e.g. zstd or zstd-stream,zstd,none; default all the page decodes, the server picks), digests=1 (keep the
 // mirror's state digest after every Snapshot and Update, as `psao client --digest-log` does: tests),
 // protocol=N (speak protocol version N: tests of how a server refuses an old page).
+// index.html's entry script imports it and provides window.psaoStatus (the state line and message box).
 import * as C from "/psao_constants.js";
 import { decompress } from "/vendor/fzstd.js";
 import { Controls, cameraAt, lookAt, perspective } from "/camera.js";
@@ -15,12 +16,12 @@ import { ClientSession, Mirror, ProtocolError, RemoteError, byeMessage, cameraMe
 
 const params = new URLSearchParams(location.search);
 const canvas = document.getElementById("view");
-const stateEl = document.getElementById("state"), statsEl = document.getElementById("stats"), messageEl = document.getElementById("message");
+const statsEl = document.getElementById("stats");
 const CAMERA_HZ = 30;
 const RECONNECT_PAUSES = [0.25, 0.5, 1, 2];  // seconds; the last repeats
 
 const app = {
-  state: "starting", message: "", connection: 0, reconnects: 0, refused: false,
+  state: "starting", message: "", connection: 0, reconnects: 0, refused: false, halted: false,
   scene: null, sceneHash: null, mirror: null, session: null, ws: null,
   bytes: 0, updates: 0, updateBytes: 0, snapshotBytes: 0, sceneBytes: 0, points: 0, frameMs: 0, decodeMs: [],
   timings: { module: performance.now() }, profile: null, fixedCamera: window.__psaoCamera ? { view: new Float32Array(window.__psaoCamera[0]), proj: new Float32Array(window.__psaoCamera[1]) } : null, mode: MODES[params.get("mode")] !== undefined ? params.get("mode") : "psao",
@@ -34,13 +35,19 @@ const SESSION_OPTIONS = {
 window.psao = app;  // the tests and the benchmark read and drive the page through this object
 
 function setState(state, message = "", bad = false) {
-  app.state = state;
-  app.message = message;
-  stateEl.textContent = state;
-  stateEl.className = bad ? "bad" : "";
-  messageEl.hidden = !message;
-  messageEl.textContent = message;
+  if (!app.halted) window.psaoStatus(state, message, bad);
 }
+
+// The page stops for good, saying why: no reconnects, no frames, its state and message stay.
+function halt(state, message) {
+  setState(state, message, true);
+  app.halted = true;
+  const ws = app.ws;
+  app.ws = null;
+  if (ws) ws.close();
+}
+
+const line = (exc) => String(exc.message || exc).split("\n")[0];
 
 let renderer, controls;
 try {
@@ -49,9 +56,11 @@ try {
   app.timings.renderer = performance.now();  // WebGL2 context and shader programs ready
   controls = new Controls(canvas);
 } catch (exc) {
-  setState("no WebGL2", String(exc.message || exc), true);
+  setState("no WebGL2", line(exc), true);
   throw exc;
 }
+canvas.addEventListener("webglcontextlost", () => halt("context lost", "The WebGL context was lost (the GPU was reset or ran "
+                                                       + "out of memory); reload the page to start again."));
 const [fixedW, fixedH] = [Number(params.get("width")), Number(params.get("height"))];
 if (fixedW && fixedH) document.body.classList.add("fixed");
 document.getElementById("mode").value = app.mode;
@@ -93,7 +102,7 @@ function connect() {
     session = new ClientSession(params.get("token") || "", app.sceneHash, SESSION_OPTIONS);
   } catch (exc) {
     app.refused = true;
-    setState("bad URL", String(exc.message || exc), true);
+    halt("bad URL", line(exc));
     return;
   }
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/`);
@@ -102,7 +111,8 @@ function connect() {
   app.ws = ws;
   app.timings.connect = performance.now();
   if (!app.reconnects) setState("connecting");  // while reconnecting the "server gone" message stays up
-  ws.onopen = () => { ws.send(session.sceneRequest()); if (!app.reconnects) setState("loading scene"); };
+  let opened = false;
+  ws.onopen = () => { opened = true; ws.send(session.sceneRequest()); if (!app.reconnects) setState("loading scene"); };
   ws.onmessage = (e) => {
     if (ws !== app.ws) return;
     app.arrived = performance.now();
@@ -114,7 +124,7 @@ function connect() {
     }
   };
   ws.onclose = (e) => {
-    if (ws !== app.ws || app.refused) return;
+    if (ws !== app.ws) return;
     app.ws = null;
     if (e.code === C.GRID_REPLACED_CLOSE) {  // not a loss: the server swapped in a better grid, fetch it now
       app.gridReplacements = (app.gridReplacements || 0) + 1;
@@ -122,7 +132,8 @@ function connect() {
       return;
     }
     const pause = RECONNECT_PAUSES[Math.min(app.reconnects, RECONNECT_PAUSES.length - 1)];
-    setState("server gone", `Connection to the server lost (close code ${e.code}); reconnecting in ${pause} s (attempt ${app.reconnects + 1}).`, true);
+    const what = opened ? "Connection to the server lost" : `Cannot connect to the server at ${location.host}`;
+    setState("server gone", `${what} (close code ${e.code}); reconnecting in ${pause} s (attempt ${app.reconnects + 1}).`, true);
     setTimeout(() => { app.reconnects++; connect(); }, pause * 1000);
   };
 }
@@ -131,19 +142,22 @@ function fail(ws, exc) {
   const refused = exc instanceof RemoteError && exc.code !== C.ErrorCode.SHUTTING_DOWN;
   if (refused || exc instanceof ProtocolError) {
     app.refused = true;
-    const what = exc instanceof RemoteError ? `The server refused this page: ${exc.text} (${exc.codeName})` : `Bad data from the server: ${exc.message}`;
-    setState("refused", what, true);
-    ws.close();
+    halt("refused", exc instanceof RemoteError ? `The server refused this page: ${exc.text} (${exc.codeName})`
+                                               : `Bad data from the server: ${exc.message}`);
     return;
   }
-  setState("error", String(exc.stack || exc), true);
+  setState("error", line(exc), true);
   ws.close();
 }
 
 function handle(ws, session, ev, nbytes) {
   if (!ev) return;
   const t = performance.now();
-  if (ev.kind === "scene-progress") {
+  if (ev.kind === "status") {  // a starting server's phase: the state line until the page streams
+    app.serverPhase = ev.phase.toLowerCase();
+    if (app.state !== "streaming")
+      setState(`server ${app.serverPhase} ${(100 * ev.progress).toFixed(0)}%${ev.text ? `: ${ev.text}` : ""}`);
+  } else if (ev.kind === "scene-progress") {
     setState(`loading scene ${(100 * ev.got / ev.total).toFixed(0)}%`);
   } else if (ev.kind === "scene") {
     if (ev.blob) {
@@ -246,13 +260,20 @@ let last = performance.now(), lastStats = last, bytesAtStats = 0, updatesAtStats
 function loop(now) {
   const dt = (now - last) / 1000;
   last = now;
-  if (app.scene && app.mirror && app.state === "streaming" && !app.paused) drawFrame(dt);
+  if (app.scene && app.mirror && app.state === "streaming" && !app.paused) {
+    try {
+      drawFrame(dt);
+    } catch (exc) {
+      halt("error", `Drawing a frame failed: ${line(exc)}`);
+    }
+  }
   if (now - lastStats >= 1000) {
     const s = (now - lastStats) / 1000;
     if (app.mirror) app.points = app.mirror.allocatedPoints();
     const rows = [["Mbit/s", ((8 * (app.bytes - bytesAtStats)) / s / 1e6).toFixed(2)], ["updates/s", ((app.updates - updatesAtStats) / s).toFixed(1)],
                   ["frame ms", app.frameMs.toFixed(1)], ["points", app.points.toLocaleString("en")],
-                  ["tick", app.mirror ? app.mirror.tick : "-"], ["codec", app.codec || "-"]];
+                  ["tick", app.mirror ? app.mirror.tick : "-"], ["codec", app.codec || "-"],
+                  ["server", app.serverPhase || "-"]];
     statsEl.innerHTML = rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join("");
     bytesAtStats = app.bytes;
     updatesAtStats = app.updates;
