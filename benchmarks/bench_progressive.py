@@ -81,7 +81,7 @@ def watch(spec: str, scene, serve_args: list[str], marks: list[float], until_sna
     from psao.client.connection import MirrorClient, scene_camera_feed
     from psao.client.errors import ConnectError
 
-    server = ServerProcess(spec, serve_args, start_timeout=None, host=None, log_stdout=False,
+    server = ServerProcess(spec, serve_args, start_timeout=None, host=None, log_stdout=False, until_full_grid=False,
                            stop_signal=signal.SIGINT, stop_grace=120.0)
     try:
         server.start()

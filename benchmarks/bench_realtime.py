@@ -13,7 +13,10 @@ Parts (--parts, comma list; all by default):
            N=256 and N=512, the skinned model (target >= 55); also the bytes per second it sends, the
            stages' wall milliseconds per tick and the CPU milliseconds of the thread that prepares the tick
            (animate + select + trace, TickStats.cpu_prepare: wall above it is time spent waiting for the
-           GIL, a core or the tracer's worker processes)
+           GIL, a core or the tracer's worker processes); the lag: the p50/p95 wait of the points in the
+           client's view from their reset (the motion changed their neighbourhood) to their first re-trace
+           (target p95 <= 100 ms), the queue over the first and last third of the window (bounded), the
+           Updates a second the client received (>= 55) and the share of ticks it was on the shared stream
   quality  budgeted tick at 60 Hz (real time, in this process, its automatic budget leaving the room for the
            service that a real served run of the scene measured first: --service-seconds) against the
            unbudgeted tick (every selected point fully re-traced each tick, time not counted) at the same
@@ -28,7 +31,7 @@ Parts (--parts, comma list; all by default):
            --fixed-rays R the budgeted tick runs at scene time k / 60 s with R rays a tick instead of in
            real time: the loss at a given tracing throughput, the same on a loaded machine (not judged)
 
-Progressive start (`psao serve --progressive`) has a benchmark of its own: benchmarks.bench_progressive.
+Progressive start (`psao serve`'s default) has a benchmark of its own: benchmarks.bench_progressive.
 
 The Warp CUDA tracer is not measured here unless --tracer warp is given on a machine with a GPU.
 
@@ -51,11 +54,16 @@ from psao.server.tick.budget import BudgetSettings
 
 PARTS = ("tracer", "grid", "rate", "quality")
 TARGETS = {"tracer_bake": 0.9, "tracer_tick": 0.8, "grid_points_per_s": 2e6, "ticks_per_s": 55.0,
-           "moving_loss_db": 1.0, "rest_loss_db": 0.5}
+           "moving_loss_db": 1.0, "rest_loss_db": 0.5, "view_wait_p95_ms": 100.0, "client_updates_per_s": 55.0,
+           # the queue's mean over the last third of the window against the first third: at most this ratio
+           # (plus QUEUE_SLACK points, for a queue that is nearly empty)
+           "queue_growth": 1.2}
+QUEUE_SLACK = 1000
 SKINNED = "../shared/scenes/cesiumman/CesiumMan.glb"
 QUALITY_SCENES = ("courtyard", "robots")  # the quality part's built-in scenes (the target names both)
 RATE_CASES = [("courtyard-256", "builtin:courtyard", 256.0), ("robots-256", "builtin:robots", 256.0),
-              ("robots-512", "builtin:robots", 512.0)]  # and "skinned": --skinned at --skinned-points
+              ("robots-512", "builtin:robots", 512.0),  # and "skinned": --skinned at --skinned-points
+              ("lab", str(Path(__file__).resolve().parents[1] / "examples" / "lab.toml"), None)]  # at its defaults
 
 
 def density_for(scene, points: float) -> float:
@@ -166,9 +174,10 @@ def part_grid(args, v: Verdicts, out: dict) -> None:
 
 # -------------------------------------------------------------------------------------------- rate
 def part_rate(args, v: Verdicts, out: dict) -> None:
-    from psao.scene import load_scene
+    from psao.scene import SceneError, load_scene
 
     from benchmarks.served import serve_and_watch
+    from psao.server.tick.summary import view_wait_quantile
 
     cases = [(scene, density) for name, scene, density in RATE_CASES if name in args.rate_scenes]
     if "skinned" in args.rate_scenes:
@@ -178,8 +187,15 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
             print(f"skinned model {args.skinned} not found: its row is skipped")
     rows = []
     for scene, density in cases:
-        run = serve_and_watch(scene, ["--animate", "--density", f"{density:g}", "--rays", str(args.serve_rays),
-                                      "--tick-hz", "60"], args.seconds)
+        try:
+            load_scene(scene)  # (the lab needs ../shared/scenes)
+        except SceneError as exc:
+            print(f"  {scene}: skipped ({exc})", flush=True)
+            continue
+        dens = ["--density", f"{density:g}"] if density is not None else []
+        label = f"{scene} N={density:g}" if density is not None else f"{Path(scene).name} (default density)"
+        run = serve_and_watch(scene, ["--animate", *dens, "--rays", str(args.serve_rays), "--tick-hz", "60"],
+                              args.seconds)
         row = {"scene": scene, "density": density, "ticks_per_s": run.ticks_per_second,
                "bytes_per_s": run.bytes_per_second, "traced_mean": run.mean("traced"),
                "queue_mean": run.mean("queue"),
@@ -189,16 +205,35 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
                "prepare_cpu_ms_mean": 1e3 * run.mean("cpu_prepare"),
                "mirror_cells": run.client.get("mirror_cells"),
                **{f"{st}_ms_mean": 1e3 * run.mean(f"seconds_{st}") for st in ("animate", "select", "trace", "grid", "encode")}}
+        waits = run.view_waits()
+        first_q, last_q = run.thirds("queue")
+        on_stream = [r.get("shared_members", 0) >= r.get("clients", 0) for r in run.records if r.get("clients")]
+        row.update(view_waits=int(sum(waits)), view_wait_p50_ms=view_wait_quantile(waits, 0.5),
+                   view_wait_p95_ms=view_wait_quantile(waits, 0.95), queue_first_third=first_q,
+                   queue_last_third=last_q,
+                   client_updates_per_s=run.client["updates"] / max(run.client["seconds"], 1e-9),
+                   client_on_shared_stream=sum(on_stream) / max(len(on_stream), 1))
         rows.append(row)
-        print(f"  {scene} N={density:g}: {row['ticks_per_s']:.1f} ticks/s, {8 * row['bytes_per_s'] / 1e6:.2f} Mbit/s "
+        print(f"  {label}: in-view points waited {row['view_wait_p50_ms']:g} ms (p50) and "
+              f"{row['view_wait_p95_ms']:g} ms (p95, bin edges) from their reset to their first re-trace "
+              f"({row['view_waits']:,} points); queue {first_q:.0f} -> {last_q:.0f} (first and last third of the "
+              f"window); the client received {row['client_updates_per_s']:.1f} Updates/s and was on the shared "
+              f"stream {100 * row['client_on_shared_stream']:.0f}% of the ticks", flush=True)
+        print(f"  {label}: {row['ticks_per_s']:.1f} ticks/s, {8 * row['bytes_per_s'] / 1e6:.2f} Mbit/s "
               f"({row['bytes_per_s'] / max(row['ticks_per_s'], 1e-9):,.0f} B/tick), traced/tick "
               f"{row['traced_mean']:.0f}, queue {row['queue_mean']:.0f}, budget used {100 * row['budget_used_mean']:.0f}%, "
               f"tick {row['tick_ms_mean']:.1f} ms (animate {row['animate_ms_mean']:.1f}, select {row['select_ms_mean']:.1f}, "
               f"trace {row['trace_ms_mean']:.1f}, grid {row['grid_ms_mean']:.1f}; encode {row['encode_ms_mean']:.1f}; "
               f"CPU of the preparing thread {row['prepare_cpu_ms_mean']:.1f})",
               flush=True)
-        v.check(f"{scene} N={density:g} ticks per second of psao serve --animate --tick-hz 60 with a client",
+        v.check(f"{label} ticks per second of psao serve --animate --tick-hz 60 with a client",
                 row["ticks_per_s"], ">=", TARGETS["ticks_per_s"])
+        v.check(f"{label} p95 wait of in-view points from reset to first re-trace, ms (bin edge)",
+                row["view_wait_p95_ms"] if row["view_waits"] else float("nan"), "<=", TARGETS["view_wait_p95_ms"])
+        v.check(f"{label} queue over the last third of the window / over the first (+{QUEUE_SLACK} "
+                "points)", last_q / (first_q + QUEUE_SLACK), "<=", TARGETS["queue_growth"])
+        v.check(f"{label} Updates a second one client received", row["client_updates_per_s"], ">=",
+                TARGETS["client_updates_per_s"])
     out["rate"] = rows
 
 

@@ -50,6 +50,22 @@ class ServedRun:
     def bytes_per_second(self) -> float:
         return self.bytes_sent / self.window_s if self.window_s > 0 else 0.0
 
+    def view_waits(self) -> list[int]:
+        """The window's in-view wait histogram (TickStats.view_waits summed; bins of VIEW_WAIT_EDGES_MS)."""
+        from psao.server.tick.summary import VIEW_WAIT_EDGES_MS
+
+        total = [0] * (len(VIEW_WAIT_EDGES_MS) + 1)
+        for r in self.records:
+            for k, c in enumerate(r.get("view_waits") or ()):
+                total[k] += c
+        return total
+
+    def thirds(self, key: str) -> tuple[float, float]:
+        """Mean of `key` over the first and over the last third of the window's records."""
+        vals = [r[key] for r in self.records if key in r]
+        k = max(len(vals) // 3, 1)
+        return (sum(vals[:k]) / k, sum(vals[-k:]) / k) if vals else (0.0, 0.0)
+
     def mean(self, key: str, among: str | None = None) -> float:
         """Mean of `key` over the window's records that hold it (and a true `among`, when given)."""
         vals = [r[key] for r in self.records if key in r and (among is None or r.get(among))]

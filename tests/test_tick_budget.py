@@ -3,6 +3,7 @@ only where the geometry changed, keeps its queue bounded, and agrees with a full
 Nothing here depends on speed: budgets are set so small that every tick traces its minimum batch, or
 the test counts ticks until the queue is empty."""
 import math
+import time
 
 import numpy as np
 import pytest
@@ -848,3 +849,45 @@ def test_a_motion_test_tick_pools_its_trace(budgeted_tick):
     finally:
         tick.close()
     assert pooled == [k % 2 == 1 for k in range(8)]
+
+
+def test_view_waits_count_the_first_retrace_of_each_reset_point_in_view(budgeted_tick):
+    """TickStats.view_waits: every point a tick re-traces for the first time since its reset (no slice of its
+    ray set yet), inside a client's view itself, is counted once, its wait (reset to this trace) in the bin
+    that brackets it: checked against the queue's state after the tick's motion reset and the view recomputed
+    with numpy (in_any_view on the camera without margins)."""
+    from psao.client.connection import scene_camera_feed
+    from psao.server.tick.selection import camera_planes, in_any_view
+    from psao.server.tick.summary import view_wait_counts
+
+    tick = budgeted_tick("courtyard", 16, bake_rays=8, rays=8, round_rays=2, min_points=50, budget_ms=LONGEST_MS)
+    feed = scene_camera_feed(tick.scene)
+    after_reset = {}
+    motion_reset = tick._motion_reset
+
+    def reset(*args):
+        changed = motion_reset(*args)
+        after_reset.update(done=tick.queue.done.copy(), since=tick.queue.waiting_since.copy())
+        return changed
+
+    tick._motion_reset = reset
+    counted = 0
+    try:
+        for t in np.arange(0.1, 1.5, 0.1):
+            view, proj = feed(t)
+            tick.set_cameras([(view, proj)])
+            plan = tick.prepare(t)
+            done_at = time.perf_counter()
+            stats = tick.apply(plan)
+            first = plan.ids[after_reset["done"][plan.ids] == 0]
+            pos = tick.world_points(plan.frame, first)[0]
+            seen = first[in_any_view(pos, [camera_planes(view, proj, 0.0)], 0.0)]
+            assert sum(stats.view_waits) == len(seen)
+            waited = after_reset["since"][seen]
+            at_most = np.cumsum(view_wait_counts(1e3 * (done_at - waited)))  # every wait is within these bounds
+            at_least = np.cumsum(view_wait_counts(np.zeros(len(seen))))
+            assert (np.cumsum(stats.view_waits) >= at_most).all() and (np.cumsum(stats.view_waits) <= at_least).all()
+            counted += len(seen)
+        assert counted > 0
+    finally:
+        tick.close()

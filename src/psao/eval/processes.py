@@ -262,17 +262,21 @@ class ServerProcess:
 
     scene_spec: str
     extra: list[str] = field(default_factory=list)
-    start_timeout: float | None = 600.0  # seconds to bake/load and listen (None: no deadline)
+    start_timeout: float | None = 600.0  # seconds to listen and (until_full_grid) bake (None: no deadline)
     host: str | None = "127.0.0.1"
     log_path: Path | None = None
     log_stdout: bool = True
     cwd: Path | str | None = None
     stop_signal: int | None = None
     stop_grace: float = 3.0
+    # start() returns once the full grid is served (the server listens, and answers, before: while it
+    # loads and bakes, then with a coarse grid); False: once it listens
+    until_full_grid: bool = True
     proc: subprocess.Popen | None = None
     url: str = ""
     started: float = 0.0  # time.perf_counter() just before the process started
     listen_s: float = 0.0  # seconds from the start to the listening line
+    full_grid_s: float | None = None  # seconds from the start to the full grid served (until_full_grid)
     _follow: LogFollower | None = field(default=None, repr=False)
     _temporary_log: bool = field(default=False, repr=False)
     _closed_log: str | None = field(default=None, repr=False)
@@ -283,7 +287,8 @@ class ServerProcess:
         return ["serve", self.scene_spec, *host, "--port", "0", *map(str, self.extra)]
 
     def start(self) -> "ServerProcess":
-        """Start the server and wait until it listens (ServeExited, ServeTimeout: it is stopped first)."""
+        """Start the server and wait until it listens, and serves its full grid unless until_full_grid is
+        False (ServeExited, ServeTimeout: it is stopped first)."""
         if self.log_path is None:
             fd, name = tempfile.mkstemp(prefix="psao-serve-", suffix=".log")
             os.close(fd)
@@ -299,10 +304,14 @@ class ServerProcess:
         try:
             self.url = self.wait_for(LISTEN_RE, self.start_timeout, "before listening").group(1)
             self.listen_s = time.perf_counter() - self.started
+            if self.until_full_grid:
+                left = None if self.start_timeout is None else max(self.start_timeout - self.listen_s, 0.0)
+                self.wait_for(FULL_GRID_RE, left, "before serving its full grid")
+                self.full_grid_s = time.perf_counter() - self.started
         except ServeTimeout as exc:
             self.close()
-            raise ServeTimeout(f"psao serve {self.scene_spec} did not listen within {self.start_timeout:.0f} s",
-                               exc.log) from None
+            raise ServeTimeout(f"psao serve {self.scene_spec} did not listen and serve its full grid within "
+                               f"{self.start_timeout:.0f} s", exc.log) from None
         except BaseException:
             self.close()
             raise

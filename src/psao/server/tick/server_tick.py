@@ -58,6 +58,7 @@ from psao.server.arrays import rows
 from psao.server.bake import BakeResult
 from psao.server.geometry import scene_center, scene_point_ids, to_world
 from psao.server.tick.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
+from psao.server.tick.summary import view_wait_counts
 from psao.server.errors import ConfigError, TracerError
 from psao.server.grid import NO_POINT, Grid
 from psao.server.tick.selection import (INSIDE_CHANGE, BlockIndex, MotionInput, NearCache, cameras_planes, in_any_view,
@@ -99,6 +100,9 @@ class TickStats:
     cpu_prepare: float = 0.0  # CPU seconds the thread that ran prepare (animate, select, trace) spent in it: the
     # wall seconds of those stages less this is time spent waiting (for the GIL, a core, the tracer's worker
     # processes, whose CPU is not counted here)
+    # the points this tick re-traced for the first time since their history was reset, in a client's view: how
+    # long each waited for it, counted in the bins of summary.VIEW_WAIT_EDGES_MS (budgeted tick; None otherwise)
+    view_waits: list | None = None
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # (scalars: no deep copy, 4x cheaper than asdict)
@@ -117,6 +121,7 @@ class TickPlan:
     exact: int = 0  # static points near movers the whole traces' share (exact_share) traced from kept static hits
     refilled: int = 0  # static points traced whole with their static hits kept again
     cpu_s: float = 0.0  # CPU seconds of the preparing thread (TickStats.cpu_prepare)
+    view_waits: list | None = None  # TickStats.view_waits
 
 
 class ServerTick:
@@ -506,6 +511,7 @@ class ServerTick:
         self._ahead = None
         s = self.trace_settings
         key, _, core = self.priority(frame, looked)  # one pass: the whole traces and the rounds choose by it
+        looked_all, in_view = looked, core.copy()  # in a client's view itself (no margins): for view_waits
         most_exact = self.budget.exact_points(s.rays)
         exact, refill = self._whole_static(looked, core, most_exact, s.rays)
         spent = len(exact) * self.budget.exact_rays(s.rays) + len(refill) * s.rays
@@ -523,7 +529,7 @@ class ServerTick:
         whole = np.concatenate([fresh, refill, exact])
         spent = len(exact) * self.budget.exact_rays(s.rays) + (len(refill) + len(fresh)) * s.rays
         t_sel = time.perf_counter()
-        codes, whole_codes, ray_s = np.zeros(0, np.uint32), np.zeros(0, np.uint32), None
+        codes, whole_codes, ray_s, view_waits = np.zeros(0, np.uint32), np.zeros(0, np.uint32), None, view_wait_counts([])
         if len(chosen) or len(whole):  # one call: the workers' hand-over is paid once
             pos, nrm = self.world_points(frame, chosen)
             fresh_pos, fresh_nrm = self.world_points(frame, fresh)
@@ -539,6 +545,7 @@ class ServerTick:
             ray_s = self._ray_seconds() - ray_s if ray_s is not None else None
             vis = [vis.get(k, (np.zeros(0, np.float32), None)) for k in range(len(parts))]
             now = time.perf_counter()
+            view_waits = self._view_waits(np.concatenate([chosen, whole]), looked_all, in_view, now)
             codes = self.queue.add(chosen, vis[0][0], round_settings.rays_traced, now)
             if len(whole):  # the full trace's AO: the point's whole ray set at once
                 if len(refill):
@@ -555,7 +562,17 @@ class ServerTick:
         # stored with this tick's own: the refiner's, and (last) the static points traced whole
         chosen, codes = np.concatenate([chosen, refined[0], whole]), np.concatenate([codes, refined[1], whole_codes])
         return TickPlan(frame, moved, chosen, codes, (t_anim - t_start, t_sel - t_anim, t_trace - t_sel),
-                        batch=batch, budget_s=budget_s, exact=n_exact, refilled=len(refill))
+                        batch=batch, budget_s=budget_s, exact=n_exact, refilled=len(refill), view_waits=view_waits)
+
+    def _view_waits(self, traced: np.ndarray, looked: np.ndarray, in_view: np.ndarray, now: float) -> list[int]:
+        """view_wait_counts of the waits of the `traced` points (within the sorted `looked`, `in_view` of
+        each) that no slice of their ray set holds since their reset (their first re-trace is this one)."""
+        if not len(traced):
+            return view_wait_counts([])
+        first = self.queue.done[traced] == 0
+        seen = in_view[np.searchsorted(looked, traced)]
+        waited = traced[first & seen]
+        return view_wait_counts(1e3 * (now - self.queue.waiting_since[waited]))
 
     def _pools_trace(self, round_settings: TraceSettings) -> bool:
         """Whether this tick leaves its trace to the next (BudgetSettings.pool_traces): it tested motion,
@@ -575,7 +592,8 @@ class ServerTick:
         # the queue's length now; its oldest wait as the last trace call found it
         self._queue_now = (self.queue.count, self._queue_now[1])
         t_sel = time.perf_counter()
-        return TickPlan(frame, moved, refined[0], refined[1], (t_anim - t_start, t_sel - t_anim, 0.0))
+        return TickPlan(frame, moved, refined[0], refined[1], (t_anim - t_start, t_sel - t_anim, 0.0),
+                        view_waits=view_wait_counts([]))
 
     def _motion_reset(self, frame: Frame, now: float, edited: bool) -> np.ndarray:
         """Reset the queue's history of the points the motion since the last motion test may have changed,
@@ -740,7 +758,7 @@ class ServerTick:
         return {"queue": self._queue_now[0], "queue_oldest_ms": self._queue_now[1],
                 "budget_ms": 1e3 * plan.budget_s, "budget_used": trace_s / max(plan.budget_s, 1e-9),
                 "service_ms": 1e3 * self.budget.service_s,
-                "batch": plan.batch, "exact": plan.exact, "refilled": plan.refilled}
+                "batch": plan.batch, "exact": plan.exact, "refilled": plan.refilled, "view_waits": plan.view_waits}
 
     # ------------------------------------------------------------------ steps
     def _deform(self, frame: Frame) -> int:

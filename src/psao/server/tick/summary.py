@@ -51,6 +51,28 @@ class DurationHistogram:
         return min(max(edge, self.lowest), self.highest)
 
 
+# Upper edges (ms) of the bins of the in-view wait histogram (TickStats.view_waits): how long the points in a
+# client's view waited from the reset of their history (the motion changed their neighbourhood) to their
+# first re-trace; the last bin is open above.
+VIEW_WAIT_EDGES_MS = (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000)
+
+
+def view_wait_counts(waits_ms: np.ndarray) -> list[int]:
+    """Counts of `waits_ms` in the bins of VIEW_WAIT_EDGES_MS (len + 1 bins, a wait on an edge in the lower)."""
+    bins = np.searchsorted(np.asarray(VIEW_WAIT_EDGES_MS, np.float64), np.asarray(waits_ms, np.float64), side="left")
+    return np.bincount(bins, minlength=len(VIEW_WAIT_EDGES_MS) + 1).tolist()
+
+
+def view_wait_quantile(counts, q: float) -> float:
+    """The q-quantile of a view_wait_counts histogram as its bin's upper edge (ms; inf in the open last
+    bin, 0 without waits)."""
+    counts = np.asarray(counts, np.int64)
+    if counts.sum() == 0:
+        return 0.0
+    b = int(np.searchsorted(np.cumsum(counts), max(1, int(np.ceil(q * counts.sum())))))
+    return float(VIEW_WAIT_EDGES_MS[b]) if b < len(VIEW_WAIT_EDGES_MS) else float("inf")
+
+
 class TickSummary:
     def __init__(self):
         self.durations = DurationHistogram()
@@ -61,6 +83,7 @@ class TickSummary:
         self.clients_peak = 0
         self.budget_used_sum = 0.0  # over the ticks that had a trace budget
         self.budgeted_ticks = 0
+        self.view_waits = np.zeros(len(VIEW_WAIT_EDGES_MS) + 1, np.int64)  # summed TickStats.view_waits
 
     def add(self, record: dict) -> None:
         """One tick's record: seconds_tick, time, clients, the sums' keys and, from the server tick,
@@ -72,13 +95,16 @@ class TickSummary:
         for key in self.sums:
             self.sums[key] += record.get(key, 0)
         self.clients_peak = max(self.clients_peak, int(record.get("clients", 0)))
+        if record.get("view_waits"):
+            self.view_waits += np.asarray(record["view_waits"], np.int64)
         if record.get("budget_ms"):
             self.budgeted_ticks += 1
             self.budget_used_sum += float(record["budget_used"])
 
     def to_dict(self) -> dict:
         """ticks, seconds (first to last tick), ticks_per_s, tick_ms_mean/p95/max, the sums, clients_peak
-        and, for a budgeted tick, budget_used_mean. tick_ms_p95 is within BIN_RATIO above the exact p95."""
+        and, for a budgeted tick, budget_used_mean and the in-view waits (count, p50 and p95 as bin edges).
+        tick_ms_p95 is within BIN_RATIO above the exact p95."""
         d = self.durations
         n = d.n
         span = self.last_time - self.first_time if self.first_time is not None else 0.0
@@ -94,4 +120,7 @@ class TickSummary:
         }
         if self.budgeted_ticks:
             out["budget_used_mean"] = self.budget_used_sum / self.budgeted_ticks
+        if self.view_waits.any():  # (the quantiles as bin edges; inf: beyond the last edge)
+            out.update(view_waits=int(self.view_waits.sum()), view_wait_p50_ms=view_wait_quantile(self.view_waits, 0.5),
+                       view_wait_p95_ms=view_wait_quantile(self.view_waits, 0.95))
         return out
