@@ -11,11 +11,13 @@ connects as soon as the server listens and sends its camera:
     start) for the progressive server and from its first snapshot on for the plain one;
   - across the swap to the full grid: PSNR of the mirror the client shows just before the full grid's
     snapshot completes and at it (the client keeps showing the coarse mirror until then: no empty frame);
+  - the web page in a headless chromium (psao.eval.browser), opened as soon as the server listens: seconds
+    from process start to its first drawn PSAO frame (target: <= 3 s);
   - with --animate: Updates the client receives in the first seconds after its first snapshot (the movers
     are posed and traced on the coarse grid from its first tick);
   - a chart of PSNR against seconds since start per scene (run time against error).
 
-    .venv/bin/python -m benchmarks.bench_progressive [--scenes courtyard,sponza] [--rays 128]
+    .venv/bin/python -m benchmarks.bench_progressive [--scenes courtyard,sponza] [--rays 128] [--skip-page]
         [--marks 1,2,3,5,10,20,30] [--out out/bench_progressive]
 """
 from __future__ import annotations
@@ -137,6 +139,27 @@ def watch(spec: str, scene, serve_args: list[str], marks: list[float], until_sna
     return result
 
 
+def page_first_frame(spec: str, serve_args: list[str], hang_s: float) -> dict:
+    """Start `psao serve SPEC ... --port 0` with a headless chromium already running, open the web page as
+    soon as the server listens, and return the seconds since process start to the page's first drawn PSAO
+    frame (the page streaming, its frame counter at 1), and the states the page went through."""
+    from psao.eval.browser import launched
+
+    with launched() as browser:
+        page = browser.new_page(viewport={"width": 680, "height": 400})
+        server = ServerProcess(spec, serve_args, start_timeout=None, log_stdout=False, until_full_grid=False,
+                               stop_signal=signal.SIGINT, stop_grace=120.0)
+        try:
+            server.start()
+            page.goto(f"http://127.0.0.1:{server.port}/")
+            page.wait_for_function("window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1",
+                                   timeout=hang_s * 1e3, polling=20)
+            drawn_s = time.perf_counter() - server.started
+            return {"page_first_frame_s": drawn_s, "page_listening_s": server.listen_s}
+        finally:
+            server.close()
+
+
 def chart(r: dict, name: str, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -230,6 +253,18 @@ def run_scene(name: str, args, marks: list[float], v: Verdicts) -> dict:
           f"{first:.2f} dB)")
     v.check(f"{name}: PSNR of the client's view at the end of the progressive run minus at its first snapshot, dB "
             "(the full grid and its refinement improve it)", r["progressive_psnr_at_end_db"] - first, ">", 0.0)
+    if not args.skip_page:
+        from psao.eval.browser import missing_browser
+
+        why = missing_browser()
+        if why:
+            print(f"{name}: the page is not measured: {why}", flush=True)
+        else:
+            r.update(page_first_frame(spec, common, args.hang_s))
+            print(f"{name} web page: first drawn PSAO frame {r['page_first_frame_s']:.2f} s after psao serve started",
+                  flush=True)
+            v.check(f"{name} psao serve: seconds from start to the web page's first drawn frame",
+                    r["page_first_frame_s"], "<=", TARGET_FIRST_SNAPSHOT_S)
     if classify_instances(scene).moving:
         moving = watch(spec, scene, ["--animate", *common], [], 1, args.hang_s, linger_s=ANIMATED_SECONDS)
         first_s = moving["snapshots_s"][0] if moving["snapshots_s"] else float("nan")
@@ -258,6 +293,7 @@ def main(argv=None) -> int:
     ap.add_argument("--hang-s", type=float, default=400.0, help="give up on a server after this many seconds")
     ap.add_argument("--swap-tolerance-db", type=float, default=1.0,
                     help="the PSNR the client's view may lose across the swap to the full grid")
+    ap.add_argument("--skip-page", action="store_true", help="no web page in chromium")
     ap.add_argument("--skip-plain", action="store_true", help="only the progressive server (no --no-progressive baseline)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_progressive"))
     args = ap.parse_args(argv)

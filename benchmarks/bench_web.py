@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import base64
 import json
-import shutil
 import signal
 import statistics
 import sys
@@ -33,24 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.browser import CHROMIUM, CHROMIUM_ARGS, missing_browser
 from psao.eval.processes import ServeExited, ServerProcess, ServeTimeout
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--headless",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
-
-
-def missing_browser() -> str | None:
-    """Why the page cannot be driven here, or None."""
-    if not shutil.which("chromium"):
-        return "chromium is not installed (make browser)"
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError:
-        return "playwright is not installed (pip install '.[test]')"
-    return None
-
-
 def start_server(args) -> ServerProcess:
     """`psao serve` of the benchmark's scene, listening; its log in --out/serve.err."""
     err = Path(args.out) / "serve.err"
@@ -83,7 +68,7 @@ def browser_run(port: int, view, proj, w: int, h: int, args, codec: str, shot: P
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=shutil.which("chromium") or "/usr/bin/chromium", args=CHROMIUM_ARGS)
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": w + 40, "height": h + 40})
         cam = [view.astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()]
         # The camera is fixed before the page's module runs, so the first frame is the measured view.
