@@ -1,4 +1,5 @@
-"""Many clients on one server: `python -m benchmarks.bench_clients [--counts 1,10,30,100]`.
+"""Many clients on one server: `python -m benchmarks.bench_clients [--counts 1,10,30,100]`; one client
+keeping up at 60 Hz: `python -m benchmarks.bench_clients --rate`.
 
 A real `psao serve builtin:courtyard --animate` process (N=64 by default); clients are the project's own
 MirrorClient (protocol code and a mirror, no renderer; real websockets on loopback), `--per-process` of
@@ -29,6 +30,21 @@ mirror at most MAX_LAG_S behind); every
 client of the last stage has its snapshot within 60 s of joining; RSS per extra client <= 4 MB; every
 compared digest equal, and at the end (every client turned to a camera that sees the whole scene, so
 that nothing stays pending for it) a digest of every client of the last stage compared.
+
+ONE CLIENT (`--rate [--updates 600] [--no-cull] [--no-camera]`): a real `psao serve builtin:courtyard
+--density 256 --tick-hz 60 --animate --stats-json` and, once it serves the full grid, one MirrorClient in
+this process sending its camera at 30 Hz along the scene's camera path, as a headless `psao client` does.
+After RATE_WARM_UPDATES Updates it counts `--updates` more, each stamped with the server tick it carries:
+the window's server ticks (last tick - first tick) are the baseline measured in the same run, so a verdict
+is Updates received per tick served (an Update that folds ticks counts once). The server's --stats-json says
+per tick how many clients are on the shared stream: the share of the window's ticks with this client on it
+is reported, and the client's CPU (this process) as a share of one core. Exactness, on a second server with
+--digest-log (its digests cost it a whole-grid copy and sha256 per tick that leaves nothing pending, which
+would slow the first run): the client digests a message the server logged a digest for, at most one every
+DIGEST_GAP_S, and at the end, with a camera that sees the whole scene, until one more came; every compared
+digest must equal the server's. Verdicts: updates/s >= RATE_UPDATES_S, updates per server tick >=
+RATE_UPDATES_S / RATE_TICK_HZ, on the shared stream for RATE_ON_STREAM of the window's ticks, no reconnect,
+at least one digest compared and none different.
 """
 from __future__ import annotations
 
@@ -55,6 +71,12 @@ MAX_LAG_S = 2.0  # seconds of scene time the slowest client's mirror may trail t
 FINAL_S = 60.0  # seconds the clients have, at the end, to be sent an Update after which nothing is pending
 DIGEST_GAP_S = 2.0  # seconds between the mirror digests one client process works out (after each connection's first)
 SERVER_DIGESTS = "server_digests.jsonl"  # in the run's folder: the server's --digest-log
+RATE_TICK_HZ = 60.0  # --rate: the server's tick rate
+RATE_UPDATES_S = 55.0  # --rate: Updates a second the client receives at that tick rate
+RATE_ON_STREAM = 0.95  # --rate: share of the window's server ticks with the client on the shared stream
+RATE_WARM_UPDATES = 120  # --rate: Updates after the snapshot before the window starts
+RATE_START_S = 900.0  # --rate: seconds for the server to bake and serve the full grid
+RATE_DENSITY = 256.0  # --rate: the grid density without --density
 
 
 class ServerDigests:
@@ -183,7 +205,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
     # Every client now looks at the whole scene, so an Update leaves nothing pending for it (whatever its
     # view kept back) and the server vouches for its mirror: each one's digest is compared once more.
     overview[0] = overview_camera(scene)
-    end = time.perf_counter() + FINAL_S
+    end = time.perf_counter() + (FINAL_S if exact else 0.0)
     while time.perf_counter() < end and not all(c.stats.connection_id in final_conns for c in clients):
         await asyncio.sleep(0.1)
     print(json.dumps({"final": True, "digested": [c.stats.connection_id in final_conns for c in clients],
@@ -287,10 +309,114 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+# ------------------------------------------------------------------------------------------ one client
+async def measure_one(url: str, scene_spec: str, n_updates: int, digest_dir: Path, camera: bool,
+                      exact: bool) -> dict:
+    """Run one MirrorClient: the window's (wall seconds, updates, first and last tick, CPU seconds); with
+    `exact`, its digests (of messages the server vouched for) and then the overview phase until one was taken
+    after it began."""
+    from psao.client.connection import MirrorClient, scene_camera_feed
+    from psao.protocol.session import scene_hash_bytes
+    from psao.scene import load_scene
+
+    scene = load_scene(scene_spec)
+    feed = scene_camera_feed(scene)
+    overview: list = [None]
+    vouched = ServerDigests(digest_dir / SERVER_DIGESTS)
+    last_digest = [-float("inf")]
+    final_digests = [0]  # digests taken once the overview camera was on
+
+    def digest_if(conn: int, seq: int) -> bool:
+        if not vouched(conn, seq):
+            return False
+        now = time.perf_counter()
+        if now - last_digest[0] < DIGEST_GAP_S and not (overview[0] is not None and not final_digests[0]):
+            return False
+        last_digest[0] = now
+        final_digests[0] += overview[0] is not None
+        return True
+
+    stamps: list[tuple[float, int]] = []  # (wall, tick) of every Update
+    window: dict = {}
+
+    def on_update(_mirror, _transforms, tick: int) -> None:
+        stamps.append((time.perf_counter(), tick))
+        if len(stamps) == RATE_WARM_UPDATES:
+            window["cpu0"] = time.process_time()
+        elif len(stamps) == RATE_WARM_UPDATES + n_updates:
+            window["cpu1"] = time.process_time()
+
+    client = MirrorClient(url, scene_hash_bytes(scene.content_hash()),
+                          camera=(lambda t: overview[0] or feed(t)) if camera else None,
+                          on_update=on_update, digest_log=digest_dir / "client.jsonl" if exact else None,
+                          digest_if=digest_if,
+                          reconnect_timeout=60.0, open_timeout=30.0)
+    task = asyncio.create_task(client.run())
+    while len(stamps) < RATE_WARM_UPDATES + n_updates and not task.done():
+        await asyncio.sleep(0.05)
+    if task.done():
+        task.result()  # (an error ends the benchmark with it)
+        raise RuntimeError("the client stopped before the window was complete")
+    overview[0] = overview_camera(scene)
+    end = time.perf_counter() + (FINAL_S if exact else 0.0)
+    while not final_digests[0] and time.perf_counter() < end and not task.done():
+        await asyncio.sleep(0.1)
+    client.stop()
+    await asyncio.gather(task, return_exceptions=True)
+    (t0, k0), (t1, k1) = stamps[RATE_WARM_UPDATES - 1], stamps[RATE_WARM_UPDATES + n_updates - 1]
+    return {"seconds": t1 - t0, "updates": n_updates, "tick0": k0, "tick1": k1,
+            "cpu": window["cpu1"] - window["cpu0"], "reconnects": client.stats.reconnects,
+            "final_digests": final_digests[0]}
+
+
+def rate_main(args: argparse.Namespace) -> int:
+    """--rate: one client beside the server at 60 Hz (see ONE CLIENT in the module docstring)."""
+    if args.updates < 2:
+        print("bench_clients: error: --updates must be >= 2", file=sys.stderr)
+        return 2
+    density = args.density or RATE_DENSITY
+    work = Path(tempfile.mkdtemp(prefix="bench_client_rate_"))
+    stats, slog = work / "stats.jsonl", work / SERVER_DIGESTS
+    served = ["--density", f"{density:g}", "--tick-hz", f"{RATE_TICK_HZ:g}", "--animate"] + (
+        ["--no-cull"] if args.no_cull else [])
+    # Two servers: the rate without --digest-log (a server digest after every message that leaves nothing
+    # pending is a whole-grid copy and sha256 a tick, which slows its loop and encode thread), then the
+    # mirror's exactness with it.
+    runs = {}
+    for exact, extra in ((False, ["--stats-json", str(stats)]), (True, ["--digest-log", str(slog)])):
+        with ServerProcess(args.scene, served + extra, start_timeout=RATE_START_S, cwd=ROOT) as server:
+            print(f"psao serve {args.scene} {' '.join(served)}{' --digest-log' if exact else ''} at {server.url}; "
+                  f"one MirrorClient {'without a camera' if args.no_camera else 'sending its camera'}", flush=True)
+            runs[exact] = asyncio.run(measure_one(server.url, args.scene, args.updates if not exact else 2, work,
+                                                  camera=not args.no_camera, exact=exact))
+    r = runs[False]
+    ticks = r["tick1"] - r["tick0"]
+    recs = [x for x in read_jsonl(stats) if r["tick0"] < x["service_tick"] <= r["tick1"]]
+    on_stream = sum(x.get("shared_members", 0) >= 1 for x in recs) / max(len(recs), 1)
+    compared, differ, _ = compare_digests(slog, [work / "client.jsonl"])
+    updates_s = r["updates"] / r["seconds"]
+    print(f"window: {r['updates']} updates over {ticks} server ticks in {r['seconds']:.2f} s: "
+          f"{updates_s:.1f} updates/s, server {ticks / r['seconds']:.1f} ticks/s, "
+          f"{r['updates'] / max(ticks, 1):.3f} updates per tick; on the shared stream {100 * on_stream:.0f}% of "
+          f"the ticks; client CPU {100 * r['cpu'] / r['seconds']:.0f}% of a core; {r['reconnects']} reconnects; "
+          f"digests compared {compared} ({runs[True]['final_digests']} after the overview camera), "
+          f"different {differ}",
+          flush=True)
+    name = f"one client, {args.scene.removeprefix('builtin:')} N={density:g}"
+    v = Verdicts("bench_clients")
+    v.check(f"{name}: updates/s at {RATE_TICK_HZ:g} Hz", updates_s, ">=", RATE_UPDATES_S)
+    v.check(f"{name}: updates per server tick", r["updates"] / max(ticks, 1), ">=", RATE_UPDATES_S / RATE_TICK_HZ)
+    v.check(f"{name}: share of the ticks on the shared stream", on_stream, ">=", RATE_ON_STREAM)
+    v.check(f"{name}: reconnects in the window", r["reconnects"], "<=", 0)
+    v.check(f"{name}: mirror digests compared", compared, ">=", 1)
+    v.check(f"{name}: mirror digests different", differ, "<=", 0)
+    return v.exit_code()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_clients", description=__doc__.splitlines()[0])
     p.add_argument("--counts", default="1,10,30,100")
-    p.add_argument("--density", type=float, default=64.0)
+    p.add_argument("--density", type=float, default=None, help="grid density (default 64; with --rate 256)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per stage")
     p.add_argument("--scene", default="builtin:courtyard")
     p.add_argument("--per-process", type=int, default=10, help="clients per client process (at most; each runs at "
@@ -301,7 +427,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-cull", action="store_true", help="serve with --no-cull (every client is sent every change)")
     p.add_argument("--client-host", nargs=7, metavar=("URL", "SCENE", "COUNTS", "DIR", "HOST", "PER_HOST", "EVERY"),
                    help=argparse.SUPPRESS)
+    p.add_argument("--rate", action="store_true",
+                   help="one client at 60 Hz instead of the stages (ONE CLIENT in this module's docstring)")
+    p.add_argument("--updates", type=int, default=600, help="with --rate: Updates counted in the window")
+    p.add_argument("--no-camera", action="store_true", help="with --rate: the client sends no camera (sees every cell)")
     args = p.parse_args(argv)
+    if args.rate:
+        return rate_main(args)
+    args.density = args.density or 64.0
     if args.client_host:
         url, scene, counts, d, host, per_host, every = args.client_host
         asyncio.run(client_host(url, scene, [int(c) for c in counts.split(",")], Path(d), Path(d) / "control",

@@ -238,8 +238,12 @@ class MirrorClient:
                         renders = asyncio.create_task(self._render_frames(ws, session, frames))
                     if (digests and isinstance(event, (SnapshotReceived, UpdateReceived))
                             and self.digest_if(self.stats.connection_id, seq)):
+                        # the whole mirror hashed on a worker thread (sha256 lets go of the GIL): meanwhile
+                        # the loop reads ahead (up to the library's queue), answers the server's pings and
+                        # sends cameras; nothing writes the mirror until the digest is back
+                        digest = await asyncio.to_thread(self.mirror.digest)
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
-                                                  "digest": self.mirror.digest()}) + "\n")
+                                                  "digest": digest}) + "\n")
                     seq += 1
                     done = (frames is not None and self.on_frame is None and session.state == ClientState.STREAMING
                             and self.stats.updates >= frames)
