@@ -232,6 +232,8 @@ def _start_up(args, bake_with: BakeSettings, from_file=None):
     and hand its hash and blob over, serve a coarse first grid when progressive start makes one, then the
     full grid with its tick."""
     def work(startup) -> None:
+        import concurrent.futures
+
         import numpy as np
 
         from psao.protocol.session import scene_hash_bytes
@@ -242,7 +244,12 @@ def _start_up(args, bake_with: BakeSettings, from_file=None):
 
         startup.step(0.0, f"loading {args.scene}")
         scene = load_scene(args.scene)
-        startup.scene(scene_hash_bytes(scene.content_hash()), lambda: scene_blob(scene))
+        # The scene file is compressed beside the coarse bake (its strongest zstd level takes a while on a
+        # large scene); the service waits for it at the first SceneRequest.
+        blob = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="psao-scene-blob")
+        compressed = blob.submit(scene_blob, scene)
+        blob.shutdown(wait=False)
+        startup.scene(scene_hash_bytes(scene.content_hash()), compressed.result)
         resting = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         startup.step(0.0, "baking the coarse first grid")
         coarse = _coarse_first(args, bake_with, scene, lambda f, text: startup.step(f, f"coarse grid {text}"))
