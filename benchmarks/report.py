@@ -52,30 +52,35 @@ def span(values: list[float], fmt: str) -> str:
 
 
 def method_summary(rows: list[dict]) -> str:
-    """What `psao bench`'s rows say, in figures computed from them: PSAO at its highest density against
-    each screen-space method, its bias, what doubling the density gains, and its frame cost."""
+    """What `psao bench`'s rows say, in figures computed from them: PSAO at each scene's highest density
+    against every other method, its bias, what its higher density gains over its lower, and its frame cost."""
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     by = {(r["scene"], r["method"]): r for r in rows}
-    densities = sorted({r["density"] for r in rows if r.get("density")})
-    if not densities:
+    psao = {s: sorted((r for r in rows if r["scene"] == s and r.get("density")), key=lambda r: r["density"])
+            for s in scenes}
+    psao = {s: ranked for s, ranked in psao.items() if ranked}
+    if not psao:
         return ""
-    top = f"PSAO-{densities[-1]:g}"
+    tops = sorted({ranked[-1]["density"] for ranked in psao.values()}, reverse=True)
+    top = (f"PSAO-{tops[0]:g}" if len(tops) == 1 else
+           "PSAO at each scene's highest density (" + ", ".join(f"{d:g}" for d in tops) + ")")
     lines = []
-    for other in ("SSAO", "GTAO"):
-        pairs = [(by[(s, top)], by[(s, other)]) for s in scenes if (s, top) in by and (s, other) in by]
+    for other in dict.fromkeys(r["method"] for r in rows if not r.get("density")):
+        pairs = [(psao[s][-1], by[(s, other)]) for s in psao if (s, other) in by]
         if pairs:
             gain = [a["psnr"] - b["psnr"] for a, b in pairs]
             lower = sum(a["flip"] < b["flip"] for a, b in pairs)
             cost = [a["client_ms_frame"] / b["client_ms_frame"] for a, b in pairs]
             lines.append(f"- {top} against {other}: {span(gain, '+.1f')} dB PSNR, a lower FLIP on {lower} of "
                          f"{len(pairs)} scenes, {span(cost, '.2f')} times its client ms per frame.")
-    psao = [r for r in rows if r.get("density")]
-    lines.append(f"- PSAO's mean AO bias: at most {max(abs(r['bias']) for r in psao):.4f} in magnitude (SSAO's: "
+    every = [r for ranked in psao.values() for r in ranked]
+    lines.append(f"- PSAO's mean AO bias: at most {max(abs(r['bias']) for r in every):.4f} in magnitude (SSAO's: "
                  + ", ".join(f"{by[(s, 'SSAO')]['bias']:+.3f}" for s in scenes if (s, "SSAO") in by) + ").")
-    if len(densities) > 1:
-        lo, hi = f"PSAO-{densities[0]:g}", top
-        gain = [by[(s, hi)]["psnr"] - by[(s, lo)]["psnr"] for s in scenes if (s, lo) in by and (s, hi) in by]
-        lines.append(f"- {hi} against {lo}: {span(gain, '+.1f')} dB PSNR.")
+    pairs = [(ranked[0], ranked[-1]) for ranked in psao.values() if len(ranked) > 1]
+    if pairs and len({(lo["density"], hi["density"]) for lo, hi in pairs}) == 1:
+        lo, hi = pairs[0]
+        lines.append(f"- PSAO-{hi['density']:g} against PSAO-{lo['density']:g}: "
+                     f"{span([h['psnr'] - l['psnr'] for l, h in pairs], '+.1f')} dB PSNR.")
     return "\n" + "\n".join(lines) + "\n"
 
 
@@ -89,6 +94,7 @@ class Section:
     command: str  # the command that writes the data, with --out OUT_DIR left to the runner
     data_file: str  # the file under --out that holds the rows
     render: Callable[[list[dict]], str]
+    more_files: tuple[str, ...] = ()  # further files under --out whose rows follow (a benchmark of several runs)
 
 
 SECTIONS: dict[str, Section] = {
@@ -99,6 +105,8 @@ SECTIONS: dict[str, Section] = {
                         bench_table),
     "sponza": Section("psao bench ../shared/scenes/sponza/sponza_s_lod4.glb --densities 32,128 --tick-hz 60 "
                       "--frames 2 --spp 512 --image-scale 0.5", "results.json", bench_table),
+    "baselines": Section("python -m benchmarks.bench_baselines --frames 3 --spp 512 --sponza-density 128 --mlp-steps 600 "
+                         "--no-stream --image-scale 0.5", "results.json", bench_table, ("sponza/results.json",)),
     "scenes": Section("python -m benchmarks.bench_scenes --scales 1", "bench_scenes.json", scenes_table),
 }
 
@@ -116,7 +124,7 @@ def run_commit(out_dir: Path) -> str:
 def collect(section_id: str, out_dir: Path, data_dir: Path = DATA) -> Path:
     """Store the rows of a finished run as the section's data file."""
     section = SECTIONS[section_id]
-    rows = json.loads((out_dir / section.data_file).read_text())
+    rows = [r for name in (section.data_file, *section.more_files) for r in json.loads((out_dir / name).read_text())]
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / f"{section_id}.json"
     record = {"id": section_id, "command": f"{section.command} --out {out_dir.name}",
@@ -157,8 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("check", help="exit 1 if docs/results.md's generated blocks differ from docs/data")
     args = ap.parse_args(argv)
     if args.action == "collect":
-        if not (args.out_dir / SECTIONS[args.section].data_file).is_file():
-            ap.error(f"{args.out_dir / SECTIONS[args.section].data_file} does not exist: run the section's command first")
+        section = SECTIONS[args.section]
+        missing = [n for n in (section.data_file, *section.more_files) if not (args.out_dir / n).is_file()]
+        if missing:
+            ap.error(f"{args.out_dir / missing[0]} does not exist: run the section's command first")
         print(f"wrote {collect(args.section, args.out_dir)}")
         return 0
     text = RESULTS.read_text()
