@@ -401,7 +401,8 @@ class Fanout:
                 continue
             sees_all = sees[c.id]
             if c.shared:
-                if sees_all and len(c.outbox) + c.in_flight < self.settings.max_queued and not self.behind(c):
+                # (Updates still being encoded for it are the server's lag, not the client's: not counted)
+                if sees_all and len(c.outbox) < self.settings.max_queued and not self.behind(c):
                     members.append(c)
                     continue
                 c.shared = False
