@@ -33,9 +33,14 @@ def alive(pid: int) -> bool:
 
 def test_workers_die_when_the_server_is_killed(tmp_path):
     _, proc, err = start_serve(tmp_path, "--animate", "--tick-rays", "1", "--tick-hz", "5")
-    wait_full_grid(proc, err)  # its tick, and the tick's tracer workers, come with the full grid
-    workers = children(proc.pid)
-    assert workers, "the animated server runs tracer worker processes"
+    try:
+        wait_full_grid(proc, err)  # its tick, and the tick's tracer workers, come with the full grid
+        workers = children(proc.pid)
+        assert workers, "the animated server runs tracer worker processes"
+    except BaseException:  # a failed check leaves no server behind
+        proc.terminate()
+        proc.wait(30)
+        raise
     proc.send_signal(signal.SIGKILL)
     proc.wait(30)
     end = time.time() + HANG_S  # an event (the workers' exit), waited for with a generous bound
