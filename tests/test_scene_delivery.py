@@ -162,21 +162,21 @@ def test_http_allow_list_serves_only_page_files():
 
 
 
-async def _serve_scene(scene, fn, made: list | None = None):
-    """Serve a small grid with `scene` to send, its blob made on the first request as psao serve does (each
-    making appended to `made`)."""
+async def _serve_scene(scene, fn, made: list | None = None, blob: bytes | None = None):
+    """Serve a small grid with `scene` to send, `fn(port, service)` the while: its blob `blob`, or made on
+    the first request (each making appended to `made`)."""
     from test_streaming_service import make_grid  # a small real grid
 
     from psao.protocol.session import scene_hash_bytes
     h = scene_hash_bytes(scene.content_hash())
     made = [] if made is None else made
     service = Service(make_grid(200), h, ServeSettings(port=0, tick_hz=30, stats_interval=1e9),
-                      scene_blob=lambda: made.append(1) or scene_blob(scene))
+                      scene_blob=blob if blob is not None else lambda: made.append(1) or scene_blob(scene))
     stop, ready = asyncio.Event(), asyncio.Event()
     task = asyncio.create_task(service.run(stop, ready=lambda port: ready.set()))
     await ready.wait()
     try:
-        return h, await fn(service.port)
+        return h, await fn(service.port, service)
     finally:
         stop.set()
         await task
@@ -185,7 +185,7 @@ async def _serve_scene(scene, fn, made: list | None = None):
 def test_client_without_a_scene_takes_the_servers():
     scene = load_scene("builtin:cornell")
 
-    async def use(port):
+    async def use(port, _service):
         url = f"ws://127.0.0.1:{port}"
         (got, h, nbytes), again = await asyncio.gather(fetch_scene(url), fetch_scene(url))
         assert again[1:] == (h, nbytes)
@@ -210,3 +210,27 @@ def test_client_without_a_scene_takes_the_servers():
     assert got.ao_distance == scene.ao_distance and list(got.camera_paths) == list(scene.camera_paths)
     assert http[0][0] == 200 and b"PROTOCOL_VERSION" in http[0][1]
     assert [s for s, _ in http[1:]] == [404, 404, 404]
+
+
+def test_a_stronger_blob_replaces_the_fast_one_and_holds_the_same_scene():
+    """psao serve answers SceneRequests at once with a fast zstd level, then with the strongest level once
+    that is compressed (Service.set_scene_blob): both decompress to the same scene file."""
+    from psao.server.net.scene_export import SceneExportSettings
+
+    scene = load_scene("builtin:courtyard")
+    fast = scene_blob(scene, level=SceneExportSettings.first_zstd_level)
+    strong = scene_blob(scene)
+    assert len(strong) < len(fast)  # the strongest level is worth its time
+    dctx = zstandard.ZstdDecompressor()
+    assert dctx.decompress(fast) == dctx.decompress(strong) == scene_file(scene).serialize()
+
+    async def use(port, service):
+        url = f"ws://127.0.0.1:{port}"
+        first = await fetch_scene(url)
+        service.set_scene_blob(strong)
+        second = await fetch_scene(url)
+        return first, second
+
+    (got1, h1, n1), (got2, h2, n2) = asyncio.run(_serve_scene(scene, use, blob=fast))[1]
+    assert (n1, n2) == (len(fast), len(strong)) and h1 == h2
+    assert [m.name for m in got1.meshes] == [m.name for m in got2.meshes] == [m.name for m in scene.meshes]

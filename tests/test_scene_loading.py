@@ -13,7 +13,7 @@ import trimesh
 
 from psao.scene import GeometryError, SceneFormatError, SceneNotFound, load_scene
 from psao.scene.builtin import BUILTINS
-from psao.scene.meshfile import clean_geometry
+from psao.scene.meshfile import _unique_rows, clean_geometry
 
 
 
@@ -187,6 +187,16 @@ def test_cleaning_merges_drops_and_reports(tmp_path, caplog):
     assert triangle_areas(m.vertices[m.faces]).min() > 0
     msgs = [r.getMessage() for r in caplog.records]
     assert len(msgs) == 1 and "dirty.obj" in msgs[0] and "1 triangles with NaN" in msgs[0] and "1 degenerate" in msgs[0]
+
+
+def test_unique_rows_equals_numpy_unique():
+    rng = np.random.default_rng(3)
+    points = rng.integers(-3, 4, (5000, 3)).astype(float) / 3  # many repeats
+    points[rng.integers(0, 5000, 200), 1] = -0.0  # -0.0 and 0.0 are one value, as np.unique takes them
+    want = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    got = _unique_rows(points)
+    for w, g in zip(want, got):
+        assert np.array_equal(w.reshape(g.shape), g)
 
 
 def test_cleaning_keeps_winding():

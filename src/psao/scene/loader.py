@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from psao.scene.builtin import BUILTINS
 from psao.scene.errors import GeometryError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import MESH_EXTENSIONS, load_mesh_file
@@ -35,6 +34,9 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         raise SceneFormatError(f"{spec}: ao_distance must be a finite number > 0, got {ao_distance}")
     text = str(spec)
     if text.startswith(BUILTIN_PREFIX):
+        # Imported here: the built-ins' shapes come from trimesh, which a mesh file or TOML scene need not load.
+        from psao.scene.builtin import BUILTINS
+
         name = text[len(BUILTIN_PREFIX):]
         examples = example_scenes()
         if name in BUILTINS:
@@ -63,6 +65,8 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
 def _repeated(repeat: tuple[str, int, int], text: str) -> Scene:
     """A builtin copied on a grid (`NAME-NXxNZ`, src/psao/scene/repeat.py)."""
     name, nx, nz = repeat
+    from psao.scene.builtin import BUILTINS
+
     if not (1 <= nx * nz <= MAX_COPIES):
         raise SceneFormatError(f"{text}: between 1 and {MAX_COPIES} copies, got {nx} x {nz}")
     return repeat_scene(BUILTINS[name](), nx, nz)

@@ -52,6 +52,25 @@ class CleanResult:
     merged_vertices: int  # vertices merged into an identical one
 
 
+def _used_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The sorted indices that `faces` use (np.unique(faces), by a mask: indices are bounded by n_vertices)."""
+    mask = np.zeros(n_vertices, dtype=bool)
+    mask[faces.reshape(-1)] = True
+    return np.flatnonzero(mask)
+
+
+def _unique_rows(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """np.unique(points, axis=0, return_index=True, return_inverse=True) for (n, 3) floats, by one lexsort
+    (several times faster on large meshes: np.unique sorts rows as structured records)."""
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))  # stable: a group's first is its lowest index
+    ranked = points[order]
+    starts = np.ones(len(ranked), dtype=bool)
+    starts[1:] = (ranked[1:] != ranked[:-1]).any(axis=1)
+    inverse = np.empty(len(points), dtype=np.int64)
+    inverse[order] = np.cumsum(starts) - 1
+    return ranked[starts], order[starts], inverse
+
+
 def clean_geometry(vertices, faces, where: str, merge: bool = True) -> CleanResult:
     """Clean one mesh; `where` ("file: mesh 'name'") names it in messages.
 
@@ -70,8 +89,8 @@ def clean_geometry(vertices, faces, where: str, merge: bool = True) -> CleanResu
     source = np.arange(len(v), dtype=np.int64)
     merged = 0
     if merge and len(f):
-        used = np.unique(f)
-        uniq, first, inverse = np.unique(v[used], axis=0, return_index=True, return_inverse=True)
+        used = _used_vertices(f, len(v))
+        uniq, first, inverse = _unique_rows(v[used])
         remap = np.full(len(v), -1, dtype=np.int64)
         remap[used] = inverse.reshape(-1)
         merged = len(used) - len(uniq)
@@ -90,7 +109,7 @@ def clean_geometry(vertices, faces, where: str, merge: bool = True) -> CleanResu
         raise GeometryError(
             f"{where}: no usable triangles ({dropped_nonfinite} with NaN/inf vertices, "
             f"{dropped_degenerate} degenerate)")
-    used = np.unique(f)
+    used = _used_vertices(f, len(v))
     compact = np.full(len(v), -1, dtype=np.int64)
     compact[used] = np.arange(len(used))
     if dropped_nonfinite or dropped_degenerate:

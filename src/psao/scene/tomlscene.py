@@ -68,7 +68,6 @@ from pathlib import Path
 
 import numpy as np
 
-from psao.scene import builtin_shapes
 from psao.scene.errors import SceneError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import clean_geometry, load_mesh_file, merged_mesh
@@ -126,6 +125,17 @@ def _scene_root(path: Path, head: Table) -> Path:
     return folder
 
 
+def _generator(name, where: str):
+    """The builtin_shapes generator `name` (imported here: its shapes come from trimesh, which a scene of
+    mesh files need not load)."""
+    from psao.scene import builtin_shapes
+
+    gen = builtin_shapes.GENERATORS.get(name) if isinstance(name, str) else None
+    if gen is None:
+        raise SceneFormatError(f"{where}: unknown generator '{name}' (known: {', '.join(builtin_shapes.GENERATORS)})")
+    return gen
+
+
 def _meshes(path: Path, tables: list, root: Path) -> tuple[list[Mesh], dict[str, list[Part]]]:
     meshes: list[Mesh] = []
     ids: dict[str, list[Part]] = {}
@@ -133,10 +143,7 @@ def _meshes(path: Path, tables: list, root: Path) -> tuple[list[Mesh], dict[str,
         label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
         where = f"{path}: mesh '{label}'"
         gen_name = raw.get("generator") if isinstance(raw, dict) else None
-        gen = builtin_shapes.GENERATORS.get(gen_name) if isinstance(gen_name, str) else None
-        if gen_name is not None and gen is None:
-            raise SceneFormatError(
-                f"{where}: unknown generator '{gen_name}' (known: {', '.join(builtin_shapes.GENERATORS)})")
+        gen = _generator(gen_name, where) if gen_name is not None else None
         params = set(inspect.signature(gen).parameters) if gen else set()
         file_keys = {"animation", "animation_offset"} if gen_name is None else set()
         t = Table(raw, where, {"name", "generator", "path", "double_sided", "color"} | params | file_keys)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 # ------------------------------------------------------------------------------------ quaternions
@@ -32,6 +31,8 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes a while to import, most scenes never call this
+
     q = Rotation.from_matrix(np.asarray(r, dtype=np.float64)).as_quat()
     return q if q[3] >= 0 else -q
 

@@ -52,13 +52,15 @@ const line = (exc) => String(exc.message || exc).split("\n")[0];
 let renderer, controls;
 try {
   renderer = new Renderer(canvas);
-  await renderer.init();
-  app.timings.renderer = performance.now();  // WebGL2 context and shader programs ready
   controls = new Controls(canvas);
 } catch (exc) {
   setState("no WebGL2", line(exc), true);
   throw exc;
 }
+// The shaders load and compile while the page connects and the scene arrives; the socket's events wait for
+// them in this chain, in the order they came.
+let inbox = renderer.init().then(() => { app.timings.renderer = performance.now(); },
+                                 (exc) => { halt("no WebGL2", line(exc)); console.error(exc); });
 canvas.addEventListener("webglcontextlost", () => halt("context lost", "The WebGL context was lost (the GPU was reset or ran "
                                                        + "out of memory); reload the page to start again."));
 const [fixedW, fixedH] = [Number(params.get("width")), Number(params.get("height"))];
@@ -114,16 +116,20 @@ function connect() {
   let opened = false;
   ws.onopen = () => { opened = true; ws.send(session.sceneRequest()); if (!app.reconnects) setState("loading scene"); };
   ws.onmessage = (e) => {
-    if (ws !== app.ws) return;
-    app.arrived = performance.now();
-    app.bytes += e.data.byteLength;
-    try {
-      handle(ws, session, session.receive(e.data), e.data.byteLength);
-    } catch (exc) {
-      fail(ws, exc);
-    }
+    const arrived = performance.now();
+    inbox = inbox.then(() => {
+      if (ws !== app.ws) return;
+      app.arrived = arrived;
+      app.bytes += e.data.byteLength;
+      try {
+        handle(ws, session, session.receive(e.data), e.data.byteLength);
+      } catch (exc) {
+        fail(ws, exc);
+      }
+    });
   };
-  ws.onclose = (e) => {
+  ws.onclose = (e) => { inbox = inbox.then(() => closed(e)); };
+  const closed = (e) => {
     if (ws !== app.ws) return;
     app.ws = null;
     if (e.code === C.GRID_REPLACED_CLOSE) {  // not a loss: the server swapped in a better grid, fetch it now
@@ -160,11 +166,14 @@ function handle(ws, session, ev, nbytes) {
   } else if (ev.kind === "scene-progress") {
     setState(`loading scene ${(100 * ev.got / ev.total).toFixed(0)}%`);
   } else if (ev.kind === "scene") {
+    app.timings.sceneArrived = app.arrived;
     if (ev.blob) {
       const raw = decompress(ev.blob);
       if (raw.length > C.LIMITS.scene_payload_bytes) throw new ProtocolError("scene over the size limit");
+      app.timings.sceneDecompressed = performance.now();
       app.scene = parseScene(raw);
       app.sceneBytes = ev.total;
+      app.timings.sceneParsed = performance.now();
       renderer.setScene(app.scene);
       controls.frame(...worldBounds(app.scene));
     }
@@ -173,6 +182,7 @@ function handle(ws, session, ev, nbytes) {
     ws.send(session.hello());
     app.timings.hello = performance.now();
     if (!app.reconnects) setState("loading snapshot");
+    if (ev.blob) setTimeout(drawPreview, 0);  // while the server answers the Hello
   } else if (ev.kind === "welcome") {
     app.seq = 0;  // Welcome is message 0 of the grid stream, as the server counts
     app.mirror = new Mirror(ev.welcome);
@@ -242,7 +252,21 @@ function drawFrame(dt) {
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, onePixel);  // waits for the frame (finish() need not)
   app.frameMs = performance.now() - t0;
   app.frames++;
-  if (app.timings.snapshot && !app.timings.firstDraw) app.timings.firstDraw = performance.now();
+  if (app.timings.snapshot && !app.timings.firstDraw) {
+    app.timings.firstDraw = performance.now();
+    app.timings.firstFrameMs = app.frameMs;
+  }
+}
+
+// The scene without AO while its grid is on the way: the user sees it, and software GL, which compiles each
+// pipeline at its first draw, has done so before the first PSAO frame.
+function drawPreview() {
+  if (app.halted || app.state === "streaming" || !app.scene) return;
+  renderer.resize(...frameSize());
+  const { view, proj } = cameraNow(0);
+  renderer.preview(new Float32Array(app.scene.instances.flatMap((inst) => [...inst.transform])), view, proj, app.mode);
+  renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, onePixel);
+  app.timings.preview = performance.now();
 }
 
 // One frame now, outside the animation loop (tests and the benchmark; returns the frame's ms).

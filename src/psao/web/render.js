@@ -270,8 +270,15 @@ export class Renderer {
     gl.drawArrays(gl.TRIANGLES, 0, 3);
   }
 
-  // transforms: Float32Array(16 n) row-major local -> world; view, proj: row-major Float32Array(16).
-  draw(transforms, view, proj, mode) {
+  // draw()'s passes on the grid uploaded so far (none yet: an empty one), showing the colour without AO.
+  preview(transforms, view, proj, mode) {
+    if (!this.tables.cells) this.uploadGrid({ instances: new Uint8Array(C.INSTANCE_BYTES), buckets: new Uint32Array(0), cells: new Uint32Array(0) });
+    this.draw(transforms, view, proj, mode, true);
+  }
+
+  // transforms: Float32Array(16 n) row-major local -> world; view, proj: row-major Float32Array(16);
+  // colourOnly: the AO is computed but not shown (preview).
+  draw(transforms, view, proj, mode, colourOnly = false) {
     const gl = this.gl, [w, h] = this.size;
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
     gl.viewport(0, 0, w, h);
@@ -329,7 +336,7 @@ export class Renderer {
     const c = this.progs.composite;
     this.bind(c, { u_color: this.g[3], u_ao: ao || this.aoTex });
     gl.uniform3fv(c.loc.u_background, BACKGROUND);
-    gl.uniform1i(c.loc.u_mode, mode.endsWith("-only") ? 2 : ao ? 0 : 1);
+    gl.uniform1i(c.loc.u_mode, colourOnly ? 1 : mode.endsWith("-only") ? 2 : ao ? 0 : 1);
     this.fullscreen(null);
   }
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import ipaddress
 import json
@@ -227,6 +228,24 @@ def _load(args, bake_with: BakeSettings, scene, from_file=None, report=None):
     return result.grid
 
 
+def _import_bake_modules() -> None:
+    """Import what the bake needs (scipy, Embree, the tracer) ahead of it. A failure is left to the bake's
+    own import, which raises it where it is reported."""
+    with contextlib.suppress(Exception):
+        import psao.server.bake  # noqa: F401
+        import psao.server.tick.server_tick  # noqa: F401
+        import psao.server.tracer.embree  # noqa: F401
+
+
+def _warn_failed(what: str):
+    """A done-callback for a background future: its failure (not Stopped) as one warning line."""
+    def done(future) -> None:
+        exc = future.exception()
+        if exc is not None and type(exc).__name__ != "Stopped":
+            logging.getLogger("psao.serve").warning("%s failed: %s", what, exc)
+    return done
+
+
 def _start_up(args, bake_with: BakeSettings, from_file=None):
     """The start-up's work (progressive.Startup), on its own thread once the service listens: load the scene
     and hand its hash and blob over, serve a coarse first grid when progressive start makes one, then the
@@ -238,24 +257,26 @@ def _start_up(args, bake_with: BakeSettings, from_file=None):
 
         from psao.protocol.session import scene_hash_bytes
         from psao.scene import load_scene
-        from psao.server.net.scene_export import scene_blob
+        from psao.server.net.scene_export import SceneExportSettings, scene_blob
         from psao.server.net.service import StaticTransforms
         from psao.server.tick.testhook import RandomEdits
 
+        background = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="psao-startup")
+        background.submit(_import_bake_modules)  # beside the scene's loading
         startup.step(0.0, f"loading {args.scene}")
         scene = load_scene(args.scene)
-        # The scene file is compressed beside the coarse bake (its strongest zstd level takes a while on a
-        # large scene); the service waits for it at the first SceneRequest.
-        blob = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="psao-scene-blob")
-        compressed = blob.submit(scene_blob, scene)
-        blob.shutdown(wait=False)
-        startup.scene(scene_hash_bytes(scene.content_hash()), compressed.result)
+        # Clients that ask for the scene now get it compressed fast; its strongest zstd level, which takes a
+        # while on a large scene, is compressed after the coarse grid, beside the full bake, and sent from then on.
+        startup.scene(scene_hash_bytes(scene.content_hash()), scene_blob(scene, level=SceneExportSettings.first_zstd_level))
         resting = StaticTransforms(np.array([i.transform for i in scene.instances], dtype=np.float32))
         startup.step(0.0, "baking the coarse first grid")
         coarse = _coarse_first(args, bake_with, scene, lambda f, text: startup.step(f, f"coarse grid {text}"))
         if coarse is not None:
             grid, tick = coarse
             startup.serve(grid, tick, tick.transforms if tick is not None else resting, final=False)
+        strong = background.submit(lambda: startup.scene_blob(scene_blob(scene)))
+        strong.add_done_callback(_warn_failed("compressing the scene file at its strongest level"))
+        background.shutdown(wait=False)
         startup.step(0.0, "baking the full grid")
         report = lambda f, text: startup.step(f, f"full grid {text}")  # noqa: E731
         if args.animate or args.progressive or args.allow_edits:  # the server tick refines, animates, re-traces edits

@@ -239,6 +239,11 @@ class Service:
         callable from any thread."""
         self._on_loop(self._set_scene, scene_hash, scene_blob)
 
+    def set_scene_blob(self, scene_blob: bytes) -> None:
+        """Send `scene_blob` (the same scene file, compressed anew) to the SceneRequests from now on;
+        callable from any thread."""
+        self._on_loop(setattr, self, "scene_blob", scene_blob)
+
     def _set_scene(self, scene_hash: bytes, scene_blob) -> None:
         self.config = dataclasses.replace(self._early_config, scene_hash=scene_hash)
         if scene_blob is not None:

@@ -117,6 +117,11 @@ class Startup:
             raise Stopped()
         self.service.set_scene(scene_hash, scene_blob)
 
+    def scene_blob(self, scene_blob: bytes) -> None:
+        """The scene file compressed anew (a stronger level): sent from now on."""
+        if not self._closed:
+            self.service.set_scene_blob(scene_blob)
+
     def serve(self, grid, tick, transforms, final: bool) -> None:
         """Hand the service a grid with its tick and transforms (the coarse one: final False); the tick
         served before is closed once it is replaced."""
