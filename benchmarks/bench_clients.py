@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.digests import compare_digests, read_jsonl
 from psao.eval.processes import LISTEN_RE, ServeExited, ServerProcess
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -227,33 +228,6 @@ def overview_camera(scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ------------------------------------------------------------------------------------------ driver
-def read_jsonl(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            pass  # a line being written
-    return out
-
-
-def compare_digests(server_log: Path, client_logs) -> tuple[int, int, set]:
-    """(pairs compared, pairs different, connections compared): every (connection, message) that both the
-    server and a client logged must have the same state digest."""
-    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
-    compared = differ = 0
-    conns = set()
-    for f in client_logs:
-        for d in read_jsonl(f):
-            if (d["conn"], d["seq"]) in ours:
-                compared += 1
-                differ += ours[d["conn"], d["seq"]] != d["digest"]
-                conns.add(d["conn"])
-    return compared, differ, conns
-
-
 def host_lines(hosts: list[subprocess.Popen]) -> dict | None:
     """One JSON line from every client host, merged (updates in host order); None when one has ended."""
     parts = []

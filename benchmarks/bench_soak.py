@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_clients import compare_digests, proc_stats
+from benchmarks.bench_clients import proc_stats
 from benchmarks.verdicts import Verdicts
+from psao.eval.digests import compare_digests
 from psao.eval.processes import ServeExited, ServerProcess
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,10 +19,9 @@ from psao.client.connection import MirrorClient
 from psao.scene import load_scene
 from psao.server.bake import bake_scene
 from psao.server.tick.budget import BudgetSettings
-from psao.server.cli.serve import AtRest
 from psao.server.net.service import Service
 from psao.server.settings import BakeSettings, ServeSettings, TickSettings
-from psao.server.tick.server_tick import ServerTick
+from psao.server.tick.server_tick import AtRest, ServerTick
 from serving import HANG_S
 
 EDIT_TOKEN = "edit-secret"

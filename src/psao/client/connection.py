@@ -137,6 +137,8 @@ class MirrorClient:
         self.mirror: Mirror | None = None
         self.stats = ClientStats()
         self._stop = asyncio.Event()
+        self._open: tuple | None = None  # (websocket, session) of the connection being received, for stop()
+        self._closing: asyncio.Task | None = None
         self._start = 0.0
 
     def clock(self) -> float:
@@ -144,8 +146,13 @@ class MirrorClient:
         return time.perf_counter() - self._start
 
     def stop(self) -> None:
-        """Ask run() to say Bye and return after the message being handled."""
+        """Ask run() to say Bye and return after the message being handled, or at once when none comes (a
+        server with nothing to change sends nothing). Call it on run()'s event loop."""
         self._stop.set()
+        if self._open is not None:
+            ws, session = self._open
+            self._open = None
+            self._closing = asyncio.get_running_loop().create_task(_say_bye(ws, session))
 
     async def run(self, frames: int | None = None) -> ClientStats:
         """Receive until the snapshot and then `frames` Updates have been applied (a server that sends no
@@ -207,6 +214,7 @@ class MirrorClient:
             await ws.send(session.hello())
             seq = 0
             updates_here = 0  # Updates on this connection
+            self._open = (ws, session)
             try:
                 while True:
                     try:
@@ -247,7 +255,8 @@ class MirrorClient:
                     seq += 1
                     done = (frames is not None and self.on_frame is None and session.state == ClientState.STREAMING
                             and self.stats.updates >= frames)
-                    if self._stop.is_set() or done:
+                    if (self._stop.is_set() or done) and self._open is not None:
+                        self._open = None
                         await _cancel(cameras)
                         await _cancel(renders)
                         await ws.send(session.bye())
@@ -256,9 +265,12 @@ class MirrorClient:
                     if self.read_delay:
                         await asyncio.sleep(self.read_delay)
             finally:
+                self._open = None
                 await _cancel(cameras)
                 await _cancel(renders)
-        if self._stop.is_set():  # the render task said Bye and closed: done, not lost
+        if self._closing is not None:
+            await self._closing
+        if self._stop.is_set():  # stop() or the render task said Bye and closed: done, not lost
             return
         raise _Lost("server closed the connection")
 
@@ -354,6 +366,15 @@ async def _cancel(task: asyncio.Task | None) -> None:
             await task
         except (asyncio.CancelledError, ConnectionClosed):
             pass
+
+
+async def _say_bye(ws, session: ClientSession) -> None:
+    """Bye and close (stop()): the receive loop then ends at the close."""
+    try:
+        await ws.send(session.bye())
+        await ws.close()
+    except (ConnectionClosed, OSError):
+        pass
 
 
 async def _discard_until_closed(ws, timeout: float) -> None:

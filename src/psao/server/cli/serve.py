@@ -99,20 +99,6 @@ def _budget(args) -> BudgetSettings:
     return b
 
 
-class AtRest:
-    """The server tick with the scene held at t = 0 (--progressive or --allow-edits without --animate):
-    refinement, and re-tracing what scene edits move."""
-
-    def __init__(self, tick):
-        self.tick = tick
-        self.grid = tick.grid
-        self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
-        self.edit, self.observe_service = tick.edit, tick.observe_service
-
-    def prepare(self, t: float):
-        return self.tick.prepare(0.0)
-
-
 def _check_modes(args) -> None:
     """Resolve --progressive's default and refuse the combinations that cannot run, before listening."""
     if args.progressive is None:  # on, unless the grid comes from a file or the test hook edits it
@@ -143,7 +129,7 @@ def _ticking(args, bake_with: BakeSettings, scene, report=None):
     animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing what
     scene edits move with --allow-edits. `report(fraction, text)`: the bake's progress."""
     from psao.server.bake import bake_scene
-    from psao.server.tick.server_tick import ServerTick
+    from psao.server.tick.server_tick import AtRest, ServerTick
 
     budget = _budget(args)
     bake_rays = budget.round_rays if args.progressive else args.rays

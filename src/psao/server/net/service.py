@@ -128,8 +128,10 @@ class Service:
                  on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
                  on_cameras: Callable[[list], None] | None = None,
                  scene_blob: bytes | Callable[[], bytes] | None = None,
-                 progress: Callable[[], tuple[float, str]] | None = None):
+                 progress: Callable[[], tuple[float, str]] | None = None,
+                 clock: Callable[[], float] | None = None):
         settings.check()
+        self.clock = clock  # the scene time each tick runs at (seconds); None: seconds since the service started
         if grid is not None and scene_hash is None:
             raise ConfigError("a service with a grid needs its scene's hash")
         self.scene_blob = scene_blob
@@ -317,7 +319,7 @@ class Service:
         # to come back: how late the loop came back counts too (the clients' tasks ran)
         own_s, due = None, 0.0
         while not stop.is_set():
-            self.time = time.perf_counter() - start
+            self.time = self.clock() if self.clock is not None else time.perf_counter() - start
             t0 = time.perf_counter()
             if own_s is not None and hasattr(self.tick_fn, "observe_service"):
                 self.tick_fn.observe_service(own_s + max(t0 - due, 0.0))
@@ -693,12 +695,20 @@ class Service:
                 self.counters.cameras += 1
                 self._cameras_changed()  # (cells kept back for it are looked at again at the next tick)
             elif isinstance(event, SceneEditReceived):  # the session let through only allowed, sane edits
-                self.on_scene_edit(event.edit.instance, event.edit.transform)
-                self.counters.edits += 1
+                self._edit(event.edit.instance, event.edit.transform)
                 log.info("client %d from %s moved instance %d", client.id, client.peer, event.edit.instance)
-                self.registry.wake_all()
             elif isinstance(event, ByeReceived):
                 return
+
+    def scene_edit(self, instance: int, transform: np.ndarray) -> None:
+        """Move `instance` to `transform` (checked as a SceneEdit is) from the next tick on, as a client's
+        SceneEdit does; callable from any thread (psao.Server.move)."""
+        self._on_loop(self._edit, instance, transform)
+
+    def _edit(self, instance: int, transform: np.ndarray) -> None:
+        self.on_scene_edit(instance, transform)
+        self.counters.edits += 1
+        self.registry.wake_all()
 
     def _cameras_changed(self) -> None:
         """O(1) per Camera message: the tick hears the merged views once, before its next run."""

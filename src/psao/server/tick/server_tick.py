@@ -864,3 +864,17 @@ class ServerTick:
         write = np.abs(codes.astype(np.int64) - old) > self.settings.threshold
         self.grid.set_ao(self.slot[ids][write], self.index[ids][write], codes[write])
         return int(write.sum())
+
+
+class AtRest:
+    """The server tick with the scene held at t = 0 (no animation plays): refinement, and re-tracing what
+    scene edits move."""
+
+    def __init__(self, tick: ServerTick):
+        self.tick = tick
+        self.grid = tick.grid
+        self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
+        self.edit, self.observe_service = tick.edit, tick.observe_service
+
+    def prepare(self, t: float):
+        return self.tick.prepare(0.0)
