@@ -219,7 +219,11 @@ def test_client_with_token_then_server_stops_on_sigint(token_server):
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["updates"] == 5 and report["mirror_cells"] > 0 and report["codec"] == "zstd-stream"
-    assert set(report) >= {"bytes_received", "messages", "snapshot_bytes", "mirror_cells", "mirror_buckets", "seconds"}
+    assert set(report) >= {"bytes_received", "messages", "snapshot_bytes", "mirror_cells", "mirror_buckets", "seconds",
+                           "stream_seconds", "updates_per_s"}
+    # the Updates' own window: from the first Update to the fifth, inside the run (connecting, snapshot)
+    assert 0 < report["stream_seconds"] < report["seconds"]
+    assert report["updates_per_s"] == pytest.approx(4 / report["stream_seconds"])
     proc.send_signal(signal.SIGINT)
     assert proc.wait(20) == 0
     assert "stopped on SIGINT" in err.read_text()

@@ -133,6 +133,10 @@ def report(client, seconds: float) -> dict:
         "mirror_buckets": mirror.allocated_buckets() if mirror else 0,
         "seconds": seconds,
         "updates": s.updates,
+        # the Updates' own rate: over the seconds from the first Update to the latest (`seconds` also
+        # holds connecting and the snapshot)
+        "stream_seconds": s.stream_seconds,
+        "updates_per_s": (s.updates - 1) / s.stream_seconds if s.stream_seconds > 0 else 0.0,
         "reconnects": s.reconnects,
         "snapshot_seconds": s.snapshot_seconds,
         "connection_id": s.connection_id,

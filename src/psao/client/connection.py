@@ -74,6 +74,9 @@ class ClientStats:
     messages: int = 0
     snapshot_bytes: int = 0
     updates: int = 0
+    # seconds from the first Update received to the latest, all connections (connecting and snapshots
+    # before the first not counted): (updates - 1) / stream_seconds is the rate Updates came at
+    stream_seconds: float = 0.0
     reconnects: int = 0
     grid_replacements: int = 0  # connections the server closed because it replaced its grid (reconnected at once)
     frames: int = 0  # on_frame calls (frames rendered), all connections
@@ -136,6 +139,7 @@ class MirrorClient:
         self.tls = ssl.create_default_context(cafile=str(tls_ca)) if tls_ca is not None else None
         self.mirror: Mirror | None = None
         self.stats = ClientStats()
+        self._first_update_at: float | None = None  # time.perf_counter() at the first Update received
         self._stop = asyncio.Event()
         self._open: tuple | None = None  # (websocket, session) of the connection being received, for stop()
         self._closing: asyncio.Task | None = None
@@ -338,6 +342,10 @@ class MirrorClient:
             self.mirror.tick = event.update.tick
             self.mirror.server_time = float(event.update.server_time)
             self.stats.updates += 1
+            now = time.perf_counter()
+            if self._first_update_at is None:
+                self._first_update_at = now
+            self.stats.stream_seconds = now - self._first_update_at
             if self.on_update:
                 self.on_update(self.mirror, self.mirror.transforms, event.update.tick)
         elif isinstance(event, ByeReceived):
