@@ -12,7 +12,8 @@ with a bottleneck at its sending end:
 - loss (--loss): each packet is dropped with that probability, independently of every other (Bernoulli);
 - delay (--rtt-ms): each packet reaches the other device half the round trip after it left the queue.
 
-Packets are never reordered. The devices are not persistent: they go away with this process, however it
+Packets are never reordered. On SIGTERM it prints one JSON line, per direction ("down": host to
+namespace, "up": back) the packets forwarded, dropped by loss and dropped by the full queue. The devices are not persistent: they go away with this process, however it
 ends (SIGTERM and SIGKILL alike). Timing is by the monotonic clock of a Python loop: a packet is due at an
 exact virtual time, and written as soon as the loop wakes after it (typically well under 1 ms later on an
 idle machine, more on a loaded one); the average rate is exact.
@@ -23,6 +24,7 @@ import argparse
 import errno
 import fcntl
 import heapq
+import json
 import os
 import random
 import selectors
@@ -137,12 +139,17 @@ def main(argv: list[str] | None = None) -> int:
     for d in dirs:
         sel.register(d.src, selectors.EVENT_READ, d)
     print("ready", flush=True)
-    while True:
-        now = time.monotonic()
-        nexts = [t for t in (d.flush(now) for d in dirs) if t is not None]
-        timeout = max(min(nexts) - time.monotonic(), 0.0) if nexts else None
-        for key, _ in sel.select(timeout):
-            key.data.read(time.monotonic())
+    try:
+        while True:
+            now = time.monotonic()
+            nexts = [t for t in (d.flush(now) for d in dirs) if t is not None]
+            timeout = max(min(nexts) - time.monotonic(), 0.0) if nexts else None
+            for key, _ in sel.select(timeout):
+                key.data.read(time.monotonic())
+    finally:  # on SIGTERM: the packet counts, one JSON line
+        print(json.dumps({name: {"forwarded": d.forwarded, "dropped_loss": d.dropped_loss,
+                                 "dropped_queue": d.dropped_queue} for name, d in zip(("down", "up"), dirs)}),
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -26,13 +26,14 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import math
 import os
 import re
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from psao.eval.errors import EvalError
@@ -82,18 +83,28 @@ class LinkSettings:
         return ["--rtt-ms", repr(self.rtt_ms), "--loss", repr(self.loss), *rate, "--queue-ms", repr(self.queue_ms)]
 
 
-@dataclass(frozen=True)
+@dataclass
 class Link:
-    """A namespace joined to the host by an impaired link: run commands in it, serve on host_address."""
+    """A namespace joined to the host by an impaired link: run commands in it, serve on host_address.
+    Processes started in the namespace must be stopped before the link's with block ends."""
 
     namespace: str
     host_address: str  # the host's end: a server a client in the namespace reaches listens here
     ns_address: str  # the namespace's end
     settings: LinkSettings
+    host_device: str  # the host's TUN device (the namespace's is inside it)
+    # after the with block: per direction ("down": host to namespace, "up"), packets "forwarded",
+    # "dropped_loss" and "dropped_queue" by the forwarder (empty if it could not say)
+    counters: dict = field(default_factory=dict)
+
+    @property
+    def prefix(self) -> list[str]:
+        """What runs a command inside the namespace (`ip netns exec NAME`; the process keeps its pid)."""
+        return ["ip", "netns", "exec", self.namespace]
 
     def command(self, args: list[str]) -> list[str]:
-        """`args` run inside the namespace (`ip netns exec NAME ...`; the process keeps its pid)."""
-        return ["ip", "netns", "exec", self.namespace, *map(str, args)]
+        """`args` run inside the namespace."""
+        return [*self.prefix, *map(str, args)]
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -203,13 +214,24 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
     return proc.stdout.readline()
 
 
-def _stop(proc: subprocess.Popen) -> None:
+def _stop(proc: subprocess.Popen) -> dict:
+    """Stop the forwarder (SIGTERM, then SIGKILL); its packet counters (empty if it printed none)."""
+    counters = {}
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            out, _ = proc.communicate(timeout=5.0)
+            lines = out.strip().splitlines()
+            counters = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
+        except (subprocess.TimeoutExpired, ValueError):
+            pass
     if proc.poll() is None:
         proc.kill()
     proc.wait(10)
     for f in (proc.stdout, proc.stderr):
         if f:
             f.close()
+    return counters
 
 
 @contextlib.contextmanager
@@ -225,7 +247,7 @@ def impaired_link(settings: LinkSettings = LinkSettings()):
     name = f"{NS_PREFIX}{pid}-{n}"
     host_dev, ns_dev = f"pl{pid}h{n}"[:15], f"pl{pid}n{n}"[:15]
     host_ip, ns_ip = _pick_subnet(n)
-    relay = None
+    relay = link = None
     _ip("netns", "add", name)
     try:
         relay = _start_relay(settings, host_dev, ns_dev)
@@ -235,10 +257,13 @@ def impaired_link(settings: LinkSettings = LinkSettings()):
         _ip("-n", name, "addr", "add", f"{ns_ip}/30", "dev", ns_dev)
         _ip("-n", name, "link", "set", ns_dev, "up")
         _ip("-n", name, "link", "set", "lo", "up")
-        yield Link(name, host_ip, ns_ip, settings)
+        link = Link(name, host_ip, ns_ip, settings, host_dev)
+        yield link
     finally:
         try:
             if relay is not None:
-                _stop(relay)  # its TUN devices go with it
+                counters = _stop(relay)  # its TUN devices go with it
+                if link is not None:
+                    link.counters = counters
         finally:
             _ip("netns", "del", name, check=False)
