@@ -152,6 +152,21 @@ def test_client_behind_an_impaired_link_keeps_an_exact_mirror(tmp_path):
 
 
 @needs_links
+def test_a_live_link_changes_its_settings():
+    with impaired_link() as link:
+        srv = socket.create_server((link.host_address, 0))
+        port = srv.getsockname()[1]
+        threading.Thread(target=lambda: srv.accept()[0].close(), daemon=True).start()
+        before = link.change(LinkSettings(rtt_ms=300))
+        assert set(before) == {"down", "up"}
+        assert _receive_all(link, port, 1)["connect_s"] >= 0.3
+        with pytest.raises(LinkError, match="loss"):
+            link.change(LinkSettings(loss=2))
+        assert link.settings.rtt_ms == 300
+        srv.close()
+
+
+@needs_links
 def test_links_are_unique_and_concurrent():
     with impaired_link() as a, impaired_link() as b:
         assert a.namespace != b.namespace and a.host_address != b.host_address

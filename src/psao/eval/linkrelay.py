@@ -12,8 +12,12 @@ with a bottleneck at its sending end:
 - loss (--loss): each packet is dropped with that probability, independently of every other (Bernoulli);
 - delay (--rtt-ms): each packet reaches the other device half the round trip after it left the queue.
 
-Packets are never reordered. On SIGTERM it prints one JSON line, per direction ("down": host to
-namespace, "up": back) the packets forwarded, dropped by loss and dropped by the full queue. The devices are not persistent: they go away with this process, however it
+Packets are never reordered. A JSON line on stdin ({"rtt_ms": .., "loss": .., "mbit": .., "queue_ms": ..},
+psao.eval.links.LinkSettings' fields) changes the settings from then on (packets on their way keep their
+due times); it answers with one JSON line of packet counts since the link was made or last changed: per
+direction ("down": host to namespace, "up": back) the packets forwarded, dropped by loss and dropped by
+the full queue, or {"error": ...} for bad settings. On SIGTERM, and when stdin ends (its parent is gone),
+it prints the counts since then and exits. The devices are not persistent: they go away with this process, however it
 ends (SIGTERM and SIGKILL alike). Timing is by the monotonic clock of a Python loop: a packet is due at an
 exact virtual time, and written as soon as the loop wakes after it (typically well under 1 ms later on an
 idle machine, more on a loaded one); the average rate is exact.
@@ -56,17 +60,30 @@ class Direction:
 
     src: int
     dst: int
-    delay_s: float  # one-way delay, seconds
-    loss: float  # drop probability per packet
-    bytes_per_s: float | None  # rate, bytes per second (None: unlimited)
-    queue_s: float  # longest wait behind earlier packets before a packet is dropped, seconds
     rng: random.Random
+    delay_s: float = 0.0  # one-way delay, seconds
+    loss: float = 0.0  # drop probability per packet
+    bytes_per_s: float | None = None  # rate, bytes per second (None: unlimited)
+    queue_s: float = 0.0  # longest wait behind earlier packets before a packet is dropped, seconds
     free_at: float = 0.0  # monotonic time at which the link has sent every packet accepted so far
     due: list = field(default_factory=list)  # heap of (due time, sequence, packet)
     seq: int = 0
     forwarded: int = 0
     dropped_loss: int = 0
     dropped_queue: int = 0
+
+    def configure(self, settings) -> None:
+        """Delay, loss, rate and queue from a LinkSettings."""
+        self.delay_s = settings.rtt_ms / 2e3
+        self.loss = settings.loss
+        self.bytes_per_s = None if settings.mbit is None else settings.mbit * 1e6 / 8.0
+        self.queue_s = settings.queue_ms / 1e3
+
+    def take_counts(self) -> dict:
+        """The packet counts since the last call (or the start), reset."""
+        out = {"forwarded": self.forwarded, "dropped_loss": self.dropped_loss, "dropped_queue": self.dropped_queue}
+        self.forwarded = self.dropped_loss = self.dropped_queue = 0
+        return out
 
     def accept(self, packet: bytes, now: float) -> None:
         if self.loss and self.rng.random() < self.loss:
@@ -119,25 +136,45 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def counts(dirs: list[Direction]) -> str:
+    return json.dumps({name: d.take_counts() for name, d in zip(("down", "up"), dirs)})
+
+
+def command(line: str, dirs: list[Direction]) -> str:
+    """Apply one settings line from stdin; the answer line. (The sender waits for each answer before it
+    sends another line: a second line already in stdin's buffer would wait for the next one.)"""
+    from psao.eval.links import LinkSettings
+
+    try:
+        fields = json.loads(line)
+        settings = LinkSettings(**fields).check()
+    except (ValueError, TypeError) as exc:  # LinkError is a ValueError
+        return json.dumps({"error": str(exc)})
+    answer = counts(dirs)
+    for d in dirs:
+        d.configure(settings)
+    return answer
+
+
 def main(argv: list[str] | None = None) -> int:
     from psao.eval.links import LinkError, LinkSettings
 
     args = parse_args(argv)
     try:
-        LinkSettings(args.rtt_ms, args.loss, args.mbit, args.queue_ms).check()
+        settings = LinkSettings(args.rtt_ms, args.loss, args.mbit, args.queue_ms).check()
     except LinkError as exc:
         print(f"linkrelay: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     host, ns = open_tun(args.host_dev), open_tun(args.ns_dev)
-    rate = None if args.mbit is None else args.mbit * 1e6 / 8.0
     rng = random.Random(args.seed)
-    one_way = args.rtt_ms / 2e3
-    dirs = [Direction(host, ns, one_way, args.loss, rate, args.queue_ms / 1e3, rng),
-            Direction(ns, host, one_way, args.loss, rate, args.queue_ms / 1e3, rng)]
+    dirs = [Direction(host, ns, rng=rng), Direction(ns, host, rng=rng)]
+    for d in dirs:
+        d.configure(settings)
     sel = selectors.DefaultSelector()
     for d in dirs:
         sel.register(d.src, selectors.EVENT_READ, d)
+    sel.register(sys.stdin, selectors.EVENT_READ, None)
     print("ready", flush=True)
     try:
         while True:
@@ -145,11 +182,15 @@ def main(argv: list[str] | None = None) -> int:
             nexts = [t for t in (d.flush(now) for d in dirs) if t is not None]
             timeout = max(min(nexts) - time.monotonic(), 0.0) if nexts else None
             for key, _ in sel.select(timeout):
-                key.data.read(time.monotonic())
-    finally:  # on SIGTERM: the packet counts, one JSON line
-        print(json.dumps({name: {"forwarded": d.forwarded, "dropped_loss": d.dropped_loss,
-                                 "dropped_queue": d.dropped_queue} for name, d in zip(("down", "up"), dirs)}),
-              flush=True)
+                if key.data is not None:
+                    key.data.read(time.monotonic())
+                    continue
+                line = sys.stdin.readline()
+                if not line:
+                    return 0
+                print(command(line, dirs), flush=True)
+    finally:
+        print(counts(dirs), flush=True)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ reordered, and the forwarder's timing is a Python loop's: a packet is delivered 
 after its due time, which on a loaded machine adds delay of its own (the settings are a floor, not an
 exact figure). A zero setting adds nothing, though every packet still passes through the forwarder.
 
+`link.change(settings)` changes a live link (one namespace, one address, a sweep of settings).
 Everything is torn down on exit, after errors too: the forwarder is killed (its TUN devices go with it)
 and the namespace is deleted. Namespaces left by a process that was killed (names carry its pid) are
 deleted by the next `impaired_link`. `links_unavailable()` says why links cannot be made here (not root,
@@ -96,6 +97,22 @@ class Link:
     # after the with block: per direction ("down": host to namespace, "up"), packets "forwarded",
     # "dropped_loss" and "dropped_queue" by the forwarder (empty if it could not say)
     counters: dict = field(default_factory=dict)
+    _relay: subprocess.Popen | None = field(default=None, repr=False)
+
+    def change(self, settings: LinkSettings) -> dict:
+        """The link's settings from now on (packets on their way keep their delay); the forwarder's packet
+        counts (as `counters`) since the link was made or last changed. LinkError: bad settings."""
+        settings.check()
+        if self._relay is None or self._relay.poll() is not None:
+            raise LinkError("the link is gone")
+        fields = {"rtt_ms": settings.rtt_ms, "loss": settings.loss, "mbit": settings.mbit, "queue_ms": settings.queue_ms}
+        self._relay.stdin.write(json.dumps(fields) + "\n")
+        self._relay.stdin.flush()
+        answer = json.loads(_readline(self._relay, READY_TIMEOUT_S) or "{}")
+        if "error" in answer or not answer:
+            raise LinkError(f"the link forwarder refused {settings.label()}: {answer.get('error', 'no answer')}")
+        self.settings = settings
+        return answer
 
     @property
     def prefix(self) -> list[str]:
@@ -191,7 +208,7 @@ def _start_relay(settings: LinkSettings, host_dev: str, ns_dev: str) -> subproce
     src = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH", "")) if p))
     proc = subprocess.Popen([sys.executable, "-m", "psao.eval.linkrelay", host_dev, ns_dev,
-                             *settings.relay_arguments()], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                             *settings.relay_arguments()], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
     try:
         line = _readline(proc, READY_TIMEOUT_S)
@@ -215,10 +232,9 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 
 
 def _stop(proc: subprocess.Popen) -> dict:
-    """Stop the forwarder (SIGTERM, then SIGKILL); its packet counters (empty if it printed none)."""
+    """Stop the forwarder (its stdin closed, then SIGKILL); its last packet counts (empty if it printed none)."""
     counters = {}
     if proc.poll() is None:
-        proc.terminate()
         try:
             out, _ = proc.communicate(timeout=5.0)
             lines = out.strip().splitlines()
@@ -228,7 +244,7 @@ def _stop(proc: subprocess.Popen) -> dict:
     if proc.poll() is None:
         proc.kill()
     proc.wait(10)
-    for f in (proc.stdout, proc.stderr):
+    for f in (proc.stdin, proc.stdout, proc.stderr):
         if f:
             f.close()
     return counters
@@ -257,7 +273,7 @@ def impaired_link(settings: LinkSettings = LinkSettings()):
         _ip("-n", name, "addr", "add", f"{ns_ip}/30", "dev", ns_dev)
         _ip("-n", name, "link", "set", ns_dev, "up")
         _ip("-n", name, "link", "set", "lo", "up")
-        link = Link(name, host_ip, ns_ip, settings, host_dev)
+        link = Link(name, host_ip, ns_ip, settings, host_dev, _relay=relay)
         yield link
     finally:
         try:
