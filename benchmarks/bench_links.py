@@ -11,16 +11,18 @@ both run `--seconds` more and stop on SIGINT. Before the sweep, the loopback cli
 Per client: updates/s in the window (its digest log has a line, with the tick and the wall time it was
 applied, every DIGEST_EVERY Updates), stream Mbit/s after the snapshot (bytes received less the snapshot,
 over the time from its first Update to its stop), snapshot MB and the seconds from its start to its first
-Update, and how far behind the server it is: per digest line, its wall time less the wall time at which
-the server applied that tick (the server's --stats-json), median and 95th percentile. Per link: the
+Update, and how far behind the server it is: per digest line, its wall time (once the Update is applied
+and the mirror hashed) less the wall time at which the server applied that tick (the server's
+--stats-json), median and 95th percentile. Per link: the
 forwarder's packets forwarded and dropped (loss, full queue), both directions together.
 
 Verdicts, each impaired client against the loopback client of the same run: every impaired client got
 its snapshot, stayed connected (no reconnect) and received Updates through the window (nothing stalls);
 the loopback client beside it kept at least LOOPBACK_KEEP of its updates/s alone (the fast client loses
 nothing); on the unimpaired link (rtt 0, no loss, unlimited) the client gets at least FAST_KEEP of the
-loopback client's updates/s; and the issue's target for the link ISSUE_LINK: the client at most
-ISSUE_LAG_S behind the server (95th percentile). The server has no per-client rate budget: a link slower
+loopback client's updates/s; and the issue's target for the link ISSUE_LINK at ISSUE_DENSITY: the client
+at most ISSUE_LAG_S behind the server (95th percentile; with 1% loss a retransmission costs a round trip
+and more, so this tail varies from run to run). The server has no per-client rate budget: a link slower
 than the stream only shows as a client the server sends fewer, larger Updates to.
 """
 from __future__ import annotations
@@ -57,6 +59,7 @@ START_TIMEOUT_S = 600.0  # seconds for a client's snapshot and first Update (a h
 LOOPBACK_KEEP = 0.8  # the loopback client's updates/s beside an impaired one over its updates/s alone
 FAST_KEEP = 0.9  # the unimpaired link's client's updates/s over the loopback client's beside it
 ISSUE_LAG_S = 0.3  # seconds behind the server at ISSUE_LINK (95th percentile), issue 39's target
+ISSUE_DENSITY = 256.0  # the grid density issue 39's target is set for (other densities: reported only)
 
 
 @dataclass
@@ -236,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         if s == UNIMPAIRED:
             v.check(f"{s.label()}: its updates/s / the loopback client's", slow.updates_per_s / fast.updates_per_s,
                     ">=", FAST_KEEP)
-        if s == ISSUE_LINK:
+        if s == ISSUE_LINK and args.density == ISSUE_DENSITY:
             v.check(f"{s.label()}: seconds behind the server (p95, issue 39 target)", slow.behind_p95_s, "<=",
                     ISSUE_LAG_S)
     (args.out / "links.json").write_text(json.dumps({"alone": asdict(base), "runs": results,

@@ -167,6 +167,28 @@ def test_a_live_link_changes_its_settings():
 
 
 @needs_links
+def test_a_killed_owner_leaves_nothing_for_long():
+    """The owner of a link SIGKILLed: its forwarder exits (its stdin ends), taking its devices, and the next
+    impaired_link deletes the namespace it left."""
+    code = ("import sys, time; from psao.eval.links import impaired_link\n"
+            "with impaired_link() as link:\n"
+            "    print(link.namespace, link.host_device, flush=True); time.sleep(600)\n")
+    owner = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        name, device = owner.stdout.readline().split()
+    finally:
+        owner.kill()
+        owner.wait(60)
+    end = time.monotonic() + HANG_S
+    while f" {device}:" in link_devices() and time.monotonic() < end:
+        time.sleep(0.05)
+    assert f" {device}:" not in link_devices()
+    assert name in namespaces()  # nothing could delete it yet
+    with impaired_link():
+        assert name not in namespaces()
+
+
+@needs_links
 def test_links_are_unique_and_concurrent():
     with impaired_link() as a, impaired_link() as b:
         assert a.namespace != b.namespace and a.host_address != b.host_address
