@@ -19,8 +19,8 @@ exact figure). A zero setting adds nothing, though every packet still passes thr
 
 `link.change(settings)` changes a live link (one namespace, one address, a sweep of settings).
 Everything is torn down on exit, after errors too: the forwarder is killed (its TUN devices go with it)
-and the namespace is deleted. Namespaces left by a process that was killed (names carry its pid) are
-deleted by the next `impaired_link`. `links_unavailable()` says why links cannot be made here (not root,
+and the namespace is deleted. Namespaces left by a process that was killed (names carry its pid and its
+pid namespace) are deleted by the next `impaired_link` of the same pid namespace. `links_unavailable()` says why links cannot be made here (not root,
 no `ip`, no TUN device, namespaces refused), for tests to skip on.
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pathlib import Path
 
 from psao.eval.errors import EvalError
 
-NS_PREFIX = "psao-link-"  # namespace names: NS_PREFIX + "<pid>-<n>"
+NS_PREFIX = "psao-link-"  # namespace names: NS_PREFIX + "<pid namespace>-<pid>-<n>" (see _owner)
 SUBNET_BASE = (10, 213)  # the links' /30s are carved out of 10.213.0.0/16
 SUBNETS = 1 << 14  # /30s in a /16
 READY_TIMEOUT_S = 30.0  # seconds for the forwarder to create its devices
@@ -147,7 +147,7 @@ def links_unavailable() -> str | None:
         return "impaired links need the `ip` command (iproute2)"
     if not os.access("/dev/net/tun", os.R_OK | os.W_OK):
         return "impaired links need /dev/net/tun"
-    probe = f"{NS_PREFIX}{os.getpid()}-probe"
+    probe = f"{NS_PREFIX}{_owner()}-probe"
     try:
         made = _ip("netns", "add", probe, check=False)
     except (OSError, subprocess.TimeoutExpired) as exc:
@@ -168,12 +168,19 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _owner() -> str:
+    """'<pid namespace>-<pid>' of this process: the pid namespace's inode tells whether a pid in another
+    link's name is one this process can see (another container's processes are not)."""
+    return f"{os.stat('/proc/self/ns/pid').st_ino}-{os.getpid()}"
+
+
 def remove_stale_namespaces() -> list[str]:
-    """Delete the link namespaces whose creating process is gone; their names."""
+    """Delete the link namespaces made in this pid namespace by a process that is gone; their names."""
     gone = []
+    ours = _owner().split("-")[0]
     for name in namespaces():
-        m = re.fullmatch(re.escape(NS_PREFIX) + r"(\d+)-\w+", name)
-        if m and not _pid_alive(int(m.group(1))):
+        m = re.fullmatch(re.escape(NS_PREFIX) + r"(\d+)-(\d+)-\w+", name)
+        if m and m.group(1) == ours and not _pid_alive(int(m.group(2))):
             _ip("netns", "del", name, check=False)
             gone.append(name)
     return gone
@@ -260,7 +267,7 @@ def impaired_link(settings: LinkSettings = LinkSettings()):
     remove_stale_namespaces()
     n = next(_counter)
     pid = os.getpid()
-    name = f"{NS_PREFIX}{pid}-{n}"
+    name = f"{NS_PREFIX}{_owner()}-{n}"
     host_dev, ns_dev = f"pl{pid}h{n}"[:15], f"pl{pid}n{n}"[:15]
     host_ip, ns_ip = _pick_subnet(n)
     relay = link = None
