@@ -3,7 +3,7 @@ through an emulated link with a round-trip delay, packet loss and a rate cap.
 
     with impaired_link(LinkSettings(rtt_ms=100, loss=0.01, mbit=5)) as link:
         # a server listens on link.host_address (or on 0.0.0.0); a client runs inside the namespace:
-        proc = subprocess.Popen(link.command(["psao", "client", f"ws://{link.host_address}:{port}"]))
+        proc = psao.eval.processes.spawn(["client", f"ws://{link.host_address}:{port}"], wrap=link.prefix)
 
 What is emulated, and how: `impaired_link` creates a network namespace and two TUN devices, one in the
 namespace (address `link.ns_address`) and one on the host (`link.host_address`), a /30 between them. A
@@ -17,11 +17,14 @@ reordered, and the forwarder's timing is a Python loop's: a packet is delivered 
 after its due time, which on a loaded machine adds delay of its own (the settings are a floor, not an
 exact figure). A zero setting adds nothing, though every packet still passes through the forwarder.
 
+No veth pair and no tc: tbf on a veth could cap the rate, but nothing in this kernel delays packets or
+drops them at random, and one forwarder doing all three keeps their order (queue, loss, delay) plain.
 `link.change(settings)` changes a live link (one namespace, one address, a sweep of settings).
-Everything is torn down on exit, after errors too: the forwarder is killed (its TUN devices go with it)
-and the namespace is deleted. Namespaces left by a process that was killed (names carry its pid and its
-pid namespace) are deleted by the next `impaired_link` of the same pid namespace. `links_unavailable()` says why links cannot be made here (not root,
-no `ip`, no TUN device, namespaces refused), for tests to skip on.
+Everything is torn down on exit, after errors too: the forwarder stops (its stdin closed, then SIGKILL;
+its TUN devices go with it, and it exits by itself when its owner dies) and the namespace is deleted.
+Namespaces left by a process that was killed (names carry its pid and its pid namespace) are deleted by
+the next `impaired_link` of the same pid namespace. `links_unavailable()` says why links cannot be made
+here (not root, no `ip`, no TUN device, namespaces refused), for tests to skip on.
 """
 from __future__ import annotations
 
