@@ -254,8 +254,9 @@ class MirrorClient:
                         # the loop reads ahead (up to the library's queue), answers the server's pings and
                         # sends cameras; nothing writes the mirror until the digest is back
                         digest = await asyncio.to_thread(self.mirror.digest)
+                        # t: wall-clock seconds (time.time()) once applied and hashed, comparable with the server's logs
                         digests.write(json.dumps({"conn": self.stats.connection_id, "seq": seq, "tick": self.mirror.tick,
-                                                  "digest": digest}) + "\n")
+                                                  "digest": digest, "t": time.time()}) + "\n")
                     seq += 1
                     done = (frames is not None and self.on_frame is None and session.state == ClientState.STREAMING
                             and self.stats.updates >= frames)

@@ -58,15 +58,16 @@ def _holding_interrupts():
             raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
-def spawn(args: list[str], **kwargs) -> subprocess.Popen:
-    """A `psao` child in its own session (process group), so kill_group takes its workers too.
+def spawn(args: list[str], wrap: list[str] = (), **kwargs) -> subprocess.Popen:
+    """A `psao` child in its own session (process group), so kill_group takes its workers too; `wrap`: a
+    command that execs it (e.g. psao.eval.links.Link.prefix: inside a network namespace).
 
     An interrupt raised inside Popen (after the fork, while it waits for the exec) would lose the
     child: Popen never returns it, and it runs on in its own session. So interrupts are held while the
     child starts and is registered in _LIVE, and raised after; interrupt_on_sigterm kills the children
     of _LIVE that their owner did not get to kill."""
     with _holding_interrupts():
-        proc = subprocess.Popen(psao_command(*args), start_new_session=True, preexec_fn=_child_setup, **kwargs)
+        proc = subprocess.Popen([*wrap, *psao_command(*args)], start_new_session=True, preexec_fn=_child_setup, **kwargs)
         _LIVE.add(proc)
     return proc
 
@@ -390,16 +391,17 @@ class ServerProcess:
         self.close()
 
 
-def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (), connect_timeout: float = 300.0) -> dict:
+def run_client(url: str, scene_spec: str, seconds: float, extra: list[str] = (), connect_timeout: float = 300.0,
+               wrap: list[str] = ()) -> dict:
     """A headless `psao client URL --json --no-reconnect`, stopped by SIGINT `seconds` after its snapshot
     arrived (seen in its --digest-log; a static scene sends no update at all, so an update count would
-    never be reached). The client then prints its statistics and exits."""
+    never be reached). The client then prints its statistics and exits. `wrap`: as spawn's."""
     what = f"psao client {url}"
     fd, name = tempfile.mkstemp(prefix="psao-client-", suffix=".jsonl")
     os.close(fd)
     digests = Path(name)
     proc = spawn(["client", url, scene_spec, "--json", "--no-reconnect", "--reconnect-timeout", "20",
-                  "--digest-log", str(digests), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                  "--digest-log", str(digests), *extra], wrap=wrap, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         t_snapshot = _wait_for_snapshot(proc, digests, connect_timeout, what)
         try:

@@ -421,7 +421,8 @@ class Service:
         since = {k: v - c.at_last_record.get(k, 0) for k, v in totals.items()}
         c.at_last_record = totals
         record = stats.to_dict() if hasattr(stats, "to_dict") else {}
-        record.update(service_tick=self.tick, time=self.time, buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
+        # wall: wall-clock seconds (time.time()) once the tick is applied, comparable with a client's digest log
+        record.update(service_tick=self.tick, time=self.time, wall=time.time(), buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
                       seconds_tick=seconds, bytes_sent=since["bytes_out"], cells_sent=since["cells_sent"],
                       buckets_sent=since["buckets_sent"], seconds_encode=since["seconds_encode"],
                       bytes_out=c.bytes_out, seconds_encode_total=c.encode_seconds, clients=len(self.registry),
