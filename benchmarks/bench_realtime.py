@@ -211,7 +211,7 @@ def part_rate(args, v: Verdicts, out: dict) -> None:
         row.update(view_waits=int(sum(waits)), view_wait_p50_ms=view_wait_quantile(waits, 0.5),
                    view_wait_p95_ms=view_wait_quantile(waits, 0.95), queue_first_third=first_q,
                    queue_last_third=last_q,
-                   client_updates_per_s=run.client["updates"] / max(run.client["seconds"], 1e-9),
+                   client_updates_per_s=run.client["updates_per_s"],  # first Update to latest (psao client --json)
                    client_on_shared_stream=sum(on_stream) / max(len(on_stream), 1))
         rows.append(row)
         print(f"  {label}: in-view points waited {row['view_wait_p50_ms']:g} ms (p50) and "
