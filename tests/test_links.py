@@ -51,7 +51,7 @@ def test_bad_settings_are_one_clear_error(settings, field):
 
 
 def test_forwarder_refuses_bad_settings_in_one_line():
-    proc = subprocess.run([sys.executable, "-m", "psao.eval.linkrelay", "a", "b", "--loss", "1.5"],
+    proc = subprocess.run([sys.executable, "-m", "psao.eval.linkrelay", "a", "b", "--loss", "1.5", "--queue-ms", "100"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "loss" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr

@@ -131,7 +131,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--rtt-ms", type=float, default=0.0, help="round-trip delay added, ms (half each way)")
     p.add_argument("--loss", type=float, default=0.0, help="fraction of packets dropped, each way, in [0, 1)")
     p.add_argument("--mbit", type=float, default=None, help="rate each way, Mbit/s (default: unlimited)")
-    p.add_argument("--queue-ms", type=float, default=100.0, help="queue before a rate-limited link, ms")
+    p.add_argument("--queue-ms", type=float, required=True,
+                   help="queue before a rate-limited link, ms (psao.eval.links.LinkSettings.queue_ms)")
     p.add_argument("--seed", type=int, default=0, help="seed of the loss draws")
     return p.parse_args(argv)
 

@@ -14,6 +14,8 @@ scipy or websockets.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -254,6 +256,11 @@ class FanoutSettings:
     # has pending: with 30 clients it took a seventh of the event loop); the extended view's margins hold
     # what the camera reaches meanwhile
     catch_up_every: int = 3
+    # Mbit/s: the most sent to each client (every message paced by a token bucket of pace_burst seconds;
+    # its own Updates then carry what a tick's share of the rate holds, the cells nearest its camera first,
+    # the rest merged later); None: no cap (the ping flow control above still holds a slow reader back)
+    client_mbit: float | None = None
+    pace_burst: float = 0.05  # seconds of client_mbit a client idle for that long may be sent at once
 
 
 @dataclass
@@ -327,5 +334,9 @@ class ServeSettings:
         if self.allow_edits and self.edit_token == self.token:
             raise ConfigError("the edit token must differ from the viewing token")
         f = self.fanout
+        if f.client_mbit is not None and not (math.isfinite(f.client_mbit) and f.client_mbit > 0):
+            raise ConfigError(f"client rate cap must be > 0 Mbit/s, got {f.client_mbit}")
+        if not 0 < f.pace_burst <= 10:
+            raise ConfigError(f"pace burst must be within (0, 10] seconds, got {f.pace_burst}")
         if not 1 <= f.probe_every < f.max_unread:
             raise ConfigError(f"fanout: probe_every ({f.probe_every}) must be >= 1 and below max_unread ({f.max_unread})")

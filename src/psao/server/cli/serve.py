@@ -61,6 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="open connections at most; more are refused with SERVER_FULL")
     p.add_argument("--send-buffer", type=int, default=default(ServeSettings, "send_buffer"), metavar="BYTES",
                    help="kernel send buffer per client: a slow client's ticks fold into one update beyond it")
+    p.add_argument("--client-mbit", type=float, default=default(FanoutSettings, "client_mbit"), metavar="MBIT",
+                   help="the most Mbit/s sent to each client (its messages paced; its own Updates carry the cells "
+                        "nearest its camera first and merge the rest later); default: no cap")
     p.add_argument("--no-cull", action="store_true",
                    help="send every client every change; by default a client gets the cells in its extended view "
                         "and the rest when they enter it")
@@ -285,7 +288,7 @@ def _settings(args):
                       allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
                       allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key,
                       digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer,
-                      fanout=FanoutSettings(cull=not args.no_cull))
+                      fanout=FanoutSettings(cull=not args.no_cull, client_mbit=args.client_mbit))
     s.check()
     return s
 

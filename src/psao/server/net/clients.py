@@ -175,6 +175,11 @@ class Client:
     probe: object = None  # the ping whose answer is awaited (service.Service._probe), None when none is
     updates_sent: int = 0
     bytes_sent: int = 0
+    paced_until: float = 0.0  # time.perf_counter() when what was sent has drained at its rate cap
+    bytes_per_cell: float = 0.0  # bytes its own Updates took per cell (running mean; 0 before the first)
+    acked_bytes: int = 0  # bytes sent before the last answered ping: its client has read them
+    acked_at: float = 0.0  # time.perf_counter() of that answer
+    acked_mbit: float = 0.0  # Mbit/s its client was shown to read, between answers at least a second apart
     _planes_of: tuple | None = None  # the camera the cached planes belong to
     _planes: np.ndarray | None = None
 
@@ -212,15 +217,22 @@ class Client:
         self.cells_pending.unset(cell_slots)
 
     def take_pending(self, limits: Limits, capacity: int,
-                     in_view: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Drain at most one message's worth: (bucket ids, cell slots, everything drained). `in_view`
-        (cell slots -> bool per slot) keeps the cells outside the client's view pending."""
+                     in_view: Callable[[np.ndarray], np.ndarray] | None = None,
+                     distance: Callable[[np.ndarray], np.ndarray] | None = None,
+                     max_cells: int | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Drain at most one message's worth: (bucket ids, cell slots in ascending order, everything
+        drained). `in_view` (cell slots -> bool per slot) keeps the cells outside the client's view pending;
+        of more cells than a message takes (`max_cells`, at most the limits'), the ones of least `distance`
+        (cell slots -> a number per slot) go first."""
         self._fit(capacity)
         b = self.buckets_pending.indices()
         c = self.cells_pending.indices()
         if in_view is not None and len(c):
             c = c[in_view(c)]
-        b, c = b[: limits.max_buckets_per_message], c[: limits.max_cells_per_message]
+        most = limits.max_cells_per_message if max_cells is None else max(1, min(max_cells, limits.max_cells_per_message))
+        if distance is not None and len(c) > most:
+            c = np.sort(c[np.argpartition(distance(c), most - 1)[:most]])
+        b, c = b[: limits.max_buckets_per_message], c[:most]
         self.buckets_pending.unset(b)
         self.cells_pending.unset(c)
         return b.astype(np.uint32), c.astype(np.uint32), not self.pending_anything()

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from psao.protocol.gridformat import CELL_WORDS
 from psao.protocol.session import ServerConfig, SharedParts, SharedStream
 from psao.protocol.updates import GridDelta
 
@@ -45,6 +46,8 @@ from psao.server.settings import FanoutSettings
 
 
 MERGE_ROWS = 1 << 16  # dirty cells noted for the places (Fanout._note_changed) before they are merged
+RAW_CELL_BYTES = 4 * CELL_WORDS  # a cell row uncompressed: the bytes per cell assumed before a client's first Update
+MIN_BUDGET_CELLS = 16  # an Update under a rate cap carries at least this many cells (it goes later instead)
 
 
 @dataclass
@@ -367,6 +370,31 @@ class Fanout:
         if planes is None:
             return None
         return lambda slots: self._places_kept(grid, transforms).in_view(planes, self.settings.view, slots)
+
+    def distance(self, client: Client, grid, transforms: np.ndarray):
+        """`slots -> squared distance of their cells' centres from the client's camera` for take_pending
+        (nearest first), or None before its first camera."""
+        if client.camera is None:
+            return None
+        view = np.asarray(client.camera[0], np.float64).reshape(4, 4)  # world -> view, row-major
+        eye = -view[:3, :3].T @ view[:3, 3]
+
+        def squared(slots: np.ndarray) -> np.ndarray:
+            places = self._places_kept(grid, transforms)
+            places.settle(slots)
+            d = places.xyz[:, slots] - eye[:, None]  # (a slot whose place is unknown sits at the origin)
+            return np.einsum("ij,ij->j", d, d)
+
+        return squared
+
+    def cells_budget(self, client: Client, tick_hz: float) -> int | None:
+        """Cells one Update of the client's own may carry under its rate cap: a tick's share of the rate
+        over the bytes its Updates took per cell (None without a cap)."""
+        if self.settings.client_mbit is None:
+            return None
+        per_tick = self.settings.client_mbit * 1e6 / 8 / tick_hz
+        per_cell = client.bytes_per_cell or RAW_CELL_BYTES
+        return max(MIN_BUDGET_CELLS, int(per_tick / per_cell))
 
     def plan(self, clients: list[Client], grid, bucket_ids: np.ndarray, cell_slots: np.ndarray, transforms: np.ndarray,
              tick: int, server_time: float, now: float) -> tuple[SharePlan | None, list[Client]]:

@@ -101,6 +101,7 @@ class Counters:
     cameras: int = 0  # Camera messages received
     camera_merges: int = 0  # times the clients' cameras were handed to the tick (at most once per tick)
     edits: int = 0  # SceneEdits applied
+    paced_seconds: float = 0.0  # seconds messages were held back by the clients' rate cap, all clients
     tick_seconds: float = 0.0
     encode_seconds: float = 0.0
     cells_sent: int = 0  # cell rows in Updates, all clients
@@ -645,8 +646,9 @@ class Service:
         elif isinstance(exc, ConnectionClosed) or exc is None:
             rcvd = exc.rcvd if isinstance(exc, ConnectionClosed) else None
             why = f"close {rcvd.code}" if rcvd else "connection lost" if exc else "said Bye"
-            log.info("client %d from %s left (%s) after %d messages, %.1f kB", client.id, client.peer, why,
-                     client.messages_sent, client.bytes_sent / 1e3)
+            log.info("client %d from %s left (%s) after %d messages, %.1f kB (it read %.2f Mbit/s at the last "
+                     "measure)", client.id, client.peer, why, client.messages_sent, client.bytes_sent / 1e3,
+                     client.acked_mbit)
         else:
             raise exc
 
@@ -722,11 +724,26 @@ class Service:
             self.on_cameras([c.camera for c in self.registry if c.camera is not None])
 
     async def _send(self, ws, client: Client, data: bytes) -> None:
+        if self.settings.fanout.client_mbit is not None:
+            await self._pace(client, len(data))
         await ws.send(data)
         client.sent(data)
         self.counters.bytes_out += len(data)
         self.counters.messages_out += 1
         await self._probe(ws, client)
+
+    async def _pace(self, client: Client, nbytes: int) -> None:
+        """Hold a message until the client's rate cap lets it go: a token bucket, FanoutSettings.pace_burst
+        seconds deep (the bytes sent to it by any time are at most the cap's since it connected, plus the
+        burst, plus one message)."""
+        f = self.settings.fanout
+        rate = f.client_mbit * 1e6 / 8  # bytes/s
+        now = time.perf_counter()
+        start = max(client.paced_until, now - f.pace_burst)
+        if start > now:
+            self.counters.paced_seconds += start - now
+            await asyncio.sleep(start - now)
+        client.paced_until = start + nbytes / rate
 
     def _state_digest(self) -> str:
         """Digest of the state now (grid and transforms); computed once per tick and edit, not per client."""
@@ -822,11 +839,18 @@ class Service:
         mark = client.messages_sent
         client.probe = pong = await ws.ping()
 
+        acked = client.bytes_sent
+
         def answered(f: asyncio.Future) -> None:
             client.probe = None
             if f.cancelled() or f.exception() is not None:
                 return  # the connection ended
             client.messages_read = max(client.messages_read, mark)
+            now = time.perf_counter()
+            if now - client.acked_at >= 1.0:  # what its link carried, measured over a second or more
+                if client.acked_at:
+                    client.acked_mbit = 8 * (acked - client.acked_bytes) / (now - client.acked_at) / 1e6
+                client.acked_bytes, client.acked_at = acked, now
             client.wake.set()
 
         pong.add_done_callback(answered)
@@ -836,7 +860,9 @@ class Service:
         grid, limits = self.grid, self.settings.limits
         transforms = self.transforms()
         tids = client.changed_transforms(transforms)
-        b, c, drained = client.take_pending(limits, len(grid.cells), self.fanout.in_view(client, grid, transforms))
+        budget = self.fanout.cells_budget(client, self.settings.tick_hz)
+        b, c, drained = client.take_pending(limits, len(grid.cells), self.fanout.in_view(client, grid, transforms),
+                                            self.fanout.distance(client, grid, transforms), budget)
         if not (len(b) or len(c) or len(tids)):
             return
         tids = client.read_transforms(transforms)
@@ -844,8 +870,9 @@ class Service:
         seq = client.next_seq()
         if drained:
             self._log_digest(client, seq)
-        if len(b) == limits.max_buckets_per_message or len(c) == limits.max_cells_per_message:
-            client.wake.set()  # more than one message's worth: go again right away
+        if len(b) == limits.max_buckets_per_message or len(c) == min(budget or limits.max_cells_per_message,
+                                                                      limits.max_cells_per_message):
+            client.wake.set()  # more than one message's worth: go again right away (paced under a cap)
         t_encode = time.perf_counter()
         if len(b) + len(c) <= self.settings.fanout.inline_rows:
             data = session.update(self.tick, self.time, delta)
@@ -855,6 +882,9 @@ class Service:
         self.counters.cells_sent += len(c)
         self.counters.buckets_sent += len(b)
         await self._send(ws, client, data)
+        if len(c):
+            client.bytes_per_cell = (len(data) / len(c) if not client.bytes_per_cell
+                                     else 0.8 * client.bytes_per_cell + 0.2 * len(data) / len(c))
         client.updates_sent += 1
         self.counters.updates_out += 1
 

@@ -1,0 +1,65 @@
+"""A per-client rate cap (FanoutSettings.client_mbit, `psao serve --client-mbit`): every message paced, the
+client's own Updates carrying the cells nearest its camera first, its mirror exact. The service in-process
+with a real client over loopback; waits are for counts, and the one bound on time only fails if the pacing
+sends faster than the cap (a slow machine sends less, never more)."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from psao.client.connection import MirrorClient
+from psao.protocol.limits import DEFAULT_LIMITS
+from psao.server.errors import ConfigError
+from psao.server.net.clients import Client
+from psao.server.settings import FanoutSettings, ServeSettings
+from psao.server.tick.testhook import RandomEdits
+from test_bad_input_server import HASH, make_grid
+from test_fanout import assert_digests_equal, start
+
+CAP_MBIT = 0.1  # well under what the test grid's Updates take uncapped (about 0.3 Mbit/s)
+
+
+def test_take_pending_sends_the_nearest_cells_first_and_keeps_the_rest():
+    client = Client("test", n_buckets=8, capacity=100)
+    slots = np.array([5, 17, 42, 60, 99], np.uint32)
+    client.mark(np.zeros(0, np.uint32), slots, 100)
+    far = {5: 9.0, 17: 1.0, 42: 7.0, 60: 0.5, 99: 3.0}
+    distance = lambda s: np.array([far[int(x)] for x in s])  # noqa: E731
+    b, c, drained = client.take_pending(DEFAULT_LIMITS, 100, distance=distance, max_cells=3)
+    assert c.tolist() == [17, 60, 99]  # the three nearest, in ascending slot order (the encoders need it)
+    assert not drained and sorted(client.cells_pending.indices().tolist()) == [5, 42]
+    b, c, drained = client.take_pending(DEFAULT_LIMITS, 100, distance=distance, max_cells=3)
+    assert c.tolist() == [5, 42] and drained
+
+
+def test_a_capped_client_is_paced_within_its_rate_and_its_mirror_stays_exact(tmp_path):
+    async def scenario():
+        settings = ServeSettings(port=0, tick_hz=30, stats_interval=1e9, digest_log=tmp_path / "server.jsonl",
+                                 fanout=FanoutSettings(client_mbit=CAP_MBIT))
+        service, stop, task, url = await start(make_grid(3000), settings, RandomEdits(150))
+        try:
+            client = MirrorClient(url, HASH, digest_log=tmp_path / "c0.jsonl", digest_every=5)
+            began = time.perf_counter()
+            await client.run(frames=40)
+            elapsed = time.perf_counter() - began
+        finally:
+            stop.set()
+            await task
+        return service, client, elapsed
+
+    service, client, elapsed = asyncio.run(scenario())
+    assert service.counters.paced_seconds > 0  # the cap held messages back (the snapshot alone exceeds it)
+    rate = CAP_MBIT * 1e6 / 8
+    largest = DEFAULT_LIMITS.server_message_bytes
+    budget = rate * (elapsed + FanoutSettings.pace_burst) + min(largest, client.stats.snapshot_bytes)
+    assert client.stats.bytes_received <= budget
+    assert_digests_equal(tmp_path, ["c0"], at_least=2)
+
+
+@pytest.mark.parametrize("mbit", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_cap_that_is_not_a_positive_rate_is_refused(mbit):
+    with pytest.raises(ConfigError, match="client rate cap must be > 0 Mbit/s"):
+        ServeSettings(fanout=FanoutSettings(client_mbit=mbit)).check()
