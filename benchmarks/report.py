@@ -7,16 +7,18 @@ Each table of docs/results.md that this script owns sits between two markers,
     <!-- /report:table1 -->
 
 and its data is one file, docs/data/ID.json: {"id", "command", "commit", "rows"}, where "rows" is what the
-benchmark wrote (`psao bench`'s results.json, bench_scenes' bench_scenes.json). The data files are kept in
+benchmark wrote (`psao bench`'s results.json, bench_scenes' bench_scenes.json), as a list of rows
+(bench_progressive's scenes, bench_links' runs). The data files are kept in
 the repository so that the page can be checked against them (`check`, run by the tests) and regenerated
 without re-running hours of benchmarks.
 
     python -m benchmarks.report collect ID OUT_DIR   # after running SECTIONS[ID].command with --out OUT_DIR
+        [--commit C]                                 # the commit the run was made at, when not HEAD
     python -m benchmarks.report write                # rewrite docs/results.md's generated blocks
     python -m benchmarks.report check                # exit 1 if docs/results.md differs from its data
 
-`collect` records the commit of the run from OUT_DIR/run.json (written by `psao bench`), else the
-repository's HEAD, marked "+local changes" when the working tree differs from it.
+`collect` records the commit given by --commit, else the run's from OUT_DIR/run.json (written by
+`psao bench`), else the repository's HEAD, marked "+local changes" when the working tree differs from it.
 """
 from __future__ import annotations
 
@@ -36,13 +38,17 @@ RESULTS = ROOT / "docs" / "results.md"
 DATA = ROOT / "docs" / "data"
 
 
+def table(head: list[str], lines: list[list[str]]) -> str:
+    """A markdown table of the header and the lines' cells."""
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+                      *("| " + " | ".join(cells) + " |" for cells in lines)]) + "\n"
+
+
 def scenes_table(rows: list[dict]) -> str:
     """bench_scenes' rows: one line per model and density scale."""
     from benchmarks.bench_scenes import HEADER_COLUMNS, table_cells
 
-    lines = ["| " + " | ".join(HEADER_COLUMNS) + " |", "|" + "---|" * len(HEADER_COLUMNS)]
-    lines += ["| " + " | ".join(table_cells(r)) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
+    return table(list(HEADER_COLUMNS), [table_cells(r) for r in rows])
 
 
 def span(values: list[float], fmt: str) -> str:
@@ -89,12 +95,58 @@ def bench_table(rows: list[dict]) -> str:
     return markdown_table(rows) + method_summary(rows)
 
 
+def figure(value, fmt: str) -> str:
+    """value formatted, or '-' where the run has none (absent, None or NaN)."""
+    return "-" if value is None or value != value else format(value, fmt)
+
+
+def progressive_table(rows: list[dict]) -> str:
+    """bench_progressive's scenes: how soon the client and the page see the scene, progressive against
+    --no-progressive, and the PSNR of what the client shows as the grids arrive."""
+    from benchmarks.bench_progressive import ANIMATED_SECONDS
+
+    head = ["scene", "first snapshot s", "first snapshot s, --no-progressive", "page's first drawn frame s",
+            "PSNR dB at first snapshot", "at the full grid's snapshot", "at end", "--no-progressive, from its first snapshot",
+            "PSNR change across the swap, dB", f"--animate Updates/s, first {ANIMATED_SECONDS:g} s", "probes"]
+    lines = []
+    for r in rows:
+        at = r.get("progressive_psnr_at_snapshots", [])
+        early = r.get("animated_updates_early")
+        lines.append([r["scene"], figure(r.get("progressive_first_snapshot_s"), ".2f"),
+                      figure(r.get("plain_first_snapshot_s"), ".1f"), figure(r.get("page_first_frame_s"), ".2f"),
+                      figure(at[0] if at else None, ".2f"), figure(at[1] if len(at) > 1 else None, ".2f"),
+                      figure(r.get("progressive_psnr_at_end_db"), ".2f"), figure(r.get("full_bake_psnr_db"), ".2f"),
+                      figure(r.get("swap_psnr_change_db"), "+.2f"),
+                      figure(None if early is None else early / ANIMATED_SECONDS, ".1f"), f"{r['probes']:,}"])
+    rays = sorted({(r["rays"], r["ref_rays"]) for r in rows})
+    return table(head, lines) + "\n" + "; ".join(
+        f"`--rays {a}`: PSNR of the AO the client shows at the visible probes against a {b}-ray trace" for a, b in rays
+    ) + ". Seconds are from the start of the `psao serve` process; - where a scene has no movers (no `--animate` run).\n"
+
+
+def links_table(rows: list[dict]) -> str:
+    """bench_links' runs: per link setting, the client behind it and the loopback client beside it."""
+    head = ["rtt ms", "loss %", "Mbit/s cap", "updates/s", "loopback client's updates/s", "s behind p50",
+            "s behind p95", "stream Mbit/s", "snapshot MB", "packets lost / queue-dropped"]
+    lines = []
+    for r in rows:
+        link, c = r["link"], r["client"]
+        lines.append([f"{link['rtt_ms']:g}", f"{100 * link['loss']:g}",
+                      "unlimited" if link["mbit"] is None else f"{link['mbit']:g}",
+                      figure(c["updates_per_s"], ".1f"), figure(r["loopback"]["updates_per_s"], ".1f"),
+                      figure(c["behind_p50_s"], ".3f"), figure(c["behind_p95_s"], ".3f"),
+                      figure(c["stream_mbit_s"], ".2f"), figure(c["snapshot_mb"], ".2f"),
+                      f"{r['packets']['lost']:,} / {r['packets']['queue_dropped']:,}"])
+    return table(head, lines)
+
+
 @dataclass(frozen=True)
 class Section:
     command: str  # the command that writes the data, with --out OUT_DIR left to the runner
     data_file: str  # the file under --out that holds the rows
     render: Callable[[list[dict]], str]
     more_files: tuple[str, ...] = ()  # further files under --out whose rows follow (a benchmark of several runs)
+    rows_of: Callable[[object], list[dict]] = list  # a data file's JSON -> its rows (default: the file is the list)
 
 
 SECTIONS: dict[str, Section] = {
@@ -108,9 +160,24 @@ SECTIONS: dict[str, Section] = {
     "baselines": Section("python -m benchmarks.bench_baselines --frames 3 --spp 512 --sponza-density 128 --mlp-steps 600 "
                          "--no-stream --image-scale 0.5", "results.json", bench_table, ("sponza/results.json",)),
     "scenes": Section("python -m benchmarks.bench_scenes --scales 1", "bench_scenes.json", scenes_table),
+    "progressive": Section("python -m benchmarks.bench_progressive", "progressive.json", progressive_table,
+                           rows_of=lambda scenes: list(scenes.values())),
+    "links": Section("python -m benchmarks.bench_links --quick", "links.json", links_table,
+                     rows_of=lambda record: record["runs"]),
 }
 
 _BLOCK = re.compile(r"(<!-- report:(\w+) -->\n)(.*?)(<!-- /report:\2 -->)", re.S)
+
+
+def known_commit(commit: str) -> str:
+    """`commit`'s short hash in this repository, or SystemExit naming it when there is no such commit."""
+    import subprocess
+
+    done = subprocess.run(["git", "rev-parse", "--short", "--verify", "--quiet", f"{commit}^{{commit}}"], cwd=ROOT,
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"report: error: --commit {commit}: no such commit in this repository")
+    return done.stdout.strip()
 
 
 def run_commit(out_dir: Path) -> str:
@@ -121,14 +188,15 @@ def run_commit(out_dir: Path) -> str:
     return source_commit()
 
 
-def collect(section_id: str, out_dir: Path, data_dir: Path = DATA) -> Path:
-    """Store the rows of a finished run as the section's data file."""
+def collect(section_id: str, out_dir: Path, data_dir: Path = DATA, commit: str | None = None) -> Path:
+    """Store the rows of a finished run as the section's data file, with `commit` (default: run_commit)."""
     section = SECTIONS[section_id]
-    rows = [r for name in (section.data_file, *section.more_files) for r in json.loads((out_dir / name).read_text())]
+    rows = [r for name in (section.data_file, *section.more_files)
+            for r in section.rows_of(json.loads((out_dir / name).read_text()))]
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / f"{section_id}.json"
     record = {"id": section_id, "command": f"{section.command} --out {out_dir.name}",
-              "commit": run_commit(out_dir), "rows": rows}
+              "commit": commit or run_commit(out_dir), "rows": rows}
     path.write_text(json.dumps(record, indent=1) + "\n")
     return path
 
@@ -161,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("collect", help="store a finished run's rows as a section's data")
     c.add_argument("section", choices=sorted(SECTIONS))
     c.add_argument("out_dir", type=Path)
+    c.add_argument("--commit", help="the commit the run was made at (default: OUT_DIR/run.json's, else HEAD)")
     sub.add_parser("write", help="rewrite docs/results.md's generated blocks from docs/data")
     sub.add_parser("check", help="exit 1 if docs/results.md's generated blocks differ from docs/data")
     args = ap.parse_args(argv)
@@ -169,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         missing = [n for n in (section.data_file, *section.more_files) if not (args.out_dir / n).is_file()]
         if missing:
             ap.error(f"{args.out_dir / missing[0]} does not exist: run the section's command first")
-        print(f"wrote {collect(args.section, args.out_dir)}")
+        commit = known_commit(args.commit) if args.commit else None
+        print(f"wrote {collect(args.section, args.out_dir, commit=commit)}")
         return 0
     text = RESULTS.read_text()
     new = rendered(text)

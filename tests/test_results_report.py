@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from benchmarks import report
 
 
@@ -68,3 +70,36 @@ def test_the_summary_lines_follow_the_rows():
     before = largest_gain(report.method_summary(rows))
     best["psnr"] += 10.0
     assert largest_gain(report.method_summary(rows)) == round(before + 10.0, 1)
+
+
+def test_collect_takes_a_benchmark_whose_file_is_not_a_list_and_a_given_commit(tmp_path):
+    """bench_progressive writes {scene: figures}: its rows are the scenes; --commit names the run's commit
+    where the output directory has no run.json."""
+    out = tmp_path / "bp"
+    out.mkdir()
+    scenes = {"courtyard": {"scene": "courtyard", "probes": 7}, "sponza": {"scene": "sponza", "probes": 9}}
+    (out / "progressive.json").write_text(json.dumps(scenes))
+    record = json.loads(report.collect("progressive", out, tmp_path / "data", commit="e1d1158").read_text())
+    assert record["rows"] == list(scenes.values()) and record["commit"] == "e1d1158"
+
+
+def test_an_unknown_commit_is_one_clear_line(tmp_path):
+    out = tmp_path / "bp"
+    out.mkdir()
+    (out / "progressive.json").write_text("{}")
+    with pytest.raises(SystemExit, match="no such commit"):
+        report.main(["collect", "progressive", str(out), "--commit", "not-a-commit"])
+
+
+def test_the_progressive_and_links_tables_follow_their_rows():
+    """A changed figure of bench_progressive's and bench_links' data shows in the rendered table."""
+    prog = json.loads((report.DATA / "progressive.json").read_text())["rows"]
+    prog[0]["progressive_first_snapshot_s"] = 9.87
+    assert "| 9.87 |" in report.progressive_table(prog)
+    del prog[0]["page_first_frame_s"]  # a run with --skip-page
+    assert report.progressive_table(prog).count(" - ") >= 1
+    links = [{"link": {"rtt_ms": 150.0, "loss": 0.01, "mbit": 5.0}, "packets": {"lost": 3, "queue_dropped": 0},
+              "loopback": {"updates_per_s": 29.9},
+              "client": {"updates_per_s": 12.3, "behind_p50_s": 0.25, "behind_p95_s": 0.5, "stream_mbit_s": 1.5,
+                         "snapshot_mb": 4.25}}]
+    assert "| 150 | 1 | 5 | 12.3 | 29.9 | 0.250 | 0.500 | 1.50 | 4.25 | 3 / 0 |" in report.links_table(links)
