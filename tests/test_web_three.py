@@ -31,22 +31,46 @@ def test_three_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path,
                         modes=("gtao", "sao", "psao-only"), prefix="three_")
 
 
-def test_a_scene_that_does_not_match_is_one_error(browser, tmp_path):
-    """connect() to a server whose instances the application's scene does not hold rejects with one line."""
+def test_application_meshes_match_by_name_and_a_scene_that_does_not_is_one_error(browser, tmp_path):
+    """connect() to the application's own meshes, named as the server's instances (built here from the scene
+    the example received), mirrors the same grid (digest) and draws them into its G-buffer; a scene without
+    the server's instances rejects the connect with one line."""
     server = Server(tmp_path, "builtin:cornell", "--density", "8", "--rays", "4")
     page = browser.new_page()
     try:
         page.goto(f"http://127.0.0.1:{server.port}/three/?width={W}&height={H}", wait_until="commit")
         wait_page(page, "window.psao && window.psao.state === 'streaming'")
-        text = page.evaluate("""async () => {
+        same, covered, text = page.evaluate("""async () => {
           const THREE = await import('three');
           const { connect } = await import('/three/psao-three.js');
-          const r = new THREE.WebGLRenderer(), scene = new THREE.Scene();
-          scene.add(Object.assign(new THREE.Mesh(new THREE.BoxGeometry()), { name: 'not-in-the-scene' }));
-          try { await connect(location.href, r, scene, new THREE.PerspectiveCamera()); return 'connected'; }
-          catch (e) { return `${e.name}: ${e.message}`; }
+          const served = window.psao.ao.serverScene, own = new THREE.Scene(), r = new THREE.WebGLRenderer();
+          for (const inst of served.instances) {
+            const mesh = served.meshes[inst.mesh], g = new THREE.BufferGeometry();
+            g.setAttribute('position', new THREE.BufferAttribute(mesh.vertices, 3));
+            g.setIndex(new THREE.BufferAttribute(mesh.faces, 1));
+            own.add(Object.assign(new THREE.Mesh(g, new THREE.MeshBasicMaterial()), { name: inst.name }));
+          }
+          const [eye, target] = [served.cameraPaths[0].keys[0].eye, served.cameraPaths[0].keys[0].target];
+          const cam = new THREE.PerspectiveCamera(served.cameraPaths[0].fovY, 4 / 3, 0.01, 100);
+          cam.position.set(...eye);
+          cam.lookAt(...target);
+          const ao = await connect(location.href, r, own, cam);
+          await new Promise((done) => { const t = setInterval(() => { if (ao.state === 'streaming') { clearInterval(t); done(); } }, 50); });
+          ao.setSize(64, 48);
+          ao.renderAO();
+          const local = ao.read(0);
+          let covered = 0;
+          for (let i = 3; i < local.length; i += 4) covered += local[i] > 0.5;
+          const same = ao.digest() === window.psao.digest();
+          ao.close();
+          const other = new THREE.Scene();
+          other.add(Object.assign(new THREE.Mesh(new THREE.BoxGeometry()), { name: 'not-in-the-scene' }));
+          try { await connect(location.href, r, other, cam); return [same, covered, 'connected']; }
+          catch (e) { return [same, covered, e.message]; }
         }""")
     finally:
         page.close()
         server.stop()
+    assert same
+    assert covered > 0.5 * 64 * 48
     assert "does not match the server's" in text and "have no mesh of that name" in text, text
