@@ -15,10 +15,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
-# The pinned fzstd from npm, which tests/test_web_vendor.py checks the copy in src/psao/web/vendor/ against
-# (the package ships that copy; installing psao needs no npm).
-$(NPM_STAMP): web/package-lock.json
+# The pinned fzstd and three from npm, which tests/test_web_vendor.py checks the copies in src/psao/web/vendor/
+# against (the package ships those copies; installing psao needs no npm).
+$(NPM_STAMP): web/package-lock.json web/three/package-lock.json
 	cd web && npm ci --no-audit --no-fund --loglevel=error
+	cd web/three && npm ci --no-audit --no-fund --loglevel=error
 	touch $(NPM_STAMP)
 
 # The browser the web client's tests drive (playwright's Python API with Debian's chromium, no download).

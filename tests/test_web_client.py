@@ -113,6 +113,16 @@ def page_vs_oracle(frame: dict) -> tuple[float, int]:
     return float(close.mean()), int(covered.sum())
 
 
+def streamed_frame(page, spec: str) -> dict:
+    """The page's PSAO frame (readPsao) for the scene's fixed camera, drawn once it streams and has had 3
+    Updates; the page stays paused (window.psao: setCamera, renderOnce, readPsao, as main.js and the three.js
+    example give them)."""
+    wait_page(page, "!!(window.psao && window.psao.setCamera)")
+    page.evaluate("([v, p]) => window.psao.setCamera(v, p)", fixed_camera(spec))
+    wait_page(page, "window.psao.state === 'streaming' && window.psao.updates >= 3 && window.psao.frames >= 1")
+    return page.evaluate("() => { const a = window.psao; a.paused = true; a.renderOnce(); return a.readPsao(); }")
+
+
 def check_digests(log: list, server: Server, least: int) -> None:
     """Every digest the page and the server both logged for the same message is equal."""
     ref = server.server_digests()
@@ -138,23 +148,28 @@ def open_page(browser, server: Server):
     ("builtin:robots", ["--density", "8", "--rays", "4", "--animate", "--tick-rays", "4", "--tick-hz", "5", "--no-cull"], "robots"),
 ])
 def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec, serve_args, name):
+    mirrors_and_matches(browser, tmp_path, spec, serve_args, name, modes=("ssao",))
+
+
+def mirrors_and_matches(browser, tmp_path, spec, serve_args, name, modes, prefix=""):
+    """The page `psao serve SPEC SERVE_ARGS` serves at / mirrors the server (digests), its PSAO for the fixed
+    camera equals the oracle, and (robots) its skinned close-up is posed with rest-pose targets; a screenshot
+    of the PSAO frame and one of each of `modes` go to out/web_client/PREFIX*.png."""
     server = Server(tmp_path, spec, *serve_args)
     page, errors = open_page(browser, server)
     try:
-        wait_page(page, "!!(window.psao && window.psao.setCamera)")
-        page.evaluate("([v, p]) => window.psao.setCamera(v, p)", fixed_camera(spec))
-        wait_page(page, "window.psao.state === 'streaming' && window.psao.updates >= 3 && window.psao.frames >= 1")
-        frame = page.evaluate("() => { const a = window.psao; a.paused = true; a.renderOnce(); return a.readPsao(); }")
-        shot(page, tmp_path, f"{name}_psao", canvas_only=True)
-        page.evaluate("() => { window.psao.mode = 'ssao'; window.psao.renderOnce(); }")
-        shot(page, tmp_path, f"{name}_ssao", canvas_only=True)
+        frame = streamed_frame(page, spec)
+        shot(page, tmp_path, f"{prefix}{name}_psao", canvas_only=True)
+        for mode in modes:
+            page.evaluate("(m) => { window.psao.mode = m; window.psao.renderOnce(); }", mode)
+            shot(page, tmp_path, f"{prefix}{name}_{mode}", canvas_only=True)
         log = page.evaluate("window.psao.digestLog")
         if name == "robots":
-            close_up = skinned_close_up(page, server, load_scene(spec), tmp_path)
+            close_up = skinned_close_up(page, server, load_scene(spec), tmp_path, prefix)
     finally:
         page.close()
         server.stop()
-    assert not errors
+    assert not errors, errors
     check_digests(log, server, least=3)  # the snapshot and at least two updates (edited or animated grid)
     match, covered = page_vs_oracle(frame)
     assert covered > 0.2 * W * H
@@ -163,7 +178,7 @@ def test_page_mirrors_the_server_and_matches_the_oracle(browser, tmp_path, spec,
         assert_skinned_drawn_posed_with_rest_targets(*close_up)
 
 
-def skinned_close_up(page, server: Server, scene, tmp_path: Path) -> tuple:
+def skinned_close_up(page, server: Server, scene, tmp_path: Path, prefix: str = "") -> tuple:
     """The page's G-buffer of the skinned instance furthest from its rest pose at the server time of the
     last Update, seen from its side with a depth range that holds only it. The server is stopped first, so
     no Update moves the mirror between reading its time and transforms and drawing them. Returns that
@@ -195,7 +210,7 @@ def skinned_close_up(page, server: Server, scene, tmp_path: Path) -> tuple:
     proj = perspective(fov, W / H, distance - radius, distance + radius)
     frame = page.evaluate("([v, p]) => { const a = window.psao; a.setCamera(v, p); a.renderOnce(); return a.readPsao(); }",
                           [view.astype(np.float32).reshape(-1).tolist(), proj.astype(np.float32).reshape(-1).tolist()])
-    shot(page, tmp_path, "robots_skinned_close_up", canvas_only=True)
+    shot(page, tmp_path, f"{prefix}robots_skinned_close_up", canvas_only=True)
     return delivered.meshes[delivered.instances[i].mesh], posed[i], i, model, proj @ view, frame
 
 

@@ -307,6 +307,7 @@ class ServeSettings:
     allow_origins: tuple[str, ...] = ()
     tls_cert: Path | None = None  # PEM certificate chain: serve wss:// (and https://) instead of ws://
     tls_key: Path | None = None  # PEM private key of tls_cert
+    web_example: str = ""  # "": GET / is the PSAO page; a name of webpage.EXAMPLES: that example page
     limits: Limits = DEFAULT_LIMITS
     snapshot_cells_per_chunk: int = 16384  # 512 KiB of cells before compression
     hello_timeout: float = 10.0  # seconds a new connection has to send Hello

@@ -19,6 +19,7 @@ from psao.options import default
 from psao.server.cli.bake import add_bake_arguments, bake_settings
 from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, fitting_round_rays
 from psao.server.errors import ConfigError
+from psao.server.net.webpage import EXAMPLES
 from psao.server.tick.progressive import ProgressiveSettings
 from psao.server.settings import BakeSettings, FanoutSettings, ServeSettings, TickSettings
 
@@ -55,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
                    help="a web page origin (e.g. https://example.org) allowed to open a websocket, besides this "
                         "server's own page; repeatable. Clients without an Origin header are always allowed")
+    p.add_argument("--web-example", choices=sorted(EXAMPLES), default="",
+                   help="serve this example page at / instead of the PSAO page (three: the scene in three.js with "
+                        "PSAO beside three.js's GTAOPass and SAOPass; it is also at /three/ always)")
     p.add_argument("--tls-cert", type=Path, default=None, metavar="PEM", help="serve wss:// with this certificate chain")
     p.add_argument("--tls-key", type=Path, default=None, metavar="PEM", help="the private key of --tls-cert")
     p.add_argument("--max-clients", type=int, default=default(ServeSettings, "max_clients"), metavar="N",
@@ -286,7 +290,7 @@ def _settings(args):
     s = ServeSettings(host=args.host, port=args.port, tick_hz=args.tick_hz, codec=codec,
                       layout=LAYOUT_NAMES[args.layout], token=secret("token", args.token, "PSAO_TOKEN", args.token_file),
                       allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
-                      allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key,
+                      allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key, web_example=args.web_example,
                       digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer,
                       fanout=FanoutSettings(cull=not args.no_cull, client_mbit=args.client_mbit))
     s.check()

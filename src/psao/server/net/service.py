@@ -591,7 +591,7 @@ class Service:
         """Plain GETs get the web page's files (webpage.answer); websocket upgrades go on to _handler."""
         if "websocket" in request.headers.get("Upgrade", "").lower():
             return self._check_origin(request)
-        a = webpage.answer(request.path)
+        a = webpage.answer(request.path, example=self.settings.web_example)
         if a.status != 200:
             log.info("HTTP %d for %s", a.status, request.path[:200])
         headers = Headers([("Content-Type", a.content_type), ("Content-Length", str(len(a.body))),

@@ -3,7 +3,7 @@
 `GET /` is the page (index.html of the package psao.web, read through importlib.resources, so an
 installed wheel serves it as the source tree does); its ES modules, GLSL ES shaders and the `fzstd`
 decoder (psao.web's vendor/fzstd.mjs, a copy of the npm package's ESM build) are served by exact path
-from ASSETS. Any other path (`..`, absolute paths, encoded slashes, query tricks) is a 404: the path is
+from ASSETS, as are the three.js integration (three/) and the three.js files its example imports (vendor/three/). Any other path (`..`, absolute paths, encoded slashes, query tricks) is a 404: the path is
 only ever a dictionary key, never joined to a directory. `/psao_constants.js` is generated from
 src/psao/protocol/ (constants_module), so the page's parser and its GLSL ES lookup read the same numbers
 as the Python oracle and the server.
@@ -56,7 +56,22 @@ ASSETS = {  # URL path -> (file of psao.web, or a Path, content type)
     "/shaders/ssao_blur.frag": ("shaders/ssao_blur.frag", _GLSL),
     "/shaders/composite.frag": ("shaders/composite.frag", _GLSL),
     "/vendor/fzstd.js": ("vendor/fzstd.mjs", _JS),
+    # The three.js integration (psao-three.js, the npm module of web/three/) and its example page.
+    "/three/": ("three/index.html", _HTML),
+    "/three/index.html": ("three/index.html", _HTML),
+    "/three/example.js": ("three/example.js", _JS),
+    "/three/psao-three.js": ("three/psao-three.js", _JS),
 }
+# three.js as web/three/package-lock.json pins it: the files the example imports, copied from its npm package
+# into psao.web's vendor/three/ (tests/test_web_vendor.py compares them).
+THREE_FILES = ("three.module.js", "three.core.js", *(f"addons/{f}.js" for f in (
+    "postprocessing/EffectComposer", "postprocessing/RenderPass", "postprocessing/OutputPass", "postprocessing/GTAOPass",
+    "postprocessing/SAOPass", "postprocessing/ShaderPass", "postprocessing/Pass", "postprocessing/MaskPass",
+    "shaders/CopyShader", "shaders/OutputShader", "shaders/GTAOShader", "shaders/PoissonDenoiseShader",
+    "shaders/SAOShader", "shaders/DepthLimitedBlurShader", "math/SimplexNoise")))
+ASSETS.update({f"/vendor/three/{f}": (f"vendor/three/{f}", _JS) for f in THREE_FILES})
+# --web-example NAME: the page GET / answers instead of the PSAO page.
+EXAMPLES = {"three": "three/index.html"}
 CONSTANTS_PATH = "/psao_constants.js"
 
 
@@ -115,13 +130,13 @@ def not_found(path: str) -> HttpAnswer:
     return HttpAnswer(404, "Not Found", _GLSL, f"404: {path[:200]} is not a file of the PSAO page\n".encode())
 
 
-def answer(path: str, web_dir: Traversable = WEB_DIR) -> HttpAnswer:
+def answer(path: str, web_dir: Traversable = WEB_DIR, example: str = "") -> HttpAnswer:
     """The response to `GET path`: an allow-listed asset (a name read from `web_dir`, a Path as itself), the
-    generated constants, or 404."""
+    generated constants, or 404; `example` (a key of EXAMPLES) is the page at `/` instead of index.html."""
     path = path.split("?", 1)[0]
     if path == CONSTANTS_PATH:
         return HttpAnswer(200, "OK", _JS, constants_module().encode())
-    entry = ASSETS.get(path)
+    entry = (EXAMPLES[example], _HTML) if example and path == "/" else ASSETS.get(path)
     if entry is None:
         return not_found(path)
     name, ctype = entry

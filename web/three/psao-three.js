@@ -1,0 +1,1 @@
+../../src/psao/web/three/psao-three.js
