@@ -36,11 +36,37 @@ from psao.eval.browser import CHROMIUM, CHROMIUM_ARGS, missing_browser
 from psao.eval.processes import ServeExited, ServerProcess, ServeTimeout
 
 ROOT = Path(__file__).resolve().parents[1]
-def start_server(args) -> ServerProcess:
-    """`psao serve` of the benchmark's scene, listening; its log in --out/serve.err."""
+def add_server_arguments(ap: argparse.ArgumentParser, bench: str, density: float, rays: int, edits: int, updates: int,
+                         frames: int) -> None:
+    """The served scene's options that start_server reads, the page's --size, the Updates to wait for, the
+    frames to time and the output folder."""
+    ap.add_argument("--scene", default="builtin:courtyard")
+    ap.add_argument("--density", type=float, default=density)
+    ap.add_argument("--grid", type=Path, default=None, help="serve this grid (psao bake --out) instead of baking")
+    ap.add_argument("--rays", type=int, default=rays, help="bake rays per point (the page's work does not depend on it)")
+    ap.add_argument("--edits", type=int, default=edits, help="points edited per tick (keeps Updates coming)")
+    ap.add_argument("--tick-hz", type=float, default=10.0)
+    ap.add_argument("--size", default="320x180")
+    ap.add_argument("--updates", type=int, default=updates, help="Updates to decode before measuring frames")
+    ap.add_argument("--frames", type=int, default=frames)
+    ap.add_argument("--out", default=str(ROOT / "out" / bench))
+
+
+def parse_page_args(ap: argparse.ArgumentParser, argv: list[str] | None, bench: str):
+    """The parsed arguments, or None (said in one line) where no browser can run the page."""
+    args = ap.parse_args(argv)
+    why = missing_browser()
+    if why:
+        print(f"{bench}: SKIPPED: {why}", flush=True)
+        return None
+    return args
+
+
+def start_server(args, extra: tuple[str, ...] = ()) -> ServerProcess:
+    """`psao serve` of the benchmark's scene (and `extra` arguments), listening; its log in --out/serve.err."""
     err = Path(args.out) / "serve.err"
     grid = ["--grid", str(args.grid)] if args.grid else ["--density", str(args.density), "--rays", str(args.rays)]
-    server = ServerProcess(args.scene, [*grid, "--test-edits", str(args.edits), "--tick-hz", str(args.tick_hz)],
+    server = ServerProcess(args.scene, [*grid, "--test-edits", str(args.edits), "--tick-hz", str(args.tick_hz), *extra],
                            start_timeout=1800.0, host=None, log_path=err, log_stdout=False, cwd=ROOT,
                            stop_signal=signal.SIGTERM, stop_grace=60.0)
     try:
@@ -137,21 +163,10 @@ def first_frame_rows(res: dict) -> list[tuple[str, float]]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="builtin:courtyard")
-    ap.add_argument("--density", type=float, default=256.0)
-    ap.add_argument("--grid", type=Path, default=None, help="serve this grid (psao bake --out) instead of baking")
-    ap.add_argument("--rays", type=int, default=16, help="bake rays per point (the page's work does not depend on it)")
-    ap.add_argument("--edits", type=int, default=200, help="points edited per tick (keeps Updates coming)")
-    ap.add_argument("--tick-hz", type=float, default=10.0)
-    ap.add_argument("--size", default="320x180")
+    add_server_arguments(ap, "bench_web", density=256.0, rays=16, edits=200, updates=60, frames=10)
     ap.add_argument("--codecs", default="zstd-stream,zstd", help="one page per codec, each offering only that one")
-    ap.add_argument("--updates", type=int, default=60, help="Updates to decode before measuring frames")
-    ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--out", default=str(ROOT / "out" / "bench_web"))
-    args = ap.parse_args(argv)
-    why = missing_browser()
-    if why:
-        print(f"bench_web: SKIPPED: {why}", flush=True)
+    args = parse_page_args(ap, argv, "bench_web")
+    if args is None:
         return 0
     from psao.scene import load_scene
     from psao.server.net.scene_export import scene_blob, scene_file

@@ -25,7 +25,7 @@ from benchmarks.verdicts import count_failures
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
 BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "static_hits", "quality", "culling", "clients", "web",
-              "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
+              "three", "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
               "soak", "links")
 MODULES = {"fuzz": "benchmarks.fuzz"}
 
@@ -40,6 +40,7 @@ QUICK_ARGS = {
     "static_hits": ["--density", "16", "--repeats", "1"],
     "quality": ["--densities", "512", "--frames", "2", "--spp", "64"],
     "web": ["--density", "16", "--updates", "10", "--frames", "3", "--codecs", "zstd-stream"],
+    "three": ["--density", "16", "--updates", "5", "--frames", "3", "--rounds", "2"],
     "denoise": ["--scenes", "builtin:robots", "--frames", "1", "--repeats", "3"],
     "video": ["--scenes", "builtin:robots", "--densities", "32,64", "--size", "160x90", "--frames", "2", "--spp", "32",
               "--clip", "8", "--bitrates", "0.25,1,4,20"],

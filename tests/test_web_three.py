@@ -6,10 +6,12 @@ rest pose's local targets of the posed mesh); the GTAOPass and SAOPass of the sa
 out/web_client/. Skips when chromium or playwright is missing."""
 from __future__ import annotations
 
+import signal
+
 import pytest
 
 from browser import launched, missing_browser, wait_page
-from test_web_client import H, W, Server, mirrors_and_matches
+from test_web_client import H, W, Server, check_digests, free_port, mirrors_and_matches, open_page
 
 pytestmark = pytest.mark.skipif(missing_browser() is not None, reason=str(missing_browser()))
 
@@ -74,3 +76,28 @@ def test_application_meshes_match_by_name_and_a_scene_that_does_not_is_one_error
     assert same
     assert covered > 0.5 * 64 * 48
     assert "does not match the server's" in text and "have no mesh of that name" in text, text
+
+
+def test_lost_server_reconnects_and_resyncs(browser, tmp_path):
+    """A killed server is 'server gone' with the reconnect line; its restart on the same port gives the same
+    mirror again (the scene not sent again: the page holds it) and digests equal the new server's."""
+    port = free_port()
+    args = ("builtin:cornell", "--density", "16", "--rays", "8", "--tick-hz", "10", "--web-example", "three")
+    server = Server(tmp_path, *args, port=port, name="first")
+    page, errors = open_page(browser, server)
+    try:
+        wait_page(page, "window.psao && window.psao.state === 'streaming' && window.psao.frames >= 1")
+        first = page.evaluate("window.psao.digest()")
+        server.stop(signal.SIGKILL)
+        wait_page(page, "window.psao.state === 'server gone'")
+        assert "reconnecting" in page.inner_text("#message")
+        server = Server(tmp_path, *args, port=port, name="second")
+        wait_page(page, "window.psao.state === 'streaming' && window.psao.reconnects >= 1")
+        again = page.evaluate("window.psao.digest()")
+        log = page.evaluate("window.psao.digestLog")
+    finally:
+        page.close()
+        server.stop()
+    assert not errors, errors
+    assert again == first
+    check_digests(log, server, least=1)

@@ -121,6 +121,7 @@ app.digest = () => ao.digest();
 Object.defineProperty(app, "digestLog", { get: () => ao.digestLog });
 Object.defineProperty(app, "updates", { get: () => ao.updates });
 Object.defineProperty(app, "mirror", { get: () => ao.mirror });
+Object.defineProperty(app, "reconnects", { get: () => ao.reconnects });
 // The PSAO pass's G-buffer inputs and output and the mirror, as base64 (bottom-up rows), as the page's readPsao.
 app.readPsao = () => {
   const m = ao.mirror;

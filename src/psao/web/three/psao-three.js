@@ -14,6 +14,7 @@ import { FullScreenQuad, Pass } from "three/addons/postprocessing/Pass.js";
 
 const SHADERS = ["psao_lookup.glsl", "psao_normals.glsl", "gbuffer.vert", "gbuffer.frag", "fullscreen.vert", "psao.frag"];
 const HEAD = "precision highp float;\nprecision highp int;\nprecision highp usampler2D;\n";  // after three's #version 300 es
+const RECONNECT_PAUSES = [0.25, 0.5, 1, 2];  // seconds; the last repeats (as the page's)
 const LIGHT = { dir: [0.35, 0.9, 0.25], ambient: 0.35, diffuse: 0.65 };  // the page's (render.js) G-buffer light
 
 export class PsaoError extends Error {}
@@ -125,29 +126,47 @@ export class PsaoThree {
 
   // ------------------------------------------------------------------------------------ connection
   open(urls) {
-    const { ClientSession } = this.m.wire;
     return new Promise((resolve, reject) => {
       this.settle = { resolve, reject };
-      this.session = new ClientSession(this.options.token ?? urls.token, null, this.options.codecs ? { codecs: this.options.codecs } : {});
-      const ws = new WebSocket(urls.ws);
-      ws.binaryType = "arraybuffer";
-      this.ws = ws;
-      ws.onopen = () => { ws.send(this.session.sceneRequest()); this.state = "loading scene"; };
-      ws.onmessage = (e) => {
-        if (this.ws !== ws) return;
-        this.bytes += e.data.byteLength;
-        try {
-          this.handle(this.session.receive(e.data));
-        } catch (exc) {
-          this.fail(exc);
-        }
-      };
-      ws.onclose = (e) => {
-        if (this.ws !== ws) return;
-        this.ws = null;
-        this.fail(new PsaoError(`psao-three: the connection to ${urls.ws} closed (code ${e.code})`), "server gone");
-      };
+      this.urls = urls;
+      this.reconnects = 0;
+      this.socket();
     });
+  }
+
+  // One connection (SceneRequest with the scene already held, so a reconnect is not sent it again). A lost
+  // connection after the scene arrived reconnects after RECONNECT_PAUSES; GRID_REPLACED_CLOSE at once.
+  socket() {
+    const { C, wire } = this.m, urls = this.urls;
+    this.session = new wire.ClientSession(this.options.token ?? urls.token, this.sceneHash || null,
+                                          this.options.codecs ? { codecs: this.options.codecs } : {});
+    const ws = new WebSocket(urls.ws);
+    ws.binaryType = "arraybuffer";
+    this.ws = ws;
+    let opened = false;
+    ws.onopen = () => { opened = true; ws.send(this.session.sceneRequest()); };
+    ws.onmessage = (e) => {
+      if (this.ws !== ws) return;
+      this.bytes += e.data.byteLength;
+      try {
+        this.handle(this.session.receive(e.data));
+      } catch (exc) {
+        this.fail(exc);
+      }
+    };
+    ws.onclose = (e) => {
+      if (this.ws !== ws) return;
+      this.ws = null;
+      clearInterval(this.cameraTimer);
+      const what = opened ? `the connection to ${urls.ws} closed (code ${e.code})` : `cannot connect to ${urls.ws} (code ${e.code})`;
+      if (!this.serverScene) { this.fail(new PsaoError(`psao-three: ${what}`), "server gone"); return; }
+      if (e.code === C.GRID_REPLACED_CLOSE) { this.gridReplacements = (this.gridReplacements || 0) + 1; this.socket(); return; }
+      const pause = RECONNECT_PAUSES[Math.min(this.reconnects, RECONNECT_PAUSES.length - 1)];
+      this.state = "server gone";
+      this.message = `psao-three: ${what}; reconnecting in ${pause} s (attempt ${this.reconnects + 1})`;
+      if (this.options.onError) this.options.onError(this);
+      this.retry = setTimeout(() => { this.reconnects++; this.socket(); }, pause * 1000);
+    };
   }
 
   fail(exc, state = "error") {
@@ -156,6 +175,7 @@ export class PsaoThree {
     this.message = exc instanceof RemoteError ? `the server refused: ${exc.text} (${exc.codeName})` : String(exc.message || exc);
     if (this.settle) { this.settle.reject(exc instanceof PsaoError ? exc : new PsaoError(`psao-three: ${this.message}`)); this.settle = null; }
     if (this.ws) { const ws = this.ws; this.ws = null; ws.close(); }
+    clearInterval(this.cameraTimer);
     if (this.options.onError) this.options.onError(this);
   }
 
@@ -163,18 +183,21 @@ export class PsaoThree {
     if (!ev) return;
     const { C, wire } = this.m;
     if (ev.kind === "scene") {
+      if (ev.blob && this.serverScene) throw new PsaoError("psao-three: the server now serves another scene; connect again");
       if (ev.blob) {
         const raw = this.m.fzstd.decompress(ev.blob);
         if (raw.length > C.LIMITS.scene_payload_bytes) throw new wire.ProtocolError("scene over the size limit");
         this.serverScene = this.m.scene.parseScene(raw);
         this.attach();  // a mismatch throws here: connect() rejects with it
       }
+      this.sceneHash = ev.hash;
       this.ws.send(this.session.hello());
       this.state = "loading snapshot";
       if (this.settle) { this.settle.resolve(this); this.settle = null; }
     } else if (ev.kind === "welcome") {
       this.seq = 0;
       this.mirror = new wire.Mirror(ev.welcome);
+      this.gridVersion = -1;  // a new connection's snapshot: every table written again
       this.connectionId = ev.welcome.connectionId;
       this.startCameras();
     } else if (ev.kind === "snapshot") {
@@ -210,6 +233,7 @@ export class PsaoThree {
 
   close() {
     clearInterval(this.cameraTimer);
+    clearTimeout(this.retry);
     const ws = this.ws;
     this.ws = null;
     if (ws && ws.readyState === WebSocket.OPEN) { ws.send(this.m.wire.byeMessage()); ws.close(); }
