@@ -347,8 +347,11 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
     base = alone["alone"].result(t_alone, walls)
     ticks = {"alone": server_ticks_per_s(walls, t_alone, alone["alone"].t_stop),
              "mixed": server_ticks_per_s(walls, t_from, max(r.t_stop for r in runs.values()))}
+    fast_rates = [runs[where].result(t_from, walls).updates_per_s for where, s in wheres if s is None]
+    per_tick = {"alone": base.updates_per_s / ticks["alone"], "fast": float(np.mean(fast_rates)) / ticks["mixed"]}
     print(f"server ticks/s: {ticks['alone']:.1f} beside the lone client, {ticks['mixed']:.1f} beside the "
-          f"{len(wheres)}")
+          f"{len(wheres)}; Updates per server tick: the lone client {per_tick['alone']:.2f}, the fast ones "
+          f"{per_tick['fast']:.2f} (mean)")
     print(header("digests compared/differ  packets fwd/lost/queue-dropped"))
     print(row("(loopback alone)", base))
     results = []
@@ -368,7 +371,7 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
         record_digests(v, where, next(r["digests"] for r in results if r["client"]["where"] == where))
     (args.out / f"{name}.json").write_text(json.dumps({
         "scenario": name, "server_options": extra, "alone": asdict(base), "clients": results,
-        "server_ticks_per_s": ticks,
+        "server_ticks_per_s": ticks, "updates_per_tick": per_tick,
         "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
     return v.exit_code()
 
@@ -388,13 +391,14 @@ def stall(args, work: Path) -> int:
     STALL_S, then comes back; once the stalled client has an Update again, both run `seconds` more;
     stall.json. The server's RSS is sampled throughout.
 
-    The RSS bound STALL_RSS_MB, on the growth while the link is stalled: what the server keeps for a
+    The RSS bound STALL_RSS_MB, on the rise of the server's RSS high-water mark while the link is stalled
+    over its high-water mark while both clients streamed before: what the server keeps for a
     client that reads nothing is its pending buckets and cells (bool masks of a fixed size:
     psao.server.net.clients.PendingSet), at most FanoutSettings.max_queued shared Updates in its outbox,
     its websocket write buffer and its socket's send buffer (--send-buffer): none of it grows with the
-    stall's length. 50 MB is far above those and above the allocator's own swings; a server that kept a
-    copy of the state per tick for the client (about 3 MB each, 30 ticks/s) would exceed it within a
-    second. It is no test of a queue of encoded Updates: at this scene's stream (under 1 Mbit/s) the
+    stall's length. 50 MB is far above those; the samples themselves swing by a few hundred MB as the
+    server streams, hence high-water marks. A server that kept a copy of the state per tick for the
+    client (3 MB or more each, 30 ticks/s) would exceed it within a second. It is no test of a queue of encoded Updates: at this scene's stream (under 1 Mbit/s) the
     Updates of a whole stall come to about a megabyte. The growth through the stalled client's catch-up
     (one Update of its own with everything pending) is reported beside it."""
     stats, server_digests = work / "stats.jsonl", work / "stall-server-digests.jsonl"
@@ -433,10 +437,12 @@ def stall(args, work: Path) -> int:
     rss_mb = {"before": rss.peak(t_from, t_stall), "stall": rss.peak(t_stall, t_back),
               "after": rss.peak(t_back, slow.t_stop), "at_stall": rss.at(t_stall),
               "stall_s_before": rss.at(t_stall - STALL_S)}
-    # growth while the link is stalled; from the stall's start to the end (the stalled client's catch-up
-    # included); over as long a time just before the stall (the server's own drift)
-    growth = {"stall": rss_mb["stall"] - rss_mb["at_stall"], "to_end": max(rss_mb["stall"], rss_mb["after"])
-              - rss_mb["at_stall"], "before": rss_mb["at_stall"] - rss_mb["stall_s_before"]}
+    # the high-water mark's rise over the one of streaming before the stall (RSS swings by a few hundred MB
+    # within a window as the server streams; a high-water mark does not): while the link is stalled, and
+    # from the stall's start to the end (the stalled client's catch-up included); and the drift of the
+    # samples over as long a time just before the stall
+    growth = {"stall": rss_mb["stall"] - rss_mb["before"], "to_end": max(rss_mb["stall"], rss_mb["after"])
+              - rss_mb["before"], "before": rss_mb["at_stall"] - rss_mb["stall_s_before"]}
     resume_s = float("nan") if resumed is None else resumed - t_back
     after_samples = sum(1 for d in slow.lines() if d["tick"] >= 0 and d["t"] > t_back)
     digests = {where: digests_of(server_digests, r) for where, r in runs.items()}
@@ -448,11 +454,14 @@ def stall(args, work: Path) -> int:
               f"after {rates[where]['after']:.1f}")
     print(f"stalled client: first Update {resume_s:.1f} s after the link came back, {after_samples} digest lines after; "
           f"packets fwd/lost/queue-dropped before {drops(before)}, stall {drops(during)}, after {drops(after)}")
+    per_tick = {ph: rates["loopback"][ph] / ticks[ph] for ph in phases}
     print(f"server ticks/s before {ticks['before']:.1f}, during the stall {ticks['stall']:.1f}, "
-          f"after {ticks['after']:.1f}")
+          f"after {ticks['after']:.1f}; the loopback client's Updates per server tick {per_tick['before']:.2f}, "
+          f"{per_tick['stall']:.2f}, {per_tick['after']:.2f}")
     print(f"server RSS peak MB: before {rss_mb['before']:.1f}, during the stall {rss_mb['stall']:.1f}, "
-          f"after {rss_mb['after']:.1f}; growth MB: {growth['stall']:.1f} during the stall, {growth['to_end']:.1f} "
-          f"from its start to the end (catch-up included), {growth['before']:.1f} over the {STALL_S:g} s before it")
+          f"after {rss_mb['after']:.1f}; peak over the peak before, MB: {growth['stall']:.1f} during the stall, "
+          f"{growth['to_end']:.1f} from its start to the end (catch-up included); samples drift "
+          f"{growth['before']:.1f} MB over the {STALL_S:g} s before it")
     v.check("loopback client's updates/s during the stall / before it", rates["loopback"]["stall"]
             / rates["loopback"]["before"], ">=", STALL_KEEP)
     v.record("stalled client resumed: Updates after the stall", resumed is not None and after_samples >= 2,
@@ -463,11 +472,11 @@ def stall(args, work: Path) -> int:
              f"exit ok {fast_c.exit_ok}, {fast_c.reconnects} reconnects")
     for where, d in digests.items():
         record_digests(v, where, d)
-    v.check("server RSS growth during the stall, MB", growth["stall"], "<=", STALL_RSS_MB)
+    v.check("server RSS peak during the stall over the peak before it, MB", growth["stall"], "<=", STALL_RSS_MB)
     (args.out / "stall.json").write_text(json.dumps({
         "scenario": "stall", "link": asdict(STALL_LINK), "stall": asdict(STALL), "stall_s": STALL_S,
         "clients": {"loopback": asdict(fast_c), "stalled": asdict(slow_c)}, "rates": rates, "resume_s": resume_s,
-        "after_samples": after_samples, "digests": digests, "rss_mb": rss_mb, "rss_growth_mb": growth,
+        "after_samples": after_samples, "digests": digests, "rss_mb": rss_mb, "rss_growth_mb": growth, "loopback_updates_per_tick": per_tick,
         "rss_trace": [(round(t - t_stall, 2), mb) for t, mb in rss.samples],
         "server_ticks_per_s": ticks,
         "packets": {"before": before, "stall": during, "after": after},
@@ -533,18 +542,14 @@ def run_sweep(args, work: Path) -> int:
             server.close()
     walls = tick_walls(stats)
     base = alone["loopback"].result(t_alone, walls)
-    print(f"{'link':<34} {'client':<8} {'upd/s':>7} {'Mbit/s':>7} {'snapMB':>6} {'first_s':>7} {'p50_s':>7} "
-          f"{'p95_s':>7} {'rc':>3}  packets fwd/lost/queue-dropped")
+    print(header("packets fwd/lost/queue-dropped"))
     print(row("(loopback alone)", base))
     for s, pair, t_from, counts in runs:
         fast, slow = pair["loopback"].result(t_from, walls), pair["link"].result(t_from, walls)
-        fwd = sum(c["forwarded"] for c in counts.values())
-        lost = sum(c["dropped_loss"] for c in counts.values())
-        queued = sum(c["dropped_queue"] for c in counts.values())
-        print(row(s.label(), slow, f"{fwd}/{lost}/{queued}"))
+        pk = packets(counts)
+        print(row(s.label(), slow, drops(pk)))
         print(row("", fast))
-        results.append({"link": asdict(s), "client": asdict(slow), "loopback": asdict(fast),
-                        "packets": {"forwarded": fwd, "lost": lost, "queue_dropped": queued}})
+        results.append({"link": asdict(s), "client": asdict(slow), "loopback": asdict(fast), "packets": pk})
         v.record(f"{s.label()}: snapshot, connected, Updates through the window",
                  slow.exit_ok and slow.reconnects == 0 and slow.samples >= 2,
                  f"exit ok {slow.exit_ok}, {slow.reconnects} reconnects, {slow.samples} samples")
