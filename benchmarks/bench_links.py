@@ -345,8 +345,9 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
             server.close()
     walls = tick_walls(stats)
     base = alone["alone"].result(t_alone, walls)
-    ticks = {"alone": server_ticks_per_s(walls, t_alone, alone["alone"].t_stop),
-             "mixed": server_ticks_per_s(walls, t_from, max(r.t_stop for r in runs.values()))}
+    # over the measured windows (`seconds` from their start: the clients' stops come after)
+    ticks = {"alone": server_ticks_per_s(walls, t_alone, t_alone + args.seconds),
+             "mixed": server_ticks_per_s(walls, t_from, t_from + args.seconds)}
     fast_rates = [runs[where].result(t_from, walls).updates_per_s for where, s in wheres if s is None]
     per_tick = {"alone": base.updates_per_s / ticks["alone"], "fast": float(np.mean(fast_rates)) / ticks["mixed"]}
     print(f"server ticks/s: {ticks['alone']:.1f} beside the lone client, {ticks['mixed']:.1f} beside the "
@@ -421,6 +422,7 @@ def stall(args, work: Path) -> int:
                 t_back = time.time()
                 resumed = wait_update_after(runs["stalled"], t_back, RESUME_TIMEOUT_S)
                 time.sleep(args.seconds)
+                t_end = time.time()  # the clients' stops come after
             finally:
                 for r in runs.values():
                     r.stop()
@@ -431,7 +433,7 @@ def stall(args, work: Path) -> int:
     walls = tick_walls(stats)
     fast, slow = runs["loopback"], runs["stalled"]
     fast_c, slow_c = fast.result(t_from, walls), slow.result(t_from, walls)
-    phases = {"before": (t_from, t_stall), "stall": (t_stall, t_back), "after": (t_back, slow.t_stop)}
+    phases = {"before": (t_from, t_stall), "stall": (t_stall, t_back), "after": (t_back, t_end)}
     rates = {where: {ph: r.rate_between(*span) for ph, span in phases.items()} for where, r in runs.items()}
     ticks = {ph: server_ticks_per_s(walls, *span) for ph, span in phases.items()}
     rss_mb = {"before": rss.peak(t_from, t_stall), "stall": rss.peak(t_stall, t_back),
