@@ -1,4 +1,4 @@
-"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick] [--seconds 10]`.
+"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick | --mixed | --stall | --cap] [--seconds 10]`.
 
 A real `psao serve builtin:courtyard --density 256 --animate --tick-hz 30 --stats-json` listens on the
 host's end of one impaired link (psao.eval.links: a client network namespace joined to the host through a
@@ -24,16 +24,38 @@ loopback client's updates/s; and the issue's target for the link ISSUE_LINK at I
 at most ISSUE_LAG_S behind the server (95th percentile; with 1% loss a retransmission costs a round trip
 and more, so this tail varies from run to run). The server has no per-client rate budget: a link slower
 than the stream only shows as a client the server sends fewer, larger Updates to.
+
+Scenarios instead of the sweep (each writes its own JSON beside links.json; its clients may reconnect, and
+count it, and log a digest after every Update, compared with the server's --digest-log by
+psao.eval.digests.compare_digests; the server runs with SCENARIO_SERVE):
+
+- `--mixed` (mixed.json): the server listens on every interface; one loopback client runs alone, then the
+  MIXED clients start at once: 4 on loopback (the fast ones), 3 behind ISSUE_LINK and 3 behind 2 Mbit/s,
+  every impaired client in a namespace and behind a link of its own. Per client the figures above, its
+  digests compared/differing and its link's packets; the server's ticks/s in both windows. Verdicts: each
+  fast client keeps FAST_KEEP of the lone client's updates/s, every client's digests equal the server's,
+  and none reconnects or stops receiving Updates.
+- `--cap` (cap.json): `--mixed` against `psao serve --client-mbit CAP_MBIT`, the same figures and verdicts.
+- `--stall` (stall.json): a loopback client and one behind STALL_LINK; after `--seconds`, the link stalls
+  (STALL: all but every packet lost) for STALL_S, then comes back; both run `--seconds` after the stalled
+  client's next Update. Updates/s of both before, during and after the stall, the server's VmRSS
+  (/proc/PID/status, the serving process) sampled throughout. Verdicts: the loopback client keeps
+  STALL_KEEP of its updates/s during the stall, the stalled client has Updates again, reconnects at most
+  STALL_RECONNECTS times, both mirrors' digests equal the server's, and the server's RSS grows by at most
+  STALL_RSS_MB during the stall (see stall()).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
+import re
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -41,6 +63,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.eval.digests import compare_digests
 from psao.eval.errors import EvalError
 from psao.eval.links import LinkSettings, impaired_link, links_unavailable
 from psao.eval.processes import ServeExited, ServerProcess, interrupt_on_sigterm, kill_group, spawn
@@ -54,12 +77,31 @@ UNIMPAIRED = LinkSettings()
 ISSUE_LINK = LinkSettings(rtt_ms=150.0, loss=0.01, mbit=5.0)  # issue 39's headline link
 QUICK = (UNIMPAIRED, LinkSettings(rtt_ms=50.0, mbit=20.0), ISSUE_LINK)
 DIGEST_EVERY = 4  # a client's digest-log line (tick, wall time) every this many Updates (each hashes the mirror)
+# in the scenarios, a line after every Update: the server logs a digest only after a message that leaves the
+# client nothing pending, and every one of those is compared
+SCENARIO_DIGEST_EVERY = 1
 CLIENT_NICE = 10  # clients run below the server, as remote machines would not take its CPU
+RECONNECT_TIMEOUT_S = 30.0  # a client's --reconnect-timeout: seconds without a message before it gives up
 START_TIMEOUT_S = 600.0  # seconds for a client's snapshot and first Update (a hung run's bound only)
 LOOPBACK_KEEP = 0.8  # the loopback client's updates/s beside an impaired one over its updates/s alone
 FAST_KEEP = 0.9  # the unimpaired link's client's updates/s over the loopback client's beside it
 ISSUE_LAG_S = 0.3  # seconds behind the server at ISSUE_LINK (95th percentile), issue 39's target
 ISSUE_DENSITY = 256.0  # the grid density issue 39's target is set for (other densities: reported only)
+# --mixed: (name, link (None: loopback on the host), clients), every impaired client in a namespace of its own
+MIXED = (("fast", None, 4), ("issue", ISSUE_LINK, 3), ("slow", LinkSettings(mbit=2.0), 3))
+CAP_MBIT = 4.0  # --cap: psao serve --client-mbit
+STALL_LINK = LinkSettings(rtt_ms=50.0, mbit=20.0)  # --stall: the stalled client's link before and after
+STALL = LinkSettings(rtt_ms=50.0, loss=0.9999, mbit=20.0)  # the link while stalled (loss must be < 1)
+STALL_S = 10.0  # seconds the link stalls, issue 39's bad input
+STALL_KEEP = 0.9  # the loopback client's updates/s during the stall over its updates/s before it
+STALL_RECONNECTS = 1  # the most reconnects of the stalled client (no reconnect loop)
+STALL_RSS_MB = 50.0  # the most the server's RSS may grow during the stall, MB (see stall())
+RESUME_TIMEOUT_S = 120.0  # seconds after the stall for the stalled client's next Update (a hung run's bound)
+RSS_EVERY_S = 0.2  # seconds between the server's VmRSS samples
+# the scenarios' server options: --no-cull, so a message can leave a client nothing pending (nothing waits
+# for its view) and the server logs the digests its mirror is compared with
+SCENARIO_SERVE = ("--no-cull",)
+ALL_HOSTS = "0.0.0.0"  # the server's --host when clients reach it from several namespaces
 
 
 @dataclass
@@ -81,11 +123,13 @@ class ClientResult:
 class ClientRun:
     """A `psao client` with a digest log, started now (inside `wrap`), stopped by stop()."""
 
-    def __init__(self, url: str, where: str, log: Path, wrap: list[str]):
-        self.where, self.log = where, log
+    def __init__(self, url: str, where: str, log: Path, wrap: list[str], reconnect: bool = False,
+                 digest_every: int = DIGEST_EVERY):
+        self.where, self.log, self.every = where, log, digest_every
         self.t0 = time.time()
-        self.proc = spawn(["client", url, SCENE, "--json", "--no-reconnect", "--reconnect-timeout", "30",
-                           "--digest-log", log, "--digest-every", str(DIGEST_EVERY)],
+        self.proc = spawn(["client", url, SCENE, "--json", *([] if reconnect else ["--no-reconnect"]),
+                           "--reconnect-timeout", str(RECONNECT_TIMEOUT_S),
+                           "--digest-log", log, "--digest-every", str(digest_every)],
                           wrap=[*wrap, "nice", "-n", str(CLIENT_NICE)], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, cwd=ROOT)
         self.report: dict = {}
@@ -99,6 +143,15 @@ class ClientRun:
     def first_update(self) -> float | None:
         """Wall time of its first Update (its first digest line with a tick), None before."""
         return next((d["t"] for d in self.lines() if d["tick"] >= 0), None)
+
+    def last_update(self) -> float | None:
+        """Wall time of its latest digest line with a tick, None before its first."""
+        return max((d["t"] for d in self.lines() if d["tick"] >= 0), default=None)
+
+    def rate_between(self, t0: float, t1: float) -> float:
+        """Updates/s over the wall times [t0, t1]: its digest lines in it, over its length."""
+        lines = sum(1 for d in self.lines() if d["tick"] >= 0 and t0 <= d["t"] <= t1)
+        return self.every * lines / (t1 - t0) if t1 > t0 else float("nan")
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -116,8 +169,7 @@ class ClientRun:
     def result(self, t_from: float, tick_wall: dict[int, float]) -> ClientResult:
         """Its figures from t_from (wall time) to its stop."""
         window = [d for d in self.lines() if d["tick"] >= 0 and t_from <= d["t"] <= self.t_stop]
-        rate = (DIGEST_EVERY * (len(window) - 1) / (window[-1]["t"] - window[0]["t"])
-                if len(window) >= 2 and window[-1]["t"] > window[0]["t"] else 0.0)
+        rate = updates_rate(window, self.every)
         behind = [d["t"] - tick_wall[d["tick"]] for d in window if d["tick"] in tick_wall]
         first = self.first_update() or float("nan")
         rep = self.report
@@ -126,6 +178,13 @@ class ClientRun:
         return ClientResult(self.where, rate, stream, rep.get("snapshot_bytes", 0) / 1e6, first - self.t0, pct(50),
                             pct(95), int(rep.get("reconnects", -1)), self.proc.returncode in (0, 130, -signal.SIGINT),
                             len(window))
+
+
+def updates_rate(window: list[dict], every: int) -> float:
+    """Updates/s over a client's digest lines (one every `every` Updates), first to last."""
+    if len(window) < 2 or window[-1]["t"] <= window[0]["t"]:
+        return 0.0
+    return every * (len(window) - 1) / (window[-1]["t"] - window[0]["t"])
 
 
 def wait_first_updates(runs: list[ClientRun]) -> float:
@@ -143,11 +202,11 @@ def wait_first_updates(runs: list[ClientRun]) -> float:
     raise EvalError(f"no first Update within {START_TIMEOUT_S:.0f} s")
 
 
-def measure(url: str, wraps: dict[str, list[str]], seconds: float, work: Path,
-            tag: str) -> tuple[dict[str, ClientRun], float]:
-    """Clients for each of `wraps` (where -> wrap) started together and run `seconds` after the last one's
-    first Update; (runs, window start)."""
-    runs = {where: ClientRun(url, where, work / f"{tag}-{where}.jsonl", wrap) for where, wrap in wraps.items()}
+def measure(clients: dict[str, tuple[str, list[str]]], seconds: float, work: Path, tag: str,
+            scenario: bool = False) -> tuple[dict[str, ClientRun], float]:
+    """Clients for each of `clients` (where -> (url, wrap)) started together and run `seconds` after the last
+    one's first Update; (runs, window start). `scenario`: see start_clients."""
+    runs = start_clients(clients, work, tag, scenario)
     try:
         t_from = wait_first_updates(list(runs.values()))
         time.sleep(seconds)
@@ -155,6 +214,23 @@ def measure(url: str, wraps: dict[str, list[str]], seconds: float, work: Path,
         for r in runs.values():
             r.stop()
     return runs, t_from
+
+
+def start_clients(clients: dict[str, tuple[str, list[str]]], work: Path, tag: str,
+                  scenario: bool = False) -> dict[str, ClientRun]:
+    """ClientRuns of `clients` (where -> (url, wrap)); `scenario`: they may reconnect (and count it), and log
+    a digest every SCENARIO_DIGEST_EVERY Updates."""
+    every = SCENARIO_DIGEST_EVERY if scenario else DIGEST_EVERY
+    return {where: ClientRun(url, where, work / f"{tag}-{where}.jsonl", wrap, scenario, every)
+            for where, (url, wrap) in clients.items()}
+
+
+def server_ticks_per_s(walls: dict[int, float], t0: float, t1: float) -> float:
+    """The server's ticks/s over the wall times [t0, t1] (its --stats-json; NaN with fewer than two ticks)."""
+    ticks = sorted(k for k, t in walls.items() if t0 <= t <= t1)
+    if len(ticks) < 2 or walls[ticks[-1]] <= walls[ticks[0]]:
+        return float("nan")
+    return (ticks[-1] - ticks[0]) / (walls[ticks[-1]] - walls[ticks[0]])
 
 
 def tick_walls(stats: Path) -> dict[int, float]:
@@ -178,10 +254,250 @@ def row(label: str, c: ClientResult, drops: str = "") -> str:
             f"{c.first_update_s:7.1f} {c.behind_p50_s:7.3f} {c.behind_p95_s:7.3f} {c.reconnects:3d}  {drops}")
 
 
+def start_server(args, host: str, stats: Path, extra: list[str] = (), digest_log: Path | None = None) -> ServerProcess:
+    """`psao serve SCENE --density --animate --tick-hz --stats-json [--digest-log] [extra]` on `host`, started
+    and serving its full grid (ServeExited: it exited first)."""
+    opts = ["--density", str(args.density), "--animate", "--tick-hz", str(args.tick_hz), "--stats-json", str(stats),
+            *([] if digest_log is None else ["--digest-log", str(digest_log)]), *extra]
+    return ServerProcess(SCENE, opts, host=host, log_stdout=False, cwd=ROOT, start_timeout=None).start()
+
+
+class RssSampler:
+    """A process's VmRSS (/proc/PID/status), sampled every RSS_EVERY_S on a thread: (wall time, MB)."""
+
+    def __init__(self, pid: int):
+        self.pid, self.samples = pid, []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                text = Path(f"/proc/{self.pid}/status").read_text()
+            except OSError:
+                return
+            if m := re.search(r"^VmRSS:\s+(\d+) kB", text, re.MULTILINE):
+                self.samples.append((time.time(), int(m.group(1)) / 1e3))
+            self._stop.wait(RSS_EVERY_S)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def peak(self, t0: float, t1: float) -> float:
+        """The largest sample in [t0, t1], MB (NaN: none)."""
+        return max((mb for t, mb in self.samples if t0 <= t <= t1), default=float("nan"))
+
+    def at(self, t: float) -> float:
+        """The last sample at or before wall time t, MB (NaN: none)."""
+        return next((mb for ts, mb in reversed(self.samples) if ts <= t), float("nan"))
+
+
+def digests_of(server_log: Path, run: ClientRun) -> dict:
+    """Its mirror's digests against the server's (psao.eval.digests.compare_digests)."""
+    compared, differ, conns = compare_digests(server_log, [run.log])
+    return {"compared": compared, "differ": differ, "connections": len(conns)}
+
+
+def record_digests(v: Verdicts, where: str, d: dict) -> None:
+    v.record(f"{where}: mirror digests equal the server's", d["compared"] > 0 and d["differ"] == 0,
+             f"{d['compared']} compared, {d['differ']} differ")
+
+
+def packets(counts: dict) -> dict:
+    """A link's forwarder counts, both directions together."""
+    return {"forwarded": sum(c["forwarded"] for c in counts.values()),
+            "lost": sum(c["dropped_loss"] for c in counts.values()),
+            "queue_dropped": sum(c["dropped_queue"] for c in counts.values())}
+
+
+def drops(pk: dict | None) -> str:
+    return "" if pk is None else f"{pk['forwarded']}/{pk['lost']}/{pk['queue_dropped']}"
+
+
+def header(last: str) -> str:
+    return (f"{'link':<34} {'client':<8} {'upd/s':>7} {'Mbit/s':>7} {'snapMB':>6} {'first_s':>7} {'p50_s':>7} "
+            f"{'p95_s':>7} {'rc':>3}  {last}")
+
+
+def mixed(args, work: Path, extra: list[str], name: str) -> int:
+    """--mixed (--cap: the server with `extra`): one loopback client alone, then the MIXED clients at once,
+    each impaired one in a namespace of its own; `name`.json. Verdicts: each fast (loopback) client keeps
+    FAST_KEEP of the lone client's updates/s, every client's mirror digests equal the server's, and no
+    client reconnects or stops receiving Updates."""
+    stats, server_digests = work / "stats.jsonl", work / f"{name}-server-digests.jsonl"
+    v = Verdicts("bench_links")
+    wheres = [(f"{group}{k + 1}", s) for group, s, n in MIXED for k in range(n)]
+    with interrupt_on_sigterm(), contextlib.ExitStack() as stack:
+        links = {where: stack.enter_context(impaired_link(s)) for where, s in wheres if s is not None}
+        server = start_server(args, ALL_HOSTS, stats, [*SCENARIO_SERVE, *extra], server_digests)
+        try:
+            loop = f"ws://127.0.0.1:{server.port}"
+            print(f"server {' '.join([loop, *extra])}: full grid after {server.full_grid_s:.1f} s; "
+                  f"{len(links)} links", flush=True)
+            alone, t_alone = measure({"alone": (loop, [])}, args.seconds, work, f"{name}-alone", scenario=True)
+            clients = {where: ((f"ws://{links[where].host_address}:{server.port}", links[where].prefix)
+                               if where in links else (loop, [])) for where, _ in wheres}
+            runs, t_from = measure(clients, args.seconds, work, name, scenario=True)
+            counts = {where: packets(link.change(link.settings)) for where, link in links.items()}
+        finally:
+            server.close()
+    walls = tick_walls(stats)
+    base = alone["alone"].result(t_alone, walls)
+    # over the measured windows (`seconds` from their start: the clients' stops come after)
+    ticks = {"alone": server_ticks_per_s(walls, t_alone, t_alone + args.seconds),
+             "mixed": server_ticks_per_s(walls, t_from, t_from + args.seconds)}
+    fast_rates = [runs[where].result(t_from, walls).updates_per_s for where, s in wheres if s is None]
+    per_tick = {"alone": base.updates_per_s / ticks["alone"], "fast": float(np.mean(fast_rates)) / ticks["mixed"]}
+    print(f"server ticks/s: {ticks['alone']:.1f} beside the lone client, {ticks['mixed']:.1f} beside the "
+          f"{len(wheres)}; Updates per server tick: the lone client {per_tick['alone']:.2f}, the fast ones "
+          f"{per_tick['fast']:.2f} (mean)")
+    print(header("digests compared/differ  packets fwd/lost/queue-dropped"))
+    print(row("(loopback alone)", base))
+    results = []
+    for where, s in wheres:
+        c, d = runs[where].result(t_from, walls), digests_of(server_digests, runs[where])
+        print(row("loopback" if s is None else s.label(), c, f"{d['compared']}/{d['differ']}  {drops(counts.get(where))}"))
+        results.append({"link": None if s is None else asdict(s), "client": asdict(c), "digests": d,
+                        "packets": counts.get(where)})
+    for where, s in wheres:
+        c = next(r["client"] for r in results if r["client"]["where"] == where)
+        if s is None:
+            v.check(f"{where}: updates/s among {len(wheres)} / one fast client alone", c["updates_per_s"]
+                    / base.updates_per_s, ">=", FAST_KEEP)
+        v.record(f"{where}: connected, no reconnect, Updates through the window",
+                 c["exit_ok"] and c["reconnects"] == 0 and c["samples"] >= 2,
+                 f"exit ok {c['exit_ok']}, {c['reconnects']} reconnects, {c['samples']} samples")
+        record_digests(v, where, next(r["digests"] for r in results if r["client"]["where"] == where))
+    (args.out / f"{name}.json").write_text(json.dumps({
+        "scenario": name, "server_options": extra, "alone": asdict(base), "clients": results,
+        "server_ticks_per_s": ticks, "updates_per_tick": per_tick,
+        "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
+def wait_update_after(run: ClientRun, t: float, timeout: float) -> float | None:
+    """Wall time of the run's first digest line after wall time `t`, waited for up to `timeout` s (None)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and run.proc.poll() is None:
+        if later := [d["t"] for d in run.lines() if d["tick"] >= 0 and d["t"] > t]:
+            return min(later)
+        time.sleep(0.1)
+    return None
+
+
+def stall(args, work: Path) -> int:
+    """--stall: a loopback client and one behind STALL_LINK; after `seconds`, the link stalls (STALL) for
+    STALL_S, then comes back; once the stalled client has an Update again, both run `seconds` more;
+    stall.json. The server's RSS is sampled throughout.
+
+    The RSS bound STALL_RSS_MB, on the rise of the server's RSS high-water mark while the link is stalled
+    over its high-water mark while both clients streamed before: what the server keeps for a
+    client that reads nothing is its pending buckets and cells (bool masks of a fixed size:
+    psao.server.net.clients.PendingSet), at most FanoutSettings.max_queued shared Updates in its outbox,
+    its websocket write buffer and its socket's send buffer (--send-buffer): none of it grows with the
+    stall's length. 50 MB is far above those; the samples themselves swing by a few hundred MB as the
+    server streams, hence high-water marks. A server that kept a copy of the state per tick for the
+    client (3 MB or more each, 30 ticks/s) would exceed it within a second. It is no test of a queue of encoded Updates: at this scene's stream (under 1 Mbit/s) the
+    Updates of a whole stall come to about a megabyte. The growth through the stalled client's catch-up
+    (one Update of its own with everything pending) is reported beside it."""
+    stats, server_digests = work / "stats.jsonl", work / "stall-server-digests.jsonl"
+    v = Verdicts("bench_links")
+    with interrupt_on_sigterm(), impaired_link(STALL_LINK) as link:
+        server = start_server(args, link.host_address, stats, list(SCENARIO_SERVE), server_digests)
+        try:
+            print(f"server {server.url}: full grid after {server.full_grid_s:.1f} s; link {STALL_LINK.label()}, "
+                  f"stalls at {STALL.label()} for {STALL_S:g} s", flush=True)
+            rss = RssSampler(server.pid)
+            runs = start_clients({"loopback": (server.url, []), "stalled": (server.url, link.prefix)}, work,
+                                 "stall", scenario=True)
+            try:
+                t_from = wait_first_updates(list(runs.values()))
+                time.sleep(args.seconds)
+                t_stall = time.time()
+                before = packets(link.change(STALL))
+                time.sleep(STALL_S)
+                during = packets(link.change(STALL_LINK))
+                t_back = time.time()
+                resumed = wait_update_after(runs["stalled"], t_back, RESUME_TIMEOUT_S)
+                time.sleep(args.seconds)
+                t_end = time.time()  # the clients' stops come after
+            finally:
+                for r in runs.values():
+                    r.stop()
+                rss.stop()
+            after = packets(link.change(STALL_LINK))
+        finally:
+            server.close()
+    walls = tick_walls(stats)
+    fast, slow = runs["loopback"], runs["stalled"]
+    fast_c, slow_c = fast.result(t_from, walls), slow.result(t_from, walls)
+    phases = {"before": (t_from, t_stall), "stall": (t_stall, t_back), "after": (t_back, t_end)}
+    rates = {where: {ph: r.rate_between(*span) for ph, span in phases.items()} for where, r in runs.items()}
+    ticks = {ph: server_ticks_per_s(walls, *span) for ph, span in phases.items()}
+    rss_mb = {"before": rss.peak(t_from, t_stall), "stall": rss.peak(t_stall, t_back),
+              "after": rss.peak(t_back, slow.t_stop), "at_stall": rss.at(t_stall),
+              "stall_s_before": rss.at(t_stall - STALL_S)}
+    # the high-water mark's rise over the one of streaming before the stall (RSS swings by a few hundred MB
+    # within a window as the server streams; a high-water mark does not): while the link is stalled, and
+    # from the stall's start to the end (the stalled client's catch-up included); and the drift of the
+    # samples over as long a time just before the stall
+    growth = {"stall": rss_mb["stall"] - rss_mb["before"], "to_end": max(rss_mb["stall"], rss_mb["after"])
+              - rss_mb["before"], "before": rss_mb["at_stall"] - rss_mb["stall_s_before"]}
+    resume_s = float("nan") if resumed is None else resumed - t_back
+    after_samples = sum(1 for d in slow.lines() if d["tick"] >= 0 and d["t"] > t_back)
+    digests = {where: digests_of(server_digests, r) for where, r in runs.items()}
+    print(header("digests compared/differ"))
+    for label, c in (("loopback", fast_c), (STALL_LINK.label() + " (stalls)", slow_c)):
+        print(row(label, c, f"{digests[c.where]['compared']}/{digests[c.where]['differ']}"))
+    for where in runs:
+        print(f"{where:<8} updates/s before {rates[where]['before']:.1f}, during the stall {rates[where]['stall']:.1f}, "
+              f"after {rates[where]['after']:.1f}")
+    print(f"stalled client: first Update {resume_s:.1f} s after the link came back, {after_samples} digest lines after; "
+          f"packets fwd/lost/queue-dropped before {drops(before)}, stall {drops(during)}, after {drops(after)}")
+    per_tick = {ph: rates["loopback"][ph] / ticks[ph] for ph in phases}
+    print(f"server ticks/s before {ticks['before']:.1f}, during the stall {ticks['stall']:.1f}, "
+          f"after {ticks['after']:.1f}; the loopback client's Updates per server tick {per_tick['before']:.2f}, "
+          f"{per_tick['stall']:.2f}, {per_tick['after']:.2f}")
+    print(f"server RSS peak MB: before {rss_mb['before']:.1f}, during the stall {rss_mb['stall']:.1f}, "
+          f"after {rss_mb['after']:.1f}; peak over the peak before, MB: {growth['stall']:.1f} during the stall, "
+          f"{growth['to_end']:.1f} from its start to the end (catch-up included); samples drift "
+          f"{growth['before']:.1f} MB over the {STALL_S:g} s before it")
+    v.check("loopback client's updates/s during the stall / before it", rates["loopback"]["stall"]
+            / rates["loopback"]["before"], ">=", STALL_KEEP)
+    v.record("stalled client resumed: Updates after the stall", resumed is not None and after_samples >= 2,
+             f"first {resume_s:.1f} s after, {after_samples} digest lines")
+    v.check("stalled client's reconnects", slow_c.reconnects if slow_c.reconnects >= 0 else float("nan"), "<=",
+            STALL_RECONNECTS)
+    v.record("loopback client: connected, no reconnect", fast_c.exit_ok and fast_c.reconnects == 0,
+             f"exit ok {fast_c.exit_ok}, {fast_c.reconnects} reconnects")
+    for where, d in digests.items():
+        record_digests(v, where, d)
+    v.check("server RSS peak during the stall over the peak before it, MB", growth["stall"], "<=", STALL_RSS_MB)
+    (args.out / "stall.json").write_text(json.dumps({
+        "scenario": "stall", "link": asdict(STALL_LINK), "stall": asdict(STALL), "stall_s": STALL_S,
+        "clients": {"loopback": asdict(fast_c), "stalled": asdict(slow_c)}, "rates": rates, "resume_s": resume_s,
+        "after_samples": after_samples, "digests": digests, "rss_mb": rss_mb, "rss_growth_mb": growth, "loopback_updates_per_tick": per_tick,
+        "rss_trace": [(round(t - t_stall, 2), mb) for t, mb in rss.samples],
+        "server_ticks_per_s": ticks,
+        "packets": {"before": before, "stall": during, "after": after},
+        "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_links", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK)} link settings instead of the whole sweep")
-    p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting, s")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--mixed", action="store_true", help=f"scenario: {sum(n for _, _, n in MIXED)} clients at once "
+                       "on mixed links (mixed.json) instead of the sweep")
+    which.add_argument("--stall", action="store_true", help=f"scenario: a link that stalls for {STALL_S:g} s beside a "
+                       "loopback client (stall.json) instead of the sweep")
+    which.add_argument("--cap", action="store_true", help=f"scenario: --mixed with psao serve --client-mbit {CAP_MBIT:g} "
+                       "(cap.json) instead of the sweep")
+    p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
+                   "phase), s")
     p.add_argument("--density", type=float, default=256.0)
     p.add_argument("--tick-hz", type=float, default=30.0, help="the server's tick rate")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_links")
@@ -189,48 +505,53 @@ def main(argv: list[str] | None = None) -> int:
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
         return 2
+    if args.quick and (args.mixed or args.stall or args.cap):
+        print("bench_links: error: --quick selects link settings of the sweep; a scenario has its own", file=sys.stderr)
+        return 2
     if why := links_unavailable():
         print(f"SKIPPED bench_links: {why}")
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_links_"))
+    try:
+        if args.mixed or args.cap:
+            return mixed(args, work, ["--client-mbit", str(CAP_MBIT)] if args.cap else [], "cap" if args.cap else "mixed")
+        if args.stall:
+            return stall(args, work)
+        return run_sweep(args, work)
+    except ServeExited as exc:
+        print(f"bench_links: error: psao serve exited: {exc}", file=sys.stderr)
+        return 2
+
+
+def run_sweep(args, work: Path) -> int:
+    """The sweep of single links (see the module); links.json."""
     stats = work / "stats.jsonl"
     v = Verdicts("bench_links")
     results = []
     with interrupt_on_sigterm(), impaired_link() as link:
-        server = ServerProcess(SCENE, ["--density", str(args.density), "--animate", "--tick-hz", str(args.tick_hz),
-                                       "--stats-json", str(stats)], host=link.host_address, log_stdout=False,
-                               cwd=ROOT, start_timeout=None)
-        try:
-            server.start()
-        except ServeExited as exc:
-            print(f"bench_links: error: psao serve exited: {exc}", file=sys.stderr)
-            return 2
+        server = start_server(args, link.host_address, stats)
         try:
             url = server.url
             print(f"server {url}: full grid after {server.full_grid_s:.1f} s; links: {link.namespace}", flush=True)
-            alone, t_alone = measure(url, {"loopback": []}, args.seconds, work, "alone")
+            alone, t_alone = measure({"loopback": (url, [])}, args.seconds, work, "alone")
             runs = []
             for i, s in enumerate(sweep(args.quick)):
                 link.change(s)
-                pair, t_from = measure(url, {"link": link.prefix, "loopback": []}, args.seconds, work, f"s{i}")
+                pair, t_from = measure({"link": (url, link.prefix), "loopback": (url, [])}, args.seconds, work, f"s{i}")
                 runs.append((s, pair, t_from, link.change(s)))  # the forwarder's counts of this setting
         finally:
             server.close()
     walls = tick_walls(stats)
     base = alone["loopback"].result(t_alone, walls)
-    print(f"{'link':<34} {'client':<8} {'upd/s':>7} {'Mbit/s':>7} {'snapMB':>6} {'first_s':>7} {'p50_s':>7} "
-          f"{'p95_s':>7} {'rc':>3}  packets fwd/lost/queue-dropped")
+    print(header("packets fwd/lost/queue-dropped"))
     print(row("(loopback alone)", base))
     for s, pair, t_from, counts in runs:
         fast, slow = pair["loopback"].result(t_from, walls), pair["link"].result(t_from, walls)
-        fwd = sum(c["forwarded"] for c in counts.values())
-        lost = sum(c["dropped_loss"] for c in counts.values())
-        queued = sum(c["dropped_queue"] for c in counts.values())
-        print(row(s.label(), slow, f"{fwd}/{lost}/{queued}"))
+        pk = packets(counts)
+        print(row(s.label(), slow, drops(pk)))
         print(row("", fast))
-        results.append({"link": asdict(s), "client": asdict(slow), "loopback": asdict(fast),
-                        "packets": {"forwarded": fwd, "lost": lost, "queue_dropped": queued}})
+        results.append({"link": asdict(s), "client": asdict(slow), "loopback": asdict(fast), "packets": pk})
         v.record(f"{s.label()}: snapshot, connected, Updates through the window",
                  slow.exit_ok and slow.reconnects == 0 and slow.samples >= 2,
                  f"exit ok {slow.exit_ok}, {slow.reconnects} reconnects, {slow.samples} samples")

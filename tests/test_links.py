@@ -192,3 +192,20 @@ def test_links_are_unique_and_concurrent():
         assert a.namespace != b.namespace and a.host_address != b.host_address
         assert {a.namespace, b.namespace} <= set(namespaces())
     assert not {a.namespace, b.namespace} & set(namespaces())
+
+
+@pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"]])
+def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
+    from benchmarks.bench_links import main
+
+    assert main(argv) == 2  # refused before any link or server is made
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_bench_links_runs_one_scenario_at_a_time():
+    from benchmarks.bench_links import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--mixed", "--stall"])
+    assert exc.value.code == 2
