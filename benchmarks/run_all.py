@@ -8,7 +8,11 @@ listed in QUICK_ARGS (minutes instead of about an hour on a 2-core machine). A b
 (bench_web without chromium, playwright or the page's npm packages) prints one `SKIPPED` line naming
 what is missing and exits 0.
 
-    .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick]
+`--out DIR` gives every benchmark that writes files (TAKES_OUT) `--out DIR/NAME` and writes DIR/run_all.json
+after each benchmark: the commit, and per benchmark its command, exit status and verdicts
+(benchmarks.verdicts.parse_lines), which benchmarks.report renders into docs/results.md.
+
+    .venv/bin/python -m benchmarks.run_all [--only NAMES] [--quick] [--out DIR]
 """
 
 from __future__ import annotations
@@ -16,11 +20,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import io
+import json
+import shlex
 import sys
 import time
 from contextlib import redirect_stdout
+from pathlib import Path
 
-from benchmarks.verdicts import count_failures
+from benchmarks.verdicts import count_failures, parse_lines
+from psao.eval.bench_cli import source_commit
 
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
@@ -28,6 +36,9 @@ BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "static_h
               "three", "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
               "soak", "links")
 MODULES = {"fuzz": "benchmarks.fuzz"}
+# The benchmarks whose parser takes --out DIR (where they write their JSON, tables and charts).
+TAKES_OUT = ("points", "bake", "bandwidth", "tick", "quality", "clients", "web", "three", "video", "realtime", "dask",
+             "progressive", "scenes", "baselines", "soak", "links")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -73,14 +84,19 @@ class _Tee(io.TextIOBase):
         self.out.flush()
 
 
-def run_one(name: str, args: list[str]) -> tuple[int, int, float]:
+def module_name(name: str) -> str:
+    """The module that runs benchmark `name`."""
+    return MODULES.get(name, f"benchmarks.bench_{name}")
+
+
+def run_one(name: str, args: list[str], printed: list[str] | None = None) -> tuple[int, int, float]:
     """Run benchmarks.bench_NAME.main(args) (or MODULES[NAME].main); returns (exit code, FAIL verdicts printed, wall seconds).
-    A crash counts as exit code 2."""
+    A crash counts as exit code 2. `printed`, when given, gets what the benchmark printed."""
     start = time.perf_counter()
     tee = _Tee(sys.stdout)
     try:
         with redirect_stdout(tee):
-            module = importlib.import_module(MODULES.get(name, f"benchmarks.bench_{name}"))
+            module = importlib.import_module(module_name(name))
             rc = int(module.main(args) or 0)
     except SystemExit as exc:  # argparse errors and scripts that call sys.exit
         rc = exc.code if isinstance(exc.code, int) else 1
@@ -88,6 +104,8 @@ def run_one(name: str, args: list[str]) -> tuple[int, int, float]:
         print(f"run_all: bench_{name} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
         rc = 2
     fails = count_failures(tee.copy.getvalue())
+    if printed is not None:
+        printed.append(tee.copy.getvalue())
     return rc, fails, time.perf_counter() - start
 
 
@@ -95,17 +113,27 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(BENCHMARKS), help="comma list of: " + ", ".join(BENCHMARKS))
     ap.add_argument("--quick", action="store_true", help="small settings (QUICK_ARGS) for a smoke run")
+    ap.add_argument("--out", type=Path, help="give each benchmark --out OUT/NAME; write OUT/run_all.json")
     a = ap.parse_args(argv)
     names = [n.strip() for n in a.only.split(",") if n.strip()]
     unknown = [n for n in names if n not in BENCHMARKS]
     if unknown:
         ap.error(f"unknown benchmark(s): {', '.join(unknown)}")
 
-    results = []
+    results, record = [], {"quick": a.quick, "commit": source_commit(), "benchmarks": []}
     for name in names:
         print(f"\n=== bench_{name} ===", flush=True)
-        rc, fails, seconds = run_one(name, QUICK_ARGS[name] if a.quick else [])
+        args = list(QUICK_ARGS[name] if a.quick else [])
+        if a.out is not None and name in TAKES_OUT:
+            args += ["--out", str(a.out / name)]
+        printed: list[str] = []
+        rc, fails, seconds = run_one(name, args, printed)
         results.append((name, rc, fails, seconds))
+        if a.out is not None:
+            record["benchmarks"].append({"name": name, "command": shlex.join(["python", "-m", module_name(name), *args]),
+                                         "rc": rc, "verdicts": parse_lines(printed[0])})
+            a.out.mkdir(parents=True, exist_ok=True)
+            (a.out / "run_all.json").write_text(json.dumps(record, indent=1) + "\n")
 
     print("\n=== summary ===")
     for name, rc, fails, seconds in results:

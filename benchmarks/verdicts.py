@@ -27,6 +27,29 @@ def count_failures(text: str) -> int:
     return sum(1 for m in LINE_PATTERN.finditer(text) if m.group(1) == "FAIL")
 
 
+# One whole line as Verdicts prints it: outcome, bench, what, then `value OP target` or a free detail.
+_WHOLE_LINE = re.compile(r"^VERDICT (PASS|FAIL)  (\S+)  (.*)$", re.MULTILINE)
+_COMPARISON = re.compile(r"^(\S+) (<=|>=|<|>) (\S+)$")
+
+
+def parse_lines(text: str) -> list[dict]:
+    """Every verdict line of a benchmark's output as {"outcome", "bench", "what", "value", "op", "target"}
+    (a `check`) or {"outcome", "bench", "what", "detail"} (a `record`); values as printed."""
+    found = []
+    for m in _WHOLE_LINE.finditer(text):
+        outcome, bench, rest = m.groups()
+        what, sep, tail = rest.rpartition(": ")
+        cmp = _COMPARISON.match(tail) if sep else None
+        if cmp:
+            found.append({"outcome": outcome, "bench": bench, "what": what, "value": cmp.group(1),
+                          "op": cmp.group(2), "target": cmp.group(3)})
+        elif sep:
+            found.append({"outcome": outcome, "bench": bench, "what": what, "detail": tail})
+        else:
+            found.append({"outcome": outcome, "bench": bench, "what": rest, "detail": ""})
+    return found
+
+
 def format_value(value: float) -> str:
     """Three significant figures, plain notation for ordinary magnitudes."""
     if not math.isfinite(value):
