@@ -206,7 +206,7 @@ async def client_host(url: str, scene_spec: str, counts: list[int], digest_dir: 
     # Every client now looks at the whole scene, so an Update leaves nothing pending for it (whatever its
     # view kept back) and the server vouches for its mirror: each one's digest is compared once more.
     overview[0] = overview_camera(scene)
-    end = time.perf_counter() + (FINAL_S if exact else 0.0)
+    end = time.perf_counter() + FINAL_S
     while time.perf_counter() < end and not all(c.stats.connection_id in final_conns for c in clients):
         await asyncio.sleep(0.1)
     print(json.dumps({"final": True, "digested": [c.stats.connection_id in final_conns for c in clients],

@@ -64,7 +64,7 @@ QUICK_ARGS = {
                "--frames", "1"],
     "densify": ["--scene", "builtin:cornell", "--frames", "1", "--rounds", "2", "--probes", "2000", "--size", "160x90"],
     "baselines": ["--methods", "ssao,gtao,psao", "--frames", "1", "--spp", "32", "--no-stream", "--sponza-density", "64"],
-    "progressive": ["--density", "64", "--rays", "32", "--marks", "1,3,5", "--probes", "4000", "--ref-rays", "256"],
+    "progressive": ["--scenes", "courtyard", "--rays", "32", "--marks", "1,3,5", "--probes", "4000", "--ref-rays", "256"],
     "links": ["--quick", "--density", "64", "--seconds", "5"],
     "soak": ["--minutes", "1.5", "--clients", "4", "--event-seconds", "4", "--host-kill-seconds", "30"],
 }

@@ -4,15 +4,14 @@ against the benchmark's --help, `python -m pytest FILE -k NAME` against the test
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
-import io
 import re
 
 import pytest
 
 from conftest import REPO
 from psao.cli import build_parser
+from support.benchmarks import benchmark_help
 
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 _INLINE = re.compile(r"`((?:psao|python -m) [^`]+)`")
@@ -50,13 +49,6 @@ def _psao_options() -> dict[str, set[str]]:
     return out
 
 
-def _benchmark_help(module: str) -> str:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
-        importlib.import_module(module).main(["--help"])
-    return out.getvalue()
-
-
 @pytest.mark.parametrize("where,command", documented_commands())
 def test_documented_command_exists(where, command):
     words = command.split()
@@ -77,7 +69,7 @@ def test_documented_command_exists(where, command):
     elif words[2].startswith("benchmarks."):
         module = words[2]
         assert importlib.util.find_spec(module) is not None, f"{where}: no module {module}"
-        text = _benchmark_help(module)
+        text = benchmark_help(module)
         unknown = [f for f in _flags(command) if f not in text]
         assert not unknown, f"{where}: {module} has no option {unknown}"
     elif words[2] == "pytest":
