@@ -13,18 +13,17 @@ from psao.client.settings import FrameSettings
 from psao.eval.reference import ReferenceSettings
 from psao.eval.settings import BenchSettings
 from psao.server.settings import BakeSettings, PointSettings, ServeSettings, TraceSettings
+from support.cli import parser_actions, subparsers
 
 BAKE_OPTIONS = {"--density", "--rays", "--seed", "--spawn-ratio", "--gap-fill", "--gap-fill-ratio", "--tracer", "--workers"}
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:
-    parser = build_parser()
-    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return dict(action.choices)
+    return subparsers(build_parser())
 
 
 def _options(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
-    return {s: a for a in p._actions for s in a.option_strings}
+    return {s: a for a in parser_actions(p) for s in a.option_strings}
 
 
 def _parse(command: str, *argv: str) -> argparse.Namespace:
@@ -50,7 +49,7 @@ def test_defaults_come_from_the_settings():
 def test_help_never_writes_a_default_by_hand():
     """Defaults are printed by the formatter from the parser's default, so they cannot drift."""
     for name, p in _subparsers().items():
-        for action in p._actions:
+        for action in parser_actions(p):
             assert not re.search(r"\(default\b", action.help or ""), f"psao {name} {action.option_strings}: {action.help}"
         text = p.format_help()
         if "--spawn-ratio" in text:
@@ -67,7 +66,7 @@ def test_same_options_wherever_the_same_work_happens():
         assert "--json" in _options(subs[name]), name
     # The scene is the first positional everywhere but the client, where it follows the server URL.
     for name in ("bake", "serve", "render", "bench", "client"):
-        positional = [a.dest for a in subs[name]._actions if not a.option_strings and a.dest != "help"]
+        positional = [a.dest for a in parser_actions(subs[name]) if not a.option_strings and a.dest != "help"]
         assert positional[-1] in ("scene", "scenes"), (name, positional)
 
 
@@ -145,6 +144,5 @@ def test_help_prints_the_settings_defaults():
     assert f"(default: {','.join(f'{d:g}' for d in BenchSettings.densities)})" in bench
     client = " ".join(subs["client"].format_help().split())
     assert f"(default: {FrameSettings.fps})" in client and f"(default: {FrameSettings.size})" in client
-    train = next(a for a in subs["train"]._actions if isinstance(a, argparse._SubParsersAction))
-    for method, p in train.choices.items():  # psao train METHOD: the nested parsers print their defaults too
+    for method, p in subparsers(subs["train"]).items():  # psao train METHOD: the nested parsers print their defaults too
         assert "--steps STEPS" in p.format_help() and "(default:" in p.format_help(), method

@@ -3,7 +3,6 @@ they pass: `psao SUB ...` is checked against the sub-command's parser, `python -
 against the benchmark's --help, `python -m pytest FILE -k NAME` against the test file."""
 from __future__ import annotations
 
-import argparse
 import importlib
 import re
 
@@ -12,6 +11,7 @@ import pytest
 from conftest import REPO
 from psao.cli import build_parser
 from support.benchmarks import benchmark_help
+from support.cli import option_strings, subparsers
 
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 _INLINE = re.compile(r"`((?:psao|python -m) [^`]+)`")
@@ -38,14 +38,11 @@ def _flags(command: str) -> list[str]:
 
 
 def _psao_options() -> dict[str, set[str]]:
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     out = {}
-    for name, p in sub.choices.items():
-        out[name] = {s for a in p._actions for s in a.option_strings}
-        for nested in (a for a in p._actions if isinstance(a, argparse._SubParsersAction)):  # psao train METHOD
-            for method, q in nested.choices.items():
-                out[f"{name} {method}"] = {s for a in q._actions for s in a.option_strings}
+    for name, p in subparsers(build_parser()).items():
+        out[name] = option_strings(p)
+        for method, q in subparsers(p).items():  # psao train METHOD
+            out[f"{name} {method}"] = option_strings(q)
     return out
 
 
@@ -54,7 +51,7 @@ def test_documented_command_exists(where, command):
     words = command.split()
     if words[0] == "psao":
         options = _psao_options()
-        top = {s for a in build_parser()._actions for s in a.option_strings}
+        top = option_strings(build_parser())
         while words[1].startswith("--"):  # options of psao itself, before the sub-command
             assert words[1] in top, f"{where}: psao has no option {words[1]}"
             words = [words[0], *words[3:]] if "=" in words[2] else [words[0], *words[2:]]

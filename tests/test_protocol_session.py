@@ -382,7 +382,7 @@ def test_shared_stream_serves_connections_joining_leaving_and_rejoining():
                 msg = server.update(tick, tick / 60, g.delta(b, c, np.arange(3)))
             mirror.apply(client.receive(msg).update.delta)
             assert_mirror_equals(mirror, g)
-    decoders_restarted = sum(client._stream.restarts for _, client, _ in ends)
+    decoders_restarted = sum(client.decoder_restarts for _, client, _ in ends)
     assert decoders_restarted >= 6  # every switch between streams started a frame
     assert shared.messages == 34
 

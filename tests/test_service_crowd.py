@@ -90,7 +90,7 @@ def test_connections_over_the_cap_are_refused_with_server_full(caplog):
             refused = await refusal(url)
             clients[0].stop()
             await runs[0]
-            while service._open > 1:
+            while service.open_connections > 1:
                 await asyncio.sleep(0.02)
             third = MirrorClient(url, HASH, reconnect=False)
             stats = await asyncio.wait_for(third.run(frames=2), HANG_S)
@@ -118,7 +118,7 @@ def test_clients_leaving_during_the_handshake_leave_no_traceback(caplog):
                 ws = await connect(url, compression=None, max_size=None)
                 await ws.send(hello())
                 ws.transport.abort()  # gone before the Welcome can be sent
-            while service._open:
+            while service.open_connections:
                 await asyncio.sleep(0.02)
             good = MirrorClient(url, HASH, reconnect=False)
             return await asyncio.wait_for(good.run(frames=2), HANG_S)

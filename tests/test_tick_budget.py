@@ -221,11 +221,11 @@ def test_a_dead_tracer_worker_is_replaced_and_the_tick_goes_on(caplog):
     tick = ServerTick(bake, TickSettings(rays=4, workers=2, selection=False))
     try:
         tick.tracer.warm_up()
-        victim = next(iter(tick.tracer._pool._processes))
+        victim = tick.tracer.worker_pids[0]
         os.kill(victim, signal.SIGKILL)
         s = tick(tick.grid, 0.5)  # selection off: every point traced, through the pool
         assert s.traced > 0 and "restarting its workers" in caplog.text
-        assert victim not in tick.tracer._pool._processes
+        assert victim not in tick.tracer.worker_pids
     finally:
         tick.close()
 
@@ -527,9 +527,9 @@ def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
                 np.testing.assert_array_equal(accumulated, full)
                 np.testing.assert_array_equal(plan.codes[len(plan.ids) - whole:], full)
         assert refilled > 0 and exact_after > 0
-        kept = np.flatnonzero(tick._static_hits.known)
+        kept = np.flatnonzero(tick.static_hits.known)
         assert len(kept) == refilled and not tick.moving_point[kept].any()
-        bits = tick._static_hits.of(kept)
+        bits = tick.static_hits.of(kept)
         np.testing.assert_array_equal(bits, tick.tracer.static_occluded(tick.world_pos[kept], tick.world_nrm[kept],
                                                                         kept, tick.trace_settings))
     finally:
@@ -574,7 +574,7 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
     budget = BudgetSettings(tick_hz=SLOWEST_HZ, budget_ms=LONGEST_MS, round_rays=2, min_points=50)
     tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
     try:
-        assert bake.static_hits is not None and tick._static_hits is None
+        assert bake.static_hits is not None and tick.static_hits is None
         assert not tick.tracer.supports_static_hits
         for t in (0.1, 0.2):
             assert tick(tick.grid, t).exact == 0

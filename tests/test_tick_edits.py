@@ -100,7 +100,7 @@ def test_an_edit_is_retraced_and_the_mirror_equals_the_server():
         before, after, transforms = asyncio.run(body())
         assert np.array_equal(transforms[i], moved)
         # the service told the tick's budget what it spent on each tick besides the tick's stages
-        assert len(tick.budget._service) > 0 and tick.budget.service_s >= 0
+        assert tick.budget.service_observed > 0 and tick.budget.service_s >= 0
         np.testing.assert_array_equal(after, tick.grid.cells[:len(after)])  # the mirror is the server's grid
         # AO changed on the floor around the boulder (its old place lit up, its new place darkened)
         n = min(len(before), len(after))

@@ -509,7 +509,7 @@ def test_a_call_traced_in_process_equals_the_same_call_spread_over_workers():
                                                                        local_rays=10**9), slice_of=slices)
         spread = tracer.visibility(pos, nrm, np.arange(n), TraceSettings(rays=32, slices=4, ao_distance=2.0,
                                                                          local_rays=1, chunk_points=64), slice_of=slices)
-        assert tracer._pool is not None and here.min() < 0.8
+        assert tracer.worker_pids and here.min() < 0.8
         np.testing.assert_array_equal(here, spread)
     finally:
         tracer.close()
@@ -534,7 +534,7 @@ def test_the_account_counts_a_pooled_calls_worker_seconds_over_its_workers():
                                                                     chunk_points=64))
             assert a.cpu_total > total
             assert a.wall - wall == pytest.approx((a.cpu_total - total) / over, rel=1e-9)
-        assert tracer._pool is not None
+        assert tracer.worker_pids
     finally:
         tracer.close()
 

@@ -2,6 +2,7 @@
 and the check that it refused with one line (one_line_error)."""
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -31,3 +32,20 @@ def one_line_error(proc: subprocess.CompletedProcess, text: str, *, alone: bool 
     lines = [ln for ln in proc.stderr.splitlines() if (ln.strip() if alone else "error" in ln)]
     assert len(lines) == 1 and text in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def parser_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """The parser's actions (options and positionals). argparse has no public way to list them: this is
+    the one place the tests read its `_actions`."""
+    return list(parser._actions)
+
+
+def subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The parser's sub-commands by name ({} for a parser without any)."""
+    found = [a for a in parser_actions(parser) if isinstance(a, argparse._SubParsersAction)]
+    return dict(found[0].choices) if found else {}
+
+
+def option_strings(parser: argparse.ArgumentParser) -> set[str]:
+    """Every --option (and -o) the parser takes."""
+    return {s for a in parser_actions(parser) for s in a.option_strings}

@@ -479,6 +479,11 @@ class ClientSession:
     _cached: bytes = m.NO_SCENE
     _scene_parts: list = field(default_factory=list)
 
+    @property
+    def decoder_restarts(self) -> int:
+        """Frames the zstd stream decoder started anew (a switch between streams starts one); 0 without it."""
+        return self._stream.restarts if self._stream is not None else 0
+
     def __post_init__(self):
         self.scene_hash = self.config.scene_hash
 

@@ -237,6 +237,11 @@ class Service:
                 pass
 
     # ---------------------------------------------------------------- start-up and grid replacement
+    @property
+    def open_connections(self) -> int:
+        """Connections being served now, those still in their handshake included."""
+        return self._open
+
     def set_scene(self, scene_hash: bytes, scene_blob: bytes | Callable[[], bytes] | None = None) -> None:
         """The scene is loaded: its hash (a Hello is checked against it) and its blob (SceneRequest);
         callable from any thread."""

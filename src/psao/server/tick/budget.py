@@ -211,6 +211,11 @@ class TraceBudget:
         self._others.append(max(float(seconds), 0.0))
         self.other_stages_s = float(np.median(self._others))
 
+    @property
+    def service_observed(self) -> int:
+        """How many of the recent ticks' service seconds service_s is the median of."""
+        return len(self._service)
+
     def observe_service(self, seconds: float) -> None:
         """What the service running the tick spent on one tick besides its stages (sending its changes,
         reading the clients' messages, waking the tick up): the tick's period holds that too."""

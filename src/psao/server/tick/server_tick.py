@@ -196,6 +196,12 @@ class ServerTick:
         self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
 
     # ------------------------------------------------------------------ set-up
+    @property
+    def static_hits(self) -> StaticHits | None:
+        """The bake's static hits this tick answers whole traces from, or None where it traces them (the
+        bake kept none, its rays or seed differ from the tick's, or the tracer cannot take them)."""
+        return self._static_hits
+
     def _init_points(self, bake: BakeResult) -> None:
         self.ids_of = scene_point_ids(bake.pointsets)  # per instance: the id of each point of its PointSet
         # (consecutive per instance: the tick takes an instance's rows as a slice)

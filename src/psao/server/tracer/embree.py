@@ -629,6 +629,11 @@ class EmbreeTracer(Tracer):
     def throughput(self) -> dict:
         return self.account.rates(self.workers if self._pool is not None else 1)
 
+    @property
+    def worker_pids(self) -> tuple[int, ...]:
+        """The process ids of the worker pool's processes; () while no call has needed the pool."""
+        return tuple(self._pool._processes) if self._pool is not None else ()
+
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
