@@ -44,12 +44,12 @@ def trace_probes(tracer, scene, probes, rays: int, seed: int) -> np.ndarray:
 
 def answering_step(grid, probes) -> np.ndarray:
     """Index into STEPS of the lookup step that answered each probe."""
-    from psao.protocol.reconstruct import _reconstruct_chunk, reconstruct_ao
+    from psao.protocol.reconstruct import reconstruct_chunk, reconstruct_ao
 
     args = (grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos.astype(np.float32),
             probes.local_normal.astype(np.float32), T_N, T_D)
     step = np.full(len(probes.instance), len(STEPS) - 2)
-    for k, (_, w) in reversed(list(enumerate(_reconstruct_chunk(*args)))):
+    for k, (_, w) in reversed(list(enumerate(reconstruct_chunk(*args)))):
         step[w > 0] = k
     _, wsum = reconstruct_ao(grid.instances, grid.buckets, grid.cells, probes.instance, probes.local_pos, probes.local_normal)
     step[wsum == 0] = len(STEPS) - 1

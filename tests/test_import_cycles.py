@@ -147,3 +147,32 @@ def test_finds_a_cycle(tmp_path):
     assert cycle is not None and set(cycle) == {"psao.sub.a", "psao.sub.b", "psao.sub.c"}
     (pkg / "c.py").write_text("x = 1\n")
     assert find_cycle(import_graph(tmp_path)) is None
+
+
+def private_imports(src: Path = SRC) -> list[str]:
+    """'module:line name' for every `from psao.X import _name` in src/psao that takes a private name of
+    another module (a name with one leading underscore; dunders are not private)."""
+    found = []
+    modules = module_files(src)
+    for module, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                target = _resolve(module, path.name == "__init__.py", node)
+                if target is None or target == module or target.split(".")[0] != ROOT:
+                    continue
+                found += [f"{module}:{node.lineno} {a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    return found
+
+
+def test_no_private_imports_across_modules():
+    assert private_imports() == []
+
+
+def test_finds_a_private_import(tmp_path):
+    pkg = tmp_path / ROOT
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def _hidden():\n    pass\n")
+    (pkg / "b.py").write_text("def f():\n    from psao.a import _hidden\n    return _hidden\n")
+    assert private_imports(tmp_path) == ["psao.b:2 _hidden"]

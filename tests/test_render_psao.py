@@ -129,7 +129,7 @@ def test_shader_equals_oracle_in_every_lookup_step(ctx):
     nothing. The shader agrees with the oracle on the pixels of each step, weight sums included."""
     from psao.protocol import gridformat as gf
     from psao.protocol import pointword as pw
-    from psao.protocol.reconstruct import _reconstruct_chunk
+    from psao.protocol.reconstruct import reconstruct_chunk
     from psao.client.render.views import look_at, perspective
     from psao.scene.model import Instance, Mesh, Scene
     from psao.server.grid import Grid
@@ -161,7 +161,7 @@ def test_shader_equals_oracle_in_every_lookup_step(ctx):
         frame = r.render(look_at([0.2, 0.5, -1.4], [0.2, 0.05, -2.0], up=(0, 1, 0)), perspective(70, 4 / 3, 0.02, 20))
     m, ao, wsum = oracle(frame, *arrays)
     gb = frame.gbuffer
-    (_, w_r), (_, w_near), (_, w_wide) = _reconstruct_chunk(*arrays, gb.instance[m].astype(np.int64), gb.local[m],
+    (_, w_r), (_, w_near), (_, w_wide) = reconstruct_chunk(*arrays, gb.instance[m].astype(np.int64), gb.local[m],
                                                             gb.local_normal[m], gf.T_N, gf.T_D, gb.back_side[m])
     wall = gb.local_normal[m][:, 2] > 0.5
     # Pixels where the steps' point sets differ: the 2 r steps and eq. 3 alone answer differently there.

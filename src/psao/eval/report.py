@@ -20,7 +20,8 @@ CSV_FIELDS = ["scene", "method", "density", "tick_hz", "psnr", "ssim", "flip", "
               "weight_bytes", "train_s", "trained_on"]
 
 
-def _fmt(v, digits: int) -> str:
+def format_cell(v, digits: int) -> str:
+    """A table cell: v with `digits` decimals, or "-" where there is no finite value."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     return f"{v:.{digits}f}"
@@ -62,24 +63,25 @@ def markdown_table(rows: list[dict]) -> str:
         head += ["animated tick ms"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in merged:
-        cells = [r["scene"], r["method"], _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["flip"], 3),
+        cells = [r["scene"], r["method"], format_cell(r["psnr"], 2), format_cell(r["ssim"], 3), format_cell(r["flip"], 3),
                  f"{round(r['bias'], 3) + 0.0:+.3f}" if r.get("bias") is not None else "-"]
         streams = r["density"] or r.get("video")  # PSAO and the video competitor send; SSAO does not
-        cells += [_fmt(r["mbit"].get(hz), 3) if streams else "-" for hz in rates]
+        cells += [format_cell(r["mbit"].get(hz), 3) if streams else "-" for hz in rates]
         if rates:
-            cells.append(_fmt(ups.get((r["scene"], r["method"])), 1) if r["density"] else "-")
-        cells += [_fmt(r.get("snapshot_mb"), 2) if r["density"] else "-",
-                  _fmt(r["weight_bytes"] / 1e3, 1) if r.get("weight_bytes") else "-", _fmt(r.get("client_ms_frame"), 1),
-                  _fmt(r.get("server_ms_tick"), 2) if streams else "-",
-                  _fmt(r.get("bake_trace_s"), 1) if r["density"] else "-",
+            cells.append(format_cell(ups.get((r["scene"], r["method"])), 1) if r["density"] else "-")
+        cells += [format_cell(r.get("snapshot_mb"), 2) if r["density"] else "-",
+                  format_cell(r["weight_bytes"] / 1e3, 1) if r.get("weight_bytes") else "-", format_cell(r.get("client_ms_frame"), 1),
+                  format_cell(r.get("server_ms_tick"), 2) if streams else "-",
+                  format_cell(r.get("bake_trace_s"), 1) if r["density"] else "-",
                   f"{r['points']:,}" if r.get("points") else "-"]
         if animated:
-            cells.append(_fmt(r.get("anim_tick_ms"), 1) if r.get("anim_tick_ms") is not None else "-")
+            cells.append(format_cell(r.get("anim_tick_ms"), 1) if r.get("anim_tick_ms") is not None else "-")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def _scene_styles(rows):
+def scene_styles(rows):
+    """A chart colour per scene of the rows (the same scene, the same colour in every chart)."""
     scenes = sorted({r["scene"] for r in rows})
     colours = dict(zip(scenes, ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown",
                                 "tab:pink", "tab:gray"] * 4))
@@ -96,7 +98,7 @@ def runtime_chart(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     merged = table_rows(rows)
-    scenes, colours = _scene_styles(merged)
+    scenes, colours = scene_styles(merged)
     fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
     for r in merged:  # an animated evaluation ran the real tick: plot that one
         if r.get("anim_tick_ms") is not None:
@@ -147,7 +149,7 @@ def bandwidth_chart(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     merged = table_rows(rows)
-    scenes, colours = _scene_styles(merged)
+    scenes, colours = scene_styles(merged)
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.2), constrained_layout=True)
     for ax, (ykey, ylabel) in zip(axes[:2], [("psnr", "PSNR dB (higher is better)"), ("flip", "FLIP (lower is better)")]):
         for s in scenes:

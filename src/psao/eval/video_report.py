@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 
 from psao.eval.errors import EvalError
-from psao.eval.report import _fmt, _scene_styles, side_by_side
+from psao.eval.report import format_cell, scene_styles, side_by_side
 
 
 def _lat0(rows):
@@ -35,12 +35,12 @@ def table1_markdown(rows: list[dict]) -> str:
             continue
         v = r["kind"] == "video"
         lines.append("| " + " | ".join([
-            r["scene"], r["method"], _fmt(r.get("mbit_s"), 3), _fmt(r["psnr"], 2), _fmt(r["ssim"], 3),
-            _fmt(r["flip"], 3), _fmt(r.get("codec_psnr"), 1), f"{r['rays_per_frame']:,.0f}" if v else "-",
-            _fmt(r.get("trace_ms_frame"), 1) if v else "-", _fmt(r.get("filter_ms_frame"), 1) if v else "-",
-            _fmt(r.get("encode_ms_frame"), 2) if v else "-",
-            "-" if v else _fmt(r.get("server_ms_tick"), 1), "-" if v else _fmt(r.get("send_ms_tick"), 2),
-            "-" if v else _fmt(r.get("snapshot_mb"), 2)]) + " |")
+            r["scene"], r["method"], format_cell(r.get("mbit_s"), 3), format_cell(r["psnr"], 2), format_cell(r["ssim"], 3),
+            format_cell(r["flip"], 3), format_cell(r.get("codec_psnr"), 1), f"{r['rays_per_frame']:,.0f}" if v else "-",
+            format_cell(r.get("trace_ms_frame"), 1) if v else "-", format_cell(r.get("filter_ms_frame"), 1) if v else "-",
+            format_cell(r.get("encode_ms_frame"), 2) if v else "-",
+            "-" if v else format_cell(r.get("server_ms_tick"), 1), "-" if v else format_cell(r.get("send_ms_tick"), 2),
+            "-" if v else format_cell(r.get("snapshot_mb"), 2)]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -67,9 +67,9 @@ def clients_markdown(cost_rows: list[dict]) -> str:
     for scene, method in _scene_methods(cost_rows):
         got = {r["clients"]: r for r in cost_rows if r["scene"] == scene and r["method"] == method}
         first = next(iter(got.values()))
-        lines.append("| " + " | ".join([scene, method, _fmt(first["mbit_s"], 3)]
-                                       + [_fmt(got[n]["ms_per_client"], 2) for n in counts]
-                                       + [_fmt(got[n]["ms_total"], 1) for n in counts]) + " |")
+        lines.append("| " + " | ".join([scene, method, format_cell(first["mbit_s"], 3)]
+                                       + [format_cell(got[n]["ms_per_client"], 2) for n in counts]
+                                       + [format_cell(got[n]["ms_total"], 1) for n in counts]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -85,7 +85,7 @@ def bandwidth_chart(rows: list[dict], path: Path) -> None:
     the video over its bitrates, solid at the smallest latency, dashed at the largest (video:
     reprojected). The uncompressed video's quality is a dotted line."""
     plt = _plt()
-    scenes, _ = _scene_styles(rows)
+    scenes, _ = scene_styles(rows)
     L0, L1 = _lat0(rows), max(r["latency_ms"] for r in rows)
     fig, axes = plt.subplots(2, len(scenes), figsize=(4.6 * len(scenes), 7), squeeze=False, constrained_layout=True)
     for col, s in enumerate(scenes):
@@ -140,7 +140,7 @@ def latency_chart(rows: list[dict], path: Path) -> None:
     """Per scene: PSNR against latency for each PSAO density and each video bitrate (plain solid,
     reprojected dashed)."""
     plt = _plt()
-    scenes, _ = _scene_styles(rows)
+    scenes, _ = scene_styles(rows)
     fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 4), squeeze=False, constrained_layout=True)
     cmap = plt.get_cmap("viridis")
     for col, s in enumerate(scenes):
@@ -177,7 +177,7 @@ def clients_chart(cost_rows: list[dict], path: Path) -> None:
     """Server milliseconds per client (per video frame / per PSAO tick) and modelled total against the
     number of clients, log-log, one line per scene and method."""
     plt = _plt()
-    scenes, colours = _scene_styles(cost_rows)
+    scenes, colours = scene_styles(cost_rows)
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     idle = []
     for s in scenes:

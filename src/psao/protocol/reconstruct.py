@@ -43,18 +43,18 @@ def reconstruct_ao(instances, buckets, cells, inst_ids, local_pos, local_normal,
         args = (instances, buckets, cells, inst_ids[sl], local_pos[sl], local_normal[sl], t_n, t_d,
                 None if back is None else back[sl])
         answer_ao, answer_w = np.ones(len(inst_ids[sl]), np.float32), np.zeros(len(inst_ids[sl]), np.float32)
-        for step_ao, step_w in reversed(_reconstruct_chunk(*args)):  # the first step with weight answers
+        for step_ao, step_w in reversed(reconstruct_chunk(*args)):  # the first step with weight answers
             found = step_w > 0
             answer_ao, answer_w = np.where(found, step_ao, answer_ao), np.where(found, step_w, answer_w)
         ao[sl], wsum[sl] = answer_ao, answer_w
         hole = np.flatnonzero(wsum[sl] == 0)
         if len(hole):  # the 3x3x3 ring where the block found no weight in any step
             ring = [a if a is None or np.ndim(a) == 0 or k < 3 else a[hole] for k, a in enumerate(args)]
-            ao[s + hole], wsum[s + hole] = _reconstruct_chunk(*ring, ring=True)[0]
+            ao[s + hole], wsum[s + hole] = reconstruct_chunk(*ring, ring=True)[0]
     return ao, wsum
 
 
-def _reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
+def reconstruct_chunk(instances, buckets, cells, inst, x, n_x, t_n, t_d, back=None, ring=False):
     """[(AO, weight sum)] of the 2x2x2 block's three steps (radius r with FIRST_T_N and FIRST_T_D,
     FALLBACK_SCALE * r with SECOND_T_N, FALLBACK_SCALE * r with eq. 3 alone), or (ring) of the 3x3x3 block
     around the fragment's cell at RING_SCALE * r with the normal threshold RING_T_N."""

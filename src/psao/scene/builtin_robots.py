@@ -101,7 +101,7 @@ def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:
     return u * u * (3 - 2 * u)
 
 
-def _two_joint(v: np.ndarray, upper: int, lower: int, y_from: float, y_to: float) -> tuple[np.ndarray, np.ndarray]:
+def two_joint(v: np.ndarray, upper: int, lower: int, y_from: float, y_to: float) -> tuple[np.ndarray, np.ndarray]:
     """Joints/weights blending from `upper` (above y_to) to `lower` (below y_from) across [y_from, y_to]."""
     w_upper = _smoothstep(y_from, y_to, v[:, 1])
     j = np.zeros((len(v), 4), dtype=np.int64)
@@ -117,7 +117,7 @@ def robot_parts() -> list[tuple[shapes.Geometry, np.ndarray, np.ndarray]]:
 
     def add(geom, upper, lower=None, y_from=0.0, y_to=1.0):
         v, f = geom
-        jw = _two_joint(v, upper, upper if lower is None else lower, y_from, y_to)
+        jw = two_joint(v, upper, upper if lower is None else lower, y_from, y_to)
         parts.append(((v, f), *jw))
 
     add(shapes.transformed(shapes.capsule(0.18, 0.3, count=12), (0, 1.15, 0)), JOINT["chest"], JOINT["pelvis"], 0.95, 1.2)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from psao.scene import builtin_shapes as shapes
-from psao.scene.builtin_robots import JOINT, SKELETON, WalkCycle, _two_joint
+from psao.scene.builtin_robots import JOINT, SKELETON, WalkCycle, two_joint
 from psao.scene.meshfile import clean_geometry
 from psao.scene.model import Mesh, Scene
 from psao.scene.scene_builder import SceneBuilder
@@ -28,7 +28,7 @@ def tangle_parts() -> list[tuple[shapes.Geometry, np.ndarray, np.ndarray]]:
     parts = []
 
     def add(geom, upper, lower=None, y_from=0.0, y_to=1.0):
-        jw = _two_joint(geom[0], upper, upper if lower is None else lower, y_from, y_to)
+        jw = two_joint(geom[0], upper, upper if lower is None else lower, y_from, y_to)
         parts.append((geom, *jw))
 
     chest, pelvis, head = JOINT["chest"], JOINT["pelvis"], JOINT["head"]

@@ -171,8 +171,8 @@ class GeometryPass:
         ctx.viewport = (0, 0, *gbuffer.size)
         gbuffer.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable_only(ctx.DEPTH_TEST)  # no culling: single-sided meshes may be seen from behind
-        self.program["u_view"].write(_gl_mat4(view))
-        self.program["u_proj"].write(_gl_mat4(proj))
+        self.program["u_view"].write(gl_mat4(view))
+        self.program["u_proj"].write(gl_mat4(proj))
         for i, model in enumerate(transforms):
             mesh_index = self._mesh_of_instance[i]
             vao, count = self._vaos[mesh_index]
@@ -180,7 +180,7 @@ class GeometryPass:
                 continue
             mesh = self._meshes[mesh_index]
             linear = np.asarray(model, dtype=np.float64)[:3, :3]
-            self.program["u_model"].write(_gl_mat4(model))
+            self.program["u_model"].write(gl_mat4(model))
             self.program["u_normal_matrix"].write(np.linalg.inv(linear).astype(np.float32).tobytes())
             self.program["u_albedo"].value = tuple(float(c) for c in mesh.color)
             self.program["u_instance"].value = i
@@ -197,6 +197,6 @@ class GeometryPass:
         self._vaos, self._vbos, self._rest_vbos = [], [], []
 
 
-def _gl_mat4(m: np.ndarray) -> bytes:
+def gl_mat4(m: np.ndarray) -> bytes:
     """Row-major numpy matrix (math convention, M @ v) -> GLSL's column-major bytes."""
     return np.ascontiguousarray(np.asarray(m, dtype=np.float32).T).tobytes()

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from psao.client.errors import RenderError
-from psao.client.render.gbuffer import GBuffer, _gl_mat4
+from psao.client.render.gbuffer import GBuffer, gl_mat4
 from psao.client.render.gtao_pass import BilateralBlur, unproject_vector
 from psao.client.render.nnao_net import NNAO_CELLS, NNAO_FEATURES, NNAO_GRID, NNAO_HIDDEN, fold, nnao_noise
 from psao.client.render.screenpass import GLOwner, ScreenPass
@@ -56,7 +56,7 @@ class NnaoPass(GLOwner):
     def run(self, view, proj, timer) -> None:
         gb = self._gbuffer
         self.net.program["u_view_rot"].write(np.ascontiguousarray(np.asarray(view, np.float32)[:3, :3].T).tobytes())
-        self.net.program["u_proj"].write(_gl_mat4(proj))
+        self.net.program["u_proj"].write(gl_mat4(proj))
         self.net.set(u_unproject=unproject_vector(proj))
         with timer.measure("nnao"):
             self.net.draw([gb["depth"], gb["normal"], self._noise, self._filters])

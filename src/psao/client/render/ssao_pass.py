@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from psao.client.render.gbuffer import GBuffer, _gl_mat4
+from psao.client.render.gbuffer import GBuffer, gl_mat4
 from psao.protocol import ssao_kernel
 from psao.protocol.ssao_kernel import hemisphere_kernel, rotation_noise
 from psao.client.render.shaderlib import compile_program
@@ -63,8 +63,8 @@ class SsaoPass:
         gb["normal"].use(1)
         gb["depth"].use(2)
         self._noise.use(3)
-        self.program["u_view"].write(_gl_mat4(view))
-        self.program["u_proj"].write(_gl_mat4(proj))
+        self.program["u_view"].write(gl_mat4(view))
+        self.program["u_proj"].write(gl_mat4(proj))
         self.program["u_unproject"].value = (1.0 / proj[0, 0], 1.0 / proj[1, 1], proj[0, 2], proj[1, 2])
         self._raw_fbo.use()
         ctx.viewport = (0, 0, *gb.size)
