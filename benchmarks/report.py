@@ -8,7 +8,10 @@ Each table of docs/results.md that this script owns sits between two markers,
 
 and its data is one file, docs/data/ID.json: {"id", "command", "commit", "rows"}, where "rows" is what the
 benchmark wrote (`psao bench`'s results.json, bench_scenes' bench_scenes.json), as a list of rows
-(bench_progressive's scenes, bench_links' runs). The data files are kept in
+(bench_progressive's scenes, bench_links' runs). The sections of the other benchmarks come from one
+`python -m benchmarks.run_all --quick --out OUT` run: their rows are the benchmark's entry of
+OUT/run_all.json (its command, exit status and verdicts), then what the benchmark wrote under OUT/NAME
+(bench_clients' table, bench_video's results, a benchmark's summary of figures). The data files are kept in
 the repository so that the page can be checked against them (`check`, run by the tests) and regenerated
 without re-running hours of benchmarks.
 
@@ -18,7 +21,8 @@ without re-running hours of benchmarks.
     python -m benchmarks.report check                # exit 1 if docs/results.md differs from its data
 
 `collect` records the commit given by --commit, else the run's from OUT_DIR/run.json (written by
-`psao bench`), else the repository's HEAD, marked "+local changes" when the working tree differs from it.
+`psao bench`) or OUT_DIR/run_all.json, else the repository's HEAD, marked "+local changes" when the working
+tree differs from it.
 """
 from __future__ import annotations
 
@@ -140,6 +144,78 @@ def links_table(rows: list[dict]) -> str:
     return table(head, lines)
 
 
+def verdicts_table(entry: dict) -> str:
+    """One benchmark's entry of run_all.json: the command run_all ran, then a line per verdict it printed."""
+    lines = [[v["what"], f"{v['value']} {v['op']} {v['target']}" if "op" in v else v["detail"] or "-", v["outcome"]]
+             for v in entry["verdicts"]]
+    status = f"exit status {entry['rc']}" + ("" if lines else ", no verdict at these settings")
+    return (f"`{entry['command']}` ({status}):\n\n" +
+            (table(["target", "measured", "verdict"], lines) if lines else ""))
+
+
+def flat_figures(data: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """A benchmark's JSON summary as (dotted name, scalar) pairs, nested objects flattened; lists are
+    left out (they are series for charts, not figures)."""
+    pairs = []
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            pairs += flat_figures(value, f"{name}.")
+        elif isinstance(value, (int, float, str, bool)) or value is None:
+            pairs.append((name, value))
+    return pairs
+
+
+def figures_table(data: dict) -> str:
+    """A benchmark's JSON summary as a table of its scalar figures."""
+    def cell(value) -> str:
+        if isinstance(value, bool) or value is None or isinstance(value, str):
+            return str(value)
+        return f"{value:,}" if isinstance(value, int) else format(value, ".4g")
+
+    return table(["figure", "value"], [[f"`{name}`", cell(v)] for name, v in flat_figures(data)])
+
+
+def clients_detail(data) -> str:
+    """bench_clients' table.json: one line per client count."""
+    from benchmarks.bench_clients import table as clients_table
+
+    return clients_table(data) + "\n"
+
+
+def video_detail(data) -> str:
+    """bench_video's video_results.json: quality and cost per method, PSNR / FLIP per latency, cost per client."""
+    from psao.eval.video_report import clients_markdown, latency_markdown, table1_markdown
+
+    return (table1_markdown(data["rows"]) + "\nPSNR / FLIP against latency:\n\n" + latency_markdown(data["rows"]) +
+            "\nServer ms per client (totals modelled):\n\n" + clients_markdown(data["clients"]))
+
+
+def rows_list(data) -> str:
+    """A list of row objects (bench_bake's, bench_tick's) as a table of their scalar figures."""
+    rows = [dict(flat_figures(r)) for r in data]
+    head = list(dict.fromkeys(k for r in rows for k in r))
+
+    def cell(value) -> str:
+        if value is None:
+            return "-"
+        if isinstance(value, float):
+            return format(value, ".4g")
+        return f"{value:,}" if isinstance(value, int) and not isinstance(value, bool) else str(value)
+
+    return table([f"`{h}`" for h in head], [[cell(r.get(h)) for h in head] for r in rows])
+
+
+def run_all_render(rows: list[dict]) -> str:
+    """A run_all section: the benchmark's verdicts, then each detail file it wrote, rendered."""
+    entry, details = rows[0], rows[1:]
+    return verdicts_table(entry) + "".join("\n" + DETAIL_RENDER[d["render"]](d["data"]) for d in details)
+
+
+DETAIL_RENDER: dict[str, Callable[[object], str]] = {
+    "figures": figures_table, "clients": clients_detail, "video": video_detail, "rows": rows_list}
+
+
 @dataclass(frozen=True)
 class Section:
     command: str  # the command that writes the data, with --out OUT_DIR left to the runner
@@ -147,6 +223,23 @@ class Section:
     render: Callable[[list[dict]], str]
     more_files: tuple[str, ...] = ()  # further files under --out whose rows follow (a benchmark of several runs)
     rows_of: Callable[[object], list[dict]] = list  # a data file's JSON -> its rows (default: the file is the list)
+    more_rows_of: Callable[[object], list[dict]] | None = None  # the same for more_files (default: rows_of)
+
+
+RUN_ALL = "python -m benchmarks.run_all --quick"
+
+
+def run_all_section(name: str, detail: str | None = None, render: str = "figures") -> Section:
+    """The section of benchmark `name` from a run_all --out run: its entry, then OUT/NAME/DETAIL if given."""
+    def entry(record: dict) -> list[dict]:
+        found = [b for b in record["benchmarks"] if b["name"] == name]
+        if not found:
+            raise SystemExit(f"report: error: run_all.json has no entry for {name}: run `{RUN_ALL} --out OUT` "
+                             f"with {name} among the benchmarks")
+        return found
+
+    return Section(RUN_ALL, "run_all.json", run_all_render, (f"{name}/{detail}",) if detail else (),
+                   rows_of=entry, more_rows_of=lambda data: [{"render": render, "data": data}])
 
 
 SECTIONS: dict[str, Section] = {
@@ -164,6 +257,23 @@ SECTIONS: dict[str, Section] = {
                            rows_of=lambda scenes: list(scenes.values())),
     "links": Section("python -m benchmarks.bench_links --quick", "links.json", links_table,
                      rows_of=lambda record: record["runs"]),
+    "run_points": run_all_section("points", "bench_points.json"),
+    "run_bake": run_all_section("bake", "bench_bake.json", "rows"),
+    "run_bandwidth": run_all_section("bandwidth", "bandwidth.json"),
+    "run_render": run_all_section("render"),
+    "run_tick": run_all_section("tick"),
+    "run_static_hits": run_all_section("static_hits"),
+    "run_culling": run_all_section("culling"),
+    "run_clients": run_all_section("clients", "table.json", "clients"),
+    "run_web": run_all_section("web"),
+    "run_three": run_all_section("three"),
+    "run_denoise": run_all_section("denoise"),
+    "run_video": run_all_section("video", "video_results.json", "video"),
+    "run_realtime": run_all_section("realtime", "bench_realtime.json"),
+    "run_dask": run_all_section("dask"),
+    "run_densify": run_all_section("densify"),
+    "run_soak": run_all_section("soak", "soak.json"),
+    "run_fuzz": run_all_section("fuzz"),
 }
 
 _BLOCK = re.compile(r"(<!-- report:(\w+) -->\n)(.*?)(<!-- /report:\2 -->)", re.S)
@@ -181,18 +291,20 @@ def known_commit(commit: str) -> str:
 
 
 def run_commit(out_dir: Path) -> str:
-    """The commit the run in out_dir was made at: its run.json's, else HEAD (+local changes if dirty)."""
-    run = out_dir / "run.json"
-    if run.is_file():
-        return json.loads(run.read_text())["commit"]
+    """The commit the run in out_dir was made at: its run.json's or run_all.json's, else HEAD (+local changes
+    if dirty)."""
+    for name in ("run.json", "run_all.json"):
+        if (out_dir / name).is_file():
+            return json.loads((out_dir / name).read_text())["commit"]
     return source_commit()
 
 
 def collect(section_id: str, out_dir: Path, data_dir: Path = DATA, commit: str | None = None) -> Path:
     """Store the rows of a finished run as the section's data file, with `commit` (default: run_commit)."""
     section = SECTIONS[section_id]
-    rows = [r for name in (section.data_file, *section.more_files)
-            for r in section.rows_of(json.loads((out_dir / name).read_text()))]
+    more_rows_of = section.more_rows_of or section.rows_of
+    rows = [*section.rows_of(json.loads((out_dir / section.data_file).read_text())),
+            *(r for name in section.more_files for r in more_rows_of(json.loads((out_dir / name).read_text())))]
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / f"{section_id}.json"
     record = {"id": section_id, "command": f"{section.command} --out {out_dir.name}",

@@ -3,6 +3,7 @@ rendering follows the data (a changed figure changes the page; a missing data fi
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -103,3 +104,66 @@ def test_the_progressive_and_links_tables_follow_their_rows():
               "client": {"updates_per_s": 12.3, "behind_p50_s": 0.25, "behind_p95_s": 0.5, "stream_mbit_s": 1.5,
                          "snapshot_mb": 4.25}}]
     assert "| 150 | 1 | 5 | 12.3 | 29.9 | 0.250 | 0.500 | 1.50 | 4.25 | 3 / 0 |" in report.links_table(links)
+
+
+# What a measured figure looks like in prose: a decimal, a thousands separator, a percentage, a ratio
+# ("17x"), or a number with a unit.
+_FIGURE = re.compile(r"\d\.\d|\d,\d{3}|\d\s*%|\b\d+(?:\.\d+)?x(?!\d)|\b\d+\s*(?:ms|s|dB|MB|kB|Mbit/s|B)\b")
+
+
+def hand_written_figures(text: str) -> list[str]:
+    """The figures of a results page outside its generated blocks, code (commands, settings and targets
+    are written as code), image and link targets, and blockquotes (quotes of other sources)."""
+    text = report._BLOCK.sub("", text)
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    text = re.sub(r"`[^`]*`", "", text)
+    text = re.sub(r"!?\[[^\]]*\]\([^)]*\)", "", text)
+    return [f"{m.group()!r} in {line.strip()[:80]!r}" for line in text.splitlines() if not line.startswith(">")
+            for m in _FIGURE.finditer(line)]
+
+
+def test_every_figure_of_the_page_is_generated():
+    """No measured figure is written by hand: each is in a block that benchmarks.report renders."""
+    assert hand_written_figures(report.RESULTS.read_text()) == []
+
+
+def test_a_hand_written_figure_is_found():
+    """Each kind of figure is found in prose; none in code, a blockquote or a generated block."""
+    for figure in ("10,046 B a tick", "2.45x smaller", "0.2% holes", "in 58 ms", "at 36.2 dB", "17x faster"):
+        assert hand_written_figures(f"**Bytes per tick**: {figure}.\n"), figure
+    assert hand_written_figures("Intro at `--density 256`, 640x360 frames.\n\n> The paper: 34.07 dB.\n\n"
+                                "<!-- report:x -->\n9.5 ms\n<!-- /report:x -->\n![a 2.5x chart](images/a_1.5.png)\n") == []
+
+
+def test_a_run_all_section_is_the_benchmarks_entry_then_its_own_file(tmp_path):
+    """collect of a run_all section keeps the benchmark's run_all.json entry and the file it wrote, and the
+    commit of the run; a changed verdict or figure shows in the page; a run without the benchmark is one line."""
+    out = tmp_path / "run_all"
+    (out / "soak").mkdir(parents=True)
+    entry = {"name": "soak", "command": "python -m benchmarks.bench_soak --minutes 1.5 --out out/run_all/soak", "rc": 0,
+             "verdicts": [{"outcome": "PASS", "bench": "bench_soak", "what": "mirror digests different",
+                           "value": "0", "op": "<=", "target": "0"}]}
+    (out / "run_all.json").write_text(json.dumps({"quick": True, "commit": "abc1234", "benchmarks": [entry]}))
+    (out / "soak" / "soak.json").write_text(json.dumps({"rss_end_mb": 356.25, "fresh": {"ok": True}, "samples": [1, 2]}))
+    record = json.loads(report.collect("run_soak", out, tmp_path / "data").read_text())
+    assert record["commit"] == "abc1234" and record["command"] == f"{report.RUN_ALL} --out run_all"
+    page = report.rendered("<!-- report:run_soak -->\n<!-- /report:run_soak -->\n", tmp_path / "data")
+    assert f"`{entry['command']}` (exit status 0)" in page and "| mirror digests different | 0 <= 0 | PASS |" in page
+    assert "| `rss_end_mb` | 356.2 |" in page and "| `fresh.ok` | True |" in page and "samples" not in page
+    record["rows"][0]["verdicts"][0].update(outcome="FAIL", value="3")
+    (tmp_path / "data" / "run_soak.json").write_text(json.dumps(record))
+    assert "| mirror digests different | 3 <= 0 | FAIL |" in report.rendered(page, tmp_path / "data")
+    (out / "run_all.json").write_text(json.dumps({"quick": True, "commit": "abc1234", "benchmarks": []}))
+    with pytest.raises(SystemExit, match="no entry for soak"):
+        report.collect("run_soak", out, tmp_path / "data")
+
+
+def test_every_benchmark_of_run_all_has_a_section_on_the_page():
+    """Each benchmark run_all runs is on the results page: in a run_all section or a section of its own run."""
+    from benchmarks import run_all
+
+    own = {"quality": "table1", "scenes": "scenes", "baselines": "baselines", "progressive": "progressive",
+           "links": "links"}
+    on_page = {sid for _, sid, _, _ in report._BLOCK.findall(report.RESULTS.read_text())}
+    for name in run_all.BENCHMARKS:
+        assert own.get(name, f"run_{name}") in on_page, name
