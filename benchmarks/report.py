@@ -16,6 +16,7 @@ the repository so that the page can be checked against them (`check`, run by the
 without re-running hours of benchmarks.
 
     python -m benchmarks.report collect ID OUT_DIR   # after running SECTIONS[ID].command with --out OUT_DIR
+                                                     # (ID run_all: every section of a run_all --out run)
         [--commit C]                                 # the commit the run was made at, when not HEAD
     python -m benchmarks.report write                # rewrite docs/results.md's generated blocks
     python -m benchmarks.report check                # exit 1 if docs/results.md differs from its data
@@ -276,6 +277,8 @@ SECTIONS: dict[str, Section] = {
     "run_fuzz": run_all_section("fuzz"),
 }
 
+RUN_ALL_SECTIONS = [sid for sid, section in SECTIONS.items() if section.command == RUN_ALL]
+
 _BLOCK = re.compile(r"(<!-- report:(\w+) -->\n)(.*?)(<!-- /report:\2 -->)", re.S)
 
 
@@ -339,19 +342,23 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.report", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="action", required=True)
     c = sub.add_parser("collect", help="store a finished run's rows as a section's data")
-    c.add_argument("section", choices=sorted(SECTIONS))
+    c.add_argument("section", choices=[*sorted(SECTIONS), "run_all"],
+                   help="a section, or run_all: every section of a run_all --out run")
     c.add_argument("out_dir", type=Path)
     c.add_argument("--commit", help="the commit the run was made at (default: OUT_DIR/run.json's, else HEAD)")
     sub.add_parser("write", help="rewrite docs/results.md's generated blocks from docs/data")
     sub.add_parser("check", help="exit 1 if docs/results.md's generated blocks differ from docs/data")
     args = ap.parse_args(argv)
     if args.action == "collect":
-        section = SECTIONS[args.section]
-        missing = [n for n in (section.data_file, *section.more_files) if not (args.out_dir / n).is_file()]
-        if missing:
-            ap.error(f"{args.out_dir / missing[0]} does not exist: run the section's command first")
+        ids = RUN_ALL_SECTIONS if args.section == "run_all" else [args.section]
+        for sid in ids:
+            section = SECTIONS[sid]
+            missing = [n for n in (section.data_file, *section.more_files) if not (args.out_dir / n).is_file()]
+            if missing:
+                ap.error(f"{args.out_dir / missing[0]} does not exist: run the section's command first")
         commit = known_commit(args.commit) if args.commit else None
-        print(f"wrote {collect(args.section, args.out_dir, commit=commit)}")
+        for sid in ids:
+            print(f"wrote {collect(sid, args.out_dir, commit=commit)}")
         return 0
     text = RESULTS.read_text()
     new = rendered(text)
