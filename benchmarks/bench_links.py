@@ -1,4 +1,4 @@
-"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick | --mixed | --stall | --cap] [--seconds 10]`.
+"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick | --mixed | --stall | --cap | --deaf | --storm] [--seconds 10]`.
 
 A real `psao serve builtin:courtyard --density 256 --animate --tick-hz 30 --stats-json` listens on the
 host's end of one impaired link (psao.eval.links: a client network namespace joined to the host through a
@@ -22,8 +22,9 @@ the loopback client beside it kept at least LOOPBACK_KEEP of its updates/s alone
 nothing); on the unimpaired link (rtt 0, no loss, unlimited) the client gets at least FAST_KEEP of the
 loopback client's updates/s; and the issue's target for the link ISSUE_LINK at ISSUE_DENSITY: the client
 at most ISSUE_LAG_S behind the server (95th percentile; with 1% loss a retransmission costs a round trip
-and more, so this tail varies from run to run). The server has no per-client rate budget: a link slower
-than the stream only shows as a client the server sends fewer, larger Updates to.
+and more, so this tail varies from run to run). The server runs with its default per-client rate (an
+estimate of each client's throughput, psao.server.net.rate): a link slower than the stream gets Updates
+paced to what it carries, the cells nearest the camera first.
 
 Scenarios instead of the sweep (each writes its own JSON beside links.json; its clients may reconnect, and
 count it, and log a digest after every Update, compared with the server's --digest-log by
@@ -43,6 +44,10 @@ psao.eval.digests.compare_digests; the server runs with SCENARIO_SERVE):
   STALL_KEEP of its updates/s during the stall, the stalled client has Updates again, reconnects at most
   STALL_RECONNECTS times, both mirrors' digests equal the server's, and the server's RSS grows by at most
   STALL_RSS_MB during the stall (see stall()).
+- `--deaf` (deaf.json), `--storm` (storm.json): a loopback client beside a bad one (bad_client()): a client
+  that stops reading and answering pings (SIGSTOP) or a storm of STORM_PER_S connects and drops a second,
+  for BAD_S; the loopback client's updates/s before, beside and after, the server's RSS. Verdicts: it keeps
+  STALL_KEEP of its updates/s, its digests equal the server's, the RSS grows by at most STALL_RSS_MB.
 """
 from __future__ import annotations
 
@@ -52,6 +57,8 @@ import itertools
 import json
 import re
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -97,6 +104,9 @@ STALL_KEEP = 0.9  # the loopback client's updates/s during the stall over its up
 STALL_RECONNECTS = 1  # the most reconnects of the stalled client (no reconnect loop)
 STALL_RSS_MB = 50.0  # the most the server's RSS may grow during the stall, MB (see stall())
 RESUME_TIMEOUT_S = 120.0  # seconds after the stall for the stalled client's next Update (a hung run's bound)
+BAD_S = 10.0  # --deaf / --storm: seconds of the bad client's phase
+STORM_PER_S = 20.0  # --storm: connections opened (and dropped) per second
+STORM_THREADS = 4  # --storm: threads that open them
 RSS_EVERY_S = 0.2  # seconds between the server's VmRSS samples
 # the scenarios' server options: --no-cull, so a message can leave a client nothing pending (nothing waits
 # for its view) and the server logs the digests its mirror is compared with
@@ -486,6 +496,120 @@ def stall(args, work: Path) -> int:
     return v.exit_code()
 
 
+class Storm:
+    """A reconnect storm: STORM_THREADS threads opening websocket connections to `url` at STORM_PER_S in all,
+    each one's Hello unsent and the connection dropped as soon as it opened (its TCP reset, no close
+    handshake), until stop(). Counts the connections opened and the ones that failed."""
+
+    def __init__(self, url: str):
+        self.url, self.opened, self.failed = url, 0, 0
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._run, args=(k,), daemon=True) for k in range(STORM_THREADS)]
+        for t in self._threads:
+            t.start()
+
+    def _run(self, k: int) -> None:
+        from websockets.sync.client import connect
+
+        every = STORM_THREADS / STORM_PER_S
+        due = time.monotonic() + k * every / STORM_THREADS
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due += every
+            try:
+                ws = connect(self.url, open_timeout=10)
+                ws.socket.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                ws.socket.close()  # a reset, as a client that vanishes
+                self.opened += 1
+            except Exception:  # a refused or timed-out handshake counts, and the storm goes on
+                self.failed += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join()
+
+
+def bad_client(args, work: Path, kind: str) -> int:
+    """--deaf / --storm (`kind`): a loopback client streams for `seconds`; then, for BAD_S, a bad client:
+    `deaf`, a second `psao client` that had its snapshot and Updates, then SIGSTOPped (it never reads and
+    never answers a ping again: its kernel's receive buffer fills, then the server's send buffer), or
+    `storm`, a Storm of STORM_PER_S connections a second; then `seconds` after (the deaf client is killed
+    at the phase's end). The server's RSS is sampled throughout; KIND.json. Verdicts: the loopback
+    client keeps STALL_KEEP of its updates/s during the bad phase and after it, its digests equal the
+    server's, it never reconnects, and the server's RSS high-water mark rises by at most STALL_RSS_MB over the
+    one before (the bound of --stall, see stall(): what the server keeps per connection does not grow
+    with time)."""
+    stats, server_digests = work / "stats.jsonl", work / f"{kind}-server-digests.jsonl"
+    v = Verdicts("bench_links")
+    deaf, storm = None, None
+    with interrupt_on_sigterm():
+        server = start_server(args, "127.0.0.1", stats, list(SCENARIO_SERVE), server_digests)
+        try:
+            print(f"server {server.url}: full grid after {server.full_grid_s:.1f} s; bad client: {kind}", flush=True)
+            rss = RssSampler(server.pid)
+            runs = start_clients({"loopback": (server.url, [])}, work, kind, scenario=True)
+            if kind == "deaf":
+                deaf = start_clients({"deaf": (server.url, [])}, work, kind, scenario=True)["deaf"]
+            try:
+                t_from = wait_first_updates([*runs.values(), *([deaf] if deaf else [])])
+                time.sleep(args.seconds)
+                t_bad = time.time()
+                if deaf:
+                    deaf.proc.send_signal(signal.SIGSTOP)
+                else:
+                    storm = Storm(server.url)
+                time.sleep(BAD_S)
+                t_back = time.time()
+                if storm:
+                    storm.stop()
+                time.sleep(args.seconds)
+                t_end = time.time()
+            finally:
+                if deaf:
+                    kill_group(deaf.proc)
+                for r in runs.values():
+                    r.stop()
+                rss.stop()
+            alive = server.alive()
+        finally:
+            server.close()
+    walls = tick_walls(stats)
+    fast = runs["loopback"]
+    fast_c = fast.result(t_from, walls)
+    phases = {"before": (t_from, t_bad), "bad": (t_bad, t_back), "after": (t_back, t_end)}
+    rates = {ph: fast.rate_between(*span) for ph, span in phases.items()}
+    ticks = {ph: server_ticks_per_s(walls, *span) for ph, span in phases.items()}
+    rss_mb = {ph: rss.peak(*span) for ph, span in phases.items()}
+    growth = max(rss_mb["bad"], rss_mb["after"]) - rss_mb["before"]
+    digests = digests_of(server_digests, fast)
+    print(header("digests compared/differ"))
+    print(row("loopback", fast_c, f"{digests['compared']}/{digests['differ']}"))
+    print(f"loopback updates/s before {rates['before']:.1f}, beside the {kind} client {rates['bad']:.1f}, after "
+          f"{rates['after']:.1f}; server ticks/s {ticks['before']:.1f}, {ticks['bad']:.1f}, {ticks['after']:.1f}")
+    if storm:
+        print(f"storm: {storm.opened} connections opened and reset in {BAD_S:g} s "
+              f"({storm.opened / BAD_S:.1f}/s), {storm.failed} failed")
+    print(f"server RSS peak MB: before {rss_mb['before']:.1f}, beside the {kind} client {rss_mb['bad']:.1f}, "
+          f"after {rss_mb['after']:.1f}; rise over the peak before {growth:.1f} MB")
+    for ph in ("bad", "after"):
+        v.check(f"{kind}: loopback client's updates/s {'beside it' if ph == 'bad' else 'after it'} / before",
+                rates[ph] / rates["before"], ">=", STALL_KEEP)
+    v.record(f"{kind}: loopback client connected, no reconnect; server alive", fast_c.exit_ok and
+             fast_c.reconnects == 0 and alive, f"exit ok {fast_c.exit_ok}, {fast_c.reconnects} reconnects, "
+             f"server alive {alive}")
+    record_digests(v, f"{kind}: loopback", digests)
+    if storm:
+        v.check("storm: connections opened per second", storm.opened / BAD_S, ">=", 0.5 * STORM_PER_S)
+    v.check(f"{kind}: server RSS peak beside it and after over the peak before, MB", growth, "<=", STALL_RSS_MB)
+    (args.out / f"{kind}.json").write_text(json.dumps({
+        "scenario": kind, "bad_s": BAD_S, "client": asdict(fast_c), "rates": rates, "server_ticks_per_s": ticks,
+        "digests": digests, "rss_mb": rss_mb, "rss_growth_mb": growth,
+        "storm": None if storm is None else {"opened": storm.opened, "failed": storm.failed, "per_s": STORM_PER_S},
+        "rss_trace": [(round(t - t_bad, 2), mb) for t, mb in rss.samples],
+        "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_links", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK)} link settings instead of the whole sweep")
@@ -496,6 +620,10 @@ def main(argv: list[str] | None = None) -> int:
                        "loopback client (stall.json) instead of the sweep")
     which.add_argument("--cap", action="store_true", help=f"scenario: --mixed with psao serve --client-mbit {CAP_MBIT:g} "
                        "(cap.json) instead of the sweep")
+    which.add_argument("--deaf", action="store_true", help=f"scenario: a client that stops reading and answering "
+                       f"pings for {BAD_S:g} s beside a loopback client (deaf.json) instead of the sweep")
+    which.add_argument("--storm", action="store_true", help=f"scenario: {STORM_PER_S:g} connects and drops a second "
+                       f"for {BAD_S:g} s beside a loopback client (storm.json) instead of the sweep")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
     p.add_argument("--density", type=float, default=256.0)
@@ -505,7 +633,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
         return 2
-    if args.quick and (args.mixed or args.stall or args.cap):
+    if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm):
         print("bench_links: error: --quick selects link settings of the sweep; a scenario has its own", file=sys.stderr)
         return 2
     if why := links_unavailable():
@@ -518,6 +646,8 @@ def main(argv: list[str] | None = None) -> int:
             return mixed(args, work, ["--client-mbit", str(CAP_MBIT)] if args.cap else [], "cap" if args.cap else "mixed")
         if args.stall:
             return stall(args, work)
+        if args.deaf or args.storm:
+            return bad_client(args, work, "deaf" if args.deaf else "storm")
         return run_sweep(args, work)
     except ServeExited as exc:
         print(f"bench_links: error: psao serve exited: {exc}", file=sys.stderr)

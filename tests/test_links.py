@@ -205,7 +205,8 @@ def test_links_are_unique_and_concurrent():
     assert not {a.namespace, b.namespace} & set(namespaces())
 
 
-@pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"]])
+@pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"],
+                                  ["--quick", "--deaf"], ["--quick", "--storm"]])
 def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
     from benchmarks.bench_links import main
 
@@ -241,3 +242,35 @@ def test_a_client_behind_a_slow_link_gets_an_estimate_near_its_rate_and_an_exact
     theirs = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(client_log)}
     compared = ours.keys() & theirs.keys()
     assert len(compared) >= 3 and all(ours[k] == theirs[k] for k in compared)
+
+
+def test_a_reconnect_storm_leaves_a_client_its_stream_and_an_exact_mirror(tmp_path):
+    """bench_links.Storm (connections opened and reset, STORM_PER_S a second) on a real server: once it has
+    opened 20, a real client beside it gets its snapshot and 40 Updates, every mirror digest it logs equals
+    the server's, and the server serves on."""
+    from benchmarks.bench_links import Storm
+
+    server_log, client_log = tmp_path / "server.jsonl", tmp_path / "client.jsonl"
+    with ServerProcess(SCENE, ["--density", "16", "--animate", "--no-cull", "--digest-log", server_log],
+                       start_timeout=HANG_S) as server:
+        storm = Storm(server.url)
+        try:
+            end = time.monotonic() + HANG_S
+            while storm.opened < 20 and time.monotonic() < end:
+                time.sleep(0.05)
+            assert storm.opened >= 20, f"{storm.opened} opened, {storm.failed} failed"
+            client = spawn(["client", server.url, SCENE, "--frames", "40", "--json", "--no-reconnect",
+                            "--digest-log", client_log], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            try:
+                out, err = client.communicate(timeout=HANG_S)
+            finally:
+                kill_group(client)
+        finally:
+            storm.stop()
+        assert client.returncode == 0, err
+        assert server.alive(), server.log()
+    assert json.loads(out.strip().splitlines()[-1])["updates"] == 40
+    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
+    theirs = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(client_log)}
+    compared = ours.keys() & theirs.keys()
+    assert compared and all(ours[k] == theirs[k] for k in compared)
