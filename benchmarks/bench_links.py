@@ -48,6 +48,9 @@ psao.eval.digests.compare_digests; the server runs with SCENARIO_SERVE):
   that stops reading and answering pings (SIGSTOP) or a storm of STORM_PER_S connects and drops a second,
   for BAD_S; the loopback client's updates/s before, beside and after, the server's RSS. Verdicts: it keeps
   STALL_KEEP of its updates/s, its digests equal the server's, the RSS grows by at most STALL_RSS_MB.
+- `--quality` (quality.json): a loopback client and one behind each of QUALITY_LINKS render their own PSAO
+  frames; some of each one's frames are scored against RTAO at the current pose (quality()). Verdicts:
+  at ISSUE_LINK within QUALITY_DB of the loopback client's PSNR, nothing stalls, no reconnect.
 """
 from __future__ import annotations
 
@@ -105,6 +108,14 @@ STALL_RECONNECTS = 1  # the most reconnects of the stalled client (no reconnect 
 STALL_RSS_MB = 50.0  # the most the server's RSS may grow during the stall, MB (see stall())
 RESUME_TIMEOUT_S = 120.0  # seconds after the stall for the stalled client's next Update (a hung run's bound)
 BAD_S = 10.0  # --deaf / --storm: seconds of the bad client's phase
+# --quality: the links, each client's frames (size, its --fps), frames scored per client and the RTAO
+# reference's rays per pixel; the issue's bound on ISSUE_LINK's PSNR below the loopback client's
+QUALITY_LINKS = (UNIMPAIRED, ISSUE_LINK, LinkSettings(rtt_ms=150.0, loss=0.01, mbit=2.0))
+QUALITY_SIZE = (160, 90)
+QUALITY_FPS = 4.0
+QUALITY_FRAMES = 6
+QUALITY_SPP = 64
+QUALITY_DB = 1.5  # dB
 STORM_PER_S = 20.0  # --storm: connections opened (and dropped) per second
 STORM_THREADS = 4  # --storm: threads that open them
 RSS_EVERY_S = 0.2  # seconds between the server's VmRSS samples
@@ -134,12 +145,12 @@ class ClientRun:
     """A `psao client` with a digest log, started now (inside `wrap`), stopped by stop()."""
 
     def __init__(self, url: str, where: str, log: Path, wrap: list[str], reconnect: bool = False,
-                 digest_every: int = DIGEST_EVERY):
+                 digest_every: int = DIGEST_EVERY, extra: list[str] = ()):
         self.where, self.log, self.every = where, log, digest_every
         self.t0 = time.time()
         self.proc = spawn(["client", url, SCENE, "--json", *([] if reconnect else ["--no-reconnect"]),
                            "--reconnect-timeout", str(RECONNECT_TIMEOUT_S),
-                           "--digest-log", log, "--digest-every", str(digest_every)],
+                           "--digest-log", log, "--digest-every", str(digest_every), *map(str, extra)],
                           wrap=[*wrap, "nice", "-n", str(CLIENT_NICE)], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, cwd=ROOT)
         self.report: dict = {}
@@ -610,6 +621,92 @@ def bad_client(args, work: Path, kind: str) -> int:
     return v.exit_code()
 
 
+def server_clock(stats: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(wall times, server times) of the server's ticks (its --stats-json), for np.interp."""
+    rows = sorted({int(d["service_tick"]): (float(d["wall"]), float(d["time"]))
+                   for d in map(json.loads, filter(str.strip, stats.read_text().splitlines()))}.values())
+    return np.array([w for w, _ in rows]), np.array([t for _, t in rows])
+
+
+def quality_run(args, scene, link, s: LinkSettings | None, url: str, work: Path, tag: str) -> tuple:
+    """One client behind `link` changed to `s` (None: on the host, loopback) rendering its PSAO frames
+    (QUALITY_SIZE at QUALITY_FPS) for `seconds` after its first Update; (ClientRun, window start, frames dir)."""
+    frames = work / f"{tag}-frames"
+    wrap = [] if s is None else link.prefix
+    if s is not None:
+        link.change(s)
+    run = ClientRun(url, "loopback" if s is None else "link", work / f"{tag}.jsonl", wrap, extra=[
+        "--render", frames, "--ao", "psao", "--size", f"{QUALITY_SIZE[0]}x{QUALITY_SIZE[1]}", "--fps", QUALITY_FPS])
+    try:
+        t_from = wait_first_updates([run])
+        time.sleep(args.seconds)
+    finally:
+        run.stop()
+    return run, t_from, frames
+
+
+def quality(args, work: Path) -> int:
+    """--quality (quality.json): per link of QUALITY_LINKS and for a loopback client (on the host, the same
+    server), a client rendering its own PSAO frames; QUALITY_FRAMES of the frames it wrote in its window
+    scored against RTAO (QUALITY_SPP) at the current pose: the scene's transforms and skinning at the
+    server's time when the client wrote the frame (the server's --stats-json gives its time per wall
+    time), so a client whose mirror lags (stale AO, stale transforms) loses PSNR for it. Verdicts: at
+    ISSUE_LINK the frames' mean PSNR within QUALITY_DB of the loopback client's (issue 39), every client
+    connected without a reconnect and with Updates through its window (nothing stalls)."""
+    from psao.eval.client_frames import load_client_frames, score_client_frames
+    from psao.eval.reference import ReferenceSettings
+    from psao.scene import load_scene
+    from psao.scene.rigid import instance_transform
+
+    scene = load_scene(SCENE)
+    stats = work / "stats.jsonl"
+    v = Verdicts("bench_links")
+    runs = []
+    with interrupt_on_sigterm(), impaired_link() as link:
+        server = start_server(args, ALL_HOSTS, stats)
+        try:
+            print(f"server: full grid after {server.full_grid_s:.1f} s", flush=True)
+            loop = f"ws://127.0.0.1:{server.port}"
+            runs.append((None, *quality_run(args, scene, link, None, loop, work, "q-loopback")))
+            for i, s in enumerate(QUALITY_LINKS):
+                runs.append((s, *quality_run(args, scene, link, s, f"ws://{link.host_address}:{server.port}", work,
+                                             f"q{i}")))
+        finally:
+            server.close()
+    walls, times = server_clock(stats)
+
+    def pose(f):
+        t = float(np.interp(f.wall, walls, times))
+        return np.stack([instance_transform(scene, i, t) for i in range(len(scene.instances))]), t
+
+    tick_wall = tick_walls(stats)
+    settings = ReferenceSettings(spp=QUALITY_SPP, cache_dir=None)
+    results = []
+    print(header("PSNR dB (mean, min) of its frames against RTAO at the current pose"))
+    for s, run, t_from, frames in runs:
+        c = run.result(t_from, tick_wall)
+        window = [f for f in load_client_frames(frames) if f.wall is not None and t_from <= f.wall <= run.t_stop]
+        scores = score_client_frames(scene, frames, QUALITY_FRAMES, settings, pose=pose, frames=window)
+        psnr = [sc.psao.psnr for sc in scores]
+        mean = float(np.mean(psnr)) if psnr else float("nan")
+        print(row("loopback" if s is None else s.label(), c, f"{mean:.2f} ({min(psnr, default=float('nan')):.2f}), "
+                  f"{len(psnr)} frames"), flush=True)
+        results.append({"link": None if s is None else asdict(s), "client": asdict(c), "psnr": psnr,
+                        "psnr_mean": mean, "frames_in_window": len(window)})
+        v.record(f"{'loopback' if s is None else s.label()}: connected, no reconnect, Updates through the window",
+                 c.exit_ok and c.reconnects == 0 and c.samples >= 2 and len(psnr) > 0,
+                 f"exit ok {c.exit_ok}, {c.reconnects} reconnects, {c.samples} samples, {len(psnr)} frames scored")
+    loop_db = results[0]["psnr_mean"]
+    for r in results[1:]:
+        if r["link"] == asdict(ISSUE_LINK):
+            v.check(f"{ISSUE_LINK.label()}: PSNR below the loopback client's, dB (issue 39)", loop_db - r["psnr_mean"],
+                    "<=", QUALITY_DB)
+    (args.out / "quality.json").write_text(json.dumps({
+        "scenario": "quality", "loopback_psnr": loop_db, "clients": results, "size": QUALITY_SIZE, "fps": QUALITY_FPS,
+        "spp": QUALITY_SPP, "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_links", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK)} link settings instead of the whole sweep")
@@ -624,6 +721,8 @@ def main(argv: list[str] | None = None) -> int:
                        f"pings for {BAD_S:g} s beside a loopback client (deaf.json) instead of the sweep")
     which.add_argument("--storm", action="store_true", help=f"scenario: {STORM_PER_S:g} connects and drops a second "
                        f"for {BAD_S:g} s beside a loopback client (storm.json) instead of the sweep")
+    which.add_argument("--quality", action="store_true", help="scenario: PSNR of clients' own frames against RTAO "
+                       "at the current pose, loopback and behind QUALITY_LINKS (quality.json) instead of the sweep")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
     p.add_argument("--density", type=float, default=256.0)
@@ -633,7 +732,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
         return 2
-    if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm):
+    if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm
+                       or args.quality):
         print("bench_links: error: --quick selects link settings of the sweep; a scenario has its own", file=sys.stderr)
         return 2
     if why := links_unavailable():
@@ -646,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
             return mixed(args, work, ["--client-mbit", str(CAP_MBIT)] if args.cap else [], "cap" if args.cap else "mixed")
         if args.stall:
             return stall(args, work)
+        if args.quality:
+            return quality(args, work)
         if args.deaf or args.storm:
             return bad_client(args, work, "deaf" if args.deaf else "storm")
         return run_sweep(args, work)
