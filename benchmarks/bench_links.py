@@ -645,6 +645,34 @@ def quality_run(args, scene, link, s: LinkSettings | None, url: str, work: Path,
     return run, t_from, frames
 
 
+def quality_chart(results: list[dict], path: Path) -> None:
+    """PSNR of each scored frame per client (points) and their mean (bar), the stream's Mbit/s beside."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ["loopback" if r["link"] is None else LinkSettings(**r["link"]).label().replace(", ", "\n", 1)
+              for r in results]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    x = np.arange(len(results))
+    ax.bar(x, [r["psnr_mean"] for r in results], color="#9ecae1", label="mean of the scored frames")
+    for k, r in enumerate(results):
+        ax.plot(np.full(len(r["psnr"]), k), r["psnr"], "o", color="#08519c", ms=4)
+    low = min((p for r in results for p in r["psnr"]), default=0.0)
+    ax.set_ylim(max(0.0, low - 3), None)
+    ax.set_xticks(x, labels, fontsize=8)
+    ax.set_ylabel("PSNR against RTAO at the current pose, dB")
+    ax.set_title("PSAO client frames behind impaired links")
+    ax.legend(fontsize=8)
+    bx.bar(x, [r["client"]["stream_mbit_s"] for r in results], color="#fdae6b")
+    bx.set_xticks(x, labels, fontsize=8)
+    bx.set_ylabel("stream after the snapshot, Mbit/s")
+    bx.set_title("what each client received")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+
+
 def quality(args, work: Path) -> int:
     """--quality (quality.json): per link of QUALITY_LINKS and for a loopback client (on the host, the same
     server), a client rendering its own PSAO frames; QUALITY_FRAMES of the frames it wrote in its window
@@ -701,6 +729,7 @@ def quality(args, work: Path) -> int:
         if r["link"] == asdict(ISSUE_LINK):
             v.check(f"{ISSUE_LINK.label()}: PSNR below the loopback client's, dB (issue 39)", loop_db - r["psnr_mean"],
                     "<=", QUALITY_DB)
+    quality_chart(results, args.chart or args.out / "quality.png")
     (args.out / "quality.json").write_text(json.dumps({
         "scenario": "quality", "loopback_psnr": loop_db, "clients": results, "size": QUALITY_SIZE, "fps": QUALITY_FPS,
         "spp": QUALITY_SPP, "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
@@ -726,6 +755,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
     p.add_argument("--density", type=float, default=256.0)
+    p.add_argument("--chart", type=Path, default=None, help="--quality's chart PNG (default OUT/quality.png)")
     p.add_argument("--tick-hz", type=float, default=30.0, help="the server's tick rate")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_links")
     args = p.parse_args(argv)
