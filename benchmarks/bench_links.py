@@ -1,4 +1,4 @@
-"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick | --mixed | --stall | --cap] [--seconds 10]`.
+"""Clients behind impaired links: `python -m benchmarks.bench_links [--quick | --mixed | --stall | --cap | --deaf | --storm] [--seconds 10]`.
 
 A real `psao serve builtin:courtyard --density 256 --animate --tick-hz 30 --stats-json` listens on the
 host's end of one impaired link (psao.eval.links: a client network namespace joined to the host through a
@@ -22,8 +22,9 @@ the loopback client beside it kept at least LOOPBACK_KEEP of its updates/s alone
 nothing); on the unimpaired link (rtt 0, no loss, unlimited) the client gets at least FAST_KEEP of the
 loopback client's updates/s; and the issue's target for the link ISSUE_LINK at ISSUE_DENSITY: the client
 at most ISSUE_LAG_S behind the server (95th percentile; with 1% loss a retransmission costs a round trip
-and more, so this tail varies from run to run). The server has no per-client rate budget: a link slower
-than the stream only shows as a client the server sends fewer, larger Updates to.
+and more, so this tail varies from run to run). The server runs with its default per-client rate (an
+estimate of each client's throughput, psao.server.net.rate): a link slower than the stream gets Updates
+paced to what it carries, the cells nearest the camera first.
 
 Scenarios instead of the sweep (each writes its own JSON beside links.json; its clients may reconnect, and
 count it, and log a digest after every Update, compared with the server's --digest-log by
@@ -43,6 +44,13 @@ psao.eval.digests.compare_digests; the server runs with SCENARIO_SERVE):
   STALL_KEEP of its updates/s during the stall, the stalled client has Updates again, reconnects at most
   STALL_RECONNECTS times, both mirrors' digests equal the server's, and the server's RSS grows by at most
   STALL_RSS_MB during the stall (see stall()).
+- `--deaf` (deaf.json), `--storm` (storm.json): a loopback client beside a bad one (bad_client()): a client
+  that stops reading and answering pings (SIGSTOP) or a storm of STORM_PER_S connects and drops a second,
+  for BAD_S; the loopback client's updates/s before, beside and after, the server's RSS. Verdicts: it keeps
+  STALL_KEEP of its updates/s, its digests equal the server's, the RSS grows by at most STALL_RSS_MB.
+- `--quality` (quality.json): a loopback client and one behind each of QUALITY_LINKS render their own PSAO
+  frames; some of each one's frames are scored against RTAO at the current pose (quality()). Verdicts:
+  at ISSUE_LINK within QUALITY_DB of the loopback client's PSNR, nothing stalls, no reconnect.
 """
 from __future__ import annotations
 
@@ -52,6 +60,8 @@ import itertools
 import json
 import re
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -97,6 +107,17 @@ STALL_KEEP = 0.9  # the loopback client's updates/s during the stall over its up
 STALL_RECONNECTS = 1  # the most reconnects of the stalled client (no reconnect loop)
 STALL_RSS_MB = 50.0  # the most the server's RSS may grow during the stall, MB (see stall())
 RESUME_TIMEOUT_S = 120.0  # seconds after the stall for the stalled client's next Update (a hung run's bound)
+BAD_S = 10.0  # --deaf / --storm: seconds of the bad client's phase
+# --quality: the links, each client's frames (size, its --fps), frames scored per client and the RTAO
+# reference's rays per pixel; the issue's bound on ISSUE_LINK's PSNR below the loopback client's
+QUALITY_LINKS = (UNIMPAIRED, ISSUE_LINK, LinkSettings(rtt_ms=150.0, loss=0.01, mbit=2.0))
+QUALITY_SIZE = (160, 90)
+QUALITY_FPS = 4.0
+QUALITY_FRAMES = 6
+QUALITY_SPP = 64
+QUALITY_DB = 1.5  # dB
+STORM_PER_S = 20.0  # --storm: connections opened (and dropped) per second
+STORM_THREADS = 4  # --storm: threads that open them
 RSS_EVERY_S = 0.2  # seconds between the server's VmRSS samples
 # the scenarios' server options: --no-cull, so a message can leave a client nothing pending (nothing waits
 # for its view) and the server logs the digests its mirror is compared with
@@ -124,12 +145,12 @@ class ClientRun:
     """A `psao client` with a digest log, started now (inside `wrap`), stopped by stop()."""
 
     def __init__(self, url: str, where: str, log: Path, wrap: list[str], reconnect: bool = False,
-                 digest_every: int = DIGEST_EVERY):
+                 digest_every: int = DIGEST_EVERY, extra: list[str] = ()):
         self.where, self.log, self.every = where, log, digest_every
         self.t0 = time.time()
         self.proc = spawn(["client", url, SCENE, "--json", *([] if reconnect else ["--no-reconnect"]),
                            "--reconnect-timeout", str(RECONNECT_TIMEOUT_S),
-                           "--digest-log", log, "--digest-every", str(digest_every)],
+                           "--digest-log", log, "--digest-every", str(digest_every), *map(str, extra)],
                           wrap=[*wrap, "nice", "-n", str(CLIENT_NICE)], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, cwd=ROOT)
         self.report: dict = {}
@@ -486,6 +507,235 @@ def stall(args, work: Path) -> int:
     return v.exit_code()
 
 
+class Storm:
+    """A reconnect storm: STORM_THREADS threads opening websocket connections to `url` at STORM_PER_S in all,
+    each one's Hello unsent and the connection dropped as soon as it opened (its TCP reset, no close
+    handshake), until stop(). Counts the connections opened and the ones that failed."""
+
+    def __init__(self, url: str):
+        self.url, self.opened, self.failed = url, 0, 0
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._run, args=(k,), daemon=True) for k in range(STORM_THREADS)]
+        for t in self._threads:
+            t.start()
+
+    def _run(self, k: int) -> None:
+        from websockets.sync.client import connect
+
+        every = STORM_THREADS / STORM_PER_S
+        due = time.monotonic() + k * every / STORM_THREADS
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due += every
+            try:
+                ws = connect(self.url, open_timeout=10)
+                ws.socket.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                ws.socket.close()  # a reset, as a client that vanishes
+                self.opened += 1
+            except Exception:  # a refused or timed-out handshake counts, and the storm goes on
+                self.failed += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join()
+
+
+def bad_client(args, work: Path, kind: str) -> int:
+    """--deaf / --storm (`kind`): a loopback client streams for `seconds`; then, for BAD_S, a bad client:
+    `deaf`, a second `psao client` that had its snapshot and Updates, then SIGSTOPped (it never reads and
+    never answers a ping again: its kernel's receive buffer fills, then the server's send buffer), or
+    `storm`, a Storm of STORM_PER_S connections a second; then `seconds` after (the deaf client is killed
+    at the phase's end). The server's RSS is sampled throughout; KIND.json. Verdicts: the loopback
+    client keeps STALL_KEEP of its updates/s during the bad phase and after it, its digests equal the
+    server's, it never reconnects, and the server's RSS high-water mark rises by at most STALL_RSS_MB over the
+    one before (the bound of --stall, see stall(): what the server keeps per connection does not grow
+    with time)."""
+    stats, server_digests = work / "stats.jsonl", work / f"{kind}-server-digests.jsonl"
+    v = Verdicts("bench_links")
+    deaf, storm = None, None
+    with interrupt_on_sigterm():
+        server = start_server(args, "127.0.0.1", stats, list(SCENARIO_SERVE), server_digests)
+        try:
+            print(f"server {server.url}: full grid after {server.full_grid_s:.1f} s; bad client: {kind}", flush=True)
+            rss = RssSampler(server.pid)
+            runs = start_clients({"loopback": (server.url, [])}, work, kind, scenario=True)
+            if kind == "deaf":
+                deaf = start_clients({"deaf": (server.url, [])}, work, kind, scenario=True)["deaf"]
+            try:
+                t_from = wait_first_updates([*runs.values(), *([deaf] if deaf else [])])
+                time.sleep(args.seconds)
+                t_bad = time.time()
+                if deaf:
+                    deaf.proc.send_signal(signal.SIGSTOP)
+                else:
+                    storm = Storm(server.url)
+                time.sleep(BAD_S)
+                t_back = time.time()
+                if storm:
+                    storm.stop()
+                time.sleep(args.seconds)
+                t_end = time.time()
+            finally:
+                if deaf:
+                    kill_group(deaf.proc)
+                for r in runs.values():
+                    r.stop()
+                rss.stop()
+            alive = server.alive()
+        finally:
+            server.close()
+    walls = tick_walls(stats)
+    fast = runs["loopback"]
+    fast_c = fast.result(t_from, walls)
+    phases = {"before": (t_from, t_bad), "bad": (t_bad, t_back), "after": (t_back, t_end)}
+    rates = {ph: fast.rate_between(*span) for ph, span in phases.items()}
+    ticks = {ph: server_ticks_per_s(walls, *span) for ph, span in phases.items()}
+    rss_mb = {ph: rss.peak(*span) for ph, span in phases.items()}
+    growth = max(rss_mb["bad"], rss_mb["after"]) - rss_mb["before"]
+    digests = digests_of(server_digests, fast)
+    print(header("digests compared/differ"))
+    print(row("loopback", fast_c, f"{digests['compared']}/{digests['differ']}"))
+    print(f"loopback updates/s before {rates['before']:.1f}, beside the {kind} client {rates['bad']:.1f}, after "
+          f"{rates['after']:.1f}; server ticks/s {ticks['before']:.1f}, {ticks['bad']:.1f}, {ticks['after']:.1f}")
+    if storm:
+        print(f"storm: {storm.opened} connections opened and reset in {BAD_S:g} s "
+              f"({storm.opened / BAD_S:.1f}/s), {storm.failed} failed")
+    print(f"server RSS peak MB: before {rss_mb['before']:.1f}, beside the {kind} client {rss_mb['bad']:.1f}, "
+          f"after {rss_mb['after']:.1f}; rise over the peak before {growth:.1f} MB")
+    for ph in ("bad", "after"):
+        v.check(f"{kind}: loopback client's updates/s {'beside it' if ph == 'bad' else 'after it'} / before",
+                rates[ph] / rates["before"], ">=", STALL_KEEP)
+    v.record(f"{kind}: loopback client connected, no reconnect; server alive", fast_c.exit_ok and
+             fast_c.reconnects == 0 and alive, f"exit ok {fast_c.exit_ok}, {fast_c.reconnects} reconnects, "
+             f"server alive {alive}")
+    record_digests(v, f"{kind}: loopback", digests)
+    if storm:
+        v.check("storm: connections opened per second", storm.opened / BAD_S, ">=", 0.5 * STORM_PER_S)
+    v.check(f"{kind}: server RSS peak beside it and after over the peak before, MB", growth, "<=", STALL_RSS_MB)
+    (args.out / f"{kind}.json").write_text(json.dumps({
+        "scenario": kind, "bad_s": BAD_S, "client": asdict(fast_c), "rates": rates, "server_ticks_per_s": ticks,
+        "digests": digests, "rss_mb": rss_mb, "rss_growth_mb": growth,
+        "storm": None if storm is None else {"opened": storm.opened, "failed": storm.failed, "per_s": STORM_PER_S},
+        "rss_trace": [(round(t - t_bad, 2), mb) for t, mb in rss.samples],
+        "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
+def server_clock(stats: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(wall times, server times) of the server's ticks (its --stats-json), for np.interp."""
+    rows = sorted({int(d["service_tick"]): (float(d["wall"]), float(d["time"]))
+                   for d in map(json.loads, filter(str.strip, stats.read_text().splitlines()))}.values())
+    return np.array([w for w, _ in rows]), np.array([t for _, t in rows])
+
+
+def quality_run(args, scene, link, s: LinkSettings | None, url: str, work: Path, tag: str) -> tuple:
+    """One client behind `link` changed to `s` (None: on the host, loopback) rendering its PSAO frames
+    (QUALITY_SIZE at QUALITY_FPS) for `seconds` after its first Update; (ClientRun, window start, frames dir)."""
+    frames = work / f"{tag}-frames"
+    wrap = [] if s is None else link.prefix
+    if s is not None:
+        link.change(s)
+    run = ClientRun(url, "loopback" if s is None else "link", work / f"{tag}.jsonl", wrap, extra=[
+        "--render", frames, "--ao", "psao", "--size", f"{QUALITY_SIZE[0]}x{QUALITY_SIZE[1]}", "--fps", QUALITY_FPS])
+    try:
+        t_from = wait_first_updates([run])
+        time.sleep(args.seconds)
+    finally:
+        run.stop()
+    return run, t_from, frames
+
+
+def quality_chart(results: list[dict], path: Path) -> None:
+    """PSNR of each scored frame per client (points) and their mean (bar), the stream's Mbit/s beside."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ["loopback" if r["link"] is None else LinkSettings(**r["link"]).label().replace(", ", "\n", 1)
+              for r in results]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    x = np.arange(len(results))
+    ax.bar(x, [r["psnr_mean"] for r in results], color="#9ecae1", label="mean of the scored frames")
+    for k, r in enumerate(results):
+        ax.plot(np.full(len(r["psnr"]), k), r["psnr"], "o", color="#08519c", ms=4)
+    low = min((p for r in results for p in r["psnr"]), default=0.0)
+    ax.set_ylim(max(0.0, low - 3), None)
+    ax.set_xticks(x, labels, fontsize=8)
+    ax.set_ylabel("PSNR against RTAO at the current pose, dB")
+    ax.set_title("PSAO client frames behind impaired links")
+    ax.legend(fontsize=8)
+    bx.bar(x, [r["client"]["stream_mbit_s"] for r in results], color="#fdae6b")
+    bx.set_xticks(x, labels, fontsize=8)
+    bx.set_ylabel("stream after the snapshot, Mbit/s")
+    bx.set_title("what each client received")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+
+
+def quality(args, work: Path) -> int:
+    """--quality (quality.json): per link of QUALITY_LINKS and for a loopback client (on the host, the same
+    server), a client rendering its own PSAO frames; QUALITY_FRAMES of the frames it wrote in its window
+    scored against RTAO (QUALITY_SPP) at the current pose: the scene's transforms and skinning at the
+    server's time when the client wrote the frame (the server's --stats-json gives its time per wall
+    time), so a client whose mirror lags (stale AO, stale transforms) loses PSNR for it. Verdicts: at
+    ISSUE_LINK the frames' mean PSNR within QUALITY_DB of the loopback client's (issue 39), every client
+    connected without a reconnect and with Updates through its window (nothing stalls)."""
+    from psao.eval.client_frames import load_client_frames, score_client_frames
+    from psao.eval.reference import ReferenceSettings
+    from psao.scene import load_scene
+    from psao.scene.rigid import instance_transform
+
+    scene = load_scene(SCENE)
+    stats = work / "stats.jsonl"
+    v = Verdicts("bench_links")
+    runs = []
+    with interrupt_on_sigterm(), impaired_link() as link:
+        server = start_server(args, ALL_HOSTS, stats)
+        try:
+            print(f"server: full grid after {server.full_grid_s:.1f} s", flush=True)
+            loop = f"ws://127.0.0.1:{server.port}"
+            runs.append((None, *quality_run(args, scene, link, None, loop, work, "q-loopback")))
+            for i, s in enumerate(QUALITY_LINKS):
+                runs.append((s, *quality_run(args, scene, link, s, f"ws://{link.host_address}:{server.port}", work,
+                                             f"q{i}")))
+        finally:
+            server.close()
+    walls, times = server_clock(stats)
+
+    def pose(f):
+        t = float(np.interp(f.wall, walls, times))
+        return np.stack([instance_transform(scene, i, t) for i in range(len(scene.instances))]), t
+
+    tick_wall = tick_walls(stats)
+    settings = ReferenceSettings(spp=QUALITY_SPP, cache_dir=None)
+    results = []
+    print(header("PSNR dB (mean, min) of its frames against RTAO at the current pose"))
+    for s, run, t_from, frames in runs:
+        c = run.result(t_from, tick_wall)
+        window = [f for f in load_client_frames(frames) if f.wall is not None and t_from <= f.wall <= run.t_stop]
+        scores = score_client_frames(scene, frames, QUALITY_FRAMES, settings, pose=pose, frames=window)
+        psnr = [sc.psao.psnr for sc in scores]
+        mean = float(np.mean(psnr)) if psnr else float("nan")
+        print(row("loopback" if s is None else s.label(), c, f"{mean:.2f} ({min(psnr, default=float('nan')):.2f}), "
+                  f"{len(psnr)} frames"), flush=True)
+        results.append({"link": None if s is None else asdict(s), "client": asdict(c), "psnr": psnr,
+                        "psnr_mean": mean, "frames_in_window": len(window)})
+        v.record(f"{'loopback' if s is None else s.label()}: connected, no reconnect, Updates through the window",
+                 c.exit_ok and c.reconnects == 0 and c.samples >= 2 and len(psnr) > 0,
+                 f"exit ok {c.exit_ok}, {c.reconnects} reconnects, {c.samples} samples, {len(psnr)} frames scored")
+    loop_db = results[0]["psnr_mean"]
+    for r in results[1:]:
+        if r["link"] == asdict(ISSUE_LINK):
+            v.check(f"{ISSUE_LINK.label()}: PSNR below the loopback client's, dB (issue 39)", loop_db - r["psnr_mean"],
+                    "<=", QUALITY_DB)
+    quality_chart(results, args.chart or args.out / "quality.png")
+    (args.out / "quality.json").write_text(json.dumps({
+        "scenario": "quality", "loopback_psnr": loop_db, "clients": results, "size": QUALITY_SIZE, "fps": QUALITY_FPS,
+        "spp": QUALITY_SPP, "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
+    return v.exit_code()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_links", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK)} link settings instead of the whole sweep")
@@ -496,16 +746,24 @@ def main(argv: list[str] | None = None) -> int:
                        "loopback client (stall.json) instead of the sweep")
     which.add_argument("--cap", action="store_true", help=f"scenario: --mixed with psao serve --client-mbit {CAP_MBIT:g} "
                        "(cap.json) instead of the sweep")
+    which.add_argument("--deaf", action="store_true", help=f"scenario: a client that stops reading and answering "
+                       f"pings for {BAD_S:g} s beside a loopback client (deaf.json) instead of the sweep")
+    which.add_argument("--storm", action="store_true", help=f"scenario: {STORM_PER_S:g} connects and drops a second "
+                       f"for {BAD_S:g} s beside a loopback client (storm.json) instead of the sweep")
+    which.add_argument("--quality", action="store_true", help="scenario: PSNR of clients' own frames against RTAO "
+                       "at the current pose, loopback and behind QUALITY_LINKS (quality.json) instead of the sweep")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
     p.add_argument("--density", type=float, default=256.0)
+    p.add_argument("--chart", type=Path, default=None, help="--quality's chart PNG (default OUT/quality.png)")
     p.add_argument("--tick-hz", type=float, default=30.0, help="the server's tick rate")
     p.add_argument("--out", type=Path, default=Path("out") / "bench_links")
     args = p.parse_args(argv)
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
         return 2
-    if args.quick and (args.mixed or args.stall or args.cap):
+    if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm
+                       or args.quality):
         print("bench_links: error: --quick selects link settings of the sweep; a scenario has its own", file=sys.stderr)
         return 2
     if why := links_unavailable():
@@ -518,6 +776,10 @@ def main(argv: list[str] | None = None) -> int:
             return mixed(args, work, ["--client-mbit", str(CAP_MBIT)] if args.cap else [], "cap" if args.cap else "mixed")
         if args.stall:
             return stall(args, work)
+        if args.quality:
+            return quality(args, work)
+        if args.deaf or args.storm:
+            return bad_client(args, work, "deaf" if args.deaf else "storm")
         return run_sweep(args, work)
     except ServeExited as exc:
         print(f"bench_links: error: psao serve exited: {exc}", file=sys.stderr)

@@ -217,6 +217,22 @@ DETAIL_RENDER: dict[str, Callable[[object], str]] = {
     "figures": figures_table, "clients": clients_detail, "video": video_detail, "rows": rows_list}
 
 
+def link_quality_table(rows: list[dict]) -> str:
+    """bench_links --quality: per client (loopback, or the link it is behind) its frames' PSNR against RTAO at
+    the current pose, updates/s, seconds behind, stream and reconnects."""
+    head = ["link", "PSNR dB (mean)", "PSNR dB (min)", "frames scored", "updates/s", "s behind p95",
+            "stream Mbit/s", "reconnects"]
+    lines = []
+    for r in rows:
+        link, c = r["link"], r["client"]
+        label = "loopback" if link is None else (f"rtt {link['rtt_ms']:g} ms, loss {100 * link['loss']:g}%, "
+                                                 + ("unlimited" if link["mbit"] is None else f"{link['mbit']:g} Mbit/s"))
+        lines.append([label, figure(r["psnr_mean"], ".2f"), figure(min(r["psnr"], default=None), ".2f"),
+                      str(len(r["psnr"])), figure(c["updates_per_s"], ".1f"), figure(c["behind_p95_s"], ".3f"),
+                      figure(c["stream_mbit_s"], ".2f"), str(c["reconnects"])])
+    return table(head, lines)
+
+
 @dataclass(frozen=True)
 class Section:
     command: str  # the command that writes the data, with --out OUT_DIR left to the runner
@@ -275,6 +291,8 @@ SECTIONS: dict[str, Section] = {
     "run_densify": run_all_section("densify"),
     "run_soak": run_all_section("soak", "soak.json"),
     "run_fuzz": run_all_section("fuzz"),
+    "link_quality": Section("python -m benchmarks.bench_links --quality --seconds 8 --chart docs/images/links_quality.png",
+                            "quality.json", link_quality_table, rows_of=lambda record: record["clients"]),
 }
 
 RUN_ALL_SECTIONS = [sid for sid, section in SECTIONS.items() if section.command == RUN_ALL]

@@ -63,3 +63,63 @@ def test_a_capped_client_is_paced_within_its_rate_and_its_mirror_stays_exact(tmp
 def test_a_cap_that_is_not_a_positive_rate_is_refused(mbit):
     with pytest.raises(ConfigError, match="client rate cap must be > 0 Mbit/s"):
         ServeSettings(fanout=FanoutSettings(client_mbit=mbit)).check()
+
+
+def _windows(estimate, settings, samples):
+    """Feed `estimate` one answer per window: (rtt s, bytes/s over the window, held back)."""
+    now, acked = estimate.window_start, estimate.window_bytes
+    if not now:
+        now = 1.0
+        estimate.answered(0.05, acked, now, settings)  # the first answer opens the first window
+    for rtt, rate, held in samples:
+        if held:
+            estimate.note_held()
+        now += settings.rate_window
+        acked += int(rate * settings.rate_window)
+        estimate.answered(rtt, acked, now, settings)
+
+
+def test_the_estimate_takes_what_a_queueing_link_carried_and_nothing_from_a_client_sent_little():
+    from psao.server.net.rate import RateEstimate
+
+    settings = FanoutSettings()
+    queued = 0.05 + 2 * settings.queue_target
+    little = RateEstimate()  # round trips grow, but its sender never waited: it was sent little
+    _windows(little, settings, [(queued, 1e4, False)] * 6)
+    assert little.rate is None and little.link_mbit is None
+    quiet = RateEstimate()  # held back, but no queue on the way: not its link
+    _windows(quiet, settings, [(0.05, 1e4, True)] * 6)
+    assert quiet.rate is None
+    slow = RateEstimate()
+    _windows(slow, settings, [(queued, 62_500, True)] * 6)  # 0.5 Mbit/s, queueing
+    assert slow.rate == pytest.approx(settings.drain_share * 62_500)
+    assert slow.link_mbit == pytest.approx(settings.drain_share * 0.5)
+    was = slow.rate
+    _windows(slow, settings, [(0.05, was, False)])  # the queue drained and the estimate was used: probe up
+    assert slow.rate == pytest.approx(was * settings.probe_gain)
+    _windows(slow, settings, [(0.05, 0.1 * was, False)] * 3)  # barely used: it stays
+    assert slow.rate == pytest.approx(was * settings.probe_gain)
+
+
+def test_an_estimate_paces_and_budgets_like_a_cap_and_the_lesser_of_the_two_holds():
+    from psao.server.net.fanout import Fanout
+    from psao.server.net.rate import RateEstimate, pace_rate
+
+    est = RateEstimate(rate=1e5)
+    assert pace_rate(RateEstimate(), FanoutSettings()) is None
+    assert pace_rate(est, FanoutSettings()) == 1e5
+    assert pace_rate(est, FanoutSettings(adapt_rate=False)) is None
+    assert pace_rate(est, FanoutSettings(client_mbit=0.4)) == 0.4e6 / 8
+    assert pace_rate(est, FanoutSettings(client_mbit=8)) == 1e5
+    assert pace_rate(RateEstimate(), FanoutSettings(client_mbit=8, adapt_rate=False)) == 1e6
+    client = Client("test", n_buckets=8, capacity=100)
+    client.rate, client.bytes_per_cell = est, 100.0
+    budget = Fanout.cells_budget(type("F", (), {"settings": FanoutSettings()})(), client, tick_hz=20)
+    assert budget == int(1e5 / 20 / 100)
+
+
+@pytest.mark.parametrize("field, value", [("queue_target", 0.0), ("drain_share", 1.5), ("probe_gain", 1.0),
+                                          ("rate_window", -1.0), ("rate_samples", 0)])
+def test_rate_estimate_settings_out_of_range_are_refused(field, value):
+    with pytest.raises(ConfigError, match="rate estimate out of range"):
+        ServeSettings(fanout=FanoutSettings(**{field: value})).check()

@@ -7,6 +7,7 @@ rate are floors the forwarder never beats, and the waits are bounded only to sto
 from __future__ import annotations
 
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -117,6 +118,27 @@ def test_link_delay_and_rate_are_floors():
     assert link.counters["down"]["forwarded"] > nbytes // 1500 and link.counters["up"]["forwarded"] > 0
 
 
+
+LEFT = re.compile(r"left \(said Bye\).*link-limited in (?P<windows>\d+) windows, at (?P<link>[-0-9.]+)")
+
+
+def _client_behind(link, server_log, client_log, frames: int) -> tuple[str, re.Match]:
+    """`psao serve` of the animated courtyard (density 64, 20 Hz, --no-cull) on the host's end of `link`, and
+    a `psao client` in its namespace for `frames` updates; its stdout, and the server's line on its leaving."""
+    with ServerProcess(SCENE, ["--density", "64", "--animate", "--tick-hz", "20", "--no-cull",
+                               "--digest-log", server_log],
+                       host=link.host_address, start_timeout=HANG_S) as server:
+        client = spawn(["client", server.url, SCENE, "--frames", str(frames), "--json", "--no-reconnect",
+                        "--reconnect-timeout", "60", "--digest-log", client_log],
+                       wrap=link.prefix, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            out, err = client.communicate(timeout=HANG_S)
+        finally:
+            kill_group(client)
+        assert client.returncode == 0, err
+        return out, server.wait_for(LEFT, HANG_S, "the client's leaving")
+
+
 @needs_links
 @pytest.mark.slow
 def test_client_behind_an_impaired_link_keeps_an_exact_mirror(tmp_path):
@@ -126,18 +148,7 @@ def test_client_behind_an_impaired_link_keeps_an_exact_mirror(tmp_path):
     which depends on the machine's speed: a few such states at least."""
     server_log, client_log = tmp_path / "server.jsonl", tmp_path / "client.jsonl"
     with impaired_link(LinkSettings(rtt_ms=100, loss=0.01, mbit=5)) as link:
-        with ServerProcess(SCENE, ["--density", "64", "--animate", "--tick-hz", "20", "--no-cull",
-                                   "--digest-log", server_log],
-                           host=link.host_address, start_timeout=HANG_S) as server:
-            client = spawn(["client", server.url, SCENE, "--frames", "60", "--json", "--no-reconnect",
-                            "--reconnect-timeout", "60", "--digest-log", client_log],
-                           wrap=link.prefix, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            try:
-                out, err = client.communicate(timeout=HANG_S)
-            finally:
-                kill_group(client)
-            assert client.returncode == 0, err
-            assert server.alive(), server.log()
+        out, _ = _client_behind(link, server_log, client_log, 60)
     report = json.loads(out.strip().splitlines()[-1])
     assert report["snapshot_bytes"] > 0 and report["updates"] == 60 and report["reconnects"] == 0
     ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
@@ -194,7 +205,8 @@ def test_links_are_unique_and_concurrent():
     assert not {a.namespace, b.namespace} & set(namespaces())
 
 
-@pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"]])
+@pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"],
+                                  ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"]])
 def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
     from benchmarks.bench_links import main
 
@@ -209,3 +221,56 @@ def test_bench_links_runs_one_scenario_at_a_time():
     with pytest.raises(SystemExit) as exc:
         main(["--mixed", "--stall"])
     assert exc.value.code == 2
+
+
+@needs_links
+@pytest.mark.slow
+def test_a_client_behind_a_slow_link_gets_an_estimate_near_its_rate_and_an_exact_mirror(tmp_path):
+    """0.5 Mbit/s and rtt 50 ms, under what the animated courtyard's stream takes: without --client-mbit the
+    server finds the link queueing and estimates what it carries (the websocket bytes the client was shown
+    to read: at most the link's rate, which also carries the headers), and every mirror digest the client
+    logs equals the server's. The bounds are the link's, not the machine's: a loaded machine sends no
+    faster than the link carries, and the snapshot alone keeps the link full for seconds."""
+    mbit = 0.5
+    server_log, client_log = tmp_path / "server.jsonl", tmp_path / "client.jsonl"
+    with impaired_link(LinkSettings(rtt_ms=50, mbit=mbit)) as link:
+        out, left = _client_behind(link, server_log, client_log, 40)
+    assert json.loads(out.strip().splitlines()[-1])["updates"] == 40
+    assert int(left["windows"]) > 0 and left["link"] != "-", left.group(0)
+    assert 0.5 * mbit <= float(left["link"]) <= 1.05 * mbit, left.group(0)
+    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
+    theirs = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(client_log)}
+    compared = ours.keys() & theirs.keys()
+    assert len(compared) >= 3 and all(ours[k] == theirs[k] for k in compared)
+
+
+def test_a_reconnect_storm_leaves_a_client_its_stream_and_an_exact_mirror(tmp_path):
+    """bench_links.Storm (connections opened and reset, STORM_PER_S a second) on a real server: once it has
+    opened 20, a real client beside it gets its snapshot and 40 Updates, every mirror digest it logs equals
+    the server's, and the server serves on."""
+    from benchmarks.bench_links import Storm
+
+    server_log, client_log = tmp_path / "server.jsonl", tmp_path / "client.jsonl"
+    with ServerProcess(SCENE, ["--density", "16", "--animate", "--no-cull", "--digest-log", server_log],
+                       start_timeout=HANG_S) as server:
+        storm = Storm(server.url)
+        try:
+            end = time.monotonic() + HANG_S
+            while storm.opened < 20 and time.monotonic() < end:
+                time.sleep(0.05)
+            assert storm.opened >= 20, f"{storm.opened} opened, {storm.failed} failed"
+            client = spawn(["client", server.url, SCENE, "--frames", "40", "--json", "--no-reconnect",
+                            "--digest-log", client_log], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            try:
+                out, err = client.communicate(timeout=HANG_S)
+            finally:
+                kill_group(client)
+        finally:
+            storm.stop()
+        assert client.returncode == 0, err
+        assert server.alive(), server.log()
+    assert json.loads(out.strip().splitlines()[-1])["updates"] == 40
+    ours = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(server_log)}
+    theirs = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(client_log)}
+    compared = ours.keys() & theirs.keys()
+    assert compared and all(ours[k] == theirs[k] for k in compared)

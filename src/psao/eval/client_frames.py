@@ -29,6 +29,7 @@ class ClientFrame:
     transforms: np.ndarray  # (n, 4, 4)
     camera_path: str | None
     size: tuple[int, int]
+    wall: float | None = None  # time.time() when the client wrote it (None: a log without it)
 
 
 @dataclass
@@ -50,7 +51,7 @@ def load_client_frames(frames_dir) -> list[ClientFrame]:
             d = json.loads(line)
             t = np.asarray(d["transforms"], np.float64).reshape(-1, 4, 4)
             out.append(ClientFrame(int(d["frame"]), float(d["time"]), d.get("skin_time"), t, d.get("camera_path"),
-                                   (int(d["size"][0]), int(d["size"][1]))))
+                                   (int(d["size"][0]), int(d["size"][1])), d.get("wall")))
         except (ValueError, KeyError, TypeError, IndexError) as exc:
             raise EvalError(f"{path}, line {k + 1}: not a frame record ({exc})") from None
     return out
@@ -76,15 +77,19 @@ def read_ao_png(path: Path, size: tuple[int, int]) -> np.ndarray:
     return img
 
 
-def score_client_frames(scene, frames_dir, count: int, settings: ReferenceSettings,
-                        show_progress: bool = False) -> list[ClientFrameScores]:
-    """PSAO (the client's own PNG) and SSAO (drawn here on the same G-buffer) against RTAO, per frame."""
+def score_client_frames(scene, frames_dir, count: int, settings: ReferenceSettings, show_progress: bool = False,
+                        pose=None, frames: list[ClientFrame] | None = None) -> list[ClientFrameScores]:
+    """PSAO (the client's own PNG) and SSAO (drawn here on the same G-buffer) against RTAO, per frame:
+    `count` of `frames` (all the log's by default). The G-buffer and the reference take the transforms and
+    skinning time the client drew with, or `pose(frame)` -> (transforms, skin time): e.g. the scene's pose at
+    the server's time when the frame was shown, so that a client whose mirror lags is scored against what
+    it should have shown."""
     from psao.client.render.renderer import FrameRenderer
     from psao.client.render.views import path_matrices
     from psao.scene import scene_camera
 
     frames_dir = Path(frames_dir)
-    picked = pick(load_client_frames(frames_dir), count)
+    picked = pick(load_client_frames(frames_dir) if frames is None else frames, count)
     if not picked:
         return []
     size = picked[0].size
@@ -93,13 +98,14 @@ def score_client_frames(scene, frames_dir, count: int, settings: ReferenceSettin
         for f in picked:
             name = f.camera_path if f.camera_path in scene.camera_paths else None
             view, proj = path_matrices(scene, scene_camera(scene, name), f.time, size)
-            r.set_transforms(f.transforms)
-            r.set_skin_time(f.skin_time)
+            transforms, skin_time = (f.transforms, f.skin_time) if pose is None else pose(f)
+            r.set_transforms(transforms)
+            r.set_skin_time(skin_time)
             frame = r.render(view, proj)
             mask = frame.gbuffer.mask
             psao = composite_ao(read_ao_png(frames_dir / f"frame_{f.frame:05d}_ao_psao.png", size), mask)
             ssao = composite_ao(frame.ao["ssao"], mask)
-            ao = reference_ao(scene, frame.gbuffer, f.transforms, replace(settings, skin_time=f.skin_time),
+            ao = reference_ao(scene, frame.gbuffer, transforms, replace(settings, skin_time=skin_time),
                               FrameKey(view, proj, f.time), show_progress=show_progress)
             ref = composite_ao(ao, mask)
             out.append(ClientFrameScores(f.frame, score(ref, psao)[0], score(ref, ssao)[0]))

@@ -260,7 +260,16 @@ class FanoutSettings:
     # its own Updates then carry what a tick's share of the rate holds, the cells nearest its camera first,
     # the rest merged later); None: no cap (the ping flow control above still holds a slow reader back)
     client_mbit: float | None = None
-    pace_burst: float = 0.05  # seconds of client_mbit a client idle for that long may be sent at once
+    pace_burst: float = 0.05  # seconds of the pacing rate a client idle for that long may be sent at once
+    # estimate each client's throughput from its ping answers and pace it to that (psao.server.net.rate):
+    # a client whose link builds a queue is sent what the link carries; the others are not paced
+    adapt_rate: bool = True
+    queue_target: float = 0.1  # seconds a ping's round trip exceeds the client's least when its link is queueing
+    rate_window: float = 0.25  # seconds: the least span of one delivery sample (bytes shown read over time)
+    rate_samples: int = 4  # a link-limited client's estimate: from the largest of this many last samples
+    drain_share: float = 0.9  # a link-limited client's estimate: this share of what its link carried
+    probe_gain: float = 1.5  # the estimate grows by this each window without a queue that used half of it
+    unset_mbit: float = 1000.0  # Mbit/s: an estimate grown past this is dropped (the client is not paced)
 
 
 @dataclass
@@ -337,6 +346,11 @@ class ServeSettings:
         f = self.fanout
         if f.client_mbit is not None and not (math.isfinite(f.client_mbit) and f.client_mbit > 0):
             raise ConfigError(f"client rate cap must be > 0 Mbit/s, got {f.client_mbit}")
+        if not (0 < f.queue_target and 0 < f.rate_window and 0 < f.drain_share <= 1 and f.probe_gain > 1
+                and f.unset_mbit > 0 and f.rate_samples >= 1):
+            raise ConfigError(f"fanout rate estimate out of range: queue_target {f.queue_target} s, rate_window "
+                              f"{f.rate_window} s, drain_share {f.drain_share}, probe_gain {f.probe_gain}, "
+                              f"unset_mbit {f.unset_mbit}")
         if not 0 < f.pace_burst <= 10:
             raise ConfigError(f"pace burst must be within (0, 10] seconds, got {f.pace_burst}")
         if not 1 <= f.probe_every < f.max_unread:

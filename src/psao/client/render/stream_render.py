@@ -8,12 +8,13 @@ The first call uploads the whole mirror; later calls upload only the buckets and
 marked dirty since (Mirror.take_dirty), growing or cutting the cell table with the mirror's capacity.
 The camera follows the scene's path at the time the client passes (camera_time=...), or at
 tick / tick_rate seconds when it passes none. Each frame also gets a line in OUTDIR/frames.jsonl (frame,
-tick, camera time, server time, instance transforms): what it takes to draw the same frame again, e.g.
+tick, camera time, wall time when written, server time, instance transforms): what it takes to draw the same frame again, e.g.
 to score it against a ray-traced reference (psao.eval.client_frames).
 """
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +71,7 @@ class StreamRenderer:
 
     def _log(self, record: dict, mirror, transforms) -> None:
         """One line per frame, appended as it is written (a killed client keeps the lines before)."""
-        line = dict(record, camera_path=self.path.name, size=list(self.size),
+        line = dict(record, wall=time.time(), camera_path=self.path.name, size=list(self.size),
                     server_time=mirror.server_time, skin_time=self.renderer.skin_time,
                     transforms=np.asarray(transforms, np.float64).reshape(-1, 16).tolist())
         with open(self.out_dir / "frames.jsonl", "a", encoding="utf-8") as f:

@@ -68,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--client-mbit", type=float, default=default(FanoutSettings, "client_mbit"), metavar="MBIT",
                    help="the most Mbit/s sent to each client (its messages paced; its own Updates carry the cells "
                         "nearest its camera first and merge the rest later); default: no cap")
+    p.add_argument("--no-adapt-rate", action="store_true",
+                   help="do not pace a client to its link's estimated throughput (by default a client whose link "
+                        "queues is sent what the link carries, the cells nearest its camera first)")
     p.add_argument("--no-cull", action="store_true",
                    help="send every client every change; by default a client gets the cells in its extended view "
                         "and the rest when they enter it")
@@ -292,7 +295,8 @@ def _settings(args):
                       allow_edits=args.allow_edits, edit_token=edit_token, max_clients=args.max_clients,
                       allow_origins=tuple(args.allow_origin), tls_cert=args.tls_cert, tls_key=args.tls_key, web_example=args.web_example,
                       digest_log=args.digest_log, stats_json=args.stats_json, send_buffer=args.send_buffer,
-                      fanout=FanoutSettings(cull=not args.no_cull, client_mbit=args.client_mbit))
+                      fanout=FanoutSettings(cull=not args.no_cull, client_mbit=args.client_mbit,
+                                            adapt_rate=not args.no_adapt_rate))
     s.check()
     return s
 

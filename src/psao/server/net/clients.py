@@ -20,6 +20,7 @@ import numpy as np
 from psao.protocol.gridformat import EMPTY, FREE_CELL
 from psao.protocol.limits import Limits
 from psao.protocol.updates import GridDelta
+from psao.server.net.rate import RateEstimate
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -180,6 +181,7 @@ class Client:
     acked_bytes: int = 0  # bytes sent before the last answered ping: its client has read them
     acked_at: float = 0.0  # time.perf_counter() of that answer
     acked_mbit: float = 0.0  # Mbit/s its client was shown to read, between answers at least a second apart
+    rate: RateEstimate = field(default_factory=RateEstimate)  # its throughput as estimated (psao.server.net.rate)
     _planes_of: tuple | None = None  # the camera the cached planes belong to
     _planes: np.ndarray | None = None
 

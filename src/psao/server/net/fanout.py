@@ -41,6 +41,7 @@ from psao.protocol.session import ServerConfig, SharedParts, SharedStream
 from psao.protocol.updates import GridDelta
 
 from psao.server.net.clients import Client, changed_transform_ids, read_delta
+from psao.server.net.rate import pace_rate
 from psao.server.net.sendview import CellPlaces, client_planes, clients_planes
 from psao.server.settings import FanoutSettings
 
@@ -388,11 +389,13 @@ class Fanout:
         return squared
 
     def cells_budget(self, client: Client, tick_hz: float) -> int | None:
-        """Cells one Update of the client's own may carry under its rate cap: a tick's share of the rate
-        over the bytes its Updates took per cell (None without a cap)."""
-        if self.settings.client_mbit is None:
+        """Cells one Update of the client's own may carry at its pacing rate (rate.pace_rate: the estimate
+        of its throughput, an explicit cap): a tick's share of the rate over the bytes its Updates took per
+        cell (None when it is not paced)."""
+        rate = pace_rate(client.rate, self.settings)
+        if rate is None:
             return None
-        per_tick = self.settings.client_mbit * 1e6 / 8 / tick_hz
+        per_tick = rate / tick_hz
         per_cell = client.bytes_per_cell or RAW_CELL_BYTES
         return max(MIN_BUDGET_CELLS, int(per_tick / per_cell))
 

@@ -65,6 +65,7 @@ from psao.server.net import webpage
 from psao.server.net.clients import Client, Registry, SnapshotPlan, read_delta
 from psao.server.errors import ConfigError
 from psao.server.net.fanout import Fanout, Parts
+from psao.server.net.rate import pace_rate
 from psao.server.settings import ServeSettings
 from psao.server.tick.summary import TickSummary
 
@@ -651,9 +652,12 @@ class Service:
         elif isinstance(exc, ConnectionClosed) or exc is None:
             rcvd = exc.rcvd if isinstance(exc, ConnectionClosed) else None
             why = f"close {rcvd.code}" if rcvd else "connection lost" if exc else "said Bye"
+            est, link = client.rate.mbit, client.rate.link_mbit
             log.info("client %d from %s left (%s) after %d messages, %.1f kB (it read %.2f Mbit/s at the last "
-                     "measure)", client.id, client.peer, why, client.messages_sent, client.bytes_sent / 1e3,
-                     client.acked_mbit)
+                     "measure; rate estimate %s; link-limited in %d windows, at %s)", client.id, client.peer, why,
+                     client.messages_sent, client.bytes_sent / 1e3, client.acked_mbit,
+                     "none" if est is None else f"{est:.2f} Mbit/s", client.rate.limited_windows,
+                     "-" if link is None else f"{link:.3f} Mbit/s")
         else:
             raise exc
 
@@ -729,24 +733,24 @@ class Service:
             self.on_cameras([c.camera for c in self.registry if c.camera is not None])
 
     async def _send(self, ws, client: Client, data: bytes) -> None:
-        if self.settings.fanout.client_mbit is not None:
-            await self._pace(client, len(data))
+        rate = pace_rate(client.rate, self.settings.fanout)
+        if rate is not None:
+            await self._pace(client, len(data), rate)
         await ws.send(data)
         client.sent(data)
         self.counters.bytes_out += len(data)
         self.counters.messages_out += 1
         await self._probe(ws, client)
 
-    async def _pace(self, client: Client, nbytes: int) -> None:
-        """Hold a message until the client's rate cap lets it go: a token bucket, FanoutSettings.pace_burst
-        seconds deep (the bytes sent to it by any time are at most the cap's since it connected, plus the
-        burst, plus one message)."""
-        f = self.settings.fanout
-        rate = f.client_mbit * 1e6 / 8  # bytes/s
+    async def _pace(self, client: Client, nbytes: int, rate: float) -> None:
+        """Hold a message until the client's pacing `rate` (bytes/s) lets it go: a token bucket,
+        FanoutSettings.pace_burst seconds deep (the bytes sent to it by any time are at most the rate's since
+        it connected, plus the burst, plus one message)."""
         now = time.perf_counter()
-        start = max(client.paced_until, now - f.pace_burst)
+        start = max(client.paced_until, now - self.settings.fanout.pace_burst)
         if start > now:
             self.counters.paced_seconds += start - now
+            client.rate.note_held()
             await asyncio.sleep(start - now)
         client.paced_until = start + nbytes / rate
 
@@ -828,6 +832,7 @@ class Service:
         enough. Its changes meanwhile wait in its pending sets (or its outbox)."""
         if not self.fanout.behind(client):
             return
+        client.rate.note_held()
         while self.fanout.behind(client):
             if client.probe is None:  # (the last answer came before the messages sent while it was awaited)
                 await self._probe(ws, client, now=True)
@@ -843,8 +848,7 @@ class Service:
             return
         mark = client.messages_sent
         client.probe = pong = await ws.ping()
-
-        acked = client.bytes_sent
+        acked, pinged = client.bytes_sent, time.perf_counter()
 
         def answered(f: asyncio.Future) -> None:
             client.probe = None
@@ -856,6 +860,7 @@ class Service:
                 if client.acked_at:
                     client.acked_mbit = 8 * (acked - client.acked_bytes) / (now - client.acked_at) / 1e6
                 client.acked_bytes, client.acked_at = acked, now
+            client.rate.answered(now - pinged, acked, now, self.settings.fanout)
             client.wake.set()
 
         pong.add_done_callback(answered)
