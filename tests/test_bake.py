@@ -101,6 +101,26 @@ def test_cli_json_has_every_field(tmp_path):
     assert (tmp_path / "g.npz").exists()
 
 
+def test_cli_scores_the_visible_probes(tmp_path):
+    """psao bake's recon figures score the probes visible_probes keeps, as the tests and bench_scenes do: a box
+    closed inside another holds no points (buried), and its probes are counted as buried, not as holes."""
+    toml = tmp_path / "nested.toml"
+    toml.write_text('[scene]\nname = "nested"\nao_distance = 1.0\n'
+                    '[[mesh]]\nname = "outer"\ngenerator = "box"\nsize = [4.0, 4.0, 4.0]\n'
+                    '[[mesh]]\nname = "inner"\ngenerator = "box"\nsize = [1.0, 1.0, 1.0]\n'
+                    '[[instance]]\nname = "outer"\nmesh = "outer"\n[[instance]]\nname = "inner"\nmesh = "inner"\n')
+    r = run_cli("bake", str(toml), "--density", "64", "--rays", "16", "--probes", "2000", "--probe-rays", "64",
+                "--out", str(tmp_path / "g.npz"), "--json")
+    assert r.returncode == 0, r.stderr
+    stats = json.loads(r.stdout.strip().splitlines()[-1])
+    scene = load_scene(toml)
+    probes = sample_probes(scene, 2000)
+    visible = visible_probes(scene, probes)
+    assert stats["probes"] == len(visible.instance) and stats["probes_buried"] == 2000 - stats["probes"]
+    assert stats["probes_buried"] >= (probes.instance == 1).sum() > 0  # every probe on the inner box
+    assert stats["hole_fraction"] == 0.0
+
+
 @pytest.mark.parametrize("args,needle", [
     (("bake", "missing_file.glb"), "not found"),
     (("bake", "builtin:nope"), "unknown scene"),

@@ -73,7 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ao-distance", type=float, default=None, help="override the scene's AO distance (world units)")
     p.add_argument("--out", type=Path, default=None, help="grid file to write (.npz); default out/<scene>-N<density>.npz")
     p.add_argument("--probes", type=int, default=default(ProbeSettings, "probes"),
-                   help="random surface probes for recon_mae (0 = skip)")
+                   help="random surface probes for recon_mae; the visible ones are scored, those buried in closed geometry "
+                        "left out (0 = skip)")
     p.add_argument("--probe-rays", type=int, default=default(ProbeSettings, "rays"), help="rays per probe for the ground truth")
     p.add_argument("--json", action="store_true", help="print one JSON object with the statistics as the last line")
 
@@ -88,6 +89,7 @@ def probe_settings(args: argparse.Namespace) -> ProbeSettings:
 def run(args: argparse.Namespace) -> int:
     from psao.scene import load_scene
     from psao.server.bake import bake_scene, reconstruction_error, sample_probes
+    from psao.server.points.buried import visible_probes
 
     probe = probe_settings(args)
     settings = bake_settings(args)
@@ -98,8 +100,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         tracer = result.tracer
         if probe.probes:
-            probes = sample_probes(scene, probe.probes)
-            stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=probe.rays))
+            # scored where a view can see: probes buried in closed geometry (no points there by design) are left out
+            probes = visible_probes(scene, sample_probes(scene, probe.probes))
+            stats["probes_buried"] = probe.probes - len(probes.instance)
+            if len(probes.instance):
+                stats.update(reconstruction_error(result.grid, scene, tracer, probes, rays=probe.rays))
     finally:
         result.tracer.close()
     out = out or check_output_path(Path("out") / f"{scene.name}-N{stats['density']:.4g}.npz", ".npz")
@@ -125,7 +130,8 @@ def _print_summary(stats: dict) -> None:
                      f"threads, {stats['cluster_workers_lost']} workers lost, peak worker memory "
                      f"{stats['cluster_peak_rss_bytes'] / 2**20:,.0f} MiB")
     if "recon_mae" in stats:
-        lines.append(f"reconstruction vs {stats['probe_rays']}-ray truth at {stats['probes']:,} probes: "
+        lines.append(f"reconstruction vs {stats['probe_rays']}-ray truth at {stats['probes']:,} visible probes "
+                     f"({stats['probes_buried']:,} buried left out): "
                      f"MAE {stats['recon_mae']:.4f}, p99 {stats['recon_p99']:.3f}, holes {100 * stats['hole_fraction']:.3f}%")
     lines.append(f"grid written to {stats['out']}")
     print("\n".join(lines), file=sys.stderr)
