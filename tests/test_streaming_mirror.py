@@ -147,7 +147,7 @@ def matched(server_log: list[dict], client_log: list[dict]) -> tuple[int, int, s
 def test_mirrors_equal_server_bit_for_bit(tmp_path):
     server_log = tmp_path / "server.jsonl"
     server = psao("serve", SCENE, "--density", "6", "--rays", "4", "--port", "0", "--tick-hz", "30",
-                  "--test-edits", "300", "--send-buffer", "8192", "--no-cull", "--digest-log", str(server_log),
+                  "--test-edits", "300", "--send-buffer", "8192", "--no-cull", "--no-adapt-rate", "--digest-log", str(server_log),
                   stdout=subprocess.DEVNULL,
                   stderr=open(tmp_path / "server.err", "w"))
     procs = [server]
