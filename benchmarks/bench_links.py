@@ -84,7 +84,7 @@ SWEEP_RTT_MS = (0.0, 50.0, 150.0)
 SWEEP_LOSS = (0.0, 0.01)
 SWEEP_MBIT = (2.0, 5.0, 20.0, None)
 UNIMPAIRED = LinkSettings()
-ISSUE_LINK = LinkSettings(rtt_ms=150.0, loss=0.01, mbit=5.0)  # issue 39's headline link
+ISSUE_LINK = LinkSettings(rtt_ms=150.0, loss=0.01, mbit=5.0)  # the headline link: rtt 150 ms, 1% loss, 5 Mbit/s
 QUICK = (UNIMPAIRED, LinkSettings(rtt_ms=50.0, mbit=20.0), ISSUE_LINK)
 DIGEST_EVERY = 4  # a client's digest-log line (tick, wall time) every this many Updates (each hashes the mirror)
 # in the scenarios, a line after every Update: the server logs a digest only after a message that leaves the
@@ -95,14 +95,14 @@ RECONNECT_TIMEOUT_S = 30.0  # a client's --reconnect-timeout: seconds without a 
 START_TIMEOUT_S = 600.0  # seconds for a client's snapshot and first Update (a hung run's bound only)
 LOOPBACK_KEEP = 0.8  # the loopback client's updates/s beside an impaired one over its updates/s alone
 FAST_KEEP = 0.9  # the unimpaired link's client's updates/s over the loopback client's beside it
-ISSUE_LAG_S = 0.3  # seconds behind the server at ISSUE_LINK (95th percentile), issue 39's target
-ISSUE_DENSITY = 256.0  # the grid density issue 39's target is set for (other densities: reported only)
+ISSUE_LAG_S = 0.3  # seconds behind the server at ISSUE_LINK (95th percentile), the target
+ISSUE_DENSITY = 256.0  # the grid density the lag target is set for (other densities: reported only)
 # --mixed: (name, link (None: loopback on the host), clients), every impaired client in a namespace of its own
 MIXED = (("fast", None, 4), ("issue", ISSUE_LINK, 3), ("slow", LinkSettings(mbit=2.0), 3))
 CAP_MBIT = 4.0  # --cap: psao serve --client-mbit
 STALL_LINK = LinkSettings(rtt_ms=50.0, mbit=20.0)  # --stall: the stalled client's link before and after
 STALL = LinkSettings(rtt_ms=50.0, loss=0.9999, mbit=20.0)  # the link while stalled (loss must be < 1)
-STALL_S = 10.0  # seconds the link stalls, issue 39's bad input
+STALL_S = 10.0  # seconds the link stalls, a bad-input scenario
 STALL_KEEP = 0.9  # the loopback client's updates/s during the stall over its updates/s before it
 STALL_RECONNECTS = 1  # the most reconnects of the stalled client (no reconnect loop)
 STALL_RSS_MB = 50.0  # the most the server's RSS may grow during the stall, MB (see stall())
@@ -679,7 +679,7 @@ def quality(args, work: Path) -> int:
     scored against RTAO (QUALITY_SPP) at the current pose: the scene's transforms and skinning at the
     server's time when the client wrote the frame (the server's --stats-json gives its time per wall
     time), so a client whose mirror lags (stale AO, stale transforms) loses PSNR for it. Verdicts: at
-    ISSUE_LINK the frames' mean PSNR within QUALITY_DB of the loopback client's (issue 39), every client
+    ISSUE_LINK the frames' mean PSNR within QUALITY_DB of the loopback client's, every client
     connected without a reconnect and with Updates through its window (nothing stalls)."""
     from psao.eval.client_frames import load_client_frames, score_client_frames
     from psao.eval.reference import ReferenceSettings
