@@ -28,12 +28,14 @@ import time
 import numpy as np
 
 from benchmarks.verdicts import Verdicts
+from psao.server.tick.base import Tick
 
 PATIENCE = 600.0  # seconds to wait for an event before giving up (a loaded machine is slow)
 
 
-class Holdable:
+class Holdable(Tick):
     """The server tick, which stops ticking (the scene holds still, nothing changes) once `hold` is set."""
+    threaded = places_instances = True
 
     def __init__(self, tick):
         self.tick = tick
@@ -83,7 +85,7 @@ async def run(args) -> int:
     scene = load_scene(args.scene)
     t0 = time.perf_counter()
     bake = bake_scene(scene, BakeSettings(density=args.density, rays=args.rays))
-    tick = Holdable(ServerTick(bake, TickSettings(rays=args.rays, budget=BudgetSettings(tick_hz=args.tick_hz))))
+    tick = Holdable(ServerTick(bake, TickSettings(rays=args.rays, budget=BudgetSettings()), tick_hz=args.tick_hz))
     print(f"baked {scene.name} at N={args.density:g}: {bake.stats['points_kept']:,} points "
           f"({time.perf_counter() - t0:.0f} s)", flush=True)
     service = Service(tick.tick.grid, scene_hash_bytes(scene.content_hash()),

@@ -326,9 +326,10 @@ def quality_scene(name: str, args) -> dict:
     tick_hz = 60.0
     period = 1.0 / tick_hz
     budgeted = ServerTick(bake, TickSettings(rays=args.quality_rays, workers=args.workers,
-                                             budget=BudgetSettings(tick_hz=tick_hz, round_rays=args.round_rays,
+                                             budget=BudgetSettings(round_rays=args.round_rays,
                                                                    exact_share=args.exact_share,
-                                                                   rays_per_tick=args.fixed_rays)))
+                                                                   rays_per_tick=args.fixed_rays)),
+                          tick_hz=tick_hz)
     times, samples_b, states_b, tick_times, sampled_ticks, kinds, stats = [], [], [], [], [], [], []
     try:
         start = time.perf_counter()

@@ -38,7 +38,7 @@ def shared_scene():
 
 @pytest.fixture
 def make_tick():
-    """make_tick("NAME", density, rays, bake_rays=rays, budget=None, baked_time=0.0, **tick_settings) ->
+    """make_tick("NAME", density, rays, bake_rays=rays, budget=None, baked_time=0.0, tick_hz=60, **tick_settings) ->
     (tick, bake): the server tick on a fresh bake of builtin:NAME, one tracer worker each, dirty sets drained.
     The test closes the tick."""
     from psao.scene import load_scene
@@ -46,10 +46,11 @@ def make_tick():
     from psao.server.settings import BakeSettings, TickSettings
     from psao.server.tick.server_tick import ServerTick
 
-    def make(name, density=32, rays=8, bake_rays=None, budget=None, baked_time=0.0, **tick_settings):
+    def make(name, density=32, rays=8, bake_rays=None, budget=None, baked_time=0.0, tick_hz=60.0, **tick_settings):
         bake = bake_scene(load_scene(f"builtin:{name}"),
                           BakeSettings(density=density, rays=bake_rays or rays, workers=1), show_progress=False)
-        tick = ServerTick(bake, TickSettings(rays=rays, workers=1, budget=budget, **tick_settings), baked_time=baked_time)
+        tick = ServerTick(bake, TickSettings(rays=rays, workers=1, budget=budget, **tick_settings), baked_time=baked_time,
+                          tick_hz=tick_hz)
         tick.grid.take_dirty()
         return tick, bake
     return make

@@ -134,6 +134,7 @@ def test_clients_leaving_during_the_handshake_leave_no_traceback(caplog):
 
 class PreparedEdits(RandomEdits):
     """Random edits as a prepare/apply tick (prepare off the loop, as the server tick runs)."""
+    threaded = True
 
     def prepare(self, t: float):
         return t

@@ -11,7 +11,7 @@ import pytest
 from psao.protocol import pointword as pw
 from psao.scene import load_scene
 from psao.server.bake import bake_scene
-from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, RefineQueue
+from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, RefineQueue, TraceBudget
 from psao.server.errors import ConfigError
 from psao.server.settings import BakeSettings, TickSettings
 from psao.server.tick.server_tick import ServerTick
@@ -29,9 +29,9 @@ def budgeted_tick(make_tick):
     the longest budget)."""
     def make(name, density, bake_rays, rays, round_rays, min_points, budget_ms=None):
         budget = BudgetSettings(budget_ms=1e-3 if budget_ms is None else budget_ms, round_rays=round_rays,
-                                min_points=min_points, rays_per_tick=1.0 if budget_ms is None else 0.0,
-                                **({} if budget_ms is None else {"tick_hz": SLOWEST_HZ}))
-        return make_tick(name, density, rays, bake_rays=bake_rays, budget=budget)[0]
+                                min_points=min_points, rays_per_tick=1.0 if budget_ms is None else 0.0)
+        return make_tick(name, density, rays, bake_rays=bake_rays, budget=budget,
+                         tick_hz=60.0 if budget_ms is None else SLOWEST_HZ)[0]
     return make
 
 
@@ -196,10 +196,20 @@ def test_compiled_priority_key_equals_the_queue_key_of_the_views(budgeted_tick):
         tick.close()
 
 
+@pytest.mark.parametrize("budget_ms,tick_hz", [(None, 0.0), (None, math.inf), (None, math.nan),
+                                               (None, TICK_HZ_RANGE[1] + 1), (None, TICK_HZ_RANGE[0] - 1),
+                                               (1e3 / 60.0 + 0.01, 60.0), (LONGEST_MS + 0.01, SLOWEST_HZ)])
+def test_a_tick_rate_out_of_range_or_shorter_than_the_budget_is_refused(budget_ms, tick_hz):
+    budget = BudgetSettings(budget_ms=budget_ms)
+    with pytest.raises(ConfigError, match="tick rate|tick budget"):
+        budget.check_rate(tick_hz)
+    with pytest.raises(ConfigError, match="tick rate|tick budget"):
+        TraceBudget(budget, tick_hz=tick_hz)
+    BudgetSettings(budget_ms=budget_ms and 1.0).check_rate(TICK_HZ_RANGE[1])  # in range: no error
+
+
 @pytest.mark.parametrize("field,value", [("budget_ms", math.nan), ("budget_ms", -1.0), ("budget_ms", 0.0),
-                                         ("budget_ms", 1e3 / BudgetSettings.tick_hz + 0.01), ("tick_hz", 0.0),
-                                         ("tick_hz", math.inf), ("tick_hz", TICK_HZ_RANGE[1] + 1),
-                                         ("tick_hz", TICK_HZ_RANGE[0] - 1), ("round_rays", 0), ("round_rays", 3),
+                                         ("round_rays", 0), ("round_rays", 3),
                                          ("round_rays", 2 * TickSettings.rays), ("min_points", 0),
                                          ("exact_share", 1.5), ("exact_share", -0.1), ("exact_share", math.nan),
                                          ("exact_points", -1), ("exact_cost", 0.0), ("exact_cost", -0.5),
@@ -248,7 +258,6 @@ def test_trace_budget_settles_where_the_trace_takes_the_budget(believed, told):
     """From a rate believed a hundred times too low or too high, on a tracer paying a fixed cost a call
     (a third of the budget), the calls come to take the budget (budget used 1): after one call where the
     tracer tells its rays' seconds apart, within 25 where it does not."""
-    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=6.0, round_rays=8, exact_share=0.0), rays_per_second=believed)
     spent = run_budget(b, 2e-3, 2e6, 40, told)
@@ -259,7 +268,6 @@ def test_trace_budget_is_not_thrown_by_slow_calls():
     """Two calls in a row slowed by something else (a first call's set-up, a busy core: 40 times their
     fixed cost) change no batch; three shrink the next ones, never enlarge any; then the batches come
     back to the budget."""
-    from psao.server.tick.budget import TraceBudget
 
     settled = run_budget(TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), 2e6), 1e-3, 2e6, 10)[-1]
     b = TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), 2e6)
@@ -274,7 +282,6 @@ def test_trace_budget_is_not_thrown_by_slow_calls():
 def test_trace_budget_traces_half_a_budget_beyond_a_fixed_cost_above_it():
     """A call's fixed cost above the budget: each tick still traces half a budget's worth of rays, not
     min_points."""
-    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=4.0, round_rays=8, exact_share=0.0), rays_per_second=2e6)
     spent = run_budget(b, 5e-3, 2e6, 10)
@@ -282,9 +289,8 @@ def test_trace_budget_traces_half_a_budget_beyond_a_fixed_cost_above_it():
 
 
 def test_trace_budget_keeps_a_share_when_late_and_progresses_below_one_point():
-    from psao.server.tick.budget import TraceBudget
 
-    b = TraceBudget(BudgetSettings(tick_hz=60.0), rays_per_second=2e6)
+    b = TraceBudget(BudgetSettings(), rays_per_second=2e6, tick_hz=60.0)
     for _ in range(100):
         b.observe_other(0.8)  # the other stages alone take 0.8 s: the tick cannot hold 60 Hz
     assert b.budget_s() == pytest.approx(0.2 / 0.8 * b.other_stages_s)
@@ -297,9 +303,8 @@ def test_trace_budget_keeps_a_share_when_late_and_progresses_below_one_point():
 def test_trace_budget_leaves_room_for_what_the_service_spends_a_tick():
     """The automatic budget is the period's headroom less the tick's other stages and less the median of
     what its service spent on the recent ticks besides them (observe_service)."""
-    from psao.server.tick.budget import TraceBudget
 
-    b = TraceBudget(BudgetSettings(tick_hz=60.0, headroom=0.85), rays_per_second=2e6)
+    b = TraceBudget(BudgetSettings(headroom=0.85), rays_per_second=2e6, tick_hz=60.0)
     b.observe_other(4e-3)
     alone = b.budget_s()
     assert alone == pytest.approx(0.85 / 60 - 4e-3)
@@ -537,7 +542,6 @@ def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
 
 
 def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
-    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5, exact_cost=0.5),
                     rays_per_second=1e6)
@@ -556,7 +560,6 @@ def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
 def test_a_set_number_of_rays_a_tick_holds_whatever_the_tracer_speed():
     """BudgetSettings.rays_per_tick: the batch is that many rays whatever rate the trace calls teach the
     budget (the quality study's load-independent budget)."""
-    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=10.0, rays_per_tick=8000.0, exact_share=0.5), rays_per_second=1e6)
     for rays, seconds in ((8000, 0.5), (8000, 0.01), (8000, 0.2)):  # alike calls, any speed
@@ -571,8 +574,8 @@ def test_a_tracer_without_visibility_parts_takes_no_static_hits(make_tick):
     them), and a trace part that carries static hits, or asks to keep them, is refused rather than traced
     without them."""
     from psao.server.tracer.base import TracePart
-    budget = BudgetSettings(tick_hz=SLOWEST_HZ, budget_ms=LONGEST_MS, round_rays=2, min_points=50)
-    tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp")
+    budget = BudgetSettings(budget_ms=LONGEST_MS, round_rays=2, min_points=50)
+    tick, bake = make_tick("courtyard", 16, 8, budget=budget, tracer="warp", tick_hz=SLOWEST_HZ)
     try:
         assert bake.static_hits is not None and tick.static_hits is None
         assert not tick.tracer.supports_static_hits
@@ -813,7 +816,6 @@ def test_whole_traces_from_static_hits_go_to_points_in_a_view_itself(budgeted_ti
 def test_trace_budget_pools_the_budgets_of_ticks_that_left_their_trace():
     """A tick that leaves its trace to the next (pool) adds its budget to the next trace call's, in time
     and in rays (a set number of rays a tick too); the call after it has its own budget again."""
-    from psao.server.tick.budget import TraceBudget
 
     b = TraceBudget(BudgetSettings(budget_ms=6.0, exact_share=0.0), rays_per_second=2e6)
     alone = b.rays_in_budget()

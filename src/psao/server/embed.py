@@ -78,11 +78,11 @@ class Server:
 
         s = self.settings
         bake = bake_scene(self.scene, s.bake)
-        budget = BudgetSettings(tick_hz=s.serve.tick_hz, round_rays=fitting_round_rays(s.bake.rays))
+        budget = BudgetSettings(round_rays=fitting_round_rays(s.bake.rays))
         budget.check(s.bake.rays)
         tick_settings = TickSettings(rays=s.bake.rays, seed=s.bake.seed, budget=budget, selection=True,
                                      tracer=s.bake.tracer, workers=s.bake.workers)
-        self.tick = ServerTick(bake, tick_settings, close_bake_tracer=True)
+        self.tick = ServerTick(bake, tick_settings, close_bake_tracer=True, tick_hz=s.serve.tick_hz)
         clock = (lambda: self._time) if s.clock == "app" else None
         driven = self.tick if s.animate else AtRest(self.tick)
         self.service = Service(self.tick.grid, scene_hash_bytes(self.scene.content_hash()), s.serve, tick=driven,

@@ -24,7 +24,7 @@ import numpy as np
 from psao.protocol.codecs import PAPER_ZSTD, Codec, ZstdSettings
 from psao.protocol.limits import DEFAULT_LIMITS, Limits
 from psao.protocol.updates import Layout
-from psao.server.tick.budget import BudgetSettings, check_tick_hz
+from psao.server.tick.budget import DEFAULT_TICK_HZ, BudgetSettings, check_tick_hz
 from psao.server.errors import ConfigError, GridError, TracerError
 from psao.server.points.sampling import SamplingSettings, check_detail_factor
 
@@ -303,7 +303,7 @@ class TickSettings:
 class ServeSettings:
     host: str = "127.0.0.1"
     port: int = 8765  # 0 picks a free port
-    tick_hz: float = BudgetSettings.tick_hz  # ticks per second, within budget.TICK_HZ_RANGE
+    tick_hz: float = DEFAULT_TICK_HZ  # ticks per second, within budget.TICK_HZ_RANGE (its tick runs at this rate)
     codec: Codec = Codec.ZSTD_STREAM
     layout: Layout = Layout.PACKED
     zstd: ZstdSettings = PAPER_ZSTD

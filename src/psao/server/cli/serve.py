@@ -104,7 +104,8 @@ def _budget(args) -> BudgetSettings:
     """The tick's time budget from --tick-hz, --tick-budget-ms and --tick-rays (without it the default round,
     or the largest divisor of --rays below it), checked against --rays (BudgetSettings.check: ConfigError)."""
     round_rays = args.tick_rays if args.tick_rays is not None else fitting_round_rays(args.rays)
-    b = BudgetSettings(tick_hz=args.tick_hz, budget_ms=args.tick_budget_ms, round_rays=round_rays)
+    b = BudgetSettings(budget_ms=args.tick_budget_ms, round_rays=round_rays)
+    b.check_rate(args.tick_hz)
     b.check(args.rays)
     return b
 
@@ -154,7 +155,7 @@ def _ticking(args, bake_with: BakeSettings, scene, report=None):
         from psao.server.tick.refine import BackgroundTracer, ClusterRefiner
         refiner = ClusterRefiner(bake.tracer if bake_with.cluster is not None else BackgroundTracer(bake.tracer))
     # closes the bake's tracer (unless the refiner keeps its cluster), starts its own
-    tick = ServerTick(bake, settings, close_bake_tracer=refiner is None, refiner=refiner)
+    tick = ServerTick(bake, settings, close_bake_tracer=refiner is None, refiner=refiner, tick_hz=args.tick_hz)
     if not args.animate:
         tick = AtRest(tick)
     logging.getLogger("psao.serve").info(

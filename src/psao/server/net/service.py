@@ -67,14 +67,12 @@ from psao.server.errors import ConfigError
 from psao.server.net.fanout import Fanout, Parts
 from psao.server.net.rate import pace_rate
 from psao.server.settings import ServeSettings
+from psao.server.tick.base import Tick, as_tick
 from psao.server.tick.summary import TickSummary
 
 log = logging.getLogger("psao.serve")
 
 STATUS_HZ = 4.0  # Status messages a second at most, per connection, while a server starts
-TickFn = Callable[[object, float], None]
-
-
 class StaticTransforms:
     """Instance transforms of a server without animation: they change only by SceneEdit."""
 
@@ -89,6 +87,13 @@ class StaticTransforms:
             raise EditError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
         self.array = self.array.copy()
         self.array[instance] = transform
+
+
+def scene_editor(tick: Tick | None, transforms) -> Callable[[int, np.ndarray], None] | None:
+    """What applies SceneEdits: the tick when it does, else the service's own StaticTransforms; None: nothing."""
+    if tick is not None and tick.applies_edits:
+        return tick.edit
+    return transforms.edit if isinstance(transforms, StaticTransforms) else None
 
 
 @dataclass
@@ -112,9 +117,10 @@ class Counters:
 
 
 class Service:
-    """`tick(grid, t)` runs at the tick rate; a tick object with `prepare(t)` and `apply(plan)` (the
-    server tick of psao.server.tick.server_tick) runs its prepare in a worker thread (it writes no grid, so senders
-    keep reading the grid meanwhile) and its apply on the loop. The prepare runs on a thread of its own and
+    """`tick` (a psao.server.tick.base.Tick; a bare function `fn(grid, t)` is wrapped as one) runs at the tick
+    rate: `tick(grid, t)` on the loop, or for a threaded tick (the server tick of psao.server.tick.server_tick)
+    its prepare in a worker thread (it writes no grid, so senders keep reading the grid meanwhile) and its
+    apply on the loop. The prepare runs on a thread of its own and
     the shared Updates' encodes on another (the next tick's prepare goes on meanwhile), so a tick never
     queues behind the clients' own encodes (which run on the loop's default executor, one per client). `transforms()` gives the instance
     transforms to send; `on_cameras([(view, proj), ...])` (default: the tick's `set_cameras`) hears the
@@ -125,7 +131,7 @@ class Service:
     grid None (and scene_hash None): a starting service (see the module); `progress()` -> (fraction 0..1,
     text) says what the start-up is doing, for the Status messages."""
 
-    def __init__(self, grid, scene_hash: bytes | None, settings: ServeSettings, tick: TickFn | None = None,
+    def __init__(self, grid, scene_hash: bytes | None, settings: ServeSettings, tick: Tick | Callable | None = None,
                  transforms: Callable[[], np.ndarray] | None = None,
                  on_scene_edit: Callable[[int, np.ndarray], None] | None = None,
                  on_cameras: Callable[[list], None] | None = None,
@@ -139,14 +145,16 @@ class Service:
         self.scene_blob = scene_blob
         self.grid = grid
         self.settings = settings
-        self.tick_fn = tick
+        self.tick_fn = tick = as_tick(tick)
+        if tick is not None:
+            tick.set_tick_rate(settings.tick_hz)
         if transforms is None and grid is not None:
             transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
-        self.on_scene_edit = on_scene_edit or getattr(transforms, "edit", None)
+        self.on_scene_edit = on_scene_edit or scene_editor(tick, transforms)
         if settings.allow_edits and self.on_scene_edit is None and grid is not None:
             raise ConfigError("edits are allowed but nothing applies them")
-        self.on_cameras = on_cameras or getattr(tick, "set_cameras", None)
+        self.on_cameras = on_cameras or (tick.set_cameras if tick is not None else None)
         # the config of sessions made before the scene is known: tokens, codecs, limits, no scene hash yet
         self._early_config = ServerConfig(None, settings.token, settings.edit_token if settings.allow_edits else "",
                                           settings.codec, settings.layout, settings.zstd, settings.limits)
@@ -267,7 +275,7 @@ class Service:
         else:
             self._loop.call_soon_threadsafe(fn, *args)
 
-    def replace_grid(self, grid, tick: TickFn | None = None, transforms: Callable[[], np.ndarray] | None = None,
+    def replace_grid(self, grid, tick: Tick | Callable | None = None, transforms: Callable[[], np.ndarray] | None = None,
                      final: bool = True, close_previous: bool = False) -> None:
         """Serve `grid` (ticked by `tick`, instances placed by `transforms`, by default the tick's) from the
         next tick on; callable from any thread. Connections open then are closed with GRID_REPLACED_CLOSE
@@ -275,8 +283,12 @@ class Service:
         `close_previous`: the tick served until then is closed (on a worker thread) once it is replaced."""
         if self.grid is not None and len(grid.instances) != len(self.grid.instances):
             raise ConfigError(f"a replacement grid has {len(grid.instances)} instances, the served one {len(self.grid.instances)}")
-        self._replacement = (grid, tick, transforms if transforms is not None else getattr(tick, "transforms", None),
-                             final, close_previous)
+        tick = as_tick(tick)
+        if tick is not None:
+            tick.set_tick_rate(self.settings.tick_hz)
+        if transforms is None and tick is not None and tick.places_instances:
+            transforms = tick.transforms
+        self._replacement = (grid, tick, transforms, final, close_previous)
 
     def _swap_grid(self) -> None:
         """Between ticks, on the loop (nothing else runs meanwhile): the new grid, tick and transforms in,
@@ -292,8 +304,8 @@ class Service:
             transforms = StaticTransforms(self.transforms() if self.transforms is not None else
                                           np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
-        self.on_scene_edit = getattr(tick, "edit", None) or getattr(self.transforms, "edit", None)
-        self.on_cameras = getattr(tick, "set_cameras", None)
+        self.on_scene_edit = scene_editor(tick, transforms)
+        self.on_cameras = tick.set_cameras if tick is not None else None
         counters, self.fanout = self.fanout.counters, Fanout(self.config, self.settings.fanout)
         self.fanout.counters = counters
         self._digest_of = None
@@ -303,7 +315,7 @@ class Service:
             self.registry.remove(client)
             for task in tasks:
                 task.cancel()
-        if close_previous and previous is not None and hasattr(previous, "close"):
+        if close_previous and previous is not None:
             self._closing.append(asyncio.ensure_future(asyncio.to_thread(previous.close)))
         self._cameras_changed()
         self._grid_ready.set()
@@ -328,7 +340,7 @@ class Service:
         while not stop.is_set():
             self.time = self.clock() if self.clock is not None else time.perf_counter() - start
             t0 = time.perf_counter()
-            if own_s is not None and hasattr(self.tick_fn, "observe_service"):
+            if own_s is not None and self.tick_fn is not None:
                 self.tick_fn.observe_service(own_s + max(t0 - due, 0.0))
             if self._replacement is not None and self.config is not None:
                 self._swap_grid()
@@ -338,7 +350,7 @@ class Service:
                 continue
             self._merge_cameras()
             stats = None
-            if hasattr(self.tick_fn, "prepare") and hasattr(self.tick_fn, "apply"):
+            if self.tick_fn is not None and self.tick_fn.threaded:
                 plan = await self._on_tick_thread(self.tick_fn.prepare, self.time)
                 stats = self.tick_fn.apply(plan)
             elif self.tick_fn is not None:
@@ -356,7 +368,7 @@ class Service:
             # a tick late by up to a period is made up for by the next one starting at once (ticks of uneven
             # length keep the rate on average); later than that, the schedule restarts from then (no burst)
             next_at = max(next_at + period, now - period)
-            own_s, due = now - t0 - getattr(stats, "seconds_total", 0.0), max(next_at, now)
+            own_s, due = now - t0 - (stats.seconds_total if stats is not None else 0.0), max(next_at, now)
             await asyncio.sleep(max(next_at - now, 0.0))
 
     async def _fan_out(self, bucket_ids: np.ndarray, cell_slots: np.ndarray) -> None:
@@ -427,7 +439,7 @@ class Service:
                   "seconds_encode": c.encode_seconds}
         since = {k: v - c.at_last_record.get(k, 0) for k, v in totals.items()}
         c.at_last_record = totals
-        record = stats.to_dict() if hasattr(stats, "to_dict") else {}
+        record = stats.to_dict() if stats is not None else {}
         # wall: wall-clock seconds (time.time()) once the tick is applied, comparable with a client's digest log
         record.update(service_tick=self.tick, time=self.time, wall=time.time(), buckets_dirty=buckets_dirty, cells_dirty=cells_dirty,
                       seconds_tick=seconds, bytes_sent=since["bytes_out"], cells_sent=since["cells_sent"],

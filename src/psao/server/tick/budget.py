@@ -40,6 +40,7 @@ from psao.protocol import pointword as pw
 from psao.server.errors import ConfigError
 
 TICK_HZ_RANGE = (5.0, 60.0)  # ticks per second a service, and the budgeted tick behind it, may run at
+DEFAULT_TICK_HZ = 60.0  # ServeSettings.tick_hz's default; the service tells its tick the rate (Tick.set_tick_rate)
 
 
 def check_tick_hz(tick_hz: float) -> None:
@@ -51,9 +52,8 @@ def check_tick_hz(tick_hz: float) -> None:
 
 @dataclass
 class BudgetSettings:
-    # the service's tick rate (ServeSettings.tick_hz takes its default from here), within TICK_HZ_RANGE: the
-    # automatic budget is a share of its period, a set one at most the period
-    tick_hz: float = 60.0
+    # (the tick rate is the service's, ServeSettings.tick_hz: the automatic budget is a share of its period, a
+    # set one at most the period; check_rate)
     budget_ms: float | None = None  # milliseconds of tracing per tick, within (0, period]; None = automatic
     # (headroom x period - other stages)
     headroom: float = 0.85  # automatic budget: this share of the tick period, less the other stages (the tick's
@@ -98,13 +98,19 @@ class BudgetSettings:
     # exact_cost a ray) whatever the time they take, instead of what the time budget allows; for quality
     # studies that must not depend on the machine's load (benchmarks.bench_realtime --fixed-rays)
 
-    def check(self, rays: int) -> None:
-        """ConfigError for a setting out of range, naming it; `rays`: the tick's target rays per point."""
-        check_tick_hz(self.tick_hz)
-        period_ms = 1e3 / self.tick_hz
+    def check_rate(self, tick_hz: float) -> None:
+        """ConfigError unless `tick_hz` is within TICK_HZ_RANGE and a set budget within (0, its period]."""
+        check_tick_hz(tick_hz)
+        period_ms = 1e3 / tick_hz
         if self.budget_ms is not None and not (math.isfinite(self.budget_ms) and 0 < self.budget_ms <= period_ms):
-            raise ConfigError(f"tick budget must be within (0, {period_ms:g}] ms (the tick period at {self.tick_hz:g} "
+            raise ConfigError(f"tick budget must be within (0, {period_ms:g}] ms (the tick period at {tick_hz:g} "
                               f"Hz; psao serve --tick-budget-ms), got {self.budget_ms}")
+
+    def check(self, rays: int) -> None:
+        """ConfigError for a setting out of range, naming it; `rays`: the tick's target rays per point. (The
+        budget against the tick period: check_rate.)"""
+        if self.budget_ms is not None and not (math.isfinite(self.budget_ms) and self.budget_ms > 0):
+            raise ConfigError(f"tick budget must be a number of ms > 0 (psao serve --tick-budget-ms), got {self.budget_ms}")
         if not 1 <= self.round_rays <= rays or rays % self.round_rays:
             raise ConfigError(f"round rays must divide the tick's rays ({rays}): each round traces one equal slice of "
                               f"the target ray set (psao serve --tick-rays, --rays), got {self.round_rays}")
@@ -132,8 +138,11 @@ def fitting_round_rays(rays: int, most: int = BudgetSettings.round_rays) -> int:
 class TraceBudget:
     """Points per tick from measured tracing speed."""
 
-    def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 0.0):
+    def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 0.0,
+                 tick_hz: float = DEFAULT_TICK_HZ):
+        settings.check_rate(tick_hz)
         self.settings = settings
+        self.tick_hz = tick_hz  # the service's tick rate (ServerTick.set_tick_rate)
         self.rays_per_second = max(float(rays_per_second), 1e3)  # the rays' own rate, fixed costs apart
         self.overhead_s = max(float(overhead_s), 0.0)  # what a call costs besides its rays
         self.other_stages_s = 0.0  # animate + select + grid: the median of the recent ticks
@@ -151,7 +160,7 @@ class TraceBudget:
         # Never below `floor` of the period, nor below `floor` of the tick as it really runs: when the
         # other stages alone overrun the period, tracing keeps its share instead of starving.
         others = self.other_stages_s + self.service_s
-        return max(s.headroom / s.tick_hz - others, s.floor / s.tick_hz, s.floor / (1 - s.floor) * others)
+        return max(s.headroom / self.tick_hz - others, s.floor / self.tick_hz, s.floor / (1 - s.floor) * others)
 
     def exact_rays(self, rays: int) -> float:
         """What a whole trace of `rays` rays from static hits costs, in rays of the measured rate."""

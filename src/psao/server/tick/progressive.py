@@ -127,7 +127,7 @@ class Startup:
         served before is closed once it is replaced."""
         with self._lock:
             if self._closed:
-                if hasattr(tick, "close"):
+                if tick is not None:
                     tick.close()
                 raise Stopped()
             if tick is not None:
@@ -140,8 +140,7 @@ class Startup:
             self._closed = True
             ticks, self._ticks = self._ticks, []
         for tick in ticks:
-            if hasattr(tick, "close"):
-                tick.close()
+            tick.close()
 
 
 class BackgroundBake:

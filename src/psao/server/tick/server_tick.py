@@ -3,7 +3,7 @@
     tick = ServerTick(bake_result, TickSettings())   # static Embree scene built once, workers started
     grid = tick.grid                                   # the grid it writes (bake.grid)
     tick.set_cameras([(view, proj), ...])              # from the clients' Camera messages
-    tick(grid, t)                                      # one tick at scene time t (the service's TickFn)
+    tick(grid, t)                                      # one tick at scene time t (a psao.server.tick.base.Tick)
     plan = tick.prepare(t); tick.apply(plan)           # the same in two halves: prepare writes no grid
     tick.transforms()                                  # (n, 4, 4) float32, for every Update
     tick.edit(instance, transform)                     # a scene edit: applied by the next prepare
@@ -57,7 +57,8 @@ from psao.server.tick.animate import (Frame, PlacedPoints, SceneAnimator, Skinne
 from psao.server.arrays import rows
 from psao.server.bake import BakeResult
 from psao.server.geometry import scene_center, scene_point_ids, to_world
-from psao.server.tick.budget import RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
+from psao.server.tick.budget import DEFAULT_TICK_HZ, RefineQueue, TraceBudget, first_by_key, first_within, measure_tracer
+from psao.server.tick.base import Tick
 from psao.server.tick.summary import view_wait_counts
 from psao.server.errors import ConfigError, TracerError
 from psao.server.grid import NO_POINT, Grid
@@ -124,17 +125,24 @@ class TickPlan:
     view_waits: list | None = None  # TickStats.view_waits
 
 
-class ServerTick:
+class ServerTick(Tick):
+    threaded = places_instances = applies_edits = True
+
     def __init__(self, bake: BakeResult, settings: TickSettings | None = None, baked_time: float | None = 0.0,
-                 close_bake_tracer: bool = True, trust_bake: bool = False, refiner=None):
+                 close_bake_tracer: bool = True, trust_bake: bool = False, refiner=None,
+                 tick_hz: float = DEFAULT_TICK_HZ):
         """`baked_time`: the scene time at which the bake traced the grid (its AO then counts as the first
         sync when the bake used the same rays and seed, or always with `trust_bake`: e.g. a 128-ray bake
         kept for the static parts while ticks trace fewer rays; a point re-traced later then jumps to the
         tick's estimate once), or None to re-trace everything visible on the first tick. The bake's
         tracer saw the moving instances as static: it is closed unless told not to. `refiner` (budgeted tick
-        only): traces waiting static points elsewhere as well, e.g. psao.server.tick.refine.ClusterRefiner."""
+        only): traces waiting static points elsewhere as well, e.g. psao.server.tick.refine.ClusterRefiner.
+        `tick_hz`: the rate it is ticked at until its service tells it its own (set_tick_rate)."""
         self.settings = settings or TickSettings()
         self.settings.check()
+        if self.settings.budget is not None:
+            self.settings.budget.check_rate(tick_hz)
+        self.tick_hz = tick_hz
         self._closed = False
         self.scene = bake.scene
         self.grid = bake.grid
@@ -275,11 +283,11 @@ class ServerTick:
         pos, nrm = self.world_points(frame, sample)
         self.pose_tracer(frame)
         rate = measure_tracer(self.tracer, pos, nrm, sample, self._round_settings())
-        self.budget = TraceBudget(self.settings.budget, rate)  # (its fixed cost: learnt from the ticks)
+        self.budget = TraceBudget(self.settings.budget, rate, tick_hz=self.tick_hz)  # (its fixed cost: learnt from the ticks)
         self._queue_now = (self.queue.count, 0.0)  # queue length, oldest wait (ms) as the last trace found them
         log.info("tick budget: tracer measured at %.2f Mrays/s (a call of %d points); %s", rate / 1e6, len(sample),
                  f"{self.settings.budget.budget_ms:g} ms per tick" if self.settings.budget.budget_ms else
-                 f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.settings.budget.tick_hz:g} s less the other stages)")
+                 f"automatic budget ({self.settings.budget.headroom:.0%} of 1/{self.tick_hz:g} s less the other stages)")
         self._pose_bake()
         self._warm_up_select()
 
@@ -310,7 +318,7 @@ class ServerTick:
         points, which leave the ticks' answers as they are."""
         if self.last_frame is None or not self.kinds.moving:
             return
-        frame = self.animator.frame(self.last_frame.t + 1.0 / self.settings.budget.tick_hz)
+        frame = self.animator.frame(self.last_frame.t + 1.0 / self.tick_hz)
         self._motion_candidates(frame)
         self.priority(frame, np.flatnonzero(self.tracked)[:16])
 
@@ -750,6 +758,13 @@ class ServerTick:
         self.stats_history.append(stats)
         return stats
 
+    def set_tick_rate(self, tick_hz: float) -> None:
+        """The service ticks this at `tick_hz` (ConfigError if the trace budget does not fit its period)."""
+        if self.budget is not None:
+            self.settings.budget.check_rate(tick_hz)
+            self.budget.tick_hz = tick_hz
+        self.tick_hz = tick_hz
+
     def observe_service(self, seconds: float) -> None:
         """What the service spent on the last tick besides prepare and apply (its fan-out, the clients'
         messages, waking the next tick): the automatic trace budget leaves it room (TraceBudget.observe_service)."""
@@ -872,15 +887,16 @@ class ServerTick:
         return int(write.sum())
 
 
-class AtRest:
+class AtRest(Tick):
     """The server tick with the scene held at t = 0 (no animation plays): refinement, and re-tracing what
     scene edits move."""
+    threaded = places_instances = applies_edits = True
 
     def __init__(self, tick: ServerTick):
         self.tick = tick
         self.grid = tick.grid
         self.set_cameras, self.transforms, self.apply, self.close = tick.set_cameras, tick.transforms, tick.apply, tick.close
-        self.edit, self.observe_service = tick.edit, tick.observe_service
+        self.edit, self.observe_service, self.set_tick_rate = tick.edit, tick.observe_service, tick.set_tick_rate
 
     def prepare(self, t: float):
         return self.tick.prepare(0.0)

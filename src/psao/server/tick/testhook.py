@@ -1,6 +1,6 @@
 """Random grid edits for tests (`psao serve --test-edits K`): AO changes, moves, frees and allocations.
 
-Both are per-tick hooks with the service's tick signature `tick(grid, t) -> None` and edit the grid only
+Both are ticks on the service's event loop (psao.server.tick.base.Tick: `tick(grid, t) -> None`) and edit the grid only
 through its public edit API, so everything the streaming layer sees (dirty cells and buckets, cells
 allocated and freed, capacity growth) is what real ticks produce.
 
@@ -21,6 +21,7 @@ import numpy as np
 from psao.scene.model import Scene
 from psao.protocol import gridformat as gf
 from psao.server.grid import NO_POINT, Grid, PointTable
+from psao.server.tick.base import Tick
 
 
 @dataclass
@@ -76,7 +77,7 @@ def _inside(grid: Grid, inst: int, pos: np.ndarray) -> np.ndarray:
     return np.clip(pos, lo, hi)
 
 
-class RandomEdits:
+class RandomEdits(Tick):
     def __init__(self, k: int, seed: int = 0, mix: EditMix | None = None):
         self.k = int(k)
         self.rng = np.random.default_rng(seed)
@@ -115,7 +116,7 @@ def random_edits(grid: Grid, rng: np.random.Generator, k: int, mix: EditMix | No
         grid.insert_points(inst, pos, normals, rng.integers(0, 256, len(near)).astype(np.uint32), ids)
 
 
-class MovingOccluder:
+class MovingOccluder(Tick):
     """A sphere of radius `radius` (world units) on a closed loop through the scene. It only changes AO,
     so the points' slots never change and their world positions are computed once."""
 
