@@ -17,8 +17,9 @@ over the point ids, so it can never hold more entries than the scene has points.
 Priority (`pick`): points in some client's extended view before points outside every view; among those,
 points whose history was reset (nothing traced since their neighbourhood changed) before points being
 refined; within each of those, points in a view itself (without its margins) before points only in its
-margins; then the points whose AO changed most since they were last traced (estimates the resets give),
-the oldest waiting first where those are alike.
+margins; then the oldest waiting first, a point whose AO changed more since it was last traced (estimates
+the resets give) going ahead of points that waited up to CHANGE_CREDIT_S longer: a bound on how long a
+point in a view waits beyond its turn.
 
 `TraceBudget` sizes the batch from the tracer's measured throughput: seconds = fixed cost + rays / rate,
 each the median of the recent ticks' own trace calls, the tracer telling the seconds its rays took apart
@@ -246,7 +247,9 @@ def measure_tracer(tracer, positions, normals, ids, trace_settings) -> float:
 HIDDEN_S = 4e9  # priority key offsets (seconds, beyond any wait): a point out of every view,
 REFINING_S = 2e9  # a point that holds rays since its last reset,
 MARGIN_S = 1e9  # a point in a view's margin only (fov and distance margins: seen once the camera turns)
-CHANGE_S = 100.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key
+CHANGE_S = 100.0  # seconds of waiting a change estimate of 1 (RefineQueue.change) is worth in the key,
+CHANGE_CREDIT_S = 0.1  # up to this: a change moves a point ahead of those that waited at most this much longer,
+# so no point in a view waits more than this beyond its turn in first-come order for points that change more
 MAX_CHANGE = 1000.0  # change estimates accumulate up to this
 
 
@@ -467,7 +470,7 @@ class RefineQueue:
     def pick(self, ids: np.ndarray, visible: np.ndarray, k: int, core: np.ndarray | None = None) -> np.ndarray:
         """The first `k` of `ids` in priority order: in some extended view before out of every view; among
         those, reset before refining; within each, a view's own points (`core`) before those only in its
-        margins; then the largest estimated change, the oldest wait."""
+        margins; then the oldest wait, less a credit for the estimated change (at most CHANGE_CREDIT_S)."""
         if len(ids) == 0:
             return ids
         return first_by_key(ids, self.key(ids, visible, float(self.waiting_since[ids].min()), core), k)
@@ -476,11 +479,12 @@ class RefineQueue:
         """Priority key of `ids` (smaller first): HIDDEN_S if out of every view, MARGIN_S if visible only in
         a view's margins (not in `core`; None: every visible point is), plus REFINING_S if the point holds
         rays since its last reset, plus its wait start less `base`, less CHANGE_S per unit of estimated
-        change since its last trace. (select_kernels.priority_kernel computes the same in one pass, with
+        change since its last trace (at most CHANGE_CREDIT_S). (select_kernels.priority_kernel computes the same in one pass, with
         the views.)"""
         tier = np.where(visible, 0.0 if core is None else np.where(core, 0.0, MARGIN_S), HIDDEN_S)
         return ((tier + (self.rays[ids] > 0) * REFINING_S)
-                + ((self.waiting_since[ids] - base) - self.change[ids].astype(np.float64) * CHANGE_S))
+                + ((self.waiting_since[ids] - base)
+                   - np.minimum(self.change[ids].astype(np.float64) * CHANGE_S, CHANGE_CREDIT_S)))
 
     def add(self, ids: np.ndarray, visibility: np.ndarray, rays: int, now: float, slices: int = 1) -> np.ndarray:
         """Accumulate, for distinct `ids`, one round (each point's slice `next_slice`, of `rays` rays; or `slices` slices at once, e.g.

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from psao.server.tick.budget import CHANGE_S, HIDDEN_S, MARGIN_S, REFINING_S
+from psao.server.tick.budget import CHANGE_CREDIT_S, CHANGE_S, HIDDEN_S, MARGIN_S, REFINING_S
 from psao.server.tick.select_constants import INSIDE_CHANGE
 
 wp.config.quiet = True
@@ -25,6 +25,7 @@ HIDDEN = wp.constant(HIDDEN_S)
 MARGIN = wp.constant(MARGIN_S)
 REFINING = wp.constant(REFINING_S)
 CHANGE = wp.constant(CHANGE_S)
+CHANGE_CREDIT = wp.constant(CHANGE_CREDIT_S)
 INSIDE = wp.constant(INSIDE_CHANGE)
 # priority_kernel's verdicts on a block of space against the union of the clients' extended views
 UNKNOWN = wp.constant(0)  # not classified yet (this call)
@@ -314,7 +315,7 @@ def priority_kernel(ids: wp.array(dtype=wp.int64), world: wp.array(dtype=wp.vec3
             tier = wp.float64(MARGIN)
         if rays[i] > 0:
             tier = tier + wp.float64(REFINING)
-        key[j] = tier + ((since[i] - base) - wp.float64(change[i]) * wp.float64(CHANGE))
+        key[j] = tier + ((since[i] - base) - wp.min(wp.float64(change[i]) * wp.float64(CHANGE), wp.float64(CHANGE_CREDIT)))
 
 
 class Arrays:
