@@ -119,6 +119,30 @@ def test_link_delay_and_rate_are_floors():
 
 
 
+
+@needs_links
+def test_video_frames_cross_the_link_whole_and_no_sooner_than_its_round_trip(tmp_path):
+    """The video competitor's frames over psao.eval.videolink: every frame asked for arrives with the packets
+    the server sent, each no sooner than the link's round trip after its request, and no faster than its rate."""
+    from psao.eval.videolink import VideoLinkServer, read_receive_log
+
+    settings = LinkSettings(rtt_ms=120, mbit=2)
+    frames = [[bytes([k]) * (20000 + 97 * k), bytes([255 - k]) * 11] for k in range(24)]
+    log_path = tmp_path / "video.json"
+    with impaired_link(settings) as link, VideoLinkServer(frames, link.host_address) as server:
+        proc = subprocess.run(link.command([sys.executable, "-m", "psao.eval.videolink", link.host_address,
+                                            server.port, "--fps", "30", "--frames", len(frames), "--out", log_path]),
+                              capture_output=True, text=True, timeout=HANG_S)
+    assert proc.returncode == 0, proc.stderr
+    log = read_receive_log(log_path)
+    assert log.arrived == len(frames) and log.packets == frames
+    trips = [a - r for r, a in zip(log.requests, log.arrivals)]
+    assert min(trips) >= 0.12  # the request up, the frame down: a round trip at least
+    payload = sum(len(p) for ps in frames for p in ps)
+    # the frames after the first at 2 Mbit/s: longer than the requests take (24 at 30 fps), so the rate shows
+    assert log.arrivals[-1] - log.arrivals[0] >= (payload - sum(map(len, frames[0]))) * 8 / 2e6
+
+
 LEFT = re.compile(r"left \(said Bye\).*link-limited in (?P<windows>\d+) windows, at (?P<link>[-0-9.]+)")
 
 
