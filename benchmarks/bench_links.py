@@ -33,7 +33,8 @@ psao.eval.digests.compare_digests; the server runs with SCENARIO_SERVE):
 - `--mixed` (mixed.json): the server listens on every interface; one loopback client runs alone, then the
   MIXED clients start at once: 4 on loopback (the fast ones), 3 behind ISSUE_LINK and 3 behind 2 Mbit/s,
   every impaired client in a namespace and behind a link of its own. Per client the figures above, its
-  digests compared/differing and its link's packets; the server's ticks/s in both windows. Verdicts: each
+  digests compared/differing and its link's packets; the server's ticks/s in both windows, and the cores
+  the server (its CPU ms per tick), the clients and the rest of the machine used in each (CpuMeter). Verdicts: each
   fast client keeps FAST_KEEP of the lone client's updates/s, every client's digests equal the server's,
   and none reconnects or stops receiving Updates.
 - `--cap` (cap.json): `--mixed` against `psao serve --client-mbit CAP_MBIT`, the same figures and verdicts.
@@ -65,6 +66,7 @@ import argparse
 import contextlib
 import itertools
 import json
+import os
 import re
 import signal
 import socket
@@ -83,7 +85,8 @@ from benchmarks.verdicts import Verdicts
 from psao.eval.digests import compare_digests
 from psao.eval.errors import EvalError
 from psao.eval.links import LinkSettings, impaired_link, links_unavailable
-from psao.eval.processes import ServeExited, ServerProcess, interrupt_on_sigterm, kill_group, spawn
+from psao.eval.processes import (ServeExited, ServerProcess, interrupt_on_sigterm, kill_group, set_session_nice,
+                                 spawn)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "builtin:courtyard"
@@ -97,7 +100,7 @@ DIGEST_EVERY = 4  # a client's digest-log line (tick, wall time) every this many
 # in the scenarios, a line after every Update: the server logs a digest only after a message that leaves the
 # client nothing pending, and every one of those is compared
 SCENARIO_DIGEST_EVERY = 1
-CLIENT_NICE = 10  # clients run below the server, as remote machines would not take its CPU
+CLIENT_NICE = 10  # clients run below the server (set_session_nice), as remote machines would not take its CPU
 RECONNECT_TIMEOUT_S = 30.0  # a client's --reconnect-timeout: seconds without a message before it gives up
 START_TIMEOUT_S = 600.0  # seconds for a client's snapshot and first Update (a hung run's bound only)
 LOOPBACK_KEEP = 0.8  # the loopback client's updates/s beside an impaired one over its updates/s alone
@@ -171,6 +174,7 @@ class ClientRun:
                            "--digest-log", log, "--digest-every", str(digest_every), *map(str, extra)],
                           wrap=[*wrap, "nice", "-n", str(CLIENT_NICE)], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, cwd=ROOT)
+        set_session_nice(self.proc.pid, CLIENT_NICE)  # (its nice alone weighs nothing against the server's session)
         self.report: dict = {}
         self.err = ""
 
@@ -245,14 +249,28 @@ def measure(clients: dict[str, tuple[str, list[str]]], seconds: float, work: Pat
             scenario: bool = False) -> tuple[dict[str, ClientRun], float]:
     """Clients for each of `clients` (where -> (url, wrap)) started together and run `seconds` after the last
     one's first Update; (runs, window start). `scenario`: see start_clients."""
+    runs, t_from, _ = measure_cpu(clients, seconds, work, tag, scenario)
+    return runs, t_from
+
+
+def measure_cpu(clients: dict[str, tuple[str, list[str]]], seconds: float, work: Path, tag: str,
+                scenario: bool = False, server_pid: int | None = None) -> tuple[dict[str, ClientRun], float, dict]:
+    """measure(), and with `server_pid` the cores used over the window (CpuMeter: the server, the clients, the
+    rest of the machine; empty without)."""
     runs = start_clients(clients, work, tag, scenario)
+    cpu = {}
     try:
         t_from = wait_first_updates(list(runs.values()))
+        meter = None if server_pid is None else CpuMeter(server_pid, [r.proc.pid for r in runs.values()])
+        if meter:
+            meter.start()
         time.sleep(seconds)
+        if meter:
+            cpu = meter.stop()
     finally:
         for r in runs.values():
             r.stop()
-    return runs, t_from
+    return runs, t_from, cpu
 
 
 def start_clients(clients: dict[str, tuple[str, list[str]]], work: Path, tag: str,
@@ -334,6 +352,50 @@ class RssSampler:
         return next((mb for ts, mb in reversed(self.samples) if ts <= t), float("nan"))
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU seconds (user + system) of a process, its threads and its live descendants (/proc; 0 when gone)."""
+    total, todo = 0.0, [pid]
+    tick = os.sysconf("SC_CLK_TCK")
+    while todo:
+        p = todo.pop()
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
+
+
+def machine_busy_seconds() -> float:
+    """CPU seconds every core of the machine spent busy since boot (/proc/stat: all but idle and iowait)."""
+    values = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    return (sum(values) - values[3] - values[4]) / os.sysconf("SC_CLK_TCK")
+
+
+class CpuMeter:
+    """Cores used (CPU seconds per second) by the server, by the clients and by the whole machine between
+    start() and stop()."""
+
+    def __init__(self, server_pid: int, client_pids: list[int]):
+        self.server_pid, self.client_pids = server_pid, client_pids
+
+    def _read(self) -> tuple[float, float, float, float]:
+        return (time.monotonic(), cpu_seconds(self.server_pid), sum(map(cpu_seconds, self.client_pids)),
+                machine_busy_seconds())
+
+    def start(self) -> None:
+        self._t0 = self._read()
+
+    def stop(self) -> dict:
+        t1 = self._read()
+        dt = t1[0] - self._t0[0]
+        server, clients, machine = ((b - a) / dt for a, b in zip(self._t0[1:], t1[1:]))
+        return {"server_cores": server, "clients_cores": clients, "machine_busy_cores": machine,
+                "others_cores": machine - server - clients, "machine_cores": os.cpu_count()}
+
+
 def digests_of(server_log: Path, run: ClientRun) -> dict:
     """Its mirror's digests against the server's (psao.eval.digests.compare_digests)."""
     compared, differ, conns = compare_digests(server_log, [run.log])
@@ -376,10 +438,12 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
             loop = f"ws://127.0.0.1:{server.port}"
             print(f"server {' '.join([loop, *extra])}: full grid after {server.full_grid_s:.1f} s; "
                   f"{len(links)} links", flush=True)
-            alone, t_alone = measure({"alone": (loop, [])}, args.seconds, work, f"{name}-alone", scenario=True)
+            alone, t_alone, cpu_alone = measure_cpu({"alone": (loop, [])}, args.seconds, work, f"{name}-alone",
+                                                    scenario=True, server_pid=server.pid)
             clients = {where: ((f"ws://{links[where].host_address}:{server.port}", links[where].prefix)
                                if where in links else (loop, [])) for where, _ in wheres}
-            runs, t_from = measure(clients, args.seconds, work, name, scenario=True)
+            runs, t_from, cpu_mixed = measure_cpu(clients, args.seconds, work, name, scenario=True,
+                                                  server_pid=server.pid)
             counts = {where: packets(link.change(link.settings)) for where, link in links.items()}
         finally:
             server.close()
@@ -393,6 +457,13 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
     print(f"server ticks/s: {ticks['alone']:.1f} beside the lone client, {ticks['mixed']:.1f} beside the "
           f"{len(wheres)}; Updates per server tick: the lone client {per_tick['alone']:.2f}, the fast ones "
           f"{per_tick['fast']:.2f} (mean)")
+    cpu = {"alone": cpu_alone, "mixed": cpu_mixed}
+    for phase, c in cpu.items():
+        c["server_ms_per_tick"] = 1e3 * c["server_cores"] / ticks[phase]
+        print(f"cores used beside {'the lone client' if phase == 'alone' else f'the {len(wheres)}'}: server "
+              f"{c['server_cores']:.2f} ({c['server_ms_per_tick']:.0f} CPU ms per tick), clients "
+              f"{c['clients_cores']:.2f}, the rest of the machine {c['others_cores']:.2f}; busy "
+              f"{c['machine_busy_cores']:.2f} of {c['machine_cores']}")
     print(header("digests compared/differ  packets fwd/lost/queue-dropped"))
     print(row("(loopback alone)", base))
     results = []
@@ -412,7 +483,7 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
         record_digests(v, where, next(r["digests"] for r in results if r["client"]["where"] == where))
     (args.out / f"{name}.json").write_text(json.dumps({
         "scenario": name, "server_options": extra, "alone": asdict(base), "clients": results,
-        "server_ticks_per_s": ticks, "updates_per_tick": per_tick,
+        "server_ticks_per_s": ticks, "updates_per_tick": per_tick, "cpu": cpu,
         "density": args.density, "tick_hz": args.tick_hz, "seconds": args.seconds}, indent=1))
     return v.exit_code()
 
@@ -981,6 +1052,8 @@ def main(argv: list[str] | None = None) -> int:
     which.add_argument("--fig5", action="store_true", help="scenario: the paper's Fig. 5 on real links, PSNR of "
                        "PSAO clients and of the video competitor behind the same links against bitrate and latency "
                        "(fig5.json, fig5_links.png) instead of the sweep; with --quick FIG5_QUICK's links")
+    p.add_argument("--no-adapt-rate", action="store_true", help="--mixed, --cap: the server runs psao serve "
+                   "--no-adapt-rate (no per-client rate estimate: a baseline)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
     p.add_argument("--density", type=float, default=256.0)
@@ -991,6 +1064,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
+        return 2
+    if args.no_adapt_rate and not (args.mixed or args.cap):
+        print("bench_links: error: --no-adapt-rate is for --mixed and --cap", file=sys.stderr)
         return 2
     if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm
                        or args.quality):
@@ -1004,7 +1080,8 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(tempfile.mkdtemp(prefix="bench_links_"))
     try:
         if args.mixed or args.cap:
-            return mixed(args, work, ["--client-mbit", str(CAP_MBIT)] if args.cap else [], "cap" if args.cap else "mixed")
+            extra = [*(["--client-mbit", str(CAP_MBIT)] if args.cap else []), *(["--no-adapt-rate"] if args.no_adapt_rate else [])]
+            return mixed(args, work, extra, "cap" if args.cap else "mixed")
         if args.stall:
             return stall(args, work)
         if args.quality:

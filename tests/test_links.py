@@ -7,6 +7,7 @@ rate are floors the forwarder never beats, and the waits are bounded only to sto
 from __future__ import annotations
 
 import json
+import os
 import re
 import socket
 import subprocess
@@ -230,13 +231,43 @@ def test_links_are_unique_and_concurrent():
 
 
 @pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"],
-                                  ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"]])
+                                  ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"],
+                                  ["--no-adapt-rate", "--stall"], ["--no-adapt-rate"]])
 def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
     from benchmarks.bench_links import main
 
     assert main(argv) == 2  # refused before any link or server is made
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_cpu_seconds_count_a_process_and_its_children():
+    """bench_links.cpu_seconds (its CpuMeter's reading): a shell whose child spins is charged the child's CPU."""
+    from benchmarks.bench_links import cpu_seconds
+
+    proc = subprocess.Popen(["sh", "-c", f"{sys.executable} -c 'while True: pass' & wait"], start_new_session=True)
+    try:
+        end = time.monotonic() + HANG_S
+        while cpu_seconds(proc.pid) < 0.3 and time.monotonic() < end:
+            time.sleep(0.05)
+        assert cpu_seconds(proc.pid) >= 0.3  # the shell itself only waits
+    finally:
+        kill_group(proc)
+    assert cpu_seconds(proc.pid) == 0.0  # gone: nothing to read
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="no autogroup scheduling here")
+def test_a_spawned_client_session_gets_the_nice_it_is_given():
+    from psao.eval.processes import set_session_nice
+
+    proc = subprocess.Popen(["sleep", "30"], start_new_session=True)
+    try:
+        assert set_session_nice(proc.pid, 7)
+        group, _, nice = open(f"/proc/{proc.pid}/autogroup").read().split()
+        assert nice == "7" and group != open("/proc/self/autogroup").read().split()[0]  # its own session's group
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def test_bench_links_runs_one_scenario_at_a_time():
