@@ -233,6 +233,23 @@ def link_quality_table(rows: list[dict]) -> str:
     return table(head, lines)
 
 
+def link_fig5_table(rows: list[dict]) -> str:
+    """bench_links --fig5: per method and link, its frames' PSNR against RTAO at the current pose, the stream it
+    received, the video encoder's bitrate, and how late it was (PSAO: seconds its mirror was behind the server;
+    video: a frame's round trip from request to arrival), 95th percentile."""
+    head = ["method", "rtt ms", "Mbit/s cap", "PSNR dB (mean)", "PSNR dB (min)", "frames scored", "stream Mbit/s",
+            "encoder Mbit/s", "s late p95"]
+    lines = []
+    for r in sorted(rows, key=lambda r: (r["method"], r["link"]["rtt_ms"], r["link"]["mbit"] or float("inf"))):
+        link = r["link"]
+        late = r["behind_p95_s"] if r["method"] == "psao" else r["round_trip_p95_s"]
+        lines.append(["PSAO" if r["method"] == "psao" else "video", f"{link['rtt_ms']:g}",
+                      "unlimited" if link["mbit"] is None else f"{link['mbit']:g}", figure(r["psnr_mean"], ".2f"),
+                      figure(min(r["psnr"], default=None), ".2f"), str(len(r["psnr"])),
+                      figure(r["stream_mbit_s"], ".2f"), figure(r.get("bitrate_mbit"), ".2f"), figure(late, ".3f")])
+    return table(head, lines)
+
+
 @dataclass(frozen=True)
 class Section:
     command: str  # the command that writes the data, with --out OUT_DIR left to the runner
@@ -293,6 +310,8 @@ SECTIONS: dict[str, Section] = {
     "run_fuzz": run_all_section("fuzz"),
     "link_quality": Section("python -m benchmarks.bench_links --quality --seconds 8 --chart docs/images/links_quality.png",
                             "quality.json", link_quality_table, rows_of=lambda record: record["clients"]),
+    "link_fig5": Section("python -m benchmarks.bench_links --fig5 --seconds 5 --chart docs/images/fig5_links.png",
+                         "fig5.json", link_fig5_table, rows_of=lambda record: record["rows"]),
 }
 
 RUN_ALL_SECTIONS = [sid for sid, section in SECTIONS.items() if section.command == RUN_ALL]

@@ -7,6 +7,7 @@ rate are floors the forwarder never beats, and the waits are bounded only to sto
 from __future__ import annotations
 
 import json
+import os
 import re
 import socket
 import subprocess
@@ -119,6 +120,30 @@ def test_link_delay_and_rate_are_floors():
 
 
 
+
+@needs_links
+def test_video_frames_cross_the_link_whole_and_no_sooner_than_its_round_trip(tmp_path):
+    """The video competitor's frames over psao.eval.videolink: every frame asked for arrives with the packets
+    the server sent, each no sooner than the link's round trip after its request, and no faster than its rate."""
+    from psao.eval.videolink import VideoLinkServer, read_receive_log
+
+    settings = LinkSettings(rtt_ms=120, mbit=2)
+    frames = [[bytes([k]) * (20000 + 97 * k), bytes([255 - k]) * 11] for k in range(24)]
+    log_path = tmp_path / "video.json"
+    with impaired_link(settings) as link, VideoLinkServer(frames, link.host_address) as server:
+        proc = subprocess.run(link.command([sys.executable, "-m", "psao.eval.videolink", link.host_address,
+                                            server.port, "--fps", "30", "--frames", len(frames), "--out", log_path]),
+                              capture_output=True, text=True, timeout=HANG_S)
+    assert proc.returncode == 0, proc.stderr
+    log = read_receive_log(log_path)
+    assert log.arrived == len(frames) and log.packets == frames
+    trips = [a - r for r, a in zip(log.requests, log.arrivals)]
+    assert min(trips) >= 0.12  # the request up, the frame down: a round trip at least
+    payload = sum(len(p) for ps in frames for p in ps)
+    # the frames after the first at 2 Mbit/s: longer than the requests take (24 at 30 fps), so the rate shows
+    assert log.arrivals[-1] - log.arrivals[0] >= (payload - sum(map(len, frames[0]))) * 8 / 2e6
+
+
 LEFT = re.compile(r"left \(said Bye\).*link-limited in (?P<windows>\d+) windows, at (?P<link>[-0-9.]+)")
 
 
@@ -206,13 +231,43 @@ def test_links_are_unique_and_concurrent():
 
 
 @pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"],
-                                  ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"]])
+                                  ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"],
+                                  ["--no-adapt-rate", "--stall"], ["--no-adapt-rate"]])
 def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
     from benchmarks.bench_links import main
 
     assert main(argv) == 2  # refused before any link or server is made
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_cpu_seconds_count_a_process_and_its_children():
+    """bench_links.cpu_seconds (its CpuMeter's reading): a shell whose child spins is charged the child's CPU."""
+    from benchmarks.bench_links import cpu_seconds
+
+    proc = subprocess.Popen(["sh", "-c", f"{sys.executable} -c 'while True: pass' & wait"], start_new_session=True)
+    try:
+        end = time.monotonic() + HANG_S
+        while cpu_seconds(proc.pid) < 0.3 and time.monotonic() < end:
+            time.sleep(0.05)
+        assert cpu_seconds(proc.pid) >= 0.3  # the shell itself only waits
+    finally:
+        kill_group(proc)
+    assert cpu_seconds(proc.pid) == 0.0  # gone: nothing to read
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="no autogroup scheduling here")
+def test_a_spawned_client_session_gets_the_nice_it_is_given():
+    from psao.eval.processes import set_session_nice
+
+    proc = subprocess.Popen(["sleep", "30"], start_new_session=True)
+    try:
+        assert set_session_nice(proc.pid, 7)
+        group, _, nice = open(f"/proc/{proc.pid}/autogroup").read().split()
+        assert nice == "7" and group != open("/proc/self/autogroup").read().split()[0]  # its own session's group
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def test_bench_links_runs_one_scenario_at_a_time():

@@ -72,6 +72,20 @@ def spawn(args: list[str], wrap: list[str] = (), **kwargs) -> subprocess.Popen:
     return proc
 
 
+def set_session_nice(pid: int, nice: int) -> bool:
+    """Give the session that `pid` leads (a spawn()ed child: a session of its own) the CPU weight of `nice`.
+    With the kernel's autogroup scheduling every session is one group that gets an equal share of the CPU
+    whatever its processes' nice values (a nice value only weighs a process against the others of its own
+    session), so `nice -n` alone does not put a child in a session of its own below its parent's other
+    children; the autogroup's own nice (/proc/PID/autogroup) does. False where there is none (no autogroup:
+    the process's own nice is what counts)."""
+    try:
+        Path(f"/proc/{pid}/autogroup").write_text(f"{int(nice)}\n")
+    except OSError:
+        return False
+    return True
+
+
 def kill_group(proc: subprocess.Popen, grace: float = 3.0) -> None:
     """SIGTERM the child's process group, wait up to `grace` s, then SIGKILL whatever is left."""
     _LIVE.discard(proc)
