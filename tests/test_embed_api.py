@@ -9,7 +9,8 @@ import pytest
 
 import psao
 from psao.protocol.errors import EditError
-from psao.server.errors import ConfigError
+from psao.protocol.session import scene_hash_bytes
+from psao.server.errors import ConfigError, InstanceError
 from psao.server.settings import BakeSettings, ServeSettings
 
 SMALL = BakeSettings(density=24.0, rays=16, workers=1)
@@ -118,3 +119,87 @@ def test_the_physics_example_runs_and_its_mirror_is_exact():
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout + run.stderr
     assert " 0 differ" in run.stdout and "Traceback" not in run.stderr
+
+
+# The added block's footprint on the Cornell floor: x 0.10..0.40, z -0.45..-0.15 (clear of the other blocks);
+# floor probes beside it, within a few cm of its faces.
+ADDED_AT = np.array([[1.0, 0, 0, 0.25], [0, 1.0, 0, 0.3], [0, 0, 1.0, -0.3], [0, 0, 0, 1.0]])
+BESIDE = np.array([[0.06, 0.0, -0.3], [0.44, 0.0, -0.3], [0.25, 0.0, -0.11], [0.08, 0.0, -0.12], [0.42, 0.0, -0.12]])
+
+
+def floor_ao(client) -> np.ndarray:
+    """The AO the client's lookup (the numpy oracle) gives at the floor probes beside the added block."""
+    from psao.protocol.reconstruct import reconstruct_ao
+
+    floor = [inst.name for inst in client.scene.instances].index("floor")
+    mirror = client.mirror
+    ao, weight = reconstruct_ao(mirror.instances, mirror.buckets, mirror.cells, np.full(len(BESIDE), floor), BESIDE,
+                                np.tile([0.0, 1.0, 0.0], (len(BESIDE), 1)))
+    assert (weight > 0).all()
+    return ao
+
+
+def test_the_application_adds_and_removes_an_instance_and_the_client_follows_exactly(tmp_path):
+    scenes = []
+    with served(tmp_path) as server:
+        with psao.Client(server.url, digest_log=tmp_path / "client.jsonl",
+                         on_scene=lambda scene, h: scenes.append(len(scene.instances))) as client:
+            first_hash, n = client.scene_hash, len(server.scene.instances)
+            open_ao, open_digest = floor_ao(client), client.digest()
+            index = server.add_instance("tall_block", ADDED_AT, name="second_block")
+            assert index == n and server.instance("second_block") == n
+            client.wait_for(lambda: client.snapshots >= 2, 60.0, "the new scene's snapshot")
+            assert scenes == [n + 1] and client.scene.instances[n].name == "second_block"
+            assert client.scene_hash == scene_hash_bytes(server.scene.content_hash()) != first_hash
+            assert len(client.mirror.instances) == n + 1
+            assert client.digest() == server_digest(server)
+            shaded = floor_ao(client)
+            assert (shaded < open_ao - 0.05).all(), (open_ao, shaded)  # the block occludes the floor beside it
+
+            server.move("second_block", ADDED_AT @ lifted(0.1))  # the new instance moves as the others do
+            client.wait_for(lambda: np.allclose(client.mirror.transforms[n], (ADDED_AT @ lifted(0.1)).astype(np.float32)),
+                            60.0, "the added block's move")
+
+            server.remove_instance("second_block")
+            client.wait_for(lambda: client.snapshots >= 3, 60.0, "the snapshot without the block")
+            assert scenes == [n + 1, n] and "second_block" not in [i.name for i in client.scene.instances]
+            assert len(client.mirror.instances) == n
+            # the scene is the first one again: the same hash, the same bake, the same mirror
+            assert client.scene_hash == first_hash
+            assert client.digest() == server_digest(server) == open_digest
+            np.testing.assert_array_equal(floor_ao(client), open_ao)
+            assert client.stats.grid_replacements == 2
+    assert_mirror_exact(tmp_path, at_least=3)
+
+
+def server_digest(server) -> str:
+    from psao.protocol.updates import state_digest
+
+    grid = server.service.grid
+    return state_digest(grid.instances, grid.buckets, grid.cells, server.service.transforms())
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda s: s.add_instance("no_such_mesh", np.eye(4), name="x"), "no mesh is named 'no_such_mesh'"),
+    (lambda s: s.add_instance(42, np.eye(4), name="x"), "no mesh 42"),
+    (lambda s: s.add_instance("tall_block", np.eye(4), name="short_block"), "already has an instance named 'short_block'"),
+    (lambda s: s.add_instance("tall_block", np.eye(4), name=""), "non-empty string"),
+    (lambda s: s.add_instance("tall_block", np.full((4, 4), np.inf), name="x"), "NaN or infinity"),
+    (lambda s: s.add_instance("tall_block", np.diag([1.0, 1.0, 0.0, 1.0]), name="x"), "axis scales"),
+    (lambda s: s.remove_instance("no_such_thing"), "no instance named 'no_such_thing'"),
+    (lambda s: s.remove_instance(99), "no instance 99"),
+])
+def test_a_bad_add_or_remove_is_one_error_at_the_call_and_the_server_keeps_serving(tmp_path, call, says):
+    with served(tmp_path) as server:
+        with psao.Client(server.url, digest_log=tmp_path / "client.jsonl") as client:
+            first = client.scene_hash
+            with pytest.raises(InstanceError, match=says) as err:
+                call(server)
+            assert "\n" not in str(err.value)
+            block = server.instance("tall_block")  # still served, the same scene: a good move reaches the client
+            target = server.scene.instances[block].transform @ lifted(0.05)
+            server.move(block, target)
+            client.wait_for(lambda: np.allclose(client.mirror.transforms[block], target.astype(np.float32)), 60.0,
+                            "the moved block's transform")
+            assert client.scene_hash == first and client.snapshots == 1
+    assert_mirror_exact(tmp_path, at_least=1)
