@@ -2,7 +2,9 @@
 websocket on loopback, with real Embree; mirrors exact, bad moves refused at the call while serving goes on."""
 from __future__ import annotations
 
+import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from psao.server.errors import ConfigError, InstanceError
 from psao.server.settings import BakeSettings, ServeSettings
 
 SMALL = BakeSettings(density=24.0, rays=16, workers=1)
+SHOTS = Path(__file__).resolve().parents[1] / "out" / "embed_api"
 
 
 def read_jsonl(path):
@@ -112,7 +115,6 @@ def test_settings_that_cannot_run_are_refused_before_baking():
 def test_the_physics_example_runs_and_its_mirror_is_exact():
     import subprocess
     import sys
-    from pathlib import Path
 
     example = Path(__file__).resolve().parents[1] / "examples" / "physics_drop.py"
     run = subprocess.run([sys.executable, str(example), "--seconds", "2", "--port", "0", "--density", "24"],
@@ -203,3 +205,48 @@ def test_a_bad_add_or_remove_is_one_error_at_the_call_and_the_server_keeps_servi
                             "the moved block's transform")
             assert client.scene_hash == first and client.snapshots == 1
     assert_mirror_exact(tmp_path, at_least=1)
+
+
+def test_the_web_page_follows_an_added_and_removed_instance_exactly(tmp_path):
+    """A real Chromium on the page psao.Server serves: it takes the new scene on each change (its
+    SceneRequest names the scene it holds), draws the added block, and its mirror digests equal the
+    server's on all three grids."""
+    from browser import launched, missing_browser, wait_page
+
+    if missing_browser() is not None:
+        pytest.skip(str(missing_browser()))
+    serve = ServeSettings(port=0, tick_hz=10, stats_interval=1e9, digest_log=tmp_path / "server.jsonl",
+                          fanout=dataclasses.replace(ServeSettings().fanout, cull=False))
+    shots = []
+    with launched() as browser, psao.Server("builtin:cornell", psao.ServerSettings(serve=serve, bake=SMALL)) as server:
+        page = browser.new_page(viewport={"width": 240, "height": 190})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"http://127.0.0.1:{server.port}/?width=200&height=150&digests=1", wait_until="commit")
+        try:
+            counts = []
+            for step, change in enumerate((None, lambda: server.add_instance("tall_block", ADDED_AT, name="second_block"),
+                                           lambda: server.remove_instance("second_block"))):
+                if change is not None:
+                    change()
+                wait_page(page, f"window.psao && window.psao.connection === {step + 1} && "
+                                "window.psao.state === 'streaming' && window.psao.frames >= 1", timeout=120)
+                counts.append(page.evaluate("window.psao.scene.instances.length"))
+                shots.append(page.evaluate("document.getElementById('view').toDataURL('image/png')"))
+            assert page.evaluate("window.psao.reconnects") == 0 and page.evaluate("window.psao.scenes") == 3
+            log = page.evaluate("window.psao.digestLog")
+        finally:
+            page.close()
+    assert not errors
+    n = len(server.scene.instances)
+    assert counts == [n, n + 1, n]
+    ref = {(d["conn"], d["seq"]): d["digest"] for d in read_jsonl(tmp_path / "server.jsonl")}
+    both = [d for d in log if (d["conn"], d["seq"]) in ref]
+    assert len({d["conn"] for d in both}) == 3  # compared on every grid
+    assert all(ref[(d["conn"], d["seq"])] == d["digest"] for d in both)
+    import base64
+
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    for name, url in zip(("before", "added", "removed"), shots):  # for a person to look at
+        (SHOTS / f"cornell_{name}.png").write_bytes(base64.b64decode(url.split(",", 1)[1]))
+    assert shots[0] != shots[1]  # the added block is drawn
