@@ -250,3 +250,14 @@ def test_the_web_page_follows_an_added_and_removed_instance_exactly(tmp_path):
     for name, url in zip(("before", "added", "removed"), shots):  # for a person to look at
         (SHOTS / f"cornell_{name}.png").write_bytes(base64.b64decode(url.split(",", 1)[1]))
     assert shots[0] != shots[1]  # the added block is drawn
+
+
+def test_the_server_tick_of_the_api_and_of_psao_serve_takes_the_bakes_settings():
+    from psao.server.settings import TickSettings
+    from psao.server.tick.budget import BudgetSettings
+
+    budget = BudgetSettings(round_rays=8)
+    tick = TickSettings.serving(BakeSettings(rays=16, seed=7, tracer="dask", workers=2), budget)
+    assert (tick.rays, tick.seed, tick.workers, tick.budget, tick.selection) == (16, 7, 2, budget, True)
+    assert tick.tracer == "embree"  # a Dask bake's tick traces here
+    assert TickSettings.serving(BakeSettings(tracer="warp"), budget).tracer == "warp"

@@ -112,9 +112,7 @@ class Server:
         bake = bake_scene(scene, s.bake)
         budget = BudgetSettings(tick_hz=s.serve.tick_hz, round_rays=fitting_round_rays(s.bake.rays))
         budget.check(s.bake.rays)
-        tick_settings = TickSettings(rays=s.bake.rays, seed=s.bake.seed, budget=budget, selection=True,
-                                     tracer=s.bake.tracer, workers=s.bake.workers)
-        tick = ServerTick(bake, tick_settings, close_bake_tracer=True)
+        tick = ServerTick(bake, TickSettings.serving(s.bake, budget), close_bake_tracer=True)
         return tick, (tick if s.animate else AtRest(tick))
 
     def _serve(self, listening: threading.Event) -> None:
