@@ -261,3 +261,44 @@ def test_the_server_tick_of_the_api_and_of_psao_serve_takes_the_bakes_settings()
     assert (tick.rays, tick.seed, tick.workers, tick.budget, tick.selection) == (16, 7, 2, budget, True)
     assert tick.tracer == "embree"  # a Dask bake's tick traces here
     assert TickSettings.serving(BakeSettings(tracer="warp"), budget).tracer == "warp"
+
+
+def test_a_handshake_under_way_when_the_scene_changes_is_sent_to_the_new_one(tmp_path):
+    """A connection that took the scene before an instance was added and says Hello after is closed with
+    GRID_REPLACED_CLOSE (not welcomed to a grid of another scene); a new connection naming the old scene is
+    refused with SCENE_MISMATCH; one that asks for the scene again gets the new one."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    from psao.protocol.errors import ErrorCode
+    from psao.protocol.session import GRID_REPLACED_CLOSE, ClientConfig, ClientSession, RemoteError, SceneReceived
+
+    def receive_scene(ws, session) -> SceneReceived:
+        while not isinstance(event := session.receive(ws.recv(timeout=60)), SceneReceived):
+            pass
+        return event
+
+    with served(tmp_path) as server:
+        old = scene_hash_bytes(server.scene.content_hash())
+        with connect(server.url, max_size=None) as ws:
+            session = ClientSession(ClientConfig(None))
+            ws.send(session.scene_request())
+            assert receive_scene(ws, session).scene_hash == old
+            server.add_instance("tall_block", ADDED_AT, name="second_block")
+            ws.send(session.hello())
+            with pytest.raises(ConnectionClosed) as closed:
+                while True:
+                    session.receive(ws.recv(timeout=60))
+            assert closed.value.rcvd.code == GRID_REPLACED_CLOSE
+        with connect(server.url, max_size=None) as ws:
+            session = ClientSession(ClientConfig(old))
+            ws.send(session.hello())
+            with pytest.raises(RemoteError) as refused:
+                session.receive(ws.recv(timeout=60))
+            assert refused.value.code == ErrorCode.SCENE_MISMATCH
+        with connect(server.url, max_size=None) as ws:
+            session = ClientSession(ClientConfig(None))
+            ws.send(session.scene_request(old))
+            new = receive_scene(ws, session)
+            assert new.scene is not None and new.scene_hash == scene_hash_bytes(server.scene.content_hash()) != old
+            assert len(new.scene.instances) == len(server.scene.instances)
