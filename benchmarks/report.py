@@ -300,7 +300,7 @@ SECTIONS: dict[str, Section] = {
     "run_culling": run_all_section("culling"),
     "run_clients": run_all_section("clients", "table.json", "clients"),
     "run_web": run_all_section("web"),
-    "run_three": run_all_section("three"),
+    "run_three": run_all_section("three", "bench_three.json"),
     "run_denoise": run_all_section("denoise"),
     "run_video": run_all_section("video", "video_results.json", "video"),
     "run_realtime": run_all_section("realtime", "bench_realtime.json"),

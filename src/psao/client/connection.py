@@ -8,6 +8,10 @@ Thin around psao.protocol.session.ClientSession (which decides what bytes mean).
     on_update(mirror, transforms, tick)     after every Update is applied
     on_frame(mirror)                        at frame_hz, the client's own rate, from the snapshot on
                                             (a renderer draws the latest state and transforms)
+    on_scene(scene, scene_hash)             with it, every connection first asks for the server's scene
+                                            (SceneRequest with the hash of the one held): a server that
+                                            changed its scene (instances added or removed) sends the new
+                                            one, which goes here before the Hello names it
 
 After a dropped connection it reconnects with growing pauses and resyncs from a fresh snapshot into a
 fresh mirror; a server that refuses it (Error message: wrong token, other scene) is not retried. A server
@@ -21,6 +25,7 @@ log; one that answers while it loads and bakes sends Status messages (phase, pro
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import errno
 import json
 import socket
@@ -79,6 +84,7 @@ class ClientStats:
     stream_seconds: float = 0.0
     reconnects: int = 0
     grid_replacements: int = 0  # connections the server closed because it replaced its grid (reconnected at once)
+    scenes: int = 0  # new scenes received on reconnecting (with on_scene: the server changed its scene)
     frames: int = 0  # on_frame calls (frames rendered), all connections
     snapshot_seconds: float | None = None  # last connection: connect -> snapshot complete
     connection_id: int = 0
@@ -102,9 +108,10 @@ class MirrorClient:
                  tls_ca: Path | None = None, digest_every: int = ConnectSettings.digest_every,
                  digest_if: Callable[[int, int], bool] | None = None, open_timeout: float = 5.0,
                  start_wait: float = START_WAIT_S, on_status: Callable[[m.Status], None] | None = None,
-                 log: Callable[[str], None] | None = None):
+                 log: Callable[[str], None] | None = None, on_scene: Callable | None = None):
         self.url = url
         self.config = ClientConfig(scene_hash, token, frozenset(codecs), limits)
+        self.on_scene = on_scene
         self.camera = camera
         self.on_connect, self.on_snapshot, self.on_update = on_connect, on_snapshot, on_update
         self.on_frame = on_frame
@@ -202,7 +209,8 @@ class MirrorClient:
 
     async def _connection(self, frames: int | None, digests) -> None:
         limits = self.config.limits
-        session = ClientSession(self.config)
+        # following the server's scene: the session takes the hash the server names, the request the one held
+        session = ClientSession(dataclasses.replace(self.config, scene_hash=None) if self.on_scene else self.config)
         t0 = time.perf_counter()
         cameras: asyncio.Task | None = None
         renders: asyncio.Task | None = None
@@ -215,7 +223,7 @@ class MirrorClient:
             extra["ssl"] = self.tls
         async with connect(self.url, compression=None, max_size=limits.server_message_bytes,
                            open_timeout=self.open_timeout, **extra) as ws:
-            await ws.send(session.hello())
+            await ws.send(session.scene_request(self.config.scene_hash) if self.on_scene else session.hello())
             seq = 0
             updates_here = 0  # Updates on this connection
             self._open = (ws, session)
@@ -238,6 +246,12 @@ class MirrorClient:
                     self._last_ok = time.perf_counter()
                     if isinstance(event, StatusReceived):  # a starting server's state: no message of the stream
                         self._status(event.status, len(data))
+                        continue
+                    if event is None or isinstance(event, SceneReceived):  # following the server's scene
+                        self.stats.bytes_received += len(data)
+                        if event is not None:
+                            self._new_scene(event)
+                            await ws.send(session.hello())
                         continue
                     self.stats.messages += 1
                     self.stats.bytes_received += len(data)
@@ -359,6 +373,16 @@ class MirrorClient:
             await ws.send(session.camera(view, proj))
             await asyncio.sleep(self.camera_period)
 
+    def _new_scene(self, event: SceneReceived) -> None:
+        """The server's scene, answering this connection's SceneRequest: a new one goes to on_scene."""
+        if event.scene is None:  # the one held is current
+            return
+        from psao.client.scene_import import scene_from_file  # (trimesh: imported once there is a scene)
+
+        self.on_scene(scene_from_file(event.scene, f"{self.url} scene"), event.scene_hash)
+        self.config = dataclasses.replace(self.config, scene_hash=event.scene_hash)
+        self.stats.scenes += 1
+
     def _welcomed(self, event: Welcomed) -> None:
         w = event.welcome
         self.mirror = Mirror.from_welcome(w, self.config.limits)
@@ -369,6 +393,10 @@ class MirrorClient:
 
 
 async def _cancel(task: asyncio.Task | None) -> None:
+    """Cancel `task` and wait for it; one that already ended on the closed connection (a camera send the
+    server's close met) has its exception taken, so it is not reported as never retrieved."""
+    if task is not None and task.done() and not task.cancelled() and isinstance(task.exception(), ConnectionClosed):
+        return
     if task is not None and not task.done():
         task.cancel()
         try:

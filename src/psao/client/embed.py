@@ -8,7 +8,9 @@
     client.stop()
 
 It is psao.client.connection's MirrorClient (the code `psao client` runs) on a thread of its own: it
-reconnects and resyncs as `psao client` does. Callbacks run on that thread.
+reconnects and resyncs as `psao client` does, and follows the server's scene: when the server adds or
+removes an instance (psao.Server.add_instance), the client receives the new scene (`scene`, `scene_hash`,
+`on_scene`) and then a snapshot of the new grid. Callbacks run on that thread.
 """
 from __future__ import annotations
 
@@ -27,10 +29,10 @@ class Client:
     """A mirror of a server's grid, kept on a thread of its own (see the module)."""
 
     def __init__(self, url: str, *, token: str = "", on_update: OnUpdate | None = None,
-                 on_snapshot: Callable[[Mirror], None] | None = None, digest_log=None,
-                 start_wait: float = 15.0, camera_hz: float = 30.0):
+                 on_snapshot: Callable[[Mirror], None] | None = None, on_scene: Callable | None = None,
+                 digest_log=None, start_wait: float = 15.0, camera_hz: float = 30.0):
         self.url, self.token = url, token
-        self.on_update, self.on_snapshot = on_update, on_snapshot
+        self.on_update, self.on_snapshot, self.on_scene = on_update, on_snapshot, on_scene
         self.digest_log, self.start_wait, self.camera_hz = digest_log, start_wait, camera_hz
         self.scene = None
         self.scene_hash: bytes | None = None
@@ -63,7 +65,7 @@ class Client:
             self._path_feed = scene_camera_feed(self.scene)
             self._client = MirrorClient(self.url, self.scene_hash, token=self.token, camera=self._camera_at,
                                         on_snapshot=self._snapshot, on_update=self._update, digest_log=self.digest_log,
-                                        start_wait=self.start_wait, camera_hz=self.camera_hz)
+                                        start_wait=self.start_wait, camera_hz=self.camera_hz, on_scene=self._new_scene)
             await self._client.run()
 
         try:
@@ -143,6 +145,18 @@ class Client:
         """Block until `n` more Updates have been applied."""
         target = self._updates + n
         self.wait_for(lambda: self._updates >= target, timeout, f"{n} Updates")
+
+    def _new_scene(self, scene, scene_hash: bytes) -> None:
+        """The server changed its scene: the new one, before the Hello that names it."""
+        self.scene, self.scene_hash = scene, scene_hash
+        self._path_feed = scene_camera_feed(scene)
+        if self.on_scene is not None:
+            self.on_scene(scene, scene_hash)
+
+    @property
+    def snapshots(self) -> int:
+        """Snapshots completed so far, one per connection (a changed scene brings a new one)."""
+        return self._snapshots
 
     def _snapshot(self, mirror: Mirror) -> None:
         self.mirror = mirror

@@ -288,6 +288,14 @@ class TickSettings:
     history: int = 3600  # TickStats kept in stats_history (a minute at 60 Hz); older ones are dropped
     budget: BudgetSettings | None = None  # None: unbudgeted (trace every selected visible point fully each tick)
 
+    @classmethod
+    def serving(cls, bake: BakeSettings, budget: BudgetSettings) -> "TickSettings":
+        """The time-budgeted, selecting server tick of a server that baked with `bake` (psao serve and
+        psao.Server): the bake's rays, seed, tracer and workers; a Dask bake's tick traces with Embree here
+        (a Dask task's scheduling does not fit a tick)."""
+        return cls(rays=bake.rays, seed=bake.seed, budget=budget, selection=True,
+                   tracer="embree" if bake.tracer == "dask" else bake.tracer, workers=bake.workers)
+
     def check(self) -> None:
         if not 0 <= self.threshold <= 255:
             raise ConfigError(f"tick threshold must be within 0..255 AO codes, got {self.threshold}")

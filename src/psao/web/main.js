@@ -171,11 +171,13 @@ function handle(ws, session, ev, nbytes) {
       const raw = decompress(ev.blob);
       if (raw.length > C.LIMITS.scene_payload_bytes) throw new ProtocolError("scene over the size limit");
       app.timings.sceneDecompressed = performance.now();
+      const first = !app.scene;  // later ones: the server changed its scene (instances added or removed)
       app.scene = parseScene(raw);
       app.sceneBytes = ev.total;
+      app.scenes = (app.scenes || 0) + 1;
       app.timings.sceneParsed = performance.now();
       renderer.setScene(app.scene);
-      controls.frame(...worldBounds(app.scene));
+      if (first) controls.frame(...worldBounds(app.scene));  // the view stays where it was for a changed scene
     }
     app.sceneHash = ev.hash;
     app.timings.scene = performance.now();

@@ -129,12 +129,6 @@ def _check_modes(args) -> None:
     _budget(args)
 
 
-def _tick_settings(args, budget: BudgetSettings) -> TickSettings:
-    # The tick traces here (a Dask task's scheduling does not fit a tick)
-    return TickSettings(rays=args.rays, seed=args.seed, budget=budget, selection=True,
-                        tracer="embree" if args.tracer == "dask" else args.tracer, workers=args.workers)
-
-
 def _ticking(args, bake_with: BakeSettings, scene, report=None):
     """(grid, tick) with the time-budgeted server tick on a fresh bake (it needs the bake's point sets):
     animating the scene with --animate, refining a first few-ray grid with --progressive, re-tracing what
@@ -149,7 +143,7 @@ def _ticking(args, bake_with: BakeSettings, scene, report=None):
     # --progressive the ticks' spare budget refines it.
     # With --progressive the bake's tracer (its cluster with --cluster) also refines waiting static points,
     # in batches, beside the ticks.
-    settings = _tick_settings(args, budget)
+    settings = TickSettings.serving(bake_with, budget)
     refiner = None
     if args.progressive:  # the bake's tracer (a cluster's, or local worker processes) refines beside the ticks
         from psao.server.tick.refine import BackgroundTracer, ClusterRefiner
@@ -189,7 +183,7 @@ def _coarse_first(args, bake_with: BakeSettings, scene, report=None):
     if not args.animate:
         coarse.tracer.close()
         return coarse.grid, None
-    tick = ServerTick(coarse, _tick_settings(args, budget), close_bake_tracer=True)
+    tick = ServerTick(coarse, TickSettings.serving(bake_with, budget), close_bake_tracer=True)
     return tick.grid, tick
 
 

@@ -184,7 +184,7 @@ class Service:
         self._stats_out = open(settings.stats_json, "a", buffering=1) if settings.stats_json else None
         self.last_tick_stats: dict = {}
         self.summary = TickSummary()  # the whole run's per-tick statistics (psao serve --json)
-        self._replacement: tuple | None = None  # (grid, tick, transforms, final, close previous) from the next tick on
+        self._replacement: tuple | None = None  # (grid, tick, transforms, final, close previous, scene) from the next tick on
         self._live: dict[int, tuple] = {}  # client id -> (reader, writer) tasks of a client being served
         self._replaced: set[int] = set()  # clients whose connection ends because the grid was replaced
         self.grids_replaced = 0
@@ -276,27 +276,34 @@ class Service:
             self._loop.call_soon_threadsafe(fn, *args)
 
     def replace_grid(self, grid, tick: Tick | Callable | None = None, transforms: Callable[[], np.ndarray] | None = None,
-                     final: bool = True, close_previous: bool = False) -> None:
+                     final: bool = True, close_previous: bool = False,
+                     scene: tuple[bytes, bytes | Callable[[], bytes]] | None = None) -> None:
         """Serve `grid` (ticked by `tick`, instances placed by `transforms`, by default the tick's) from the
         next tick on; callable from any thread. Connections open then are closed with GRID_REPLACED_CLOSE
         (after a Status READY when `final`). `final` False: a coarse first grid (Status phase COARSE);
-        `close_previous`: the tick served until then is closed (on a worker thread) once it is replaced."""
-        if self.grid is not None and len(grid.instances) != len(self.grid.instances):
+        `close_previous`: the tick served until then is closed (on a worker thread) once it is replaced.
+        `scene` (hash, blob): the grid is of another scene (instances added or removed), served from the same
+        tick on; a client that reconnects asks for it with SceneRequest (its cached scene's hash), and one
+        still in its handshake with the previous scene is closed with GRID_REPLACED_CLOSE too."""
+        if scene is None and self.grid is not None and len(grid.instances) != len(self.grid.instances):
             raise ConfigError(f"a replacement grid has {len(grid.instances)} instances, the served one {len(self.grid.instances)}")
         tick = as_tick(tick)
         if tick is not None:
             tick.set_tick_rate(self.settings.tick_hz)
         if transforms is None and tick is not None and tick.places_instances:
             transforms = tick.transforms
-        self._replacement = (grid, tick, transforms, final, close_previous)
+        self._replacement = (grid, tick, transforms, final, close_previous, scene)
 
     def _swap_grid(self) -> None:
         """Between ticks, on the loop (nothing else runs meanwhile): the new grid, tick and transforms in,
         the clients of the old grid out of the registry and their senders and readers cancelled, so that
         nothing reads the new grid for a client whose mirror holds the old one; _serve_client then closes
         each connection with GRID_REPLACED_CLOSE."""
-        grid, tick, transforms, final, close_previous = self._replacement
+        grid, tick, transforms, final, close_previous, scene = self._replacement
         self._replacement = None
+        counters = self.fanout.counters
+        if scene is not None:
+            self._set_scene(*scene)
         first = self.grid is None
         previous = self.tick_fn
         self.grid, self.tick_fn, self._final = grid, tick, final
@@ -306,7 +313,7 @@ class Service:
         self.transforms = transforms
         self.on_scene_edit = scene_editor(tick, transforms)
         self.on_cameras = tick.set_cameras if tick is not None else None
-        counters, self.fanout = self.fanout.counters, Fanout(self.config, self.settings.fanout)
+        self.fanout = Fanout(self.config, self.settings.fanout)
         self.fanout.counters = counters
         self._digest_of = None
         grid.take_dirty()  # all of it goes out in the snapshots
@@ -518,6 +525,11 @@ class Service:
             watch = self._watchers.get(ws)
             if watch is not None:  # the phase it is served in (COARSE, READY) before its Welcome
                 await watch.flush(ws, self.status())
+            if session.config.scene_hash != self.config.scene_hash:  # the scene was replaced meanwhile
+                log.info("connection from %s: the scene was replaced during its handshake, closing (close code %d)",
+                         peer, GRID_REPLACED_CLOSE)
+                await ws.close(GRID_REPLACED_CLOSE, GRID_REPLACED_REASON)
+                return
         except ProtocolError as exc:
             await self._reject(ws, session, exc, peer, None)
             return

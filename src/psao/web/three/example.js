@@ -130,6 +130,26 @@ app.readPsao = () => {
            serverTime: m.serverTime, tick: m.tick };
 };
 
+// Each method's AO term of the frame (visibility, 1 unoccluded, bottom-up rows, red channel), as the
+// benchmark scores it against RTAO: PSAO's AO target, GTAOPass's denoised AO, SAOPass's blurred SAO (the
+// buffers each pass multiplies the lit frame by). One frame is drawn in each mode; the mode is left as it was.
+app.readAoTerms = () => {
+  const [w, h] = ao.size, was = app.mode, out = {};
+  const read = (target) => {
+    const half = target.texture.type === THREE.HalfFloatType;
+    const buf = half ? new Uint16Array(w * h * 4) : new Float32Array(w * h * 4);
+    renderer.readRenderTargetPixels(target, 0, 0, w, h, buf);
+    return { dtype: half ? "float16" : "float32", data: b64(buf) };
+  };
+  for (const [mode, target] of [["psao", () => ao.aoTarget], ["gtao", () => passes.gtao.pdRenderTarget], ["sao", () => passes.sao.saoRenderTarget]]) {
+    app.mode = mode;
+    drawFrame();
+    out[mode] = read(target());
+  }
+  app.mode = was;
+  return out;
+};
+
 let lastStats = performance.now();
 function loop(now) {
   if (ao.state === "streaming" && !app.paused) {
