@@ -109,6 +109,10 @@ ISSUE_LAG_S = 0.3  # seconds behind the server at ISSUE_LINK (95th percentile), 
 ISSUE_DENSITY = 256.0  # the grid density the lag target is set for (other densities: reported only)
 # --mixed: (name, link (None: loopback on the host), clients), every impaired client in a namespace of its own
 MIXED = (("fast", None, 4), ("issue", ISSUE_LINK, 3), ("slow", LinkSettings(mbit=2.0), 3))
+# --mixed: the loopback clients (alone and among the ten) log a digest every this many Updates, the impaired
+# ones after every Update: hashing the mirror after each Update costs a client most of its CPU, and ten such
+# clients beside the server need more cores than a small machine has; the fast ones' mirrors are still compared
+MIXED_FAST_DIGEST_EVERY = DIGEST_EVERY
 CAP_MBIT = 4.0  # --cap: psao serve --client-mbit
 STALL_LINK = LinkSettings(rtt_ms=50.0, mbit=20.0)  # --stall: the stalled client's link before and after
 STALL = LinkSettings(rtt_ms=50.0, loss=0.9999, mbit=20.0)  # the link while stalled (loss must be < 1)
@@ -254,10 +258,11 @@ def measure(clients: dict[str, tuple[str, list[str]]], seconds: float, work: Pat
 
 
 def measure_cpu(clients: dict[str, tuple[str, list[str]]], seconds: float, work: Path, tag: str,
-                scenario: bool = False, server_pid: int | None = None) -> tuple[dict[str, ClientRun], float, dict]:
+                scenario: bool = False, server_pid: int | None = None,
+                loopback_every: int | None = None) -> tuple[dict[str, ClientRun], float, dict]:
     """measure(), and with `server_pid` the cores used over the window (CpuMeter: the server, the clients, the
-    rest of the machine; empty without)."""
-    runs = start_clients(clients, work, tag, scenario)
+    rest of the machine; empty without). `loopback_every`: start_clients'."""
+    runs = start_clients(clients, work, tag, scenario, loopback_every)
     cpu = {}
     try:
         t_from = wait_first_updates(list(runs.values()))
@@ -274,11 +279,13 @@ def measure_cpu(clients: dict[str, tuple[str, list[str]]], seconds: float, work:
 
 
 def start_clients(clients: dict[str, tuple[str, list[str]]], work: Path, tag: str,
-                  scenario: bool = False) -> dict[str, ClientRun]:
+                  scenario: bool = False, loopback_every: int | None = None) -> dict[str, ClientRun]:
     """ClientRuns of `clients` (where -> (url, wrap)); `scenario`: they may reconnect (and count it), and log
-    a digest every SCENARIO_DIGEST_EVERY Updates."""
+    a digest every SCENARIO_DIGEST_EVERY Updates; `loopback_every`: the clients in no namespace (empty wrap)
+    every this many instead."""
     every = SCENARIO_DIGEST_EVERY if scenario else DIGEST_EVERY
-    return {where: ClientRun(url, where, work / f"{tag}-{where}.jsonl", wrap, scenario, every)
+    return {where: ClientRun(url, where, work / f"{tag}-{where}.jsonl", wrap, scenario,
+                             loopback_every if loopback_every is not None and not wrap else every)
             for where, (url, wrap) in clients.items()}
 
 
@@ -439,11 +446,12 @@ def mixed(args, work: Path, extra: list[str], name: str) -> int:
             print(f"server {' '.join([loop, *extra])}: full grid after {server.full_grid_s:.1f} s; "
                   f"{len(links)} links", flush=True)
             alone, t_alone, cpu_alone = measure_cpu({"alone": (loop, [])}, args.seconds, work, f"{name}-alone",
-                                                    scenario=True, server_pid=server.pid)
+                                                    scenario=True, server_pid=server.pid,
+                                                    loopback_every=MIXED_FAST_DIGEST_EVERY)
             clients = {where: ((f"ws://{links[where].host_address}:{server.port}", links[where].prefix)
                                if where in links else (loop, [])) for where, _ in wheres}
             runs, t_from, cpu_mixed = measure_cpu(clients, args.seconds, work, name, scenario=True,
-                                                  server_pid=server.pid)
+                                                  server_pid=server.pid, loopback_every=MIXED_FAST_DIGEST_EVERY)
             counts = {where: packets(link.change(link.settings)) for where, link in links.items()}
         finally:
             server.close()
