@@ -1060,7 +1060,7 @@ def main(argv: list[str] | None = None) -> int:
     which.add_argument("--fig5", action="store_true", help="scenario: the paper's Fig. 5 on real links, PSNR of "
                        "PSAO clients and of the video competitor behind the same links against bitrate and latency "
                        "(fig5.json, fig5_links.png) instead of the sweep; with --quick FIG5_QUICK's links")
-    p.add_argument("--no-adapt-rate", action="store_true", help="--mixed, --cap: the server runs psao serve "
+    p.add_argument("--no-adapt-rate", action="store_true", help="the sweep, --mixed, --cap: the server runs psao serve "
                    "--no-adapt-rate (no per-client rate estimate: a baseline)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per link setting (scenarios: per "
                    "phase), s")
@@ -1073,8 +1073,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.seconds > 0:
         print("bench_links: error: --seconds must be > 0", file=sys.stderr)
         return 2
-    if args.no_adapt_rate and not (args.mixed or args.cap):
-        print("bench_links: error: --no-adapt-rate is for --mixed and --cap", file=sys.stderr)
+    if args.no_adapt_rate and (args.stall or args.deaf or args.storm or args.quality or args.fig5):
+        print("bench_links: error: --no-adapt-rate is for the sweep, --mixed and --cap", file=sys.stderr)
         return 2
     if args.quick and (args.mixed or args.stall or args.cap or args.deaf or args.storm
                        or args.quality):
@@ -1110,7 +1110,7 @@ def run_sweep(args, work: Path) -> int:
     v = Verdicts("bench_links")
     results = []
     with interrupt_on_sigterm(), impaired_link() as link:
-        server = start_server(args, link.host_address, stats)
+        server = start_server(args, link.host_address, stats, ["--no-adapt-rate"] if args.no_adapt_rate else [])
         try:
             url = server.url
             print(f"server {url}: full grid after {server.full_grid_s:.1f} s; links: {link.namespace}", flush=True)

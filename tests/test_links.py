@@ -232,7 +232,7 @@ def test_links_are_unique_and_concurrent():
 
 @pytest.mark.parametrize("argv", [["--quick", "--mixed"], ["--quick", "--cap"], ["--stall", "--seconds", "0"],
                                   ["--quick", "--deaf"], ["--quick", "--storm"], ["--quick", "--quality"],
-                                  ["--no-adapt-rate", "--stall"], ["--no-adapt-rate"]])
+                                  ["--no-adapt-rate", "--stall"], ["--no-adapt-rate", "--fig5"]])
 def test_bench_links_refuses_bad_options_in_one_line(argv, capsys):
     from benchmarks.bench_links import main
 
