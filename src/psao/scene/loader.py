@@ -15,13 +15,11 @@ import numpy as np
 from psao.scene.errors import GeometryError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import MESH_EXTENSIONS, load_mesh_file
-from psao.scene.model import Scene
+from psao.scene.model import DEFAULT_AO_FRACTION, Scene  # noqa: F401 (DEFAULT_AO_FRACTION: re-exported)
 from psao.scene.repeat import MAX_COPIES, parse_repeat, repeat_scene
 from psao.scene.tomlscene import load_toml_scene
 
 BUILTIN_PREFIX = "builtin:"
-# Default AO distance of a scene that does not set one: this fraction of its bounding-box diagonal.
-DEFAULT_AO_FRACTION = 0.1
 # An instance transform whose linear part has |det| below this (relative to its largest column norm
 # cubed) is treated as a zero scale.
 SINGULAR_DET = 1e-12
@@ -55,10 +53,13 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         scene = _load_file(Path(spec))
     if ao_distance is not None:
         scene.ao_distance = float(ao_distance)
+        for inst in scene.instances:  # an explicit AO distance sets every instance's sampling too
+            inst.sampling_scale = 0.0
     elif not scene.ao_distance > 0:
-        lo, hi = scene.world_bounds()
-        scene.ao_distance = DEFAULT_AO_FRACTION * float(np.linalg.norm(hi - lo))
+        scene.ao_distance = scene.default_ao_distance()
     validate_scene(scene)
+    for inst in scene.instances:  # an object's own scale, never coarser than the scene's
+        inst.sampling_scale = min(inst.sampling_scale, scene.ao_distance)
     return scene
 
 
