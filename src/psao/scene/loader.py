@@ -23,6 +23,9 @@ BUILTIN_PREFIX = "builtin:"
 # An instance transform whose linear part has |det| below this (relative to its largest column norm
 # cubed) is treated as a zero scale.
 SINGULAR_DET = 1e-12
+# An instance placed smaller than this fraction of its own reach (its largest world coordinate) is below what
+# float32 positions resolve there (2^-23 relative, a few steps across it): a scale out of range.
+MIN_RELATIVE_SIZE = 1e-6
 # Times (seconds) at which animated transforms are checked at load time.
 ANIMATION_CHECK_TIMES = tuple(float(t) for t in np.linspace(0.0, 30.0, 13))
 
@@ -119,6 +122,13 @@ def validate_scene(scene: Scene) -> None:
         raise GeometryError(f"{scene.source}: the placed scene reaches {reach:.3g} world units from the origin, over "
                             f"the limit of {lim.max_coordinate:g} (a scale or translation out of range? "
                             f"psao --scene-limit max_coordinate=X raises it)")
+    for inst in scene.instances:
+        lo, hi = scene.world_bounds([inst])
+        size, at = float(np.linalg.norm(hi - lo)), float(max(np.abs(lo).max(), np.abs(hi).max()))
+        if size < MIN_RELATIVE_SIZE * at:
+            raise GeometryError(f"{scene.source}: instance '{inst.name}' is placed {size:.3g} world units across, "
+                                f"{at:.3g} from the origin: too small for float32 positions to resolve there "
+                                f"(a scale out of range?)")
 
 
 def check_transform(t: np.ndarray, where: str) -> None:
