@@ -89,8 +89,9 @@ def add_arguments(p) -> None:
     """--density / --points / --max-points on an argparse parser (bake and serve)."""
     group = p.add_mutually_exclusive_group()
     group.add_argument("--density", type=float, default=None,
-                       help=f"points per world unit^2 after elimination; without it {POINTS_PER_AO_AREA:g} / AO distance^2, "
-                            "the courtyard's 256 at its AO distance 1.5, so files in any units get the same sampling")
+                       help=f"points per world unit^2 after elimination, on every instance; without it {POINTS_PER_AO_AREA:g} / "
+                            "AO distance^2, the courtyard's 256 at its AO distance 1.5, so files in any units get the same "
+                            "sampling (each [[instance]] of a TOML scene without ao_distance at its own size)")
     group.add_argument("--points", type=float, default=None, metavar="COUNT",
                        help="total point budget instead of a density (e.g. 2e6)")
     p.add_argument("--detail-factor", type=int, default=SamplingSettings.detail_factor, metavar="F",
