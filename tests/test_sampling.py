@@ -114,19 +114,21 @@ def boxes_toml(tmp_path: Path, boxes: dict[str, tuple[float, float]], head: str 
     return path
 
 
-def test_each_instance_of_a_toml_scene_without_ao_distance_is_sampled_as_if_alone(tmp_path):
-    """Without an AO distance a TOML scene's [[instance]]s get the default density of their own size: a small
-    box beside a large one gets the points it gets alone; the scene's AO distance, an explicit AO distance
-    and an explicit density are the same on every instance."""
+def test_each_instance_of_a_toml_scene_without_ao_distance_is_sampled_at_its_own_size(tmp_path):
+    """Without an AO distance a TOML scene's [[instance]]s get the default density of OBJECT_SAMPLING_FRACTION
+    x their own diagonal: a small box gets the same density beside a large box as beside a larger one; the
+    scene's AO distance, an explicit AO distance and an explicit density are the same on every instance."""
+    from psao.scene.model import OBJECT_SAMPLING_FRACTION
+
     big, small = (20.0, 0.0), (0.5, 30.0)
     both = load_scene(boxes_toml(tmp_path, {"big": big, "small": small}))
-    alone = [resolve_density(load_scene(boxes_toml(tmp_path, {n: b})), SamplingSettings(), 1).estimate
-             for n, b in (("big", big), ("small", small))]
-    d = resolve_density(both, SamplingSettings(), 1)
-    assert d.plain == default_density(both) and d.factors.min() > 1  # both smaller than the scene
-    assert d.estimate == pytest.approx(sum(alone), abs=2) and alone[1] > 64
-    lo, hi = both.world_bounds(both.instances[1:])
-    assert both.instances[1].sampling_scale == pytest.approx(0.1 * np.linalg.norm(hi - lo))
+    other = load_scene(boxes_toml(tmp_path, {"huge": (60.0, 0.0), "small": small}))
+    d, e = (resolve_density(s, SamplingSettings(), 1) for s in (both, other))
+    assert d.plain == default_density(both) and d.factors[1] > d.factors[0] >= 1
+    own = POINTS_PER_AO_AREA / (OBJECT_SAMPLING_FRACTION * 0.5 * math.sqrt(3)) ** 2
+    assert d.of(1) == pytest.approx(own, rel=1e-9) and e.of(1) == pytest.approx(own, rel=1e-9)
+    assert d.estimate == estimate_points(both, d.plain, 1, DETAIL_FACTOR, factors=d.factors)
+    assert d.estimate > estimate_points(both, d.plain, 1, DETAIL_FACTOR)
     # an explicit density: the same on both; an AO distance in the scene or on the command line: its density on both
     explicit = resolve_density(both, SamplingSettings(density=d.plain), 1)
     assert (explicit.factors == 1).all() and explicit.estimate == estimate_points(both, d.plain, 1, 1)

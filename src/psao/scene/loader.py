@@ -15,7 +15,7 @@ import numpy as np
 from psao.scene.errors import GeometryError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import MESH_EXTENSIONS, load_mesh_file
-from psao.scene.model import DEFAULT_AO_FRACTION, Scene  # noqa: F401 (DEFAULT_AO_FRACTION: re-exported)
+from psao.scene.model import DEFAULT_AO_FRACTION, Scene
 from psao.scene.repeat import MAX_COPIES, parse_repeat, repeat_scene
 from psao.scene.tomlscene import load_toml_scene
 
@@ -59,7 +59,7 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         for inst in scene.instances:  # an explicit AO distance sets every instance's sampling too
             inst.sampling_scale = 0.0
     elif not scene.ao_distance > 0:
-        scene.ao_distance = scene.default_ao_distance()
+        scene.ao_distance = DEFAULT_AO_FRACTION * scene.diagonal()
     validate_scene(scene)
     for inst in scene.instances:  # an object's own scale, never coarser than the scene's
         inst.sampling_scale = min(inst.sampling_scale, scene.ao_distance)

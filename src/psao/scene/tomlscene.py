@@ -6,8 +6,9 @@ naming the file and the element):
     [scene]
     name = "pavilion"            # default: the file's stem
     ao_distance = 1.0            # world units, > 0; default: 0.1 x the scene's bounding-box diagonal, and
-                                 #   then each [[instance]]'s points are sampled at its own scale: the
-                                 #   default density of 0.1 x its own diagonal (at most the scene's)
+                                 #   then each [[instance]] is sampled at its own size: at the default
+                                 #   density of an AO distance of 0.4 x its own diagonal (at most the
+                                 #   scene's AO distance; model.OBJECT_SAMPLING_FRACTION)
     root = "../assets"           # the folder mesh `path`s are relative to and must stay inside, itself
                                  #   relative to this TOML file; default: the TOML file's folder. A root
                                  #   that is not a folder is a SceneNotFound (files absent: one line)
@@ -73,7 +74,7 @@ import numpy as np
 from psao.scene.errors import SceneError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import clean_geometry, load_mesh_file, merged_mesh
-from psao.scene.model import CameraKey, CameraPath, Instance, Mesh, Scene
+from psao.scene.model import OBJECT_SAMPLING_FRACTION, CameraKey, CameraPath, Instance, Mesh, Scene
 from psao.scene.rigid import PartAnimation
 from psao.scene.skin import TimeShift
 from psao.scene.toml_animation import parse_animation
@@ -115,10 +116,10 @@ def load_toml_scene(path: Path) -> Scene:
 
 
 def _own_sampling_scales(scene: Scene, objects: list[list[Instance]]) -> None:
-    """Each object's own default AO distance as the sampling scale of its parts (load_scene caps it at the
-    scene's): a character in a cathedral is sampled at its own size, not the cathedral's."""
+    """OBJECT_SAMPLING_FRACTION x each object's own diagonal as the sampling scale of its parts (load_scene
+    caps it at the scene's AO distance): a character in a cathedral is sampled at its own size."""
     for parts in objects:
-        scale = scene.default_ao_distance(parts)
+        scale = OBJECT_SAMPLING_FRACTION * scene.diagonal(parts)
         for inst in parts:
             inst.sampling_scale = scale if np.isfinite(scale) and scale > 0 else 0.0
 

@@ -6,8 +6,8 @@ centimetres gets 10^4 times the points of the same model in metres. The default 
 scene's AO distance d (its own length scale: what a point's AO depends on): N = POINTS_PER_AO_AREA / d^2,
 calibrated so the built-in courtyard (d = 1.5) gets N = 256, the density its figures were measured at.
 An instance with its own sampling scale s (Instance.sampling_scale: each [[instance]] of a TOML scene
-that sets no AO distance, 0.1 x its own diagonal, at most d) gets N (d / s)^2 instead: a character in a
-cathedral is sampled as densely, relative to its size, as it would be alone (instance_factors).
+that sets no AO distance, 0.4 x its own diagonal, at most d) gets N (d / s)^2 instead: a character in a
+cathedral is sampled at its own size, not the cathedral's (instance_factors).
 `--density` keeps absolute control, the same N everywhere; `--points` asks for a total instead, keeping
 the instances' factors.
 
@@ -161,6 +161,10 @@ class Density:
     plain: float
     factors: np.ndarray  # (instances,) float64, >= 1
     estimate: int  # final points, detail levels included (estimate_points)
+
+    def of(self, k: int) -> float:
+        """The plain density of instance k."""
+        return self.plain * float(self.factors[k])
 
 
 def estimate_points(scene: Scene, density: float, min_points: int, detail_factor: int,
