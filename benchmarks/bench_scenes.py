@@ -1,8 +1,10 @@
 """Every model at its default settings, and at 4x the default density: one table, one chart.
 
-For each scene (every mesh file under ../shared/scenes and every built-in scene) and each density scale,
-a child process bakes at the scene's default (scale-aware) density times the scale, with the default
-density's detail levels (src/psao/server/points/sampling.py: small triangles up to DETAIL_FACTOR times denser) and
+For each scene (every mesh file under ../shared/scenes, the composed scene examples/composed.toml that
+places some of them, and every built-in scene) and each density scale, a child process bakes at the
+scene's default (scale-aware) density times the scale, each instance's own factor kept (a TOML scene
+without an AO distance samples each [[instance]] at its own size: sampling.instance_factors), with the
+default density's detail levels (src/psao/server/points/sampling.py: small triangles up to DETAIL_FACTOR times denser) and
 the bake's default rays per point unless --rays, and reports: points, bake seconds, points dropped to grid
 overflow, reconstruction MAE and hole fraction at random surface probes against AO traced there directly, PSNR of
 PSAO, SSAO and GTAO against an RTAO reference on the same frames, and the child's peak resident memory.
@@ -31,7 +33,10 @@ from pathlib import Path
 from benchmarks.verdicts import Verdicts
 from psao.server.settings import DensifySettings, ProbeSettings
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "scenes"
+# Sponza with characters and a rolling boulder from SHARED, at default settings
+COMPOSED = REPO / "examples" / "composed.toml"
 BUILTINS = ("builtin:cornell", "builtin:courtyard", "builtin:space", "builtin:robots", "builtin:tangle")
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 TARGETS = {"recon_mae": 0.02, "holes_pct": 0.1, "dropped_pct": 0.5}
@@ -39,7 +44,8 @@ TARGETS = {"recon_mae": 0.02, "holes_pct": 0.1, "dropped_pct": 0.5}
 
 def scene_specs() -> list[str]:
     files = sorted(p for p in SHARED.glob("*/*") if p.suffix.lower() in MESH_SUFFIXES) if SHARED.is_dir() else []
-    return [str(p) for p in files] + list(BUILTINS)
+    composed = [str(COMPOSED.relative_to(REPO))] if SHARED.is_dir() else []
+    return [str(p) for p in files] + composed + list(BUILTINS)
 
 
 def measure_one(spec: str, scale: float, cfg: dict) -> dict:
@@ -50,15 +56,21 @@ def measure_one(spec: str, scale: float, cfg: dict) -> dict:
     from psao.server.bake import bake_scene, reconstruction_error, sample_probes
     from psao.server.points.buried import visible_probes
     from psao.server.settings import BakeSettings, DensifySettings, GapFillSettings
-    from psao.server.points.sampling import DETAIL_FACTOR, default_density
+    from psao.server.points.sampling import DETAIL_FACTOR, default_density, estimate_points, instance_factors
 
     scene = load_scene(spec)
     density = default_density(scene) * scale
+    factors = instance_factors(scene)
+    # the same density on every instance where no instance has a factor; else the default's points times the
+    # scale as a budget, which keeps the factors
+    sampling = {"density": density} if (factors == 1).all() else {"points": estimate_points(
+        scene, density, BakeSettings.min_points, DETAIL_FACTOR, factors=factors)}
     t0 = time.perf_counter()
     rays = {} if cfg["rays"] is None else {"rays": cfg["rays"]}
     fill = GapFillSettings(passes=cfg.get("gap_fill", 0), first_step=cfg.get("gap_fill_first_step", False))
-    res = bake_scene(scene, BakeSettings(density=density, detail_factor=DETAIL_FACTOR, gap_fill=fill,
+    res = bake_scene(scene, BakeSettings(**sampling, detail_factor=DETAIL_FACTOR, gap_fill=fill,
                                          densify=DensifySettings(rounds=cfg.get("densify", 0)), **rays), show_progress=False)
+    density = res.stats["density"]
     seconds = time.perf_counter() - t0
     probes = visible_probes(scene, sample_probes(scene, cfg["probes"]))
     try:
@@ -152,7 +164,7 @@ def save_maps(grid, frame, ref, path: Path) -> None:
 
 def run_child(spec: str, scale: float, cfg: dict) -> dict:
     cmd = [sys.executable, "-m", "benchmarks.bench_scenes", "--child", json.dumps({"spec": spec, "scale": scale, **cfg})]
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     last = proc.stdout.strip().splitlines()[-1:] or [""]
     if proc.returncode != 0 or not last[0].startswith("{"):
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]

@@ -306,6 +306,7 @@ SECTIONS: dict[str, Section] = {
     "run_realtime": run_all_section("realtime", "bench_realtime.json"),
     "run_dask": run_all_section("dask"),
     "run_densify": run_all_section("densify"),
+    "run_objects": run_all_section("objects"),
     "run_soak": run_all_section("soak", "soak.json"),
     "run_fuzz": run_all_section("fuzz"),
     "link_quality": Section("python -m benchmarks.bench_links --quality --seconds 8 --chart docs/images/links_quality.png",

@@ -33,12 +33,12 @@ from psao.eval.bench_cli import source_commit
 # Order: cheapest first, so a broken install shows up early. Each name is benchmarks.bench_NAME, or the
 # module MODULES names.
 BENCHMARKS = ("fuzz", "points", "bake", "bandwidth", "render", "tick", "static_hits", "quality", "culling", "clients", "web",
-              "three", "denoise", "video", "realtime", "dask", "progressive", "scenes", "densify", "baselines",
-              "soak", "links")
+              "three", "denoise", "video", "realtime", "dask", "progressive", "scenes", "objects", "densify",
+              "baselines", "soak", "links")
 MODULES = {"fuzz": "benchmarks.fuzz"}
 # The benchmarks whose parser takes --out DIR (where they write their JSON, tables and charts).
 TAKES_OUT = ("points", "bake", "bandwidth", "tick", "quality", "clients", "web", "three", "video", "realtime", "dask",
-             "progressive", "scenes", "baselines", "soak", "links")
+             "progressive", "scenes", "objects", "baselines", "soak", "links")
 
 # Small settings per benchmark for --quick: same code paths, fewer points, frames and ticks.
 QUICK_ARGS = {
@@ -62,6 +62,7 @@ QUICK_ARGS = {
     "clients": ["--counts", "1,10", "--density", "32", "--seconds", "5"],
     "scenes": ["--scenes", "builtin:cornell", "--scales", "1", "--probes", "2000", "--probe-rays", "64", "--spp", "16",
                "--frames", "1"],
+    "objects": ["--probes", "1000"],
     "densify": ["--scene", "builtin:cornell", "--frames", "1", "--rounds", "2", "--probes", "2000", "--size", "160x90"],
     "baselines": ["--methods", "ssao,gtao,psao", "--frames", "1", "--spp", "32", "--no-stream", "--sponza-density", "64"],
     "progressive": ["--scenes", "courtyard", "--rays", "32", "--marks", "1,3,5", "--probes", "4000", "--ref-rays", "256"],

@@ -28,15 +28,16 @@ def write_box_obj(path: Path, size: float) -> Path:
 def test_courtyard_default_is_its_measured_density():
     scene = load_scene("builtin:courtyard")
     assert default_density(scene) == pytest.approx(256.0)
-    density, count = resolve_density(scene, SamplingSettings(), min_points=64)
+    d = resolve_density(scene, SamplingSettings(), min_points=64)
+    density, count = d.plain, d.estimate
     assert density == pytest.approx(256.0) and count == estimate_points(scene, 256.0, 64, DETAIL_FACTOR)
 
 
 def test_default_sampling_does_not_depend_on_units(tmp_path):
     small = load_scene(write_box_obj(tmp_path / "mm.obj", 2.0))
     huge = load_scene(write_box_obj(tmp_path / "km.obj", 2.0e5))
-    n_small = resolve_density(small, SamplingSettings(), 64)[1]
-    n_huge = resolve_density(huge, SamplingSettings(), 64)[1]
+    n_small = resolve_density(small, SamplingSettings(), 64).estimate
+    n_huge = resolve_density(huge, SamplingSettings(), 64).estimate
     assert n_small == n_huge > 64 * 6
     # points per AO-distance squared, as promised
     area = 6 * 2.0 ** 2
@@ -45,7 +46,8 @@ def test_default_sampling_does_not_depend_on_units(tmp_path):
 
 def test_point_budget_sets_the_density(tmp_path):
     scene = load_scene(write_box_obj(tmp_path / "b.obj", 3.0))
-    density, count = resolve_density(scene, SamplingSettings(points=5000), 1)
+    d = resolve_density(scene, SamplingSettings(points=5000), 1)
+    density, count = d.plain, d.estimate
     assert density == pytest.approx(5000 / 54.0) and count == pytest.approx(5000, abs=6)
 
 
@@ -68,13 +70,14 @@ def quad_and_fine_strip():
 def test_default_density_samples_small_triangles_denser_and_counts_them():
     scene = quad_and_fine_strip()
     n = default_density(scene)
-    density, count = resolve_density(scene, SamplingSettings(), 1)
+    d = resolve_density(scene, SamplingSettings(), 1)
+    density, count = d.plain, d.estimate
     assert density == n and count == estimate_points(scene, n, 1, DETAIL_FACTOR)
     assert count == round(n * 1.0) + round(DETAIL_FACTOR * n * 0.1)  # the quad at N, the strip at 4 N
     # an explicit density is the same on every triangle unless the levels are asked for
-    assert resolve_density(scene, SamplingSettings(density=n), 1)[1] == round(n * 1.1)
-    assert resolve_density(scene, SamplingSettings(density=n, detail_factor=4), 1)[1] == count
-    assert resolve_density(scene, SamplingSettings(detail_factor=1), 1)[1] == round(n * 1.1)
+    assert resolve_density(scene, SamplingSettings(density=n), 1).estimate == round(n * 1.1)
+    assert resolve_density(scene, SamplingSettings(density=n, detail_factor=4), 1).estimate == count
+    assert resolve_density(scene, SamplingSettings(detail_factor=1), 1).estimate == round(n * 1.1)
 
 
 def test_a_budget_equal_to_the_limit_is_never_refused():
@@ -86,19 +89,68 @@ def test_a_budget_equal_to_the_limit_is_never_refused():
     quads = Scene("quads", [quad], [Instance(f"q{k}", 0, np.eye(4)) for k in range(3)], ao_distance=0.5)
     for scene in (quad_and_fine_strip(), quads):  # 3 quads at 3002: each rounds 1000.67 up (3003 at budget / area)
         for budget in (1000, 2999, 3000, 3001, 3002, 12345):
-            density, count = resolve_density(scene, SamplingSettings(points=budget, max_points=budget), 1)
-            assert count <= budget
+            assert resolve_density(scene, SamplingSettings(points=budget, max_points=budget), 1).estimate <= budget
     scene = quad_and_fine_strip()
     with pytest.raises(ConfigError, match="pass --density") as refused:
         resolve_density(scene, SamplingSettings(density=default_density(scene) * 10, max_points=3000), 1)
     advised = float(str(refused.value).split("pass --density ")[1].split()[0])
-    assert resolve_density(scene, SamplingSettings(density=advised, max_points=3000), 1)[1] <= 3000
+    assert resolve_density(scene, SamplingSettings(density=advised, max_points=3000), 1).estimate <= 3000
 
 
 def test_point_budget_counts_the_detail_levels():
     scene = quad_and_fine_strip()
-    density, count = resolve_density(scene, SamplingSettings(points=3000), 1)
+    d = resolve_density(scene, SamplingSettings(points=3000), 1)
+    density, count = d.plain, d.estimate
     assert 0.97 * 3000 <= count <= 3000 and count == estimate_points(scene, density, 1, DETAIL_FACTOR)
+
+
+def boxes_toml(tmp_path: Path, boxes: dict[str, tuple[float, float]], head: str = "") -> Path:
+    """A TOML scene of boxes NAME -> (edge, x of its centre), each its own mesh and [[instance]]."""
+    text = f"[scene]\n{head}\n" + "".join(
+        f'[[mesh]]\nname = "{n}"\ngenerator = "box"\nsize = [{e}, {e}, {e}]\n'
+        f'[[instance]]\nname = "{n}"\nmesh = "{n}"\ntranslate = [{x}, 0.0, 0.0]\n' for n, (e, x) in boxes.items())
+    path = tmp_path / f"{'_'.join(boxes)}{len(head)}.toml"
+    path.write_text(text)
+    return path
+
+
+def test_each_instance_of_a_toml_scene_without_ao_distance_is_sampled_at_its_own_size(tmp_path):
+    """Without an AO distance a TOML scene's [[instance]]s get the default density of OBJECT_SAMPLING_FRACTION
+    x their own diagonal: a small box gets the same density beside a large box as beside a larger one; the
+    scene's AO distance, an explicit AO distance and an explicit density are the same on every instance."""
+    from psao.scene.model import OBJECT_SAMPLING_FRACTION
+
+    big, small = (20.0, 0.0), (0.5, 30.0)
+    both = load_scene(boxes_toml(tmp_path, {"big": big, "small": small}))
+    other = load_scene(boxes_toml(tmp_path, {"huge": (60.0, 0.0), "small": small}))
+    d, e = (resolve_density(s, SamplingSettings(), 1) for s in (both, other))
+    assert d.plain == default_density(both) and d.factors[1] > d.factors[0] >= 1
+    own = POINTS_PER_AO_AREA / (OBJECT_SAMPLING_FRACTION * 0.5 * math.sqrt(3)) ** 2
+    assert d.of(1) == pytest.approx(own, rel=1e-9) and e.of(1) == pytest.approx(own, rel=1e-9)
+    assert d.estimate == estimate_points(both, d.plain, 1, DETAIL_FACTOR, factors=d.factors)
+    assert d.estimate > estimate_points(both, d.plain, 1, DETAIL_FACTOR)
+    # an explicit density: the same on both; an AO distance in the scene or on the command line: its density on both
+    explicit = resolve_density(both, SamplingSettings(density=d.plain), 1)
+    assert (explicit.factors == 1).all() and explicit.estimate == estimate_points(both, d.plain, 1, 1)
+    for scene in (load_scene(boxes_toml(tmp_path, {"big": big, "small": small}, "ao_distance = 1.0")),
+                  load_scene(boxes_toml(tmp_path, {"big": big, "small": small}), ao_distance=1.0)):
+        fixed = resolve_density(scene, SamplingSettings(), 1)
+        assert fixed.plain == POINTS_PER_AO_AREA and (fixed.factors == 1).all()
+    # a point budget keeps the instances' factors
+    budget = resolve_density(both, SamplingSettings(points=5000), 1)
+    assert (budget.factors == d.factors).all() and budget.estimate <= 5000
+
+
+def test_the_bake_samples_each_instance_at_its_factor(tmp_path):
+    from psao.server.bake import bake_scene
+    from psao.server.settings import BakeSettings
+
+    scene = load_scene(boxes_toml(tmp_path, {"big": (20.0, 0.0), "small": (0.5, 30.0)}))
+    result = bake_scene(scene, BakeSettings(points=4000, rays=4, workers=1, detail_factor=1), show_progress=False)
+    result.tracer.close()
+    factors = resolve_density(scene, SamplingSettings(points=4000), 1).factors
+    per_area = [len(ps) / scene.meshes[i.mesh].area() for ps, i in zip(result.pointsets, scene.instances)]
+    assert per_area[1] / per_area[0] == pytest.approx(factors[1] / factors[0], rel=0.02)
 
 
 @pytest.mark.parametrize("factor", [0, 3, -2, 128, 2.0, True])

@@ -280,6 +280,7 @@ BAD_TOML = [  # (keys of [[mesh]], keys of [[instance]], text of the one error l
     ("animation = 7", "", "no animation 7 (has 2)"),
     ("", "scale = 0.0", "'scale' must not be zero"),
     ("", "scale = 1e30", "over the limit"),
+    ("", "scale = 1e-30", "too small for float32 positions to resolve"),
 ]
 
 

@@ -15,16 +15,17 @@ import numpy as np
 from psao.scene.errors import GeometryError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import MESH_EXTENSIONS, load_mesh_file
-from psao.scene.model import Scene
+from psao.scene.model import DEFAULT_AO_FRACTION, Scene
 from psao.scene.repeat import MAX_COPIES, parse_repeat, repeat_scene
 from psao.scene.tomlscene import load_toml_scene
 
 BUILTIN_PREFIX = "builtin:"
-# Default AO distance of a scene that does not set one: this fraction of its bounding-box diagonal.
-DEFAULT_AO_FRACTION = 0.1
 # An instance transform whose linear part has |det| below this (relative to its largest column norm
 # cubed) is treated as a zero scale.
 SINGULAR_DET = 1e-12
+# An instance placed smaller than this fraction of its own reach (its largest world coordinate) is below what
+# float32 positions resolve there (2^-23 relative, a few steps across it): a scale out of range.
+MIN_RELATIVE_SIZE = 1e-6
 # Times (seconds) at which animated transforms are checked at load time.
 ANIMATION_CHECK_TIMES = tuple(float(t) for t in np.linspace(0.0, 30.0, 13))
 
@@ -55,10 +56,13 @@ def load_scene(spec: str | Path, ao_distance: float | None = None) -> Scene:
         scene = _load_file(Path(spec))
     if ao_distance is not None:
         scene.ao_distance = float(ao_distance)
+        for inst in scene.instances:  # an explicit AO distance sets every instance's sampling too
+            inst.sampling_scale = 0.0
     elif not scene.ao_distance > 0:
-        lo, hi = scene.world_bounds()
-        scene.ao_distance = DEFAULT_AO_FRACTION * float(np.linalg.norm(hi - lo))
+        scene.ao_distance = DEFAULT_AO_FRACTION * scene.diagonal()
     validate_scene(scene)
+    for inst in scene.instances:  # an object's own scale, never coarser than the scene's
+        inst.sampling_scale = min(inst.sampling_scale, scene.ao_distance)
     return scene
 
 
@@ -118,6 +122,13 @@ def validate_scene(scene: Scene) -> None:
         raise GeometryError(f"{scene.source}: the placed scene reaches {reach:.3g} world units from the origin, over "
                             f"the limit of {lim.max_coordinate:g} (a scale or translation out of range? "
                             f"psao --scene-limit max_coordinate=X raises it)")
+    for inst in scene.instances:
+        lo, hi = scene.world_bounds([inst])
+        size, at = float(np.linalg.norm(hi - lo)), float(max(np.abs(lo).max(), np.abs(hi).max()))
+        if size < MIN_RELATIVE_SIZE * at:
+            raise GeometryError(f"{scene.source}: instance '{inst.name}' is placed {size:.3g} world units across, "
+                                f"{at:.3g} from the origin: too small for float32 positions to resolve there "
+                                f"(a scale out of range?)")
 
 
 def check_transform(t: np.ndarray, where: str) -> None:

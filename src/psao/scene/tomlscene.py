@@ -5,7 +5,10 @@ naming the file and the element):
 
     [scene]
     name = "pavilion"            # default: the file's stem
-    ao_distance = 1.0            # world units, > 0; default: 0.1 x the scene's bounding-box diagonal
+    ao_distance = 1.0            # world units, > 0; default: 0.1 x the scene's bounding-box diagonal, and
+                                 #   then each [[instance]] is sampled at its own size: at the default
+                                 #   density of an AO distance of 0.4 x its own diagonal (at most the
+                                 #   scene's AO distance; model.OBJECT_SAMPLING_FRACTION)
     root = "../assets"           # the folder mesh `path`s are relative to and must stay inside, itself
                                  #   relative to this TOML file; default: the TOML file's folder. A root
                                  #   that is not a folder is a SceneNotFound (files absent: one line)
@@ -71,7 +74,7 @@ import numpy as np
 from psao.scene.errors import SceneError, SceneFormatError, SceneNotFound
 from psao.scene import limits
 from psao.scene.meshfile import clean_geometry, load_mesh_file, merged_mesh
-from psao.scene.model import CameraKey, CameraPath, Instance, Mesh, Scene
+from psao.scene.model import OBJECT_SAMPLING_FRACTION, CameraKey, CameraPath, Instance, Mesh, Scene
 from psao.scene.rigid import PartAnimation
 from psao.scene.skin import TimeShift
 from psao.scene.toml_animation import parse_animation
@@ -99,13 +102,26 @@ def load_toml_scene(path: Path) -> Scene:
     head = Table(data.get("scene", {}), f"{path}: [scene]", {"name", "ao_distance", "root"})
     name = head.text("name", path.stem)
     meshes, mesh_ids = _meshes(path, root.tables("mesh"), _scene_root(path, head))
-    instances = _instances(path, root.tables("instance"), mesh_ids)
+    objects = _instances(path, root.tables("instance"), mesh_ids)
+    instances = [inst for parts in objects for inst in parts]
     if not instances:
         raise SceneFormatError(f"{path}: no [[instance]]: the scene is empty")
     cameras = _camera_paths(path, root.tables("camera_path"))
     ao = head.number("ao_distance", positive=True) if head.has("ao_distance") else 0.0  # 0: loader picks
-    return Scene(name=name, meshes=meshes, instances=instances, ao_distance=ao, camera_paths=cameras,
-                 source=str(path))
+    scene = Scene(name=name, meshes=meshes, instances=instances, ao_distance=ao, camera_paths=cameras,
+                  source=str(path))
+    if not head.has("ao_distance"):
+        _own_sampling_scales(scene, objects)
+    return scene
+
+
+def _own_sampling_scales(scene: Scene, objects: list[list[Instance]]) -> None:
+    """OBJECT_SAMPLING_FRACTION x each object's own diagonal as the sampling scale of its parts (load_scene
+    caps it at the scene's AO distance): a character in a cathedral is sampled at its own size."""
+    for parts in objects:
+        scale = OBJECT_SAMPLING_FRACTION * scene.diagonal(parts)
+        for inst in parts:
+            inst.sampling_scale = scale if np.isfinite(scale) and scale > 0 else 0.0
 
 
 # A [[mesh]] of a TOML scene as the scene's meshes it became: (mesh index, part name or None when it is the
@@ -225,7 +241,8 @@ def _file_meshes(root: Path, t: Table, name: str, fields: dict) -> list[tuple[Me
     return [(ms[i.mesh], None if alone else i.name, i.transform) for i in ins]
 
 
-def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> list[Instance]:
+def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> list[list[Instance]]:
+    """The scene's instances, by [[instance]]: the parts each places."""
     most = limits.current().max_instances
     if len(tables) > most:
         raise SceneFormatError(f"{path}: {len(tables)} instances, over the limit of {most} "
@@ -235,7 +252,7 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> lis
     if placed > most:
         raise SceneFormatError(f"{path}: {len(tables)} instances place {placed} parts, over the limit of {most} "
                                f"(psao --scene-limit max_instances=N raises it)")
-    out: list[Instance] = []
+    out: list[list[Instance]] = []
     names: set[str] = set()
     for k, raw in enumerate(tables):
         label = raw.get("name", f"#{k}") if isinstance(raw, dict) else f"#{k}"
@@ -253,6 +270,7 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> lis
         if t.has("animation"):
             animation = parse_animation(t.data["animation"], f"{t.where}: animation", transform)
             transform = animation.matrix(0.0)
+        out.append([])
         for index, part, local in mesh_ids[mesh]:
             part_name = name if part is None else f"{name}/{part}"
             if part_name in names and part is not None:
@@ -261,7 +279,7 @@ def _instances(path: Path, tables: list, mesh_ids: dict[str, list[Part]]) -> lis
             moved = animation
             if animation is not None and not np.array_equal(local, np.eye(4)):
                 moved = PartAnimation(animation, local)
-            out.append(Instance(name=part_name, mesh=index, transform=transform @ local, animation=moved))
+            out[-1].append(Instance(name=part_name, mesh=index, transform=transform @ local, animation=moved))
     return out
 
 

@@ -142,19 +142,20 @@ def bake_scene(scene: Scene, settings: BakeSettings | None = None, show_progress
         show_progress = sys.stderr.isatty()
     # Before anything is allocated: the density this scene gets and the points it will take (ConfigError
     # naming the count and what to pass above settings.max_points).
-    density, estimate = resolve_density(scene, settings.sampling(), settings.min_points)
-    stats: dict = {"scene": scene.name, "density": density, "points_estimated": estimate, "rays": settings.rays,
-                   "seed": settings.seed}
+    density = resolve_density(scene, settings.sampling(), settings.min_points)
+    stats: dict = {"scene": scene.name, "density": density.plain,
+                   "density_max": density.plain * float(density.factors.max()), "points_estimated": density.estimate,
+                   "rays": settings.rays, "seed": settings.seed}
     tracer = make_bake_tracer(scene, settings)
     try:
-        return _bake_with(tracer, scene, settings, show_progress, stats, report)
+        return _bake_with(tracer, scene, settings, show_progress, stats, tuple(float(f) for f in density.factors), report)
     except BaseException:
         tracer.close()  # a cluster started for this bake goes with it
         raise
 
 
 def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progress: bool, stats: dict,
-               report=None) -> BakeResult:
+               factors: tuple[float, ...], report=None) -> BakeResult:
     split = load_bake_geometry(tracer, scene, settings)
     trace_settings = TraceSettings(rays=settings.rays, ao_distance=scene.ao_distance, seed=settings.seed)
     with _progress(show_progress) as bar:
@@ -162,7 +163,8 @@ def _bake_with(tracer: Tracer, scene: Scene, settings: BakeSettings, show_progre
         t0 = time.perf_counter()
         buried = BuriedTest(scene) if settings.skip_buried else None
         point_settings = PointSettings(density=stats["density"], min_points=settings.min_points, seed=settings.seed,
-                                       spawn_ratio=settings.spawn_ratio, detail_factor=settings.sampling().factor())
+                                       spawn_ratio=settings.spawn_ratio, detail_factor=settings.sampling().factor(),
+                                       instance_factors=factors)
         progress = shown.stage("points", len(scene.instances))
         workers = settings.workers or os.cpu_count() or 1
         if workers > 1 and len(scene.instances) > 1 and stats["points_estimated"] >= PARALLEL_POINTS:

@@ -61,6 +61,9 @@ class PointSettings:
     # slab (cosine -1) keep their own density instead of sharing one. -1.0 or less turns the gate off.
     normal_cos_min: float = -0.5
     detail_factor: int = 1  # most times `density` a small triangle gets (sampling.level_counts); 1: N everywhere
+    # per instance, the factor on `density` its own sampling scale asks for (sampling.instance_factors); empty:
+    # `density` on every instance
+    instance_factors: tuple[float, ...] = ()
 
     def check(self) -> None:
         """ConfigError for a setting out of range, naming it."""

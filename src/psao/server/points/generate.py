@@ -15,6 +15,7 @@ large offsets would only cost precision.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,6 +199,8 @@ def instance_points(scene: Scene, settings: PointSettings, k: int, buried=None) 
     """The PointSet of instance k, seeded by instance_seed (independent of every other instance)."""
     inst = scene.instances[k]
     seed = instance_seed(settings.seed, k)
+    if settings.instance_factors:
+        settings = dataclasses.replace(settings, density=settings.density * settings.instance_factors[k])
     reject = None
     if buried is not None and buried.applies_to(k):
         def reject(pos, nrm, seed=seed):

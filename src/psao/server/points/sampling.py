@@ -5,7 +5,11 @@ Density N counts final points per world unit^2, so a fixed N depends on the file
 centimetres gets 10^4 times the points of the same model in metres. The default therefore follows the
 scene's AO distance d (its own length scale: what a point's AO depends on): N = POINTS_PER_AO_AREA / d^2,
 calibrated so the built-in courtyard (d = 1.5) gets N = 256, the density its figures were measured at.
-`--density` keeps absolute control; `--points` asks for a total instead.
+An instance with its own sampling scale s (Instance.sampling_scale: each [[instance]] of a TOML scene
+that sets no AO distance, 0.4 x its own diagonal, at most d) gets N (d / s)^2 instead: a character in a
+cathedral is sampled at its own size, not the cathedral's (instance_factors).
+`--density` keeps absolute control, the same N everywhere; `--points` asks for a total instead, keeping
+the instances' factors.
 
 With the default density (and a point budget) N is the density on large faces: a triangle small against
 the point spacing (mouldings, capitals, a character's folds: geometry finer than the points, where the AO
@@ -44,7 +48,9 @@ DETAIL_FACTOR = 4
 
 @dataclass
 class SamplingSettings:
-    density: float | None = None  # final points per world unit^2; None: POINTS_PER_AO_AREA / ao_distance^2
+    # final points per world unit^2 on every instance; None: POINTS_PER_AO_AREA / ao_distance^2 times each
+    # instance's factor (instance_factors)
+    density: float | None = None
     points: float | None = None  # total point budget instead of a density (both sides of double-sided meshes)
     max_points: float = DEFAULT_MAX_POINTS  # refuse to generate more than this many points
     # most times N a small triangle gets (detail_factors), 1: N everywhere; None: DETAIL_FACTOR with the default
@@ -83,8 +89,9 @@ def add_arguments(p) -> None:
     """--density / --points / --max-points on an argparse parser (bake and serve)."""
     group = p.add_mutually_exclusive_group()
     group.add_argument("--density", type=float, default=None,
-                       help=f"points per world unit^2 after elimination; without it {POINTS_PER_AO_AREA:g} / AO distance^2, "
-                            "the courtyard's 256 at its AO distance 1.5, so files in any units get the same sampling")
+                       help=f"points per world unit^2 after elimination, on every instance; without it {POINTS_PER_AO_AREA:g} / "
+                            "AO distance^2, the courtyard's 256 at its AO distance 1.5, so files in any units get the same "
+                            "sampling (each [[instance]] of a TOML scene without ao_distance at its own size)")
     group.add_argument("--points", type=float, default=None, metavar="COUNT",
                        help="total point budget instead of a density (e.g. 2e6)")
     p.add_argument("--detail-factor", type=int, default=SamplingSettings.detail_factor, metavar="F",
@@ -136,59 +143,87 @@ def scene_triangle_areas(scene: Scene) -> list[np.ndarray]:
 
 
 def default_density(scene: Scene) -> float:
+    """The plain density at the scene's AO distance (instances of their own scale get instance_factors times it)."""
     return POINTS_PER_AO_AREA / float(scene.ao_distance) ** 2
 
 
+def instance_factors(scene: Scene) -> np.ndarray:
+    """Per instance, the factor on the scene's plain density its own sampling scale asks for: (scene AO
+    distance / Instance.sampling_scale)^2, 1 for an instance without one; never below 1."""
+    d = float(scene.ao_distance)
+    return np.array([max(1.0, (d / i.sampling_scale) ** 2) if i.sampling_scale > 0 else 1.0
+                     for i in scene.instances], np.float64)
+
+
+@dataclass
+class Density:
+    """The density a bake samples with: `plain` per world unit^2 times `factors[k]` on instance k."""
+    plain: float
+    factors: np.ndarray  # (instances,) float64, >= 1
+    estimate: int  # final points, detail levels included (estimate_points)
+
+    def of(self, k: int) -> float:
+        """The plain density of instance k."""
+        return self.plain * float(self.factors[k])
+
+
 def estimate_points(scene: Scene, density: float, min_points: int, detail_factor: int,
-                    triangle_areas: list[np.ndarray] | None = None) -> int:
-    """Final points generation will produce at plain density `density` (before any overflow): per instance
-    and side the sum of level_counts."""
+                    triangle_areas: list[np.ndarray] | None = None, factors: np.ndarray | None = None) -> int:
+    """Final points generation will produce at plain density `density` times each instance's factor (default
+    1) before any overflow: per instance and side the sum of level_counts."""
     if triangle_areas is None:
         triangle_areas = scene_triangle_areas(scene)
+    if factors is None:
+        factors = np.ones(len(scene.instances))
     total = 0
-    for inst, areas in zip(scene.instances, triangle_areas):
+    for inst, areas, f in zip(scene.instances, triangle_areas, factors):
         sides = 2 if scene.meshes[inst.mesh].double_sided else 1
-        total += sides * sum(n for n, _ in level_counts(areas, density, min_points, detail_factor))
+        total += sides * sum(n for n, _ in level_counts(areas, density * float(f), min_points, detail_factor))
     return int(total)
 
 
 def budget_density(scene: Scene, budget: float, min_points: int, detail_factor: int,
-                   triangle_areas: list[np.ndarray], total_area: float) -> float:
-    """The plain density whose points, detail levels included, come to at most `budget`: budget / area where
-    its estimate is within it (no triangle detailed there, no rounding up), else the largest density found by
-    bisection whose estimate stays within it."""
+                   triangle_areas: list[np.ndarray], total_area: float, factors: np.ndarray) -> float:
+    """The plain density whose points, with the instances' factors and detail levels, come to at most
+    `budget`: budget / area where its estimate is within it (no triangle detailed there, no rounding up),
+    else the largest density found by bisection whose estimate stays within it. `total_area` is weighted by
+    the factors."""
     lo, hi = budget / (total_area * detail_factor), budget / total_area
-    if estimate_points(scene, hi, min_points, detail_factor, triangle_areas) <= budget:
+    if estimate_points(scene, hi, min_points, detail_factor, triangle_areas, factors) <= budget:
         return hi
     for _ in range(40):
         mid = math.sqrt(lo * hi)
-        if estimate_points(scene, mid, min_points, detail_factor, triangle_areas) <= budget:
+        if estimate_points(scene, mid, min_points, detail_factor, triangle_areas, factors) <= budget:
             lo = mid
         else:
             hi = mid
     return lo
 
 
-def resolve_density(scene: Scene, settings: SamplingSettings, min_points: int) -> tuple[float, int]:
-    """(density, estimated points) for a scene, or ConfigError with one line naming the count and what to
-    pass when the estimate exceeds settings.max_points. Costs one pass over the triangles."""
+def resolve_density(scene: Scene, settings: SamplingSettings, min_points: int) -> Density:
+    """The density for a scene, or ConfigError with one line naming the count and what to pass when the
+    estimate exceeds settings.max_points. An explicit density is the same on every instance; the default
+    and a point budget keep the instances' factors. Costs one pass over the triangles."""
     settings.check()
     triangle_areas = scene_triangle_areas(scene)
+    factors = np.ones(len(scene.instances)) if settings.density is not None else instance_factors(scene)
     sides = np.array([2 if scene.meshes[i.mesh].double_sided else 1 for i in scene.instances])
-    total_area = float(sum(float(a.sum()) * s for a, s in zip(triangle_areas, sides)))
+    total_area = float(sum(float(a.sum()) * s * f for a, s, f in zip(triangle_areas, sides, factors)))
     if not (math.isfinite(total_area) and total_area > 0):
         raise ConfigError(f"scene {scene.name}: surface area is {total_area}, cannot place points")
     if settings.density is not None:
         density = float(settings.density)
     elif settings.points is not None:
-        density = budget_density(scene, settings.points, min_points, settings.factor(), triangle_areas, total_area)
+        density = budget_density(scene, settings.points, min_points, settings.factor(), triangle_areas, total_area,
+                                 factors)
     else:
         density = default_density(scene)
-    count = estimate_points(scene, density, min_points, settings.factor(), triangle_areas)
+    count = estimate_points(scene, density, min_points, settings.factor(), triangle_areas, factors)
     if count > settings.max_points:
-        fit = budget_density(scene, settings.max_points, min_points, settings.factor(), triangle_areas, total_area)
+        fit = budget_density(scene, settings.max_points, min_points, settings.factor(), triangle_areas, total_area,
+                             factors)
         raise ConfigError(
             f"scene {scene.name}: density {density:.4g} per unit^2 would generate about {count:,} points "
             f"(~{count * BYTES_PER_POINT / 2 ** 30:.1f} GiB), above the limit of {settings.max_points:,.0f}; "
             f"pass --density {fit:.4g} or --points {settings.max_points:.0f} (or raise --max-points)")
-    return density, count
+    return Density(density, factors, count)

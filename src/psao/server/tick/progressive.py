@@ -52,7 +52,7 @@ def wants_coarse_grid(scene: Scene, full: BakeSettings, settings: ProgressiveSet
 
     if settings.first_points <= 0:
         return False
-    _, estimate = resolve_density(scene, full.sampling(), full.min_points)
+    estimate = resolve_density(scene, full.sampling(), full.min_points).estimate
     return estimate >= settings.min_ratio * settings.first_points
 
 
