@@ -185,9 +185,9 @@ def main(argv: list[str] | None = None) -> int:
           f"three.js example, {args.scene} N={args.density:g} {w}x{h}: AO against RTAO ({args.spp} spp) and frame ms")
     print(f"wrote {out / 'bench_three.json'} and {out / 'bench_three.png'}")
     v = Verdicts("bench_three")
-    # Target (mine): PSAO's pass costs a three.js frame no more than three.js's GTAOPass does on the same frame.
+    # Target: PSAO's pass costs a three.js frame no more than three.js's GTAOPass does on the same frame.
     v.check("PSAO / GTAOPass frame ms", med["psao"] / med["gtao"], "<=", 1.0)
-    # Target (issue 38): PSAO's AO is closer to RTAO than three.js's own AO passes on the same frame.
+    # Target: PSAO's AO is closer to RTAO than three.js's own AO passes on the same frame.
     v.check("PSAO - GTAOPass PSNR dB", psnr["psao"] - psnr["gtao"], ">", 0.0)
     v.check("PSAO - SAOPass PSNR dB", psnr["psao"] - psnr["sao"], ">", 0.0)
     return v.exit_code()

@@ -73,6 +73,8 @@ from psao.server.tick.summary import TickSummary
 log = logging.getLogger("psao.serve")
 
 STATUS_HZ = 4.0  # Status messages a second at most, per connection, while a server starts
+
+
 class StaticTransforms:
     """Instance transforms of a server without animation: they change only by SceneEdit."""
 
@@ -87,6 +89,14 @@ class StaticTransforms:
             raise EditError(f"SceneEdit: no instance {instance} (the scene has {len(self.array)})")
         self.array = self.array.copy()
         self.array[instance] = transform
+
+
+def served_tick(tick: Tick | Callable | None, tick_hz: float) -> Tick | None:
+    """`tick` as a Tick (as_tick) told the service's rate, or None."""
+    tick = as_tick(tick)
+    if tick is not None:
+        tick.set_tick_rate(tick_hz)
+    return tick
 
 
 def scene_editor(tick: Tick | None, transforms) -> Callable[[int, np.ndarray], None] | None:
@@ -145,9 +155,7 @@ class Service:
         self.scene_blob = scene_blob
         self.grid = grid
         self.settings = settings
-        self.tick_fn = tick = as_tick(tick)
-        if tick is not None:
-            tick.set_tick_rate(settings.tick_hz)
+        self.tick_fn = tick = served_tick(tick, settings.tick_hz)
         if transforms is None and grid is not None:
             transforms = StaticTransforms(np.tile(np.eye(4, dtype=np.float32), (len(grid.instances), 1, 1)))
         self.transforms = transforms
@@ -287,9 +295,7 @@ class Service:
         still in its handshake with the previous scene is closed with GRID_REPLACED_CLOSE too."""
         if scene is None and self.grid is not None and len(grid.instances) != len(self.grid.instances):
             raise ConfigError(f"a replacement grid has {len(grid.instances)} instances, the served one {len(self.grid.instances)}")
-        tick = as_tick(tick)
-        if tick is not None:
-            tick.set_tick_rate(self.settings.tick_hz)
+        tick = served_tick(tick, self.settings.tick_hz)
         if transforms is None and tick is not None and tick.places_instances:
             transforms = tick.transforms
         self._replacement = (grid, tick, transforms, final, close_previous, scene)

@@ -141,9 +141,8 @@ class TraceBudget:
 
     def __init__(self, settings: BudgetSettings, rays_per_second: float = 2e6, overhead_s: float = 0.0,
                  tick_hz: float = DEFAULT_TICK_HZ):
-        settings.check_rate(tick_hz)
         self.settings = settings
-        self.tick_hz = tick_hz  # the service's tick rate (ServerTick.set_tick_rate)
+        self.set_tick_hz(tick_hz)
         self.rays_per_second = max(float(rays_per_second), 1e3)  # the rays' own rate, fixed costs apart
         self.overhead_s = max(float(overhead_s), 0.0)  # what a call costs besides its rays
         self.other_stages_s = 0.0  # animate + select + grid: the median of the recent ticks
@@ -153,6 +152,12 @@ class TraceBudget:
         self._others: deque[float] = deque(maxlen=settings.window)
         self._service: deque[float] = deque(maxlen=settings.window)
         self.pooled = 0  # ticks that left their trace to the next one (pool_traces) since the last trace call
+
+    def set_tick_hz(self, tick_hz: float) -> None:
+        """The tick rate the budget is a share of (ServerTick.set_tick_rate); ConfigError (check_rate) if it
+        is out of range or a set budget exceeds its period."""
+        self.settings.check_rate(tick_hz)
+        self.tick_hz = tick_hz
 
     def budget_s(self) -> float:
         s = self.settings

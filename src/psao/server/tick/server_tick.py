@@ -140,7 +140,7 @@ class ServerTick(Tick):
         `tick_hz`: the rate it is ticked at until its service tells it its own (set_tick_rate)."""
         self.settings = settings or TickSettings()
         self.settings.check()
-        if self.settings.budget is not None:
+        if self.settings.budget is not None:  # (before the tracer starts: its TraceBudget checks it again)
             self.settings.budget.check_rate(tick_hz)
         self.tick_hz = tick_hz
         self._closed = False
@@ -761,8 +761,7 @@ class ServerTick(Tick):
     def set_tick_rate(self, tick_hz: float) -> None:
         """The service ticks this at `tick_hz` (ConfigError if the trace budget does not fit its period)."""
         if self.budget is not None:
-            self.settings.budget.check_rate(tick_hz)
-            self.budget.tick_hz = tick_hz
+            self.budget.set_tick_hz(tick_hz)
         self.tick_hz = tick_hz
 
     def observe_service(self, seconds: float) -> None:
