@@ -13,7 +13,7 @@ from psao.scene import load_scene
 from psao.server.bake import bake_scene
 from psao.server.tick.budget import TICK_HZ_RANGE, BudgetSettings, RefineQueue, TraceBudget
 from psao.server.errors import ConfigError
-from psao.server.settings import BakeSettings, TickSettings
+from psao.server.settings import BakeSettings, ServeSettings, TickSettings
 from psao.server.tick.server_tick import ServerTick
 
 
@@ -381,12 +381,12 @@ def test_kept_history_blends_until_as_many_fresh_rays_have_come():
                                                          (32, 4, 4)])
 def test_serve_rounds_divide_the_target_rays(rays, tick_rays, round_rays):
     """Without --tick-rays a round is the default 8 rays or the largest divisor of --rays below it."""
-    import argparse
+    import psao
+    from psao.server.startup import budget
 
-    from psao.server.cli.serve import _budget
-
-    args = argparse.Namespace(tick_hz=60.0, tick_budget_ms=None, tick_rays=tick_rays, rays=rays)
-    b = _budget(args)
+    settings = psao.ServerSettings(serve=ServeSettings(port=0, tick_hz=60.0), bake=BakeSettings(rays=rays),
+                                   tick_rays=tick_rays)
+    b = budget(settings)
     assert b.round_rays == round_rays
     TickSettings(rays=rays, budget=b).check()
 

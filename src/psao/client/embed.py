@@ -81,11 +81,14 @@ class Client:
         """Say Bye to the server and stop; raises what ended the client early, if something did."""
         if self._thread is None:
             return
-        if self._loop is not None and self._client is not None:
-            self._loop.call_soon_threadsafe(self._client.stop)
-        elif self._loop is not None:  # still fetching the scene
-            for task in asyncio.all_tasks(self._loop):
-                self._loop.call_soon_threadsafe(task.cancel)
+        try:
+            if self._loop is not None and self._client is not None:
+                self._loop.call_soon_threadsafe(self._client.stop)
+            elif self._loop is not None:  # still fetching the scene
+                for task in asyncio.all_tasks(self._loop):
+                    self._loop.call_soon_threadsafe(task.cancel)
+        except RuntimeError:  # its loop is closed: the client ended already (the server went, or refused it)
+            pass
         self._thread.join()
         self._thread = None
         failed = [e for e in self._failed if not isinstance(e, asyncio.CancelledError)]
