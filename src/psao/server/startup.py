@@ -8,7 +8,7 @@ and hands the service what it has as it comes, while waiting clients are told th
     the full grid                 -> with the server tick (`animate`, `progressive`, `allow_edits` or
                                      `tick_at_rest`), or baked, or read from a grid file, with no tick
 
-Every choice here comes from psao.server.embed.ServerSettings.
+Every choice here comes from `s`, a psao.server.embed.ServerSettings (not imported: embed imports this module).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import logging
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
@@ -25,13 +25,10 @@ from psao.server.settings import TickSettings
 from psao.server.tick.budget import BudgetSettings, fitting_round_rays
 from psao.server.tick.progressive import ProgressiveSettings
 
-if TYPE_CHECKING:
-    from psao.server.embed import ServerSettings
-
 log = logging.getLogger("psao.serve")
 
 
-def budget(s: "ServerSettings") -> BudgetSettings:
+def budget(s) -> BudgetSettings:
     """The tick's time budget from the tick rate, `tick_budget_ms` and `tick_rays` (without it the default
     round, or the largest divisor of the bake's rays below it), checked against the bake's rays (ConfigError)."""
     round_rays = s.tick_rays if s.tick_rays is not None else fitting_round_rays(s.bake.rays)
@@ -41,13 +38,13 @@ def budget(s: "ServerSettings") -> BudgetSettings:
     return b
 
 
-def runs_tick(s: "ServerSettings") -> bool:
+def runs_tick(s) -> bool:
     """Whether the full grid is served with the server tick; else it stands still or the test hook edits it
     (`tick_at_rest` gives a baked grid a tick that holds the scene at rest and re-traces what a move moves)."""
     return s.animate or s.progressive or s.serve.allow_edits or (s.tick_at_rest and s.grid is None and not s.test_edits)
 
 
-def ticking(s: "ServerSettings", scene, report=None):
+def ticking(s, scene, report=None):
     """The server tick on a fresh bake of `scene` (it needs the bake's point sets): animating the scene with
     `animate`, refining a first few-ray grid with `progressive`, re-tracing what the application's moves and
     the clients' edits move. `report(fraction, text)`: the bake's progress."""
@@ -71,7 +68,7 @@ def ticking(s: "ServerSettings", scene, report=None):
     return tick if s.animate else AtRest(tick)
 
 
-def coarse_first(s: "ServerSettings", scene, report=None):
+def coarse_first(s, scene, report=None):
     """(coarse first grid, its tick or None) when the progressive start makes one
     (psao.server.tick.progressive), else None. With `animate` a server tick of its own poses and traces the
     movers on it from the first tick; without, the coarse grid stands still until the full one comes."""
@@ -98,7 +95,7 @@ def coarse_first(s: "ServerSettings", scene, report=None):
     return tick.grid, tick
 
 
-def grid_file(s: "ServerSettings"):
+def grid_file(s):
     """(grid, scene hash) of the `grid` file, read before the server listens (a bad file fails at once), or None."""
     from psao.server.grid import Grid
 
@@ -108,7 +105,7 @@ def grid_file(s: "ServerSettings"):
     return grid, scene_hash
 
 
-def still_grid(s: "ServerSettings", scene, from_file=None, report=None):
+def still_grid(s, scene, from_file=None, report=None):
     """The grid served with no tick: `from_file` (grid_file's) checked against the scene, else a bake's."""
     from psao.server.bake import bake_scene
 
@@ -144,7 +141,7 @@ def _warn_failed(what: str):
     return done
 
 
-def start_up(s: "ServerSettings", scene, from_file, on_served: Callable) -> Callable:
+def start_up(s, scene, from_file, on_served: Callable) -> Callable:
     """The start-up's work (progressive.Startup), on its own thread once the service listens: load `scene`
     (a Scene, or what load_scene takes) and hand its hash and blob over, serve a coarse first grid when the
     progressive start makes one, then the full grid; `on_served(scene, tick or None, grid)` hears the full
