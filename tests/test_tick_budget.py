@@ -541,6 +541,39 @@ def test_whole_traces_resume_after_an_edit_voids_the_static_hits(budgeted_tick):
         tick.close()
 
 
+def test_a_few_ray_bake_gives_the_tick_static_hits_it_keeps_as_it_traces(budgeted_tick):
+    """The progressive start's bake traces fewer rays than the tick: its static hits are for other ray sets,
+    so the tick starts with none known for its own and keeps them as it traces static points near the movers
+    whole (refill); whole traces from those hits follow, each exactly the full trace, and the kept hits equal
+    a trace of the static scene alone."""
+    tick = budgeted_tick("courtyard", 16, bake_rays=2, rays=8, round_rays=2, min_points=50, budget_ms=LONGEST_MS)
+    tick.settings.budget.exact_points = 300
+    tick.settings.budget.refill_points = 40
+    try:
+        hits = tick.static_hits
+        assert hits is not None and hits.fits(8, tick.settings.seed) and not hits.known.any()
+        assert hits.static[tick.static_ids].all() and not hits.static[tick.moving_point].any()
+        refilled = exact_after = 0
+        for t in np.arange(0.1, 1.3, 0.1):
+            plan = tick.prepare(t)
+            whole = plan.exact + plan.refilled
+            ids = plan.ids[len(plan.ids) - whole:] if whole else plan.ids[:0]
+            assert plan.refilled <= 40 and not tick.moving_point[ids].any()
+            refilled += plan.refilled
+            exact_after += plan.exact if refilled > plan.refilled else 0
+            tick.apply(plan)
+            if whole:
+                accumulated, full = estimates(tick, ids)
+                np.testing.assert_array_equal(accumulated, full)
+        assert refilled > 0 and exact_after > 0
+        kept = np.flatnonzero(tick.static_hits.known)
+        np.testing.assert_array_equal(tick.static_hits.of(kept),
+                                      tick.tracer.static_occluded(tick.world_pos[kept], tick.world_nrm[kept], kept,
+                                                                  tick.trace_settings))
+    finally:
+        tick.close()
+
+
 def test_whole_traces_take_their_share_of_the_budget_and_the_rounds_the_rest():
 
     b = TraceBudget(BudgetSettings(budget_ms=10.0, exact_points=100000, exact_share=0.5, exact_cost=0.5),

@@ -179,12 +179,7 @@ class ServerTick(Tick):
             self.last_frame = self._bake_frame = None
             self.stale[self.present()] = True
         self.budget: TraceBudget | None = None
-        # the bake's static hits, for ray sets like the tick's (the static scene's answers, for the whole traces
-        # of static points near movers; only a tracer whose visibility_parts takes them answers from them)
-        hits = bake.static_hits
-        self._static_hits: StaticHits | None = (
-            hits if hits is not None and hits.fits(self.settings.rays, self.settings.seed)
-            and self.tracer.supports_static_hits else None)
+        self._static_hits: StaticHits | None = self._take_static_hits(bake.static_hits)
         self._posed: Frame | None = None  # the frame the tick's tracer holds the moving part of
         self._priority = None  # select_kernels.PriorityKey, made at the first pick
         self._swept_empty = 0  # waiting-list entries looked at since the tick last found a point of its own
@@ -204,6 +199,19 @@ class ServerTick(Tick):
         self._transforms = (self.last_frame.transforms if self.last_frame else self.animator.transforms(0.0)).astype(np.float32)
 
     # ------------------------------------------------------------------ set-up
+    def _take_static_hits(self, hits: StaticHits | None) -> StaticHits | None:
+        """The static scene's answers the whole traces of static points near movers come from (only a tracer
+        whose visibility_parts takes them answers from them): the bake's, for ray sets like the tick's. A bake
+        that kept them for other ray sets (the progressive start's few-ray bake) gives none known: the tick
+        keeps them as it traces static points near movers whole (refill_points a tick, _whole_static), so
+        after the first moves around a place its points are re-traced at exact_cost. None where the bake kept
+        none (keep_static_hits off, no movers)."""
+        if hits is None or not self.tracer.supports_static_hits:
+            return None
+        if hits.fits(self.settings.rays, self.settings.seed):
+            return hits
+        return StaticHits(len(hits.known), self.settings.rays, self.settings.seed, self.static_ids)
+
     @property
     def static_hits(self) -> StaticHits | None:
         """The bake's static hits this tick answers whole traces from, or None where it traces them (the
