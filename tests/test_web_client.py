@@ -170,7 +170,7 @@ def mirrors_and_matches(browser, tmp_path, spec, serve_args, name, modes, prefix
             shot(page, tmp_path, f"{prefix}{name}_{mode}", canvas_only=True)
         log = page.evaluate("window.psao.digestLog")
         if name == "robots":
-            close_up = skinned_close_up(page, server, load_scene(spec), tmp_path, prefix)
+            close_up = skinned_close_up(page, load_scene(spec), tmp_path, prefix)
     finally:
         page.close()
         server.stop()
@@ -183,14 +183,12 @@ def mirrors_and_matches(browser, tmp_path, spec, serve_args, name, modes, prefix
         assert_skinned_drawn_posed_with_rest_targets(*close_up)
 
 
-def skinned_close_up(page, server: Server, scene, tmp_path: Path, prefix: str = "") -> tuple:
+def skinned_close_up(page, scene, tmp_path: Path, prefix: str = "") -> tuple:
     """The page's G-buffer of the skinned instance furthest from its rest pose at the server time of the
-    last Update, seen from its side with a depth range that holds only it. The server is stopped first, so
-    no Update moves the mirror between reading its time and transforms and drawing them. Returns that
-    mesh as the page received it, its posed vertices (numpy), the instance's index and transform, the
-    camera and the frame."""
-    server.stop()
-    wait_page(page, "window.psao.state === 'server gone'")
+    last Update, seen from its side with a depth range that holds only it. The page's server has stopped
+    (mirrors_and_matches), so no Update moves the mirror between reading its time and transforms and
+    drawing them. Returns that mesh as the page received it, its posed vertices (numpy), the instance's
+    index and transform, the camera and the frame."""
     t, transforms = page.evaluate("[window.psao.mirror.serverTime, Array.from(window.psao.mirror.transforms)]")
     assert t is not None, "no Update gave the page a server time to pose skinned meshes at"
     delivered = scene_from_file(SceneFile.parse(scene_file(scene).serialize()))

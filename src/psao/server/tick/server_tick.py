@@ -214,8 +214,9 @@ class ServerTick(Tick):
 
     @property
     def static_hits(self) -> StaticHits | None:
-        """The bake's static hits this tick answers whole traces from, or None where it traces them (the
-        bake kept none, its rays or seed differ from the tick's, or the tracer cannot take them)."""
+        """The static hits this tick answers whole traces from (_take_static_hits: the bake's, or its own
+        where the bake's are for other ray sets), or None where it traces them (the bake kept none, or the
+        tracer cannot take them)."""
         return self._static_hits
 
     def _init_points(self, bake: BakeResult) -> None:
